@@ -1,0 +1,34 @@
+# Every target does its own set-up on a fresh clone: `make train` and `make test` are all you need.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+STAMP  := $(VENV)/.installed
+
+.PHONY: install train test lint bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install --upgrade pip
+	# torch first, pinned: the CPU wheel. An unpinned torch pulls the CUDA build (several GB).
+	$(PIP) install torch==2.13.0
+	$(PIP) install -e ".[dev,robot]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+train: $(STAMP)
+	$(PY) train.py bimodal
+
+test: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q
+
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m mypy
+
+bench: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) benchmarks/dual_speed.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,113 @@
+"""Toy multimodal objectives for episodic (contextual) policy search.
+
+Spec sheet
+----------
+``TwoGaussians`` (the two-Gaussians task of the AISTATS 2012 HiREPS paper):
+    parameters  theta in R^2 (unbounded)
+    reward      R(theta) = sum_m h_m exp(-||theta - mu_m||^2 / (2 w^2))
+    constants   mu_1 = (-2, -2), mu_2 = (2, 2), h = (1, 1), w = 0.5       [choice]
+    optimum     R = h_m at theta = mu_m (the bumps are far apart: the cross term is e^-32)
+    no context, deterministic; a single Gaussian policy has to pick one mode, a hierarchical
+    policy can cover both.
+
+``ContextualTwoGaussians`` (contextual variant):
+    context     s ~ Uniform[-1, 1] (1-D)
+    parameters  theta in R^2
+    reward      R(s, theta) = sum_m h_m exp(-||theta - mu_m(s)||^2 / (2 w^2))
+    families    mu_1(s) = (-2, -2) + s (1, -1),  mu_2(s) = (2, 2) + s (1, -1)       [choice]
+    Both solution families are linear in s, so a linear-Gaussian option can track each one.
+
+Both objectives are pure batched torch functions; they raise on wrong shapes or non-finite
+inputs instead of returning NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+__all__ = ["ContextualTwoGaussians", "TwoGaussians", "two_gaussians_reward"]
+
+
+def two_gaussians_reward(theta: Tensor, modes: Tensor, heights: Tensor, width: float) -> Tensor:
+    """Sum of Gaussian bumps.
+
+    Args:
+        theta: (N, 2) parameters.
+        modes: (M, 2) or (N, M, 2) bump centres (per sample when contextual).
+        heights: (M,) bump heights.
+        width: bump standard deviation.
+
+    Returns:
+        (N,) rewards.
+    """
+    if theta.dim() != 2 or theta.shape[1] != modes.shape[-1]:
+        raise ValueError(f"theta must have shape (N, {modes.shape[-1]}), got {tuple(theta.shape)}")
+    if not bool(torch.isfinite(theta).all()):
+        raise ValueError("theta contains non-finite values")
+    d2 = ((theta.unsqueeze(-2) - modes) ** 2).sum(-1)  # (N, M)
+    return (heights * torch.exp(-0.5 * d2 / width**2)).sum(-1)
+
+
+@dataclass
+class TwoGaussians:
+    """Bimodal 2-D objective (see the module docstring); ``__call__(theta (N, 2)) -> (N,)``."""
+
+    modes: Tensor = field(default_factory=lambda: torch.tensor([[-2.0, -2.0], [2.0, 2.0]]))
+    heights: Tensor = field(default_factory=lambda: torch.tensor([1.0, 1.0]))
+    width: float = 0.5
+
+    param_dim: int = 2
+    context_dim: int = 0
+
+    def __call__(self, theta: Tensor) -> Tensor:
+        t = torch.as_tensor(theta)
+        return two_gaussians_reward(
+            t, self.modes.to(t.dtype), self.heights.to(t.dtype), self.width
+        )
+
+    @property
+    def best_return(self) -> float:
+        return float(self.heights.max())
+
+
+@dataclass
+class ContextualTwoGaussians:
+    """Contextual bimodal objective; ``__call__(context (N, 1), theta (N, 2)) -> (N,)``."""
+
+    offsets: Tensor = field(default_factory=lambda: torch.tensor([[-2.0, -2.0], [2.0, 2.0]]))
+    slope: Tensor = field(default_factory=lambda: torch.tensor([1.0, -1.0]))
+    heights: Tensor = field(default_factory=lambda: torch.tensor([1.0, 1.0]))
+    width: float = 0.5
+    context_low: float = -1.0
+    context_high: float = 1.0
+
+    param_dim: int = 2
+    context_dim: int = 1
+
+    def modes(self, context: Tensor) -> Tensor:
+        """context: (N, 1) -> bump centres (N, M, 2)."""
+        s = torch.as_tensor(context)
+        if s.dim() != 2 or s.shape[1] != 1:
+            raise ValueError(f"context must have shape (N, 1), got {tuple(s.shape)}")
+        return self.offsets.to(s.dtype) + s[:, :, None] * self.slope.to(s.dtype)
+
+    def sample_contexts(self, n: int, generator: torch.Generator | None = None) -> Tensor:
+        """(n, 1) contexts uniform in [context_low, context_high]."""
+        u = torch.rand(n, 1, generator=generator, dtype=torch.float64)
+        return self.context_low + (self.context_high - self.context_low) * u
+
+    def __call__(self, context: Tensor, theta: Tensor) -> Tensor:
+        t = torch.as_tensor(theta)
+        s = torch.as_tensor(context, dtype=t.dtype)
+        if not bool(torch.isfinite(s).all()):
+            raise ValueError("context contains non-finite values")
+        if s.shape[0] != t.shape[0]:
+            raise ValueError(f"got {s.shape[0]} contexts for {t.shape[0]} parameter vectors")
+        return two_gaussians_reward(t, self.modes(s), self.heights.to(t.dtype), self.width)
+
+    @property
+    def best_return(self) -> float:
+        return float(self.heights.max())

@@ -1,0 +1,17 @@
+"""hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch."""
+
+from hireps_torch.algorithms import REPS, EpisodicHiREPS
+from hireps_torch.dual import DegenerateWeightsWarning, DualSolution, solve_episodic_dual
+from hireps_torch.policies import HierarchicalPolicy, LinearGaussian, SoftmaxGating
+
+__version__ = "0.1.0"
+__all__ = [
+    "REPS",
+    "DegenerateWeightsWarning",
+    "DualSolution",
+    "EpisodicHiREPS",
+    "HierarchicalPolicy",
+    "LinearGaussian",
+    "SoftmaxGating",
+    "solve_episodic_dual",
+]

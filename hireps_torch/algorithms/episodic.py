@@ -1,0 +1,284 @@
+"""Episodic / contextual HiREPS, and REPS as its one-option special case.
+
+Each iteration (Daniel, Neumann & Peters, "Hierarchical Relative Entropy Policy Search"):
+
+1. ``ask``: draw N parameter vectors theta_i ~ pi(theta | s_i) = sum_o pi(o|s_i) pi(theta|s_i,o)
+   for the contexts s_i (one episode each); the caller runs them and measures R_i.
+2. ``tell``: responsibilities of the sampling policy p~_io = p(o | s_i, theta_i);
+   kappa = kappa_rel * mean_i H[p~_i.] (the entropy bound, relative to the current mean
+   option entropy); solve the dual (:func:`hireps_torch.dual.solve_episodic_dual`)
+
+       P_io ∝ p~_io^(1 + xi/eta) exp((R_i - v^T phi(s_i)) / eta)
+
+   with KL(P || q p~) = epsilon, E_P[-log p~] <= kappa and the context features phi matched;
+3. weighted maximum-likelihood refit of the hierarchical policy with the weights P
+   (:meth:`HierarchicalPolicy.weighted_fit`), then pruning of options whose prior mass fell
+   below ``prune_threshold``;
+4. diagnostics: eta, xi, kappa, realised KL and cross-entropy, effective sample size, entropies.
+
+REPS (Peters et al. 2010) is the same loop with one option and no entropy bound: :class:`REPS`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from hireps_torch.dual import solve_episodic_dual
+from hireps_torch.features import QuadraticFeatures
+from hireps_torch.policies import HierarchicalPolicy
+
+__all__ = ["REPS", "EpisodicHiREPS"]
+
+
+class EpisodicHiREPS:
+    """Episodic (contextual) HiREPS with an ask/tell interface.
+
+    Example (no context)::
+
+        algo = EpisodicHiREPS.create(param_dim=2, n_options=10, init_std=2.0, seed=0)
+        for _ in range(50):
+            theta = algo.ask(50)                    # (50, 2)
+            diagnostics = algo.tell(None, theta, objective(theta))
+
+    Args:
+        policy: the hierarchical policy to improve (updated in place).
+        epsilon: KL bound per iteration, > 0.
+        kappa_rel: entropy bound as a fraction of the current mean option entropy of the
+            responsibilities (0.8-0.9 in the paper); None disables the bound (xi = 0).
+        context_features: features whose expectation is kept by the dual; by default the
+            squared expansion of the context (first and second moments).
+        prune_threshold: options whose prior mass falls below this are pruned.
+        seed: seed of the sampling generator (same seed, same run).
+    """
+
+    def __init__(
+        self,
+        policy: HierarchicalPolicy,
+        *,
+        epsilon: float = 1.0,
+        kappa_rel: float | None = 0.9,
+        context_dim: int = 0,
+        context_features: nn.Module | None = None,
+        prune_threshold: float = 1e-4,
+        seed: int | None = None,
+    ) -> None:
+        if not (math.isfinite(epsilon) and epsilon > 0):
+            raise ValueError(f"epsilon must be finite and > 0, got {epsilon}")
+        if kappa_rel is not None and not (math.isfinite(kappa_rel) and kappa_rel >= 0):
+            raise ValueError(f"kappa_rel must be finite and >= 0 (or None), got {kappa_rel}")
+        if context_dim < 0:
+            raise ValueError(f"context_dim must be >= 0, got {context_dim}")
+        self.policy = policy
+        self.epsilon = float(epsilon)
+        self.kappa_rel = None if kappa_rel is None else float(kappa_rel)
+        self.context_dim = context_dim
+        self.context_features = context_features or (
+            QuadraticFeatures(context_dim) if context_dim > 0 else None
+        )
+        self.prune_threshold = float(prune_threshold)
+        self.generator = torch.Generator()
+        self.generator.manual_seed(0 if seed is None else int(seed))
+        self.iteration = 0
+
+    @classmethod
+    def create(
+        cls,
+        param_dim: int,
+        *,
+        context_dim: int = 0,
+        n_options: int = 5,
+        init_mean: Tensor | None = None,
+        init_std: float | Tensor = 1.0,
+        spread: float = 1.0,
+        epsilon: float = 1.0,
+        kappa_rel: float | None = 0.9,
+        gating_features: nn.Module | None = None,
+        policy_features: nn.Module | None = None,
+        min_variance: float = 1e-8,
+        seed: int | None = None,
+    ) -> EpisodicHiREPS:
+        """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
+
+        The gating sees the squared expansion of the context by default, the options the
+        context itself (a linear policy). Option means start at
+        ``init_mean + spread * init_std * randn`` (see :meth:`HierarchicalPolicy.create`).
+        """
+        gen = torch.Generator()
+        gen.manual_seed(0 if seed is None else int(seed))
+        if gating_features is None and context_dim > 0:
+            gating_features = QuadraticFeatures(context_dim)
+        policy = HierarchicalPolicy.create(
+            n_options, context_dim, param_dim, init_mean=init_mean, init_std=init_std,
+            spread=spread, gating_features=gating_features, policy_features=policy_features,
+            min_variance=min_variance, generator=gen,
+        )
+        return cls(
+            policy, epsilon=epsilon, kappa_rel=kappa_rel, context_dim=context_dim,
+            seed=None if seed is None else int(seed) + 1,
+        )
+
+    # ---- input handling ---------------------------------------------------------------------
+    def _contexts(self, contexts: Tensor | int | None, n: int | None = None) -> Tensor:
+        if contexts is None or isinstance(contexts, int):
+            if self.context_dim > 0:
+                raise ValueError(
+                    f"this algorithm is contextual (context_dim = {self.context_dim}): pass a "
+                    f"(N, {self.context_dim}) tensor of contexts, got {contexts!r}"
+                )
+            count = contexts if isinstance(contexts, int) else n
+            if count is None or count < 1:
+                raise ValueError(f"the number of samples must be >= 1, got {count}")
+            return torch.zeros(count, 0, dtype=torch.float64)
+        c = torch.as_tensor(contexts, dtype=torch.float64)
+        if c.dim() == 1 and self.context_dim == 1:
+            c = c[:, None]
+        if c.dim() != 2 or c.shape[1] != self.context_dim:
+            raise ValueError(
+                f"contexts must have shape (N, {self.context_dim}), got {tuple(c.shape)}"
+            )
+        if not bool(torch.isfinite(c).all()):
+            raise ValueError("contexts contain non-finite values")
+        return c
+
+    # ---- ask / tell -------------------------------------------------------------------------
+    @torch.no_grad()
+    def ask(self, contexts: Tensor | int | None) -> Tensor:
+        """Sample one parameter vector per context.
+
+        Args:
+            contexts: (N, S) contexts, or the number of samples N when there is no context.
+
+        Returns:
+            theta: (N, D) float64.
+        """
+        c = self._contexts(contexts)
+        theta, _ = self.policy.sample(c, self.generator)
+        return theta
+
+    @torch.no_grad()
+    def act(self, contexts: Tensor | int | None) -> Tensor:
+        """Noise-free policy (mean of the most probable option): (N, D)."""
+        return self.policy.mean_action(self._contexts(contexts))[0]
+
+    @torch.no_grad()
+    def tell(self, contexts: Tensor | int | None, params: Tensor, returns: Tensor) -> dict[str, Any]:
+        """Update the policy from evaluated samples drawn from the current policy.
+
+        Args:
+            contexts: (N, S) contexts of the samples (None or N without context).
+            params: (N, D) parameters returned by :meth:`ask`.
+            returns: (N,) their returns (higher is better).
+
+        Returns:
+            Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
+            option_entropy`` (mean responsibility entropy before the update),
+            ``policy_entropy`` (weighted mean entropy of the options after the update),
+            ``n_active_options, pruned, mean_return, max_return, dual_converged,
+            dual_iterations, feature_error, iteration``.
+        """
+        R = torch.as_tensor(returns, dtype=torch.float64)
+        theta = torch.as_tensor(params, dtype=torch.float64)
+        if R.dim() != 1:
+            raise ValueError(f"returns must have shape (N,), got {tuple(R.shape)}")
+        N = R.shape[0]
+        if theta.shape != (N, self.policy.action_dim):
+            raise ValueError(
+                f"params must have shape ({N}, {self.policy.action_dim}) to match returns "
+                f"{tuple(R.shape)}, got {tuple(theta.shape)}"
+            )
+        if not bool(torch.isfinite(theta).all()):
+            raise ValueError("params contain non-finite values")
+        c = self._contexts(contexts, n=N)
+        if c.shape[0] != N:
+            raise ValueError(f"got {c.shape[0]} contexts for {N} returns")
+
+        log_resp = self.policy.log_responsibilities(c, theta)
+        active = self.policy.active
+        n_active = int(active.sum())
+        lr_act = log_resp[:, active]
+        p = lr_act.exp()
+        option_entropy = float(-(p * lr_act).sum(-1).mean()) if n_active > 1 else 0.0
+        kappa = None
+        if self.kappa_rel is not None and n_active > 1:
+            kappa = self.kappa_rel * option_entropy
+        phi = self.context_features(c) if self.context_features is not None else None
+
+        sol = solve_episodic_dual(
+            R, epsilon=self.epsilon, log_responsibilities=lr_act if n_active > 1 else None,
+            context_features=phi, kappa=kappa,
+        )
+        weights = torch.zeros(N, self.policy.n_options, dtype=torch.float64)
+        weights[:, active] = sol.weights
+        self.policy.weighted_fit(c, theta, weights)
+        pruned = self.policy.prune(c, self.prune_threshold) if self.policy.n_options > 1 else []
+        self.iteration += 1
+
+        prior = self.policy.gating.probs(self.policy.gating_features(c)).mean(0)
+        ent = torch.stack([o.entropy() for o in self.policy.options])
+        policy_entropy = float((prior * ent).sum())
+        return {
+            "iteration": self.iteration,
+            "eta": sol.eta,
+            "xi": sol.xi,
+            "kappa": math.nan if kappa is None else kappa,
+            "kl": sol.kl,
+            "cross_entropy": sol.cross_entropy,
+            "effective_sample_size": sol.effective_sample_size,
+            "option_entropy": option_entropy,
+            "policy_entropy": policy_entropy,
+            "n_active_options": int(self.policy.active.sum()),
+            "pruned": pruned,
+            "mean_return": float(R.mean()),
+            "max_return": float(R.max()),
+            "dual_converged": sol.converged,
+            "dual_iterations": sol.iterations,
+            "feature_error": sol.feature_error,
+        }
+
+    # ---- checkpointing ----------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the run bit-for-bit."""
+        return {
+            "policy": self.policy.state_dict(),
+            "generator": self.generator.get_state(),
+            "iteration": self.iteration,
+            "epsilon": self.epsilon,
+            "kappa_rel": self.kappa_rel,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.generator.set_state(state["generator"])
+        self.iteration = int(state["iteration"])
+        self.epsilon = float(state["epsilon"])
+        self.kappa_rel = state["kappa_rel"]
+
+
+class REPS(EpisodicHiREPS):
+    """Episodic / contextual REPS: one linear-Gaussian option and no entropy bound."""
+
+    @classmethod
+    def create(  # type: ignore[override]
+        cls,
+        param_dim: int,
+        *,
+        context_dim: int = 0,
+        init_mean: Tensor | None = None,
+        init_std: float | Tensor = 1.0,
+        epsilon: float = 1.0,
+        policy_features: nn.Module | None = None,
+        min_variance: float = 1e-8,
+        seed: int | None = None,
+    ) -> REPS:
+        """Build REPS with a single linear-Gaussian policy (see :meth:`EpisodicHiREPS.create`)."""
+        algo = super().create(
+            param_dim, context_dim=context_dim, n_options=1, init_mean=init_mean,
+            init_std=init_std, epsilon=epsilon, kappa_rel=None, policy_features=policy_features,
+            min_variance=min_variance, seed=seed,
+        )
+        assert isinstance(algo, REPS)
+        return algo

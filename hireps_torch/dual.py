@@ -1,0 +1,536 @@
+"""The REPS / HiREPS duals as pure functions, solved in float64 with ``torch.optim.LBFGS``.
+
+Episodic / contextual HiREPS (Daniel, Neumann, Peters). Samples i = 1..N carry a return R_i,
+context features phi_i and, for a hierarchical policy with options o = 1..O, the old policy's
+responsibilities p~_io = pi_old(o | s_i, theta_i). The new sample distribution
+
+    P_io  ∝  p~_io^(1 + xi/eta) · exp((R_i - v^T phi_i) / eta)
+
+maximises the expected return subject to
+
+    KL(P || q p~) <= epsilon                      (q = uniform over samples)
+    E_P[-log p~(o | s, theta)] <= kappa           (option cross-entropy: options separate)
+    sum_io P_io phi_i = phi_hat                   (context distribution kept)
+
+and (eta > 0, xi >= 0, v) minimise the dual
+
+    g(eta, xi, v) = eta epsilon + xi kappa + v^T phi_hat
+                    + eta log[(1/N) sum_i sum_o exp(A_io / eta)],
+    A_io = R_i - v^T phi_i + (eta + xi) log p~_io.
+
+One option and xi = 0 give contextual REPS; no features give plain episodic REPS.
+
+All duals of this package share one shape: K blocks (decision steps), each with an
+"advantage" linear in one stacked value vector v,
+
+    delta_k = R_k + D_k v,    g = c^T v + sum_k [eta_k eps_k + xi_k kappa_k
+                                  + eta_k log((1/N) sum_io exp(A_kio / eta_k))],
+
+so the episodic (K = 1, D = -(phi - phi_hat)), infinite-horizon (D = gamma phi' - phi,
+c = (1 - gamma) phi_hat_0) and time-indexed (block-chained D) duals reuse one solver,
+:func:`solve_reps_dual`.
+
+Numerics: everything in float64 whatever the input dtype; returns are centred per block and
+divided by one common scale and feature columns standardised before solving (the weights are
+invariant to both; eta, xi and v are mapped back to the caller's units); eta and xi live in log
+space; log-sum-exp subtracts the max. The entropy bound is handled by its KKT conditions: the
+dual is first solved with xi = 0, and xi is freed (as exp(b) > 0) only for blocks whose
+cross-entropy then exceeds kappa, which makes the bound hold with equality exactly when it is
+active.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "DegenerateWeightsWarning",
+    "DualSolution",
+    "RepsDualSolution",
+    "solve_episodic_dual",
+    "solve_reps_dual",
+]
+
+_LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it is exactly 0
+_LOG_ETA_MIN = -30.0  # eta >= e^-30 (standardised units): past this the weights are one-hot
+_LOG_ETA_MAX = 30.0
+
+
+class DegenerateWeightsWarning(RuntimeWarning):
+    """The weights collapsed (or will collapse) onto very few samples."""
+
+
+@dataclass(frozen=True)
+class RepsDualSolution:
+    """Solution of the generic K-block dual (:func:`solve_reps_dual`).
+
+    Attributes:
+        eta: (K,) temperatures, in the caller's return units.
+        xi: (K,) entropy-bound multipliers (0 where the bound is inactive or absent).
+        v: (P,) value-function / feature multipliers in the caller's feature units.
+        weights: (K, N, O) new sample-option distribution per block, each block sums to 1.
+        kl: (K,) realised KL(P_k || q p~_k).
+        cross_entropy: (K,) realised E_P[-log p~].
+        effective_sample_size: (K,) 1 / sum_i w_ki^2 with w_ki = sum_o P_kio.
+        feature_error: max abs violation of the feature constraints, caller's units.
+        dual_value: value of the dual at the optimum, caller's units.
+        converged: whether LBFGS met its gradient tolerance.
+        iterations: LBFGS iterations over all phases.
+    """
+
+    eta: Tensor
+    xi: Tensor
+    v: Tensor
+    weights: Tensor
+    kl: Tensor
+    cross_entropy: Tensor
+    effective_sample_size: Tensor
+    feature_error: float
+    dual_value: float
+    converged: bool
+    iterations: int
+
+
+@dataclass(frozen=True)
+class DualSolution:
+    """Solution of the episodic HiREPS dual (:func:`solve_episodic_dual`).
+
+    Attributes:
+        eta: temperature of the KL bound (inf when the returns carry no information).
+        xi: multiplier of the entropy bound; 0 when inactive or when no bound was given.
+        v: (F,) context-feature multipliers (empty without context features).
+        weights: (N, O) new distribution over samples and options; sums to 1.
+        sample_weights: (N,) weights.sum(-1), the weights for a flat policy.
+        kl: realised KL(P || q p~); equals epsilon when the bound is active.
+        cross_entropy: realised E_P[-log p~(o|s,theta)]; equals kappa when that bound is active.
+        effective_sample_size: 1 / sum_i sample_weights_i^2, between 1 and N.
+        feature_error: max |sum_i w_i phi_i - phi_hat| (0 without context features).
+        dual_value: dual objective at the optimum.
+        converged: whether the solver met its gradient tolerance.
+        iterations: LBFGS iterations.
+    """
+
+    eta: float
+    xi: float
+    v: Tensor
+    weights: Tensor
+    sample_weights: Tensor
+    kl: float
+    cross_entropy: float
+    effective_sample_size: float
+    feature_error: float
+    dual_value: float
+    converged: bool
+    iterations: int
+
+
+# --------------------------------------------------------------------------------------------
+# input checks
+
+
+def _as_f64(name: str, x: Tensor | object) -> Tensor:
+    if not isinstance(x, Tensor):
+        try:
+            x = torch.as_tensor(x)
+        except Exception as exc:  # pragma: no cover - message only
+            raise TypeError(f"{name} must be a tensor, got {type(x).__name__}") from exc
+    return x.detach().to(torch.float64)
+
+
+def _check_finite(name: str, x: Tensor) -> None:
+    bad = ~torch.isfinite(x)
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(
+            f"{name} contains {int(bad.sum())} non-finite value(s) (first at index {idx}: "
+            f"{x[idx].item()}); remove or fix those samples before the update"
+        )
+
+
+def _check_positive(name: str, value: Tensor) -> None:
+    if not bool(torch.isfinite(value).all()) or bool((value <= 0).any()):
+        raise ValueError(f"{name} must be finite and > 0, got {value.tolist()}")
+
+
+def _check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tensor:
+    if bool(torch.isnan(log_resp).any()) or bool((log_resp == math.inf).any()):
+        raise ValueError(f"{name} contains NaN or +inf")
+    if bool((log_resp > 1e-6).any()):
+        raise ValueError(f"{name} must be log-probabilities (<= 0), max is {log_resp.max().item()}")
+    norm = torch.logsumexp(log_resp, dim=-1)
+    worst = (norm.abs()).max().item()
+    if worst > 1e-4:
+        raise ValueError(
+            f"{name} must be normalised over options (logsumexp over the last dim = 0); "
+            f"worst row is off by {worst:.3g}"
+        )
+    return log_resp.clamp_min(_LOG_RESP_FLOOR)
+
+
+# --------------------------------------------------------------------------------------------
+# the generic K-block dual
+
+
+def _dual_terms(
+    log_eta: Tensor,
+    log_xi: Tensor,
+    xi_on: Tensor,
+    v: Tensor,
+    R: Tensor,
+    D: Tensor | None,
+    c: Tensor | None,
+    log_resp: Tensor,
+    eps: Tensor,
+    kappa: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Dual value and the (K, N, O) exponents A / eta, written with autograd-able torch ops.
+
+    This is the reference form of the dual (used by the tests' finite-difference checks);
+    the solver uses :func:`_dual_and_grad`, the same function with its analytic gradient.
+    """
+    eta = log_eta.clamp(_LOG_ETA_MIN, _LOG_ETA_MAX).exp()  # (K,)
+    xi = torch.where(xi_on, log_xi.clamp(max=_LOG_ETA_MAX).exp(), torch.zeros_like(log_xi))
+    delta = R if D is None else R + D @ v  # (K, N)
+    a = (delta.unsqueeze(-1) + (eta + xi)[:, None, None] * log_resp) / eta[:, None, None]
+    K, N, O = a.shape
+    lse = torch.logsumexp(a.reshape(K, N * O), dim=1) - math.log(N)  # (K,)
+    g = (eta * eps + xi * kappa + eta * lse).sum()
+    if c is not None:
+        g = g + c @ v
+    return g, a
+
+
+class _Problem:
+    """Standardised K-block dual with its analytic gradient over x = [log eta, log xi, v].
+
+    Gradient (P = softmax of A / eta over (i, o) per block, w = P summed over options):
+        dg/d eta_k = eps_k - KL_k = eps_k + lse_k - sum_io P (delta + xi log p~) / eta
+        dg/d xi_k  = kappa_k - CE_k = kappa_k + sum_io P log p~
+        dg/d v     = c + sum_k w_k^T D_k
+    chained to log eta and log xi (zero where eta is clamped or xi is switched off).
+    """
+
+    def __init__(self, R, D, c, log_resp, eps, kappa):  # type: ignore[no-untyped-def]
+        self.R, self.D, self.c, self.lr, self.eps, self.kappa = R, D, c, log_resp, eps, kappa
+        self.K, self.N, self.O = log_resp.shape
+        self.P = 0 if D is None else D.shape[-1]
+        self.multi = self.O > 1
+        self.log_n = math.log(self.N)
+        self.xi_on = torch.zeros(self.K, dtype=torch.bool)
+
+    def unpack(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        K = self.K
+        a = x[:K]
+        eta = a.clamp(_LOG_ETA_MIN, _LOG_ETA_MAX).exp()
+        xi = torch.where(self.xi_on, x[K : 2 * K].clamp(max=_LOG_ETA_MAX).exp(), 0.0)
+        return a, eta, xi, x[2 * K :]
+
+    def weights(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(P (K, N, O), lse (K,), delta (K, N)) at x."""
+        _, eta, xi, v = self.unpack(x)
+        delta = self.R if self.D is None else self.R + self.D @ v
+        if self.multi:
+            z = (delta.unsqueeze(-1) + (eta + xi)[:, None, None] * self.lr) / eta[:, None, None]
+        else:
+            z = (delta / eta[:, None]).unsqueeze(-1)
+        flat = z.reshape(self.K, -1)
+        m = flat.max(dim=1, keepdim=True).values
+        e = (flat - m).exp_()
+        s = e.sum(dim=1, keepdim=True)
+        lse = (m + s.log()).squeeze(1) - self.log_n
+        return (e / s).reshape(z.shape), lse, delta
+
+    def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        a, eta, xi, v = self.unpack(x)
+        P, lse, delta = self.weights(x)
+        w = P.sum(-1) if self.multi else P.squeeze(-1)  # (K, N)
+        pd = (w * delta).sum(1)  # (K,)
+        g = (eta * self.eps + eta * lse).sum()
+        grad = torch.zeros_like(x)
+        if self.multi:
+            plr = (P * self.lr).sum((1, 2))  # -CE, (K,)
+            g = g + (xi * self.kappa).sum()
+            d_eta = self.eps + lse - (pd + xi * plr) / eta
+            grad[self.K : 2 * self.K] = torch.where(self.xi_on, xi * (self.kappa + plr), 0.0)
+        else:
+            d_eta = self.eps + lse - pd / eta
+        inside = (a > _LOG_ETA_MIN) & (a < _LOG_ETA_MAX)
+        grad[: self.K] = torch.where(inside, eta * d_eta, 0.0)
+        if self.P:
+            assert self.D is not None
+            gv = torch.einsum("kn,knp->p", w, self.D)
+            if self.c is not None:
+                g = g + self.c @ v
+                gv = gv + self.c
+            grad[2 * self.K :] = gv
+        return g, grad
+
+
+def solve_reps_dual(
+    R: Tensor,
+    log_resp: Tensor,
+    epsilon: Tensor,
+    *,
+    D: Tensor | None = None,
+    c: Tensor | None = None,
+    kappa: Tensor | None = None,
+    max_iter: int = 300,
+    tolerance_grad: float = 1e-9,
+    converged_grad: float = 1e-6,
+) -> RepsDualSolution:
+    """Solve the K-block HiREPS dual (see the module docstring).
+
+    Args:
+        R: (K, N) returns / rewards per block.
+        log_resp: (K, N, O) log responsibilities of the old policy (rows normalised).
+        epsilon: (K,) KL bounds, > 0.
+        D: (K, N, P) linear map from the stacked value vector v to the advantage offsets, or
+            None when there are no features.
+        c: (P,) linear term of the dual in v, or None (zero).
+        kappa: (K,) absolute bounds on the option cross-entropy, or None for no bound.
+        max_iter: LBFGS iterations per phase.
+        tolerance_grad: LBFGS stops when every standardised gradient entry is below this.
+        converged_grad: the solve counts as converged when every standardised gradient entry
+            (constraint residual) is below this at the end.
+
+    Returns:
+        A :class:`RepsDualSolution` in the caller's units.
+    """
+    R = _as_f64("R", R)
+    K, N = R.shape
+    O = log_resp.shape[-1]
+    log_resp = log_resp.to(torch.float64)
+
+    # Standardise: centre returns per block (weights invariant), one common scale over blocks
+    # (the blocks are coupled through v, so they must share it).
+    Rc = R - R.mean(dim=1, keepdim=True)
+    scale = float(Rc.std()) if Rc.numel() > 1 else 1.0
+    informative = scale > 1e-12 * max(1.0, float(R.abs().max()))
+    eps = epsilon.to(torch.float64)
+    if not informative:
+        # No return information: every distribution is optimal; keep the old one.
+        w = log_resp.exp() / N
+        w = w / w.sum(dim=(1, 2), keepdim=True)
+        return _finish(
+            w, log_resp, torch.full((K,), math.inf, dtype=torch.float64),
+            torch.zeros(K, dtype=torch.float64),
+            torch.zeros(0 if D is None else D.shape[-1], dtype=torch.float64),
+            D, c, math.nan, True, 0,
+        )
+    Rs = Rc / scale
+    col = None
+    Ds = cs = None
+    if D is not None and D.shape[-1] > 0:
+        D = D.to(torch.float64)
+        col = D.reshape(K * N, -1).std(dim=0)
+        col = torch.where(col > 1e-12, col, torch.ones_like(col))
+        Ds = D / col
+        cs = None if c is None else c.to(torch.float64) / col
+    kap = torch.zeros(K, dtype=torch.float64) if kappa is None else kappa.to(torch.float64)
+    prob = _Problem(Rs, Ds, cs, log_resp, eps, kap)
+
+    # Start near the small-epsilon solution: there w ≈ (1 + delta / eta) / N, so the feature
+    # constraint makes v the least-squares fit of -R on D (when c = 0), and KL ≈ Var(delta) /
+    # (2 eta^2) gives eta. Good starts save LBFGS iterations, which dominate the cost.
+    x = torch.zeros(2 * K + prob.P, dtype=torch.float64)
+    resid = Rs
+    if Ds is not None and cs is None:
+        A = Ds.reshape(K * N, -1)
+        v0 = -torch.linalg.lstsq(A, Rs.reshape(-1, 1), driver="gelsd").solution.squeeze(1)
+        x[2 * K :] = v0
+        resid = Rs + Ds @ v0
+    spread = resid.std(dim=1).clamp_min(1e-3)
+    x[:K] = torch.log(spread) - 0.5 * torch.log(2.0 * eps.clamp_min(1e-12))
+    x[K : 2 * K] = math.log(0.1)
+    total_iter = 0
+
+    def run_phase() -> bool:
+        nonlocal total_iter
+        opt = torch.optim.LBFGS(
+            [x], lr=1.0, max_iter=max_iter, tolerance_grad=tolerance_grad,
+            tolerance_change=1e-15, history_size=20, line_search_fn="strong_wolfe",
+        )
+
+        def closure() -> Tensor:
+            g, grad = prob.value_and_grad(x)
+            x.grad = grad
+            return g
+
+        opt.step(closure)
+        total_iter += int(opt.state[x].get("n_iter", 0))
+        _, grad = prob.value_and_grad(x)
+        return float(grad.abs().max()) <= converged_grad
+
+    if kappa is not None and O > 1:
+        # KKT for xi >= 0: solve with xi free; where xi ends ~0 with the bound slack,
+        # switch it off and re-solve (then xi = 0 exactly and the bound holds as inequality).
+        prob.xi_on[:] = True
+        converged = run_phase()
+        with torch.no_grad():
+            P, _, _ = prob.weights(x)
+            ce = -(P * log_resp).sum(dim=(1, 2))
+            xi_now = x[K : 2 * K].exp()
+        slack = (xi_now < 1e-6) & (ce <= kap + 1e-9)
+        if bool(slack.any()):
+            prob.xi_on &= ~slack
+            converged = run_phase()
+    else:
+        converged = run_phase()
+
+    with torch.no_grad():
+        g, _ = prob.value_and_grad(x)
+        w, _, _ = prob.weights(x)
+        _, eta_s, xi_s, v_s = prob.unpack(x)
+        eta = eta_s * scale
+        xi = xi_s * scale
+        v_out = v_s * scale / col if col is not None else v_s.clone()
+        # every term scales with the return scale; the centring adds back the block means
+        dual_value = float(g) * scale + float(R.mean(dim=1).sum())
+    return _finish(w, log_resp, eta, xi, v_out, D, c, dual_value, converged, total_iter)
+
+
+def _finish(
+    w: Tensor,
+    log_resp: Tensor,
+    eta: Tensor,
+    xi: Tensor,
+    v: Tensor,
+    D: Tensor | None,
+    c: Tensor | None,
+    dual_value: float,
+    converged: bool,
+    iterations: int,
+) -> RepsDualSolution:
+    K, N, O = w.shape
+    logq = log_resp - math.log(N)
+    logw = torch.log(w.clamp_min(1e-300))
+    kl = torch.where(w > 0, w * (logw - logq), torch.zeros_like(w)).sum(dim=(1, 2))
+    ce = -(w * log_resp).sum(dim=(1, 2))
+    ws = w.sum(-1)  # (K, N)
+    ess = 1.0 / (ws**2).sum(dim=1)
+    feat_err = 0.0
+    if D is not None and D.shape[-1] > 0:
+        grad_v = torch.einsum("kn,knp->p", ws, D.to(torch.float64))
+        if c is not None:
+            grad_v = grad_v + c.to(torch.float64)
+        feat_err = float(grad_v.abs().max())
+    return RepsDualSolution(
+        eta=eta, xi=xi, v=v, weights=w, kl=kl, cross_entropy=ce,
+        effective_sample_size=ess, feature_error=feat_err, dual_value=dual_value,
+        converged=converged, iterations=iterations,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# episodic / contextual HiREPS
+
+
+def solve_episodic_dual(
+    returns: Tensor,
+    *,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    context_features: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+) -> DualSolution:
+    """Solve the episodic / contextual HiREPS dual and return the new sample weights.
+
+    Args:
+        returns: (N,) return of each sample, N >= 2.
+        epsilon: KL bound, > 0. Values >= log N let the weights collapse onto one sample
+            (a :class:`DegenerateWeightsWarning` is issued).
+        log_responsibilities: (N, O) log p~(o | s_i, theta_i) of the old policy, rows
+            normalised over options; None means one option (REPS).
+        context_features: (N, F) context features phi(s_i) whose mean must be kept; None means
+            no context (plain episodic). A constant column is harmless (its multiplier is 0).
+        kappa: absolute bound on the expected option cross-entropy E_P[-log p~], >= 0;
+            None means no entropy bound (xi = 0).
+        max_iter: LBFGS iterations per phase.
+
+    Returns:
+        :class:`DualSolution` with weights (N, O) summing to 1.
+
+    Raises:
+        ValueError: on non-finite returns or features, shape mismatches, N < 2, epsilon <= 0 or
+            a negative kappa; each message names the offending value.
+    """
+    R = _as_f64("returns", returns)
+    if R.dim() != 1:
+        raise ValueError(f"returns must have shape (N,), got {tuple(R.shape)}")
+    N = R.shape[0]
+    if N < 2:
+        raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
+    _check_finite("returns", R)
+    eps_t = torch.as_tensor(float(epsilon), dtype=torch.float64)
+    _check_positive("epsilon", eps_t)
+    if float(epsilon) >= math.log(N):
+        warnings.warn(
+            f"epsilon = {float(epsilon):.4g} >= log N = {math.log(N):.4g} (N = {N}): the KL bound "
+            "cannot bind and the weights collapse onto the best sample(s); use a smaller epsilon "
+            "or more samples",
+            DegenerateWeightsWarning,
+            stacklevel=2,
+        )
+
+    if log_responsibilities is None:
+        lr = torch.zeros(N, 1, dtype=torch.float64)
+    else:
+        lr = _as_f64("log_responsibilities", log_responsibilities)
+        if lr.dim() != 2 or lr.shape[0] != N:
+            raise ValueError(
+                f"log_responsibilities must have shape (N, O) = ({N}, O), got {tuple(lr.shape)}"
+            )
+        lr = _check_log_resp(lr)
+
+    D = None
+    F = 0
+    if context_features is not None:
+        phi = _as_f64("context_features", context_features)
+        if phi.dim() != 2 or phi.shape[0] != N:
+            raise ValueError(
+                f"context_features must have shape (N, F) = ({N}, F), got {tuple(phi.shape)}"
+            )
+        _check_finite("context_features", phi)
+        F = phi.shape[1]
+        # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
+        D = -(phi - phi.mean(dim=0, keepdim=True)).unsqueeze(0)
+
+    kap = None
+    if kappa is not None:
+        k = float(kappa)
+        if not math.isfinite(k) or k < 0:
+            raise ValueError(f"kappa must be finite and >= 0, got {kappa}")
+        kap = torch.tensor([k], dtype=torch.float64)
+
+    sol = solve_reps_dual(
+        R.unsqueeze(0), lr.unsqueeze(0), eps_t.reshape(1), D=D, kappa=kap, max_iter=max_iter
+    )
+    w = sol.weights[0]
+    ess = float(sol.effective_sample_size[0])
+    if ess < 1.5 and sol.eta[0].isfinite():
+        warnings.warn(
+            f"the weights collapsed onto ~{ess:.2f} effective samples (N = {N}, epsilon = "
+            f"{float(epsilon):.4g}); the refit will rely on its variance floor",
+            DegenerateWeightsWarning,
+            stacklevel=2,
+        )
+    return DualSolution(
+        eta=float(sol.eta[0]),
+        xi=float(sol.xi[0]),
+        v=sol.v[:F],
+        weights=w,
+        sample_weights=w.sum(-1),
+        kl=float(sol.kl[0]),
+        cross_entropy=float(sol.cross_entropy[0]),
+        effective_sample_size=ess,
+        feature_error=sol.feature_error,
+        dual_value=sol.dual_value,
+        converged=sol.converged,
+        iterations=sol.iterations,
+    )

@@ -1,0 +1,111 @@
+"""Gating networks: pi(o | s) over O options."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["SoftmaxGating"]
+
+
+class SoftmaxGating(nn.Module):
+    """Softmax gating ``pi(o | s) = softmax_o(weight @ phi(s) + bias)`` over the active options.
+
+    Shapes: ``features: (N, F)`` -> ``(N, O)``. Pruned options are kept in the parameter
+    tensors (so ``state_dict`` shapes never change) but masked by the ``active`` buffer; their
+    probability is exactly 0.
+
+    Args:
+        in_features: F (0 gives a context-free prior over options).
+        n_options: O.
+        l2: L2 penalty on the weights in :meth:`weighted_fit` (keeps the logistic fit finite on
+            separable data).
+        dtype: parameter dtype.
+    """
+
+    def __init__(
+        self, in_features: int, n_options: int, l2: float = 1e-4, dtype: torch.dtype = torch.float64
+    ) -> None:
+        super().__init__()
+        if n_options < 1:
+            raise ValueError(f"n_options must be >= 1, got {n_options}")
+        if in_features < 0:
+            raise ValueError(f"in_features must be >= 0, got {in_features}")
+        self.in_features = in_features
+        self.n_options = n_options
+        self.l2 = float(l2)
+        self.weight = nn.Parameter(torch.zeros(n_options, in_features, dtype=dtype), False)
+        self.bias = nn.Parameter(torch.zeros(n_options, dtype=dtype), False)
+        self.register_buffer("active", torch.ones(n_options, dtype=torch.bool))
+
+    def _features(self, features: Tensor) -> Tensor:
+        if features.dim() != 2 or features.shape[1] != self.in_features:
+            raise ValueError(
+                f"gating features must have shape (N, {self.in_features}), got "
+                f"{tuple(features.shape)}"
+            )
+        return features.to(self.bias.dtype)
+
+    def log_probs(self, features: Tensor) -> Tensor:
+        """features: (N, F) -> log pi(o | s): (N, O), -inf for pruned options."""
+        x = self._features(features)
+        logits = x @ self.weight.T + self.bias
+        logits = logits.masked_fill(~self.active, float("-inf"))
+        return torch.log_softmax(logits, dim=-1)
+
+    def probs(self, features: Tensor) -> Tensor:
+        """features: (N, F) -> pi(o | s): (N, O)."""
+        return self.log_probs(features).exp()
+
+    @torch.no_grad()
+    def weighted_fit(
+        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
+    ) -> None:
+        """Weighted multinomial logistic regression onto soft targets.
+
+        Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 ||weight||^2``
+        over the active options. Without features (F = 0) this has the closed form
+        ``pi(o) = sum_i w_i t_io / sum_i w_i``, which is used directly.
+
+        Args:
+            features: (N, F).
+            targets: (N, O) rows are distributions over options (0 on pruned options).
+            sample_weights: (N,) non-negative, not all zero.
+        """
+        x = self._features(features).to(torch.float64)
+        N = x.shape[0]
+        if targets.shape != (N, self.n_options):
+            raise ValueError(
+                f"targets must have shape ({N}, {self.n_options}), got {tuple(targets.shape)}"
+            )
+        w = sample_weights.to(torch.float64)
+        if w.shape != (N,) or not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
+            raise ValueError("sample_weights must be (N,), finite and non-negative")
+        if float(w.sum()) <= 0:
+            raise ValueError("sample_weights are all zero")
+        w = w / w.sum()
+        act = self.active
+        t = targets.to(torch.float64)[:, act]
+        if self.in_features == 0:
+            prior = (w[:, None] * t).sum(0).clamp_min(1e-300)
+            logp = torch.log(prior / prior.sum())
+            self.bias[act] = (logp - logp.mean()).to(self.bias.dtype)
+            return
+        Wp = self.weight[act].to(torch.float64).clone().requires_grad_(True)
+        bp = self.bias[act].to(torch.float64).clone().requires_grad_(True)
+        opt = torch.optim.LBFGS(
+            [Wp, bp], lr=1.0, max_iter=max_iter, tolerance_grad=1e-9, tolerance_change=1e-12,
+            history_size=20, line_search_fn="strong_wolfe",
+        )
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            logp = torch.log_softmax(x @ Wp.T + bp, dim=-1)
+            loss = -(w[:, None] * t * logp).sum() + 0.5 * self.l2 * (Wp**2).sum()
+            loss.backward()
+            return loss
+
+        with torch.enable_grad():
+            opt.step(closure)
+        self.weight[act] = Wp.detach().to(self.weight.dtype)
+        self.bias[act] = (bp.detach() - bp.detach().mean()).to(self.bias.dtype)

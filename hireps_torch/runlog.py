@@ -1,0 +1,137 @@
+"""Run directories: config, per-iteration metrics, summary, checkpoint and plots.
+
+A run directory holds ``config.json``, ``metrics.csv`` (one row per iteration, flushed as it
+goes), ``checkpoint.pt``, ``learning_curve.png`` and, last, ``summary.json``: a directory
+without ``summary.json`` is an unfinished run. Files are written to a temporary name and moved
+into place, so an interrupted run never leaves a half-written JSON or checkpoint, and an
+existing non-empty directory is never reused (nothing a user wrote is overwritten).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = ["RunWriter", "atomic_write", "default_run_dir"]
+
+
+def default_run_dir(experiment: str, root: str | Path = "runs") -> Path:
+    """``runs/<experiment>/<YYYYmmdd-HHMMSS>`` (a numeric suffix is added if it exists)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    base = Path(root) / experiment / stamp
+    path, k = base, 1
+    while path.exists():
+        path = base.with_name(f"{stamp}-{k}")
+        k += 1
+    return path
+
+
+def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, Mapping):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, Path):
+        return str(x)
+    if isinstance(x, torch.Tensor):
+        return x.tolist()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None if math.isnan(x) else ("inf" if x > 0 else "-inf")
+    return x
+
+
+class RunWriter:
+    """Writes one run directory.
+
+    Args:
+        run_dir: the directory; created, and refused if it exists and is not empty.
+        config: the run's configuration (written to ``config.json`` at once).
+    """
+
+    def __init__(self, run_dir: str | Path, config: Mapping[str, Any]) -> None:
+        self.dir = Path(run_dir)
+        if self.dir.exists() and (not self.dir.is_dir() or any(self.dir.iterdir())):
+            raise FileExistsError(
+                f"run directory {self.dir} already exists and is not empty; pass a new "
+                "--run-dir (nothing was overwritten)"
+            )
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.start = time.perf_counter()
+        self._fields: list[str] | None = None
+        self.rows: list[dict[str, Any]] = []
+        self.write_json("config.json", config)
+
+    def write_json(self, name: str, data: Mapping[str, Any]) -> None:
+        text = json.dumps(_jsonable(data), indent=2, sort_keys=False) + "\n"
+        atomic_write(self.dir / name, lambda p: p.write_text(text))
+
+    def log(self, row: Mapping[str, Any]) -> None:
+        """Append one row to ``metrics.csv`` (columns fixed by the first row)."""
+        clean = {k: (v if not isinstance(v, (list, tuple)) else len(v)) for k, v in row.items()}
+        path = self.dir / "metrics.csv"
+        if self._fields is None:
+            self._fields = list(clean)
+            with path.open("w", newline="") as f:
+                csv.DictWriter(f, self._fields).writeheader()
+        with path.open("a", newline="") as f:
+            csv.DictWriter(f, self._fields, extrasaction="ignore").writerow(clean)
+        self.rows.append(dict(clean))
+
+    def checkpoint(self, state: Mapping[str, Any], name: str = "checkpoint.pt") -> None:
+        atomic_write(self.dir / name, lambda p: torch.save(dict(state), p))
+
+    def plot_learning_curve(
+        self,
+        x: str,
+        ys: Sequence[str],
+        title: str,
+        ylabel: str = "return",
+        name: str = "learning_curve.png",
+    ) -> None:
+        """Line plot of metric columns ``ys`` against column ``x``."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        xs = [r[x] for r in self.rows]
+        for y in ys:
+            ax.plot(xs, [r[y] for r in self.rows], label=y.replace("_", " "))
+        ax.set_xlabel(x)
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        atomic_write(self.dir / name, lambda p: fig.savefig(p, format="png", dpi=110))
+        plt.close(fig)
+
+    def finish(self, summary: Mapping[str, Any]) -> dict[str, Any]:
+        """Write ``summary.json`` (adds ``wall_seconds``) and return it."""
+        out = dict(summary)
+        out["wall_seconds"] = round(time.perf_counter() - self.start, 3)
+        self.write_json("summary.json", out)
+        return out

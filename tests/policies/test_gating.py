@@ -1,0 +1,48 @@
+import pytest
+import torch
+
+from hireps_torch.policies import SoftmaxGating
+
+
+def test_context_free_fit_is_weighted_mean_of_targets(gen):
+    g = SoftmaxGating(0, 3)
+    t = torch.softmax(torch.randn(40, 3, generator=gen, dtype=torch.float64), -1)
+    w = torch.rand(40, generator=gen, dtype=torch.float64)
+    g.weighted_fit(torch.zeros(40, 0), t, w)
+    expected = (w[:, None] * t).sum(0) / w.sum()
+    assert torch.allclose(g.probs(torch.zeros(1, 0))[0], expected, atol=1e-12)
+
+
+def test_fit_is_stationary_point_of_weighted_cross_entropy(gen):
+    x = torch.randn(200, 2, generator=gen, dtype=torch.float64)
+    true_w = torch.tensor([[2.0, 0.0], [-2.0, 1.0], [0.0, -1.0]], dtype=torch.float64)
+    t = torch.softmax(x @ true_w.T, -1)
+    w = torch.rand(200, generator=gen, dtype=torch.float64)
+    g = SoftmaxGating(2, 3, l2=1e-6)
+    g.weighted_fit(x, t, w)
+    W = g.weight.detach().clone().requires_grad_()
+    b = g.bias.detach().clone().requires_grad_()
+    wn = w / w.sum()
+    loss = -(wn[:, None] * t * torch.log_softmax(x @ W.T + b, -1)).sum() + 0.5e-6 * (W**2).sum()
+    loss.backward()
+    assert float(W.grad.abs().max()) < 1e-6 and float(b.grad.abs().max()) < 1e-6
+    # soft targets from a softmax model are recovered
+    assert torch.allclose(g.probs(x), t, atol=1e-3)
+
+
+def test_pruned_options_have_zero_probability():
+    g = SoftmaxGating(1, 3)
+    g.active[1] = False
+    p = g.probs(torch.randn(5, 1))
+    assert bool((p[:, 1] == 0).all())
+    assert torch.allclose(p.sum(-1), torch.ones(5, dtype=torch.float64))
+
+
+def test_bad_shapes_raise():
+    g = SoftmaxGating(2, 3)
+    with pytest.raises(ValueError, match=r"gating features must have shape \(N, 2\)"):
+        g.probs(torch.zeros(4, 1))
+    with pytest.raises(ValueError, match=r"targets must have shape \(4, 3\)"):
+        g.weighted_fit(torch.zeros(4, 2), torch.zeros(4, 2), torch.ones(4))
+    with pytest.raises(ValueError, match="n_options"):
+        SoftmaxGating(2, 0)

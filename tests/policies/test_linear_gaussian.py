@@ -1,0 +1,102 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hireps_torch.policies import LinearGaussian, weighted_least_squares
+
+
+def test_sample_and_log_prob_match_torch_distribution(gen):
+    pol = LinearGaussian(2, 3, init_mean=torch.tensor([1.0, -1.0, 0.5]), init_std=0.7)
+    pol.weight.data = torch.randn(3, 2, generator=gen, dtype=torch.float64)
+    pol.set_covariance(torch.tensor([[1.0, 0.3, 0.0], [0.3, 2.0, 0.4], [0.0, 0.4, 0.5]]))
+    x = torch.randn(500, 2, generator=gen, dtype=torch.float64)
+    th = pol.sample(x, gen)
+    ref = torch.distributions.MultivariateNormal(pol.mean(x), covariance_matrix=pol.covariance)
+    assert torch.allclose(pol.log_prob(x, th), ref.log_prob(th), atol=1e-10)
+    assert float(pol.entropy()) == pytest.approx(float(ref.entropy()[0]), abs=1e-10)
+
+
+def test_weighted_fit_equals_closed_form(gen):
+    N, F, D = 200, 3, 2
+    x = torch.randn(N, F, generator=gen, dtype=torch.float64)
+    W_true = torch.randn(D, F, generator=gen, dtype=torch.float64)
+    y = x @ W_true.T + 0.3 * torch.randn(N, D, generator=gen, dtype=torch.float64) + 2.0
+    w = torch.rand(N, generator=gen, dtype=torch.float64)
+
+    pol = LinearGaussian(F, D)
+    pol.weighted_fit(x, y, w, ridge=0.0)
+
+    # closed form with numpy: beta = (X^T W X)^-1 X^T W Y, Sigma = sum w r r^T / sum w
+    X = np.hstack([np.ones((N, 1)), x.numpy()])
+    Wd = np.diag(w.numpy())
+    beta = np.linalg.solve(X.T @ Wd @ X, X.T @ Wd @ y.numpy())
+    resid = y.numpy() - X @ beta
+    cov = (w.numpy()[:, None] * resid).T @ resid / w.numpy().sum()
+    np.testing.assert_allclose(pol.bias.detach().numpy(), beta[0], atol=1e-10)
+    np.testing.assert_allclose(pol.weight.detach().numpy(), beta[1:].T, atol=1e-10)
+    np.testing.assert_allclose(pol.covariance.detach().numpy(), cov, atol=1e-10)
+
+
+def test_context_free_fit_is_weighted_mean_and_covariance(gen):
+    th = torch.randn(50, 2, generator=gen, dtype=torch.float64)
+    w = torch.rand(50, generator=gen, dtype=torch.float64)
+    pol = LinearGaussian(0, 2)
+    pol.weighted_fit(torch.zeros(50, 0), th, w)
+    wn = w / w.sum()
+    mu = (wn[:, None] * th).sum(0)
+    cov = (wn[:, None] * (th - mu)).T @ (th - mu)
+    assert torch.allclose(pol.bias, mu, atol=1e-12)
+    assert torch.allclose(pol.covariance, cov, atol=1e-12)
+
+
+def test_variance_floor_keeps_collapsed_fit_finite():
+    pol = LinearGaussian(0, 2, min_variance=1e-4)
+    th = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
+    pol.weighted_fit(torch.zeros(2, 0), th, torch.tensor([1.0, 0.0]))  # one sample: zero cov
+    evals = torch.linalg.eigvalsh(pol.covariance)
+    assert bool(torch.isfinite(pol.chol).all())
+    assert float(evals.min()) == pytest.approx(1e-4, rel=1e-6)
+    assert torch.allclose(pol.bias, torch.tensor([1.0, 2.0], dtype=torch.float64))
+
+
+def test_few_samples_many_features_stays_finite(gen):
+    pol = LinearGaussian(10, 2)
+    x = torch.randn(3, 10, generator=gen)
+    pol.weighted_fit(x, torch.randn(3, 2, generator=gen), torch.ones(3))
+    assert bool(torch.isfinite(pol.weight).all()) and bool(torch.isfinite(pol.chol).all())
+
+
+def test_wls_ridge_shrinks_slopes_only(gen):
+    x = torch.randn(100, 2, generator=gen, dtype=torch.float64)
+    y = 3.0 * x[:, :1] + 5.0
+    W0, b0 = weighted_least_squares(x, y, torch.ones(100))
+    W1, _ = weighted_least_squares(x, y, torch.ones(100), ridge=10.0)
+    assert float(W0[0, 0]) == pytest.approx(3.0, abs=1e-10)
+    assert float(b0[0]) == pytest.approx(5.0, abs=1e-10)
+    assert float(W1.abs().sum()) < float(W0.abs().sum())
+
+
+def test_bad_inputs_raise():
+    pol = LinearGaussian(2, 3)
+    with pytest.raises(ValueError, match=r"features must have shape \(N, 2\)"):
+        pol.mean(torch.zeros(4, 3))
+    with pytest.raises(ValueError, match=r"theta must have shape \(4, 3\)"):
+        pol.log_prob(torch.zeros(4, 2), torch.zeros(4, 2))
+    with pytest.raises(ValueError, match="not all zero"):
+        pol.weighted_fit(torch.zeros(4, 2), torch.zeros(4, 3), torch.zeros(4))
+    with pytest.raises(ValueError, match="non-finite"):
+        pol.weighted_fit(torch.zeros(4, 2), torch.full((4, 3), math.nan), torch.ones(4))
+    with pytest.raises(ValueError, match="init_std"):
+        LinearGaussian(0, 2, init_std=-1.0)
+
+
+def test_state_dict_round_trip(gen):
+    pol = LinearGaussian(2, 2)
+    pol.weighted_fit(torch.randn(20, 2, generator=gen), torch.randn(20, 2, generator=gen),
+                     torch.rand(20, generator=gen))
+    other = LinearGaussian(2, 2)
+    other.load_state_dict(pol.state_dict())
+    for k, v in pol.state_dict().items():
+        assert torch.equal(v, other.state_dict()[k])

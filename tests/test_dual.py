@@ -1,0 +1,263 @@
+"""The episodic HiREPS dual: gradients, constraints at the optimum, invariances, bad input."""
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from hireps_torch.dual import (
+    DegenerateWeightsWarning,
+    _dual_terms,
+    solve_episodic_dual,
+    solve_reps_dual,
+)
+
+
+def random_problem(gen, N=200, O=1, F=0, scale=3.0):
+    R = torch.randn(N, generator=gen, dtype=torch.float64) * scale + 5.0
+    lr = None
+    if O > 1:
+        lr = torch.log_softmax(2.0 * torch.randn(N, O, generator=gen, dtype=torch.float64), -1)
+    phi = torch.randn(N, F, generator=gen, dtype=torch.float64) if F else None
+    if phi is not None:  # make returns depend on the context, as in a contextual task
+        R = R + 2.0 * phi[:, 0]
+    return R, lr, phi
+
+
+def mean_entropy(lr):
+    return float(-(lr.exp() * lr).sum(-1).mean())
+
+
+# ---- hand-checked tiny case -----------------------------------------------------------------
+def test_two_samples_closed_form():
+    # One option, no context: w ∝ exp(R/eta) and KL(w || uniform) = epsilon.
+    R = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    sol = solve_episodic_dual(R, epsilon=0.1)
+    w = sol.sample_weights
+    assert torch.allclose(w, torch.softmax(R / sol.eta, 0), atol=1e-10)
+    kl = float((w * torch.log(2 * w)).sum())
+    assert kl == pytest.approx(0.1, abs=1e-6)
+    assert w[1] > w[0]
+
+
+# ---- gradient vs finite differences ---------------------------------------------------------
+@pytest.mark.parametrize("with_xi", [False, True])
+def test_dual_gradient_matches_finite_differences(gen, with_xi):
+    K, N, O, P = 2, 40, 3, 4
+    R = torch.randn(K, N, generator=gen, dtype=torch.float64)
+    lr = torch.log_softmax(torch.randn(K, N, O, generator=gen, dtype=torch.float64), -1)
+    D = torch.randn(K, N, P, generator=gen, dtype=torch.float64)
+    c = torch.randn(P, generator=gen, dtype=torch.float64)
+    eps = torch.tensor([0.3, 0.7], dtype=torch.float64)
+    kap = torch.tensor([0.5, 0.6], dtype=torch.float64)
+    xi_on = torch.tensor([with_xi, with_xi])
+
+    def f(log_eta, log_xi, v):
+        return _dual_terms(log_eta, log_xi, xi_on, v, R, D, c, lr, eps, kap)[0]
+
+    args = (
+        torch.randn(K, generator=gen, dtype=torch.float64).requires_grad_(),
+        torch.randn(K, generator=gen, dtype=torch.float64).requires_grad_(),
+        torch.randn(P, generator=gen, dtype=torch.float64).requires_grad_(),
+    )
+    assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_dual_derivatives_are_the_constraint_residuals(gen):
+    # dg/d(eta) = eps - KL and dg/d(xi) = kappa - cross-entropy: the optimum sits on the bounds.
+    R, lr, _ = random_problem(gen, N=50, O=3)
+    log_eta = torch.tensor([0.3], dtype=torch.float64, requires_grad=True)
+    log_xi = torch.tensor([-0.5], dtype=torch.float64, requires_grad=True)
+    eps = torch.tensor([0.4], dtype=torch.float64)
+    kap = torch.tensor([0.2], dtype=torch.float64)
+    g, a = _dual_terms(
+        log_eta, log_xi, torch.tensor([True]), torch.zeros(0, dtype=torch.float64),
+        R[None], None, None, lr[None], eps, kap,
+    )
+    g.backward()
+    w = torch.softmax(a.reshape(-1), 0).reshape(1, 50, 3)
+    w = w.detach()
+    kl = float((w * (torch.log(w) - lr[None] + math.log(50))).sum())
+    ce = float(-(w * lr[None]).sum())
+    eta, xi = math.exp(0.3), math.exp(-0.5)
+    assert float(log_eta.grad) / eta == pytest.approx(0.4 - kl, abs=1e-10)
+    assert float(log_xi.grad) / xi == pytest.approx(0.2 - ce, abs=1e-10)
+
+
+# ---- constraint satisfaction ----------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize(
+    "O,F,use_kappa", [(1, 0, False), (1, 3, False), (4, 0, False), (4, 0, True), (4, 3, True)]
+)
+def test_constraints_hold_at_optimum(seed, O, F, use_kappa):
+    gen = torch.Generator().manual_seed(seed)
+    N = 300
+    R, lr, phi = random_problem(gen, N=N, O=O, F=F)
+    eps = [0.1, 0.5, 1.0, 2.0][seed]
+    kappa = 0.6 * mean_entropy(lr) if use_kappa else None
+    sol = solve_episodic_dual(
+        R, epsilon=eps, log_responsibilities=lr, context_features=phi, kappa=kappa
+    )
+    assert sol.converged
+    assert sol.weights.shape == (N, O)
+    assert float(sol.weights.sum()) == pytest.approx(1.0, abs=1e-12)
+    assert bool((sol.weights >= 0).all())
+    assert sol.kl == pytest.approx(eps, abs=1e-3)
+    if use_kappa:
+        assert sol.xi > 0  # 0.6 of the prior entropy is always binding here
+        assert sol.cross_entropy == pytest.approx(kappa, abs=1e-3)
+    else:
+        assert sol.xi == 0.0
+    if F:
+        err = (sol.sample_weights @ phi - phi.mean(0)).abs().max()
+        assert float(err) < 1e-5
+        assert sol.feature_error < 1e-5
+    assert 1.0 <= sol.effective_sample_size <= N
+
+
+def test_inactive_entropy_bound_gives_xi_zero(gen):
+    R, lr, _ = random_problem(gen, N=200, O=3)
+    free = solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr)
+    loose = solve_episodic_dual(
+        R, epsilon=0.5, log_responsibilities=lr, kappa=free.cross_entropy + 0.1
+    )
+    assert loose.xi == 0.0
+    assert torch.allclose(loose.weights, free.weights, atol=1e-10)
+    tight = solve_episodic_dual(
+        R, epsilon=0.5, log_responsibilities=lr, kappa=free.cross_entropy - 0.1
+    )
+    assert tight.xi > 0
+    assert tight.cross_entropy == pytest.approx(free.cross_entropy - 0.1, abs=1e-3)
+
+
+def test_one_option_no_kappa_is_contextual_reps(gen):
+    # Contextual REPS written out independently: minimise eta eps + eta log mean exp(delta/eta)
+    # with delta = R - v^T (phi - phi_hat), then w ∝ exp(delta/eta).
+    R, _, phi = random_problem(gen, N=150, F=2)
+    eps = 0.7
+    sol = solve_episodic_dual(R, epsilon=eps, context_features=phi)
+    sol1 = solve_episodic_dual(
+        R, epsilon=eps, context_features=phi,
+        log_responsibilities=torch.zeros(150, 1, dtype=torch.float64),
+    )
+    assert torch.allclose(sol.weights, sol1.weights, atol=1e-12)
+
+    x = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    phic = phi - phi.mean(0)
+
+    def reps_dual():
+        eta = x[0].exp()
+        delta = R - phic @ x[1:]
+        return eta * eps + eta * (torch.logsumexp(delta / eta, 0) - math.log(150))
+
+    opt = torch.optim.LBFGS([x], max_iter=500, tolerance_grad=1e-12, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        g = reps_dual()
+        g.backward()
+        return g
+
+    opt.step(closure)
+    with torch.no_grad():
+        w = torch.softmax((R - phic @ x[1:]) / x[0].exp(), 0)
+    assert torch.allclose(sol.sample_weights, w, atol=1e-6)
+    assert sol.eta == pytest.approx(float(x[0].exp()), rel=1e-5)
+    assert torch.allclose(sol.v, x[1:].detach(), atol=1e-4)
+
+
+@pytest.mark.parametrize("O,F,use_kappa", [(1, 0, False), (3, 2, True)])
+def test_weights_invariant_to_return_shift_and_scale(gen, O, F, use_kappa):
+    R, lr, phi = random_problem(gen, N=120, O=O, F=F)
+    kappa = 0.7 * mean_entropy(lr) if use_kappa else None
+    kw = dict(epsilon=0.5, log_responsibilities=lr, context_features=phi, kappa=kappa)
+    base = solve_episodic_dual(R, **kw)
+    shifted = solve_episodic_dual(R + 1234.5, **kw)
+    scaled = solve_episodic_dual(R * 37.0, **kw)
+    assert torch.allclose(base.weights, shifted.weights, atol=1e-9)
+    assert torch.allclose(base.weights, scaled.weights, atol=1e-9)
+    assert scaled.eta == pytest.approx(37.0 * base.eta, rel=1e-6)
+    assert scaled.xi == pytest.approx(37.0 * base.xi, rel=1e-6, abs=1e-12)
+
+
+def test_float32_input_is_solved_in_float64(gen):
+    R, lr, _ = random_problem(gen, N=100, O=2)
+    sol = solve_episodic_dual(R.float(), epsilon=0.5, log_responsibilities=lr.float())
+    assert sol.weights.dtype == torch.float64
+    assert sol.kl == pytest.approx(0.5, abs=1e-3)
+
+
+def test_pruned_option_columns_get_zero_weight(gen):
+    R, lr, _ = random_problem(gen, N=100, O=3)
+    lr2 = torch.log_softmax(lr[:, :2], -1)
+    lr3 = torch.cat([lr2, torch.full((100, 1), -math.inf, dtype=torch.float64)], 1)
+    sol = solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr3, kappa=0.3)
+    ref = solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr2, kappa=0.3)
+    assert bool(torch.isfinite(sol.weights).all())
+    assert float(sol.weights[:, 2].abs().max()) == 0.0
+    assert torch.allclose(sol.weights[:, :2], ref.weights, atol=1e-9)
+
+
+# ---- degenerate and bad input ---------------------------------------------------------------
+def test_zero_variance_returns_give_uniform_weights():
+    sol = solve_episodic_dual(torch.full((10,), 3.0), epsilon=0.5)
+    assert torch.allclose(sol.sample_weights, torch.full((10,), 0.1, dtype=torch.float64))
+    assert sol.kl == pytest.approx(0.0, abs=1e-12)
+    assert math.isinf(sol.eta)
+
+
+def test_epsilon_beyond_log_n_warns_and_stays_finite(gen):
+    R = torch.randn(20, generator=gen, dtype=torch.float64)
+    with pytest.warns(DegenerateWeightsWarning, match="log N"):
+        sol = solve_episodic_dual(R, epsilon=5.0)
+    assert bool(torch.isfinite(sol.weights).all())
+    assert sol.effective_sample_size < 1.5
+    assert int(sol.sample_weights.argmax()) == int(R.argmax())
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_nonfinite_returns_raise(bad):
+    R = torch.zeros(5)
+    R[3] = bad
+    with pytest.raises(ValueError, match=r"returns contains 1 non-finite value.*index \(3,\)"):
+        solve_episodic_dual(R, epsilon=0.5)
+
+
+@pytest.mark.parametrize("eps", [0.0, -1.0, math.nan, math.inf])
+def test_bad_epsilon_raises(eps):
+    with pytest.raises(ValueError, match="epsilon"):
+        solve_episodic_dual(torch.randn(10), epsilon=eps)
+
+
+def test_shape_mismatches_raise():
+    with pytest.raises(ValueError, match=r"returns must have shape \(N,\)"):
+        solve_episodic_dual(torch.zeros(4, 2), epsilon=0.5)
+    with pytest.raises(ValueError, match=r"log_responsibilities must have shape \(N, O\) = \(4"):
+        solve_episodic_dual(torch.randn(4), epsilon=0.5, log_responsibilities=torch.zeros(5, 2))
+    with pytest.raises(ValueError, match=r"context_features must have shape \(N, F\) = \(4"):
+        solve_episodic_dual(torch.randn(4), epsilon=0.5, context_features=torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="normalised over options"):
+        solve_episodic_dual(torch.randn(4), epsilon=0.5, log_responsibilities=torch.zeros(4, 2))
+    with pytest.raises(ValueError, match="kappa"):
+        solve_episodic_dual(torch.randn(4), epsilon=0.5, kappa=-0.1)
+
+
+def test_single_sample_raises():
+    with pytest.raises(ValueError, match="at least 2 samples, got N = 1"):
+        solve_episodic_dual(torch.tensor([1.0]), epsilon=0.5)
+
+
+def test_generic_solver_matches_episodic_wrapper(gen):
+    R, lr, phi = random_problem(gen, N=80, O=2, F=2)
+    sol = solve_episodic_dual(R, epsilon=0.4, log_responsibilities=lr, context_features=phi)
+    D = -(phi - phi.mean(0))[None]
+    gen_sol = solve_reps_dual(R[None], lr[None], torch.tensor([0.4]), D=D)
+    assert torch.allclose(gen_sol.weights[0], sol.weights, atol=1e-12)
+
+
+def test_no_warning_in_regular_use(gen):
+    R, lr, _ = random_problem(gen, N=100, O=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr)

@@ -1,0 +1,234 @@
+"""Run the paper's experiments: ``python train.py <experiment> [--options]``.
+
+One typed config (a dataclass) per experiment; ``python train.py <experiment> --help`` lists
+its options. Every run writes a run directory (default ``runs/<experiment>/<timestamp>``,
+``--run-dir`` overrides) with ``config.json``, ``metrics.csv`` (one row per iteration),
+``checkpoint.pt``, ``learning_curve.png`` and, when it finished, ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+import tyro
+from tqdm.auto import tqdm
+
+from environments.toy import ContextualTwoGaussians, TwoGaussians
+from hireps_torch.algorithms import REPS, EpisodicHiREPS
+from hireps_torch.runlog import RunWriter, default_run_dir
+
+
+@dataclass(frozen=True)
+class BimodalConfig:
+    """Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one."""
+
+    algorithm: Literal["hireps", "reps"] = "hireps"
+    """hireps: mixture of linear-Gaussian options with the entropy bound; reps: one Gaussian."""
+    contextual: bool = False
+    """Use the contextual variant (1-D context, two linear solution families)."""
+    n_options: int = 10
+    """Initial number of options (hireps only); low-mass options are pruned."""
+    epsilon: float = 1.0
+    """KL bound per iteration."""
+    kappa_rel: float = 0.8
+    """Entropy bound as a fraction of the current mean responsibility entropy (hireps)."""
+    samples_per_iteration: int = 200
+    """Episodes (parameter samples) per policy update."""
+    episodes: int = 1600
+    """Total number of episodes."""
+    init_std: float = 2.0
+    """Initial exploration standard deviation of every option."""
+    bump_width: float = 1.0
+    """Standard deviation of each reward bump."""
+    min_variance: float = 1e-6
+    """Floor on the option covariance eigenvalues."""
+    seed: int = 0
+    run_dir: Path | None = None
+    """Where to write the run (default runs/bimodal/<timestamp>); must not exist or be empty."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+def _validate(cfg: Any) -> None:
+    if cfg.samples_per_iteration < 2:
+        raise ValueError(f"samples_per_iteration must be >= 2, got {cfg.samples_per_iteration}")
+    if cfg.episodes < cfg.samples_per_iteration:
+        raise ValueError(
+            f"episodes ({cfg.episodes}) must be at least samples_per_iteration "
+            f"({cfg.samples_per_iteration})"
+        )
+
+
+def run_bimodal(cfg: BimodalConfig) -> dict[str, Any]:
+    """HiREPS or REPS on the (contextual) two-Gaussians task; returns the summary."""
+    _validate(cfg)
+    task: TwoGaussians | ContextualTwoGaussians
+    if cfg.contextual:
+        task = ContextualTwoGaussians(width=cfg.bump_width)
+    else:
+        task = TwoGaussians(width=cfg.bump_width)
+    common = dict(
+        context_dim=task.context_dim, init_std=cfg.init_std, epsilon=cfg.epsilon,
+        min_variance=cfg.min_variance, seed=cfg.seed,
+    )
+    algo: EpisodicHiREPS
+    if cfg.algorithm == "reps":
+        algo = REPS.create(task.param_dim, **common)  # type: ignore[arg-type]
+    else:
+        algo = EpisodicHiREPS.create(
+            task.param_dim, n_options=cfg.n_options, kappa_rel=cfg.kappa_rel, **common,  # type: ignore[arg-type]
+        )
+    ctx_gen = torch.Generator().manual_seed(cfg.seed + 10_000)
+    eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
+
+    def evaluate() -> float:
+        """Mean return of the noise-free policy (over a context grid when contextual)."""
+        if isinstance(task, ContextualTwoGaussians):
+            assert eval_ctx is not None
+            return float(task(eval_ctx, algo.act(eval_ctx)).mean())
+        return float(task(algo.act(1)).mean())
+
+    run_dir = cfg.run_dir or default_run_dir("bimodal")
+    writer = RunWriter(run_dir, {"experiment": "bimodal", **dataclasses.asdict(cfg)})
+    iterations = cfg.episodes // cfg.samples_per_iteration
+    bar = tqdm(range(iterations), desc=f"bimodal/{cfg.algorithm}", disable=not cfg.progress)
+    for it in bar:
+        n = cfg.samples_per_iteration
+        if isinstance(task, ContextualTwoGaussians):
+            ctx = task.sample_contexts(n, ctx_gen)
+            theta = algo.ask(ctx)
+            returns = task(ctx, theta)
+            diag = algo.tell(ctx, theta, returns)
+        else:
+            theta = algo.ask(n)
+            returns = task(theta)
+            diag = algo.tell(None, theta, returns)
+        row = {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evaluate(), **diag}
+        writer.log(row)
+        bar.set_postfix(ret=f"{row['mean_return']:.3f}", kl=f"{diag['kl']:.2f}",
+                        opts=diag["n_active_options"])
+
+    writer.checkpoint({"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)})
+    writer.plot_learning_curve(
+        "episodes", ["mean_return", "eval_return"],
+        title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
+    )
+    options = option_summary(algo, task)
+    if isinstance(task, TwoGaussians):
+        plot_bimodal_options(algo, task, writer.dir / "options.png")
+    return writer.finish({
+        "experiment": "bimodal",
+        "algorithm": cfg.algorithm,
+        "seed": cfg.seed,
+        "episodes": iterations * cfg.samples_per_iteration,
+        "iterations": iterations,
+        "final_return": writer.rows[-1]["eval_return"],
+        "final_mean_return": writer.rows[-1]["mean_return"],
+        "n_active_options": int(algo.policy.active.sum()),
+        "modes_covered": modes_covered(options, task),
+        "options": options,
+    })
+
+
+def option_summary(algo: EpisodicHiREPS, task: TwoGaussians | ContextualTwoGaussians) -> list:
+    """Active options: prior mass (over the task's contexts) and mean at context 0."""
+    pol = algo.policy
+    ctx = torch.zeros(1, task.context_dim, dtype=torch.float64)
+    if isinstance(task, ContextualTwoGaussians):
+        ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None]
+    prior = pol.gating.probs(pol.gating_features(ctx)).mean(0)
+    zero = torch.zeros(1, task.context_dim, dtype=torch.float64)
+    out = []
+    for o, opt in enumerate(pol.options):
+        if bool(pol.active[o]):
+            out.append({
+                "option": o,
+                "prior": float(prior[o]),
+                "mean": [float(v) for v in opt.mean(pol.policy_features(zero))[0]],
+                "std": [float(v) for v in opt.covariance.diagonal().sqrt()],
+            })
+    return out
+
+
+def modes_covered(options: list, task: TwoGaussians | ContextualTwoGaussians,
+                  min_prior: float = 0.05, radius: float = 0.25) -> int:
+    """Number of reward modes (at context 0) with an option of prior >= min_prior within radius."""
+    if isinstance(task, ContextualTwoGaussians):
+        modes = task.modes(torch.zeros(1, 1, dtype=torch.float64))[0]
+    else:
+        modes = task.modes.to(torch.float64)
+    covered = 0
+    for m in modes:
+        if any(
+            o["prior"] >= min_prior
+            and float((torch.tensor(o["mean"], dtype=torch.float64) - m).norm()) <= radius
+            for o in options
+        ):
+            covered += 1
+    return covered
+
+
+def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -> None:
+    """Reward landscape with each active option's mean and 2-sigma ellipse."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hireps_torch.runlog import atomic_write
+
+    g = torch.linspace(-5, 5, 201, dtype=torch.float64)
+    X, Y = torch.meshgrid(g, g, indexing="xy")
+    Z = task(torch.stack([X.reshape(-1), Y.reshape(-1)], 1)).reshape(X.shape)
+    fig, ax = plt.subplots(figsize=(5, 5))
+    ax.contourf(X.numpy(), Y.numpy(), Z.numpy(), levels=20, cmap="Greys")
+    pol = algo.policy
+    prior = pol.gating.probs(torch.zeros(1, 0, dtype=torch.float64))[0]
+    t = torch.linspace(0, 2 * math.pi, 100, dtype=torch.float64)
+    circle = torch.stack([t.cos(), t.sin()], 0)
+    for o, opt in enumerate(pol.options):
+        if not bool(pol.active[o]):
+            continue
+        mu = opt.bias.detach()
+        ell = mu[:, None] + 2.0 * opt.chol.detach() @ circle
+        ax.plot(ell[0].numpy(), ell[1].numpy(), lw=1.5)
+        ax.plot([float(mu[0])], [float(mu[1])], "x", ms=8,
+                label=f"option {o}: prior {float(prior[o]):.2f}")
+    ax.set_xlim(-5, 5)
+    ax.set_ylim(-5, 5)
+    ax.set_aspect("equal")
+    ax.set_title("reward and options (mean, 2-sigma)")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=110))
+    plt.close(fig)
+
+
+EXPERIMENTS: dict[str, tuple[Any, Any]] = {
+    "bimodal": (BimodalConfig, run_bimodal),
+}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    argv = sys.argv[1:] if argv is None else argv
+    defaults = {name: cls for name, (cls, _) in EXPERIMENTS.items()}
+    cfg = tyro.extras.subcommand_cli_from_dict(defaults, args=argv, description=__doc__)
+    name = next(n for n, (cls, _) in EXPERIMENTS.items() if isinstance(cfg, cls))
+    summary = EXPERIMENTS[name][1](cfg)
+    print(json.dumps({k: v for k, v in summary.items() if k != "options"}, indent=2))
+    return summary
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except (ValueError, FileExistsError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None

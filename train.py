@@ -75,15 +75,21 @@ def run_bimodal(cfg: BimodalConfig) -> dict[str, Any]:
     else:
         task = TwoGaussians(width=cfg.bump_width)
     common = dict(
-        context_dim=task.context_dim, init_std=cfg.init_std, epsilon=cfg.epsilon,
-        min_variance=cfg.min_variance, seed=cfg.seed,
+        context_dim=task.context_dim,
+        init_std=cfg.init_std,
+        epsilon=cfg.epsilon,
+        min_variance=cfg.min_variance,
+        seed=cfg.seed,
     )
     algo: EpisodicHiREPS
     if cfg.algorithm == "reps":
         algo = REPS.create(task.param_dim, **common)  # type: ignore[arg-type]
     else:
         algo = EpisodicHiREPS.create(
-            task.param_dim, n_options=cfg.n_options, kappa_rel=cfg.kappa_rel, **common,  # type: ignore[arg-type]
+            task.param_dim,
+            n_options=cfg.n_options,
+            kappa_rel=cfg.kappa_rel,
+            **common,  # type: ignore[arg-type]
         )
     ctx_gen = torch.Generator().manual_seed(cfg.seed + 10_000)
     eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
@@ -112,29 +118,33 @@ def run_bimodal(cfg: BimodalConfig) -> dict[str, Any]:
             diag = algo.tell(None, theta, returns)
         row = {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evaluate(), **diag}
         writer.log(row)
-        bar.set_postfix(ret=f"{row['mean_return']:.3f}", kl=f"{diag['kl']:.2f}",
-                        opts=diag["n_active_options"])
+        bar.set_postfix(
+            ret=f"{row['mean_return']:.3f}", kl=f"{diag['kl']:.2f}", opts=diag["n_active_options"]
+        )
 
     writer.checkpoint({"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)})
     writer.plot_learning_curve(
-        "episodes", ["mean_return", "eval_return"],
+        "episodes",
+        ["mean_return", "eval_return"],
         title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
     )
     options = option_summary(algo, task)
     if isinstance(task, TwoGaussians):
         plot_bimodal_options(algo, task, writer.dir / "options.png")
-    return writer.finish({
-        "experiment": "bimodal",
-        "algorithm": cfg.algorithm,
-        "seed": cfg.seed,
-        "episodes": iterations * cfg.samples_per_iteration,
-        "iterations": iterations,
-        "final_return": writer.rows[-1]["eval_return"],
-        "final_mean_return": writer.rows[-1]["mean_return"],
-        "n_active_options": int(algo.policy.active.sum()),
-        "modes_covered": modes_covered(options, task),
-        "options": options,
-    })
+    return writer.finish(
+        {
+            "experiment": "bimodal",
+            "algorithm": cfg.algorithm,
+            "seed": cfg.seed,
+            "episodes": iterations * cfg.samples_per_iteration,
+            "iterations": iterations,
+            "final_return": writer.rows[-1]["eval_return"],
+            "final_mean_return": writer.rows[-1]["mean_return"],
+            "n_active_options": int(algo.policy.active.sum()),
+            "modes_covered": modes_covered(options, task),
+            "options": options,
+        }
+    )
 
 
 def option_summary(algo: EpisodicHiREPS, task: TwoGaussians | ContextualTwoGaussians) -> list:
@@ -146,19 +156,25 @@ def option_summary(algo: EpisodicHiREPS, task: TwoGaussians | ContextualTwoGauss
     prior = pol.gating.probs(pol.gating_features(ctx)).mean(0)
     zero = torch.zeros(1, task.context_dim, dtype=torch.float64)
     out = []
-    for o, opt in enumerate(pol.options):
+    for o, opt in enumerate(pol.sub_policies):
         if bool(pol.active[o]):
-            out.append({
-                "option": o,
-                "prior": float(prior[o]),
-                "mean": [float(v) for v in opt.mean(pol.policy_features(zero))[0]],
-                "std": [float(v) for v in opt.covariance.diagonal().sqrt()],
-            })
+            out.append(
+                {
+                    "option": o,
+                    "prior": float(prior[o]),
+                    "mean": [float(v) for v in opt.mean(pol.policy_features(zero))[0]],
+                    "std": [float(v) for v in opt.covariance.diagonal().sqrt()],
+                }
+            )
     return out
 
 
-def modes_covered(options: list, task: TwoGaussians | ContextualTwoGaussians,
-                  min_prior: float = 0.05, radius: float = 0.25) -> int:
+def modes_covered(
+    options: list,
+    task: TwoGaussians | ContextualTwoGaussians,
+    min_prior: float = 0.05,
+    radius: float = 0.25,
+) -> int:
     """Number of reward modes (at context 0) with an option of prior >= min_prior within radius."""
     if isinstance(task, ContextualTwoGaussians):
         modes = task.modes(torch.zeros(1, 1, dtype=torch.float64))[0]
@@ -193,14 +209,19 @@ def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -
     prior = pol.gating.probs(torch.zeros(1, 0, dtype=torch.float64))[0]
     t = torch.linspace(0, 2 * math.pi, 100, dtype=torch.float64)
     circle = torch.stack([t.cos(), t.sin()], 0)
-    for o, opt in enumerate(pol.options):
+    for o, opt in enumerate(pol.sub_policies):
         if not bool(pol.active[o]):
             continue
         mu = opt.bias.detach()
         ell = mu[:, None] + 2.0 * opt.chol.detach() @ circle
         ax.plot(ell[0].numpy(), ell[1].numpy(), lw=1.5)
-        ax.plot([float(mu[0])], [float(mu[1])], "x", ms=8,
-                label=f"option {o}: prior {float(prior[o]):.2f}")
+        ax.plot(
+            [float(mu[0])],
+            [float(mu[1])],
+            "x",
+            ms=8,
+            label=f"option {o}: prior {float(prior[o]):.2f}",
+        )
     ax.set_xlim(-5, 5)
     ax.set_ylim(-5, 5)
     ax.set_aspect("equal")

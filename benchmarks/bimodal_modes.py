@@ -33,16 +33,23 @@ def main() -> None:
             covered, finals = [], []
             t0 = time.perf_counter()
             for seed in range(args.seeds):
-                cfg = BimodalConfig(algorithm=algo, seed=seed, episodes=args.episodes,  # type: ignore[arg-type]
-                                    run_dir=Path(tmp) / f"{algo}-{seed}", progress=False)
+                cfg = BimodalConfig(
+                    algorithm=algo,
+                    seed=seed,
+                    episodes=args.episodes,  # type: ignore[arg-type]
+                    run_dir=Path(tmp) / f"{algo}-{seed}",
+                    progress=False,
+                )
                 s = run_bimodal(cfg)
                 covered.append(s["modes_covered"])
                 finals.append(s["final_return"])
             dt = (time.perf_counter() - t0) / args.seeds
             both = sum(c == 2 for c in covered) / args.seeds
             one = sum(c == 1 for c in covered) / args.seeds
-            print(f"{algo:<10} {both:>11.0%} {one:>9.0%} {sum(finals) / len(finals):>13.4f} "
-                  f"{dt:>6.2f}")
+            print(
+                f"{algo:<10} {both:>11.0%} {one:>9.0%} {sum(finals) / len(finals):>13.4f} "
+                f"{dt:>6.2f}"
+            )
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ xi >= 0). Prints the median wall time of each, their ratio and the realised KL o
 from __future__ import annotations
 
 import argparse
+import functools
 import platform
 import statistics
 import sys
@@ -39,7 +40,7 @@ def scipy_dual(R, phi, lr, eps, kappa):
     kap = 0.0 if kappa is None else kappa
 
     def parts(x):
-        eta, xi, v = x[0], (x[1] if use_xi else 0.0), x[2 if use_xi else 1:]
+        eta, xi, v = x[0], (x[1] if use_xi else 0.0), x[2 if use_xi else 1 :]
         delta = Rs - Phi @ v
         a = (delta[:, None] + (eta + xi) * lr) / eta
         m = a.max()
@@ -62,8 +63,14 @@ def scipy_dual(R, phi, lr, eps, kappa):
 
     x0 = np.concatenate([[1.0], [0.0] if use_xi else [], np.zeros(F)])
     bounds = [(1e-8, None)] + ([(0.0, None)] if use_xi else []) + [(None, None)] * F
-    res = minimize(fg, x0, jac=True, method="L-BFGS-B", bounds=bounds,
-                   options={"maxiter": 300, "gtol": 1e-9, "ftol": 1e-14})
+    res = minimize(
+        fg,
+        x0,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=bounds,
+        options={"maxiter": 300, "gtol": 1e-9, "ftol": 1e-14},
+    )
     _, _, _, _, P, _ = parts(res.x)
     kl = float((P * (np.log(np.maximum(P, 1e-300)) - lr + np.log(N))).sum())
     return P, kl
@@ -95,30 +102,39 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     eps = 0.5
-    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"threads {torch.get_num_threads()}; epsilon = {eps}, F = 2 context features")
-    print(f"{'N':>6} {'O':>2} {'torch ms':>9} {'scipy ms':>9} {'torch/scipy':>12} "
-          f"{'KL torch':>9} {'KL scipy':>9} {'max|dw|':>9}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"threads {torch.get_num_threads()}; epsilon = {eps}, F = 2 context features"
+    )
+    print(
+        f"{'N':>6} {'O':>2} {'torch ms':>9} {'scipy ms':>9} {'torch/scipy':>12} "
+        f"{'KL torch':>9} {'KL scipy':>9} {'max|dw|':>9}"
+    )
     for N in (30, 300, 3000, 30000):
         for O in (1, 5):
             R, phi, lr, kappa = problem(N, O)
             Rt, phit, lrt = (torch.from_numpy(a) for a in (R, phi, lr))
             reps = max(3, args.repeats // (1 if N < 30000 else 3))
 
-            def run_torch():
-                return solve_episodic_dual(Rt, epsilon=eps, log_responsibilities=lrt,
-                                           context_features=phit, kappa=kappa)
-
-            def run_scipy():
-                return scipy_dual(R, phi, lr, eps, kappa)
+            run_torch = functools.partial(
+                solve_episodic_dual,
+                Rt,
+                epsilon=eps,
+                log_responsibilities=lrt,
+                context_features=phit,
+                kappa=kappa,
+            )
+            run_scipy = functools.partial(scipy_dual, R, phi, lr, eps, kappa)
 
             tt = median_time(run_torch, reps)
             ts = median_time(run_scipy, reps)
             sol = run_torch()
             P, kl_s = run_scipy()
             dw = float(np.abs(sol.weights.numpy() - P).max())
-            print(f"{N:>6} {O:>2} {tt * 1e3:>9.2f} {ts * 1e3:>9.2f} {tt / ts:>12.2f} "
-                  f"{sol.kl:>9.5f} {kl_s:>9.5f} {dw:>9.1e}")
+            print(
+                f"{N:>6} {O:>2} {tt * 1e3:>9.2f} {ts * 1e3:>9.2f} {tt / ts:>12.2f} "
+                f"{sol.kl:>9.5f} {kl_s:>9.5f} {dw:>9.1e}"
+            )
 
 
 if __name__ == "__main__":

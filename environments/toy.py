@@ -64,9 +64,7 @@ class TwoGaussians:
 
     def __call__(self, theta: Tensor) -> Tensor:
         t = torch.as_tensor(theta)
-        return two_gaussians_reward(
-            t, self.modes.to(t.dtype), self.heights.to(t.dtype), self.width
-        )
+        return two_gaussians_reward(t, self.modes.to(t.dtype), self.heights.to(t.dtype), self.width)
 
     @property
     def best_return(self) -> float:

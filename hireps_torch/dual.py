@@ -215,7 +215,15 @@ class _Problem:
     chained to log eta and log xi (zero where eta is clamped or xi is switched off).
     """
 
-    def __init__(self, R, D, c, log_resp, eps, kappa):  # type: ignore[no-untyped-def]
+    def __init__(
+        self,
+        R: Tensor,
+        D: Tensor | None,
+        c: Tensor | None,
+        log_resp: Tensor,
+        eps: Tensor,
+        kappa: Tensor,
+    ) -> None:
         self.R, self.D, self.c, self.lr, self.eps, self.kappa = R, D, c, log_resp, eps, kappa
         self.K, self.N, self.O = log_resp.shape
         self.P = 0 if D is None else D.shape[-1]
@@ -317,10 +325,16 @@ def solve_reps_dual(
         w = log_resp.exp() / N
         w = w / w.sum(dim=(1, 2), keepdim=True)
         return _finish(
-            w, log_resp, torch.full((K,), math.inf, dtype=torch.float64),
+            w,
+            log_resp,
+            torch.full((K,), math.inf, dtype=torch.float64),
             torch.zeros(K, dtype=torch.float64),
             torch.zeros(0 if D is None else D.shape[-1], dtype=torch.float64),
-            D, c, math.nan, True, 0,
+            D,
+            c,
+            math.nan,
+            True,
+            0,
         )
     Rs = Rc / scale
     col = None
@@ -352,8 +366,13 @@ def solve_reps_dual(
     def run_phase() -> bool:
         nonlocal total_iter
         opt = torch.optim.LBFGS(
-            [x], lr=1.0, max_iter=max_iter, tolerance_grad=tolerance_grad,
-            tolerance_change=1e-15, history_size=20, line_search_fn="strong_wolfe",
+            [x],
+            lr=1.0,
+            max_iter=max_iter,
+            tolerance_grad=tolerance_grad,
+            tolerance_change=1e-15,
+            history_size=20,
+            line_search_fn="strong_wolfe",
         )
 
         def closure() -> Tensor:
@@ -420,9 +439,17 @@ def _finish(
             grad_v = grad_v + c.to(torch.float64)
         feat_err = float(grad_v.abs().max())
     return RepsDualSolution(
-        eta=eta, xi=xi, v=v, weights=w, kl=kl, cross_entropy=ce,
-        effective_sample_size=ess, feature_error=feat_err, dual_value=dual_value,
-        converged=converged, iterations=iterations,
+        eta=eta,
+        xi=xi,
+        v=v,
+        weights=w,
+        kl=kl,
+        cross_entropy=ce,
+        effective_sample_size=ess,
+        feature_error=feat_err,
+        dual_value=dual_value,
+        converged=converged,
+        iterations=iterations,
     )
 
 

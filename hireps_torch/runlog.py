@@ -85,7 +85,11 @@ class RunWriter:
 
     def write_json(self, name: str, data: Mapping[str, Any]) -> None:
         text = json.dumps(_jsonable(data), indent=2, sort_keys=False) + "\n"
-        atomic_write(self.dir / name, lambda p: p.write_text(text))
+
+        def write(p: Path) -> None:
+            p.write_text(text)
+
+        atomic_write(self.dir / name, write)
 
     def log(self, row: Mapping[str, Any]) -> None:
         """Append one row to ``metrics.csv`` (columns fixed by the first row)."""

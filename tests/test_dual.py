@@ -72,8 +72,16 @@ def test_dual_derivatives_are_the_constraint_residuals(gen):
     eps = torch.tensor([0.4], dtype=torch.float64)
     kap = torch.tensor([0.2], dtype=torch.float64)
     g, a = _dual_terms(
-        log_eta, log_xi, torch.tensor([True]), torch.zeros(0, dtype=torch.float64),
-        R[None], None, None, lr[None], eps, kap,
+        log_eta,
+        log_xi,
+        torch.tensor([True]),
+        torch.zeros(0, dtype=torch.float64),
+        R[None],
+        None,
+        None,
+        lr[None],
+        eps,
+        kap,
     )
     g.backward()
     w = torch.softmax(a.reshape(-1), 0).reshape(1, 50, 3)
@@ -138,7 +146,9 @@ def test_one_option_no_kappa_is_contextual_reps(gen):
     eps = 0.7
     sol = solve_episodic_dual(R, epsilon=eps, context_features=phi)
     sol1 = solve_episodic_dual(
-        R, epsilon=eps, context_features=phi,
+        R,
+        epsilon=eps,
+        context_features=phi,
         log_responsibilities=torch.zeros(150, 1, dtype=torch.float64),
     )
     assert torch.allclose(sol.weights, sol1.weights, atol=1e-12)

@@ -25,10 +25,10 @@ import math
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from hireps_torch.dual import solve_episodic_dual
-from hireps_torch.features import QuadraticFeatures
+from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
 __all__ = ["REPS", "EpisodicHiREPS"]
@@ -62,7 +62,7 @@ class EpisodicHiREPS:
         epsilon: float = 1.0,
         kappa_rel: float | None = 0.9,
         context_dim: int = 0,
-        context_features: nn.Module | None = None,
+        context_features: FeatureMap | None = None,
         prune_threshold: float = 1e-4,
         seed: int | None = None,
     ) -> None:
@@ -96,8 +96,8 @@ class EpisodicHiREPS:
         spread: float = 1.0,
         epsilon: float = 1.0,
         kappa_rel: float | None = 0.9,
-        gating_features: nn.Module | None = None,
-        policy_features: nn.Module | None = None,
+        gating_features: FeatureMap | None = None,
+        policy_features: FeatureMap | None = None,
         min_variance: float = 1e-8,
         seed: int | None = None,
     ) -> EpisodicHiREPS:
@@ -112,12 +112,22 @@ class EpisodicHiREPS:
         if gating_features is None and context_dim > 0:
             gating_features = QuadraticFeatures(context_dim)
         policy = HierarchicalPolicy.create(
-            n_options, context_dim, param_dim, init_mean=init_mean, init_std=init_std,
-            spread=spread, gating_features=gating_features, policy_features=policy_features,
-            min_variance=min_variance, generator=gen,
+            n_options,
+            context_dim,
+            param_dim,
+            init_mean=init_mean,
+            init_std=init_std,
+            spread=spread,
+            gating_features=gating_features,
+            policy_features=policy_features,
+            min_variance=min_variance,
+            generator=gen,
         )
         return cls(
-            policy, epsilon=epsilon, kappa_rel=kappa_rel, context_dim=context_dim,
+            policy,
+            epsilon=epsilon,
+            kappa_rel=kappa_rel,
+            context_dim=context_dim,
             seed=None if seed is None else int(seed) + 1,
         )
 
@@ -165,7 +175,9 @@ class EpisodicHiREPS:
         return self.policy.mean_action(self._contexts(contexts))[0]
 
     @torch.no_grad()
-    def tell(self, contexts: Tensor | int | None, params: Tensor, returns: Tensor) -> dict[str, Any]:
+    def tell(
+        self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
+    ) -> dict[str, Any]:
         """Update the policy from evaluated samples drawn from the current policy.
 
         Args:
@@ -208,8 +220,11 @@ class EpisodicHiREPS:
         phi = self.context_features(c) if self.context_features is not None else None
 
         sol = solve_episodic_dual(
-            R, epsilon=self.epsilon, log_responsibilities=lr_act if n_active > 1 else None,
-            context_features=phi, kappa=kappa,
+            R,
+            epsilon=self.epsilon,
+            log_responsibilities=lr_act if n_active > 1 else None,
+            context_features=phi,
+            kappa=kappa,
         )
         weights = torch.zeros(N, self.policy.n_options, dtype=torch.float64)
         weights[:, active] = sol.weights
@@ -218,7 +233,7 @@ class EpisodicHiREPS:
         self.iteration += 1
 
         prior = self.policy.gating.probs(self.policy.gating_features(c)).mean(0)
-        ent = torch.stack([o.entropy() for o in self.policy.options])
+        ent = torch.stack([o.entropy() for o in self.policy.sub_policies])
         policy_entropy = float((prior * ent).sum())
         return {
             "iteration": self.iteration,
@@ -270,15 +285,22 @@ class REPS(EpisodicHiREPS):
         init_mean: Tensor | None = None,
         init_std: float | Tensor = 1.0,
         epsilon: float = 1.0,
-        policy_features: nn.Module | None = None,
+        policy_features: FeatureMap | None = None,
         min_variance: float = 1e-8,
         seed: int | None = None,
     ) -> REPS:
         """Build REPS with a single linear-Gaussian policy (see :meth:`EpisodicHiREPS.create`)."""
         algo = super().create(
-            param_dim, context_dim=context_dim, n_options=1, init_mean=init_mean,
-            init_std=init_std, epsilon=epsilon, kappa_rel=None, policy_features=policy_features,
-            min_variance=min_variance, seed=seed,
+            param_dim,
+            context_dim=context_dim,
+            n_options=1,
+            init_mean=init_mean,
+            init_std=init_std,
+            epsilon=epsilon,
+            kappa_rel=None,
+            policy_features=policy_features,
+            min_variance=min_variance,
+            seed=seed,
         )
         assert isinstance(algo, REPS)
         return algo

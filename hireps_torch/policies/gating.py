@@ -23,6 +23,8 @@ class SoftmaxGating(nn.Module):
         dtype: parameter dtype.
     """
 
+    active: Tensor
+
     def __init__(
         self, in_features: int, n_options: int, l2: float = 1e-4, dtype: torch.dtype = torch.float64
     ) -> None:
@@ -94,8 +96,13 @@ class SoftmaxGating(nn.Module):
         Wp = self.weight[act].to(torch.float64).clone().requires_grad_(True)
         bp = self.bias[act].to(torch.float64).clone().requires_grad_(True)
         opt = torch.optim.LBFGS(
-            [Wp, bp], lr=1.0, max_iter=max_iter, tolerance_grad=1e-9, tolerance_change=1e-12,
-            history_size=20, line_search_fn="strong_wolfe",
+            [Wp, bp],
+            lr=1.0,
+            max_iter=max_iter,
+            tolerance_grad=1e-9,
+            tolerance_change=1e-12,
+            history_size=20,
+            line_search_fn="strong_wolfe",
         )
 
         def closure() -> Tensor:

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.features import IdentityFeatures
+from hireps_torch.features import FeatureMap, IdentityFeatures
 from hireps_torch.policies.gating import SoftmaxGating
 from hireps_torch.policies.linear_gaussian import LinearGaussian
 
@@ -28,12 +29,16 @@ class HierarchicalPolicy(nn.Module):
         policy_features: feature map for the sub-policies (identity by default).
     """
 
+    gating: SoftmaxGating
+    gating_features: FeatureMap
+    policy_features: FeatureMap
+
     def __init__(
         self,
-        gating: nn.Module,
+        gating: SoftmaxGating,
         options: Sequence[LinearGaussian],
-        gating_features: nn.Module | None = None,
-        policy_features: nn.Module | None = None,
+        gating_features: FeatureMap | None = None,
+        policy_features: FeatureMap | None = None,
     ) -> None:
         super().__init__()
         if len(options) != gating.n_options:
@@ -58,8 +63,8 @@ class HierarchicalPolicy(nn.Module):
         init_mean: Tensor | None = None,
         init_std: float | Tensor = 1.0,
         spread: float = 1.0,
-        gating_features: nn.Module | None = None,
-        policy_features: nn.Module | None = None,
+        gating_features: FeatureMap | None = None,
+        policy_features: FeatureMap | None = None,
         min_variance: float = 1e-8,
         generator: torch.Generator | None = None,
     ) -> HierarchicalPolicy:
@@ -70,19 +75,29 @@ class HierarchicalPolicy(nn.Module):
         """
         gf = gating_features or IdentityFeatures(context_dim)
         pf = policy_features or IdentityFeatures(context_dim)
-        mean = torch.zeros(action_dim, dtype=torch.float64) if init_mean is None else (
-            torch.as_tensor(init_mean, dtype=torch.float64)
+        mean = (
+            torch.zeros(action_dim, dtype=torch.float64)
+            if init_mean is None
+            else (torch.as_tensor(init_mean, dtype=torch.float64))
         )
         std = torch.as_tensor(init_std, dtype=torch.float64).expand(action_dim)
         opts = []
         for _ in range(n_options):
-            m = mean if n_options == 1 else mean + spread * std * torch.randn(
-                action_dim, generator=generator, dtype=torch.float64
+            m = (
+                mean
+                if n_options == 1
+                else mean
+                + spread * std * torch.randn(action_dim, generator=generator, dtype=torch.float64)
             )
             opts.append(LinearGaussian(pf.out_features, action_dim, m, std, min_variance))
         return cls(SoftmaxGating(gf.out_features, n_options), opts, gf, pf)
 
     # ---- helpers ----------------------------------------------------------------------------
+    @property
+    def sub_policies(self) -> list[LinearGaussian]:
+        """The options as a typed list (the same modules as ``self.options``)."""
+        return cast(list[LinearGaussian], list(self.options))
+
     @property
     def n_options(self) -> int:
         return len(self.options)
@@ -108,7 +123,7 @@ class HierarchicalPolicy(nn.Module):
         """context: (N, S), theta: (N, D) -> log pi(o | s) + log pi(theta | s, o): (N, O)."""
         gf, pf = self._features(context)
         log_gate = self.gating.log_probs(gf)
-        comps = torch.stack([opt.log_prob(pf, theta) for opt in self.options], dim=-1)
+        comps = torch.stack([opt.log_prob(pf, theta) for opt in self.sub_policies], dim=-1)
         return torch.where(self.active, log_gate + comps, torch.full_like(comps, float("-inf")))
 
     def log_prob(self, context: Tensor, theta: Tensor) -> Tensor:
@@ -134,7 +149,7 @@ class HierarchicalPolicy(nn.Module):
         gf, pf = self._features(context)
         probs = self.gating.probs(gf)
         option = torch.multinomial(probs, 1, generator=generator).squeeze(-1)
-        all_samples = torch.stack([opt.sample(pf, generator) for opt in self.options], dim=1)
+        all_samples = torch.stack([opt.sample(pf, generator) for opt in self.sub_policies], dim=1)
         theta = all_samples[torch.arange(context.shape[0]), option]
         return theta, option
 
@@ -146,7 +161,7 @@ class HierarchicalPolicy(nn.Module):
         """
         gf, pf = self._features(context)
         option = self.gating.log_probs(gf).argmax(dim=-1)
-        means = torch.stack([opt.mean(pf) for opt in self.options], dim=1)
+        means = torch.stack([opt.mean(pf) for opt in self.sub_policies], dim=1)
         return means[torch.arange(context.shape[0]), option], option
 
     # ---- refit and pruning ------------------------------------------------------------------
@@ -173,7 +188,7 @@ class HierarchicalPolicy(nn.Module):
         targets = w / ws.clamp_min(1e-300)[:, None]
         self.gating.weighted_fit(gf, targets, ws)
         total = float(w.sum())
-        for o, opt in enumerate(self.options):
+        for o, opt in enumerate(self.sub_policies):
             if bool(self.active[o]) and float(w[:, o].sum()) > 1e-12 * total:
                 opt.weighted_fit(pf, theta, w[:, o])
 

@@ -24,7 +24,9 @@ def weighted_least_squares(
     Returns:
         (weight (D, F), bias (D,)) minimising sum_i w_i ||y_i - W x_i - b||^2 + ridge ||W||^2.
     """
-    X = torch.cat([torch.ones(inputs.shape[0], 1, dtype=torch.float64), inputs.to(torch.float64)], 1)
+    X = torch.cat(
+        [torch.ones(inputs.shape[0], 1, dtype=torch.float64), inputs.to(torch.float64)], 1
+    )
     Y = targets.to(torch.float64)
     w = weights.to(torch.float64)
     A = X.T @ (w[:, None] * X)
@@ -76,9 +78,11 @@ class LinearGaussian(nn.Module):
         std = torch.as_tensor(init_std, dtype=dtype).expand(action_dim).clone()
         if not bool(torch.isfinite(std).all()) or bool((std <= 0).any()):
             raise ValueError(f"init_std must be finite and > 0, got {std.tolist()}")
-        mean = torch.zeros(action_dim, dtype=dtype) if init_mean is None else torch.as_tensor(
-            init_mean, dtype=dtype
-        ).clone()
+        mean = (
+            torch.zeros(action_dim, dtype=dtype)
+            if init_mean is None
+            else torch.as_tensor(init_mean, dtype=dtype).clone()
+        )
         if mean.shape != (action_dim,):
             raise ValueError(f"init_mean must have shape ({action_dim},), got {tuple(mean.shape)}")
         self.in_features = in_features

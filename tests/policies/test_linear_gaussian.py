@@ -94,8 +94,11 @@ def test_bad_inputs_raise():
 
 def test_state_dict_round_trip(gen):
     pol = LinearGaussian(2, 2)
-    pol.weighted_fit(torch.randn(20, 2, generator=gen), torch.randn(20, 2, generator=gen),
-                     torch.rand(20, generator=gen))
+    pol.weighted_fit(
+        torch.randn(20, 2, generator=gen),
+        torch.randn(20, 2, generator=gen),
+        torch.rand(20, generator=gen),
+    )
     other = LinearGaussian(2, 2)
     other.load_state_dict(pol.state_dict())
     for k, v in pol.state_dict().items():

@@ -1,0 +1,37 @@
+import math
+
+import pytest
+import torch
+
+from environments.toy import ContextualTwoGaussians, TwoGaussians
+
+
+def test_bumps_peak_at_the_modes():
+    task = TwoGaussians()
+    r = task(task.modes.clone())
+    assert torch.allclose(r, torch.ones(2), atol=1e-6)
+    assert float(task(torch.zeros(1, 2))) < 1e-3  # the average of the modes is bad
+    # hand computed: one width away from mode 1 along x
+    th = task.modes[:1] + torch.tensor([[task.width, 0.0]])
+    assert float(task(th)) == pytest.approx(math.exp(-0.5), abs=1e-6)
+
+
+def test_contextual_modes_move_with_the_context():
+    task = ContextualTwoGaussians()
+    s = torch.tensor([[-1.0], [0.0], [0.5]], dtype=torch.float64)
+    modes = task.modes(s)
+    assert modes.shape == (3, 2, 2)
+    for m in range(2):
+        assert torch.allclose(task(s, modes[:, m]), torch.ones(3, dtype=torch.float64), atol=1e-6)
+    g = torch.Generator().manual_seed(0)
+    c = task.sample_contexts(1000, g)
+    assert float(c.min()) >= -1 and float(c.max()) <= 1
+
+
+def test_bad_input_raises():
+    with pytest.raises(ValueError, match=r"theta must have shape \(N, 2\)"):
+        TwoGaussians()(torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="non-finite"):
+        TwoGaussians()(torch.tensor([[math.nan, 0.0]]))
+    with pytest.raises(ValueError, match=r"context must have shape \(N, 1\)"):
+        ContextualTwoGaussians()(torch.zeros(3, 2), torch.zeros(3, 2))

@@ -1,0 +1,105 @@
+"""train.py as a user runs it: a subprocess that writes a run directory."""
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def train(*args, cwd=ROOT):
+    return subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_bimodal_subprocess_writes_the_run_directory(tmp_path):
+    run = tmp_path / "run"
+    p = train("bimodal", "--episodes", "600", "--run-dir", str(run), "--no-progress")
+    assert p.returncode == 0, p.stderr
+    for name in (
+        "config.json",
+        "metrics.csv",
+        "summary.json",
+        "checkpoint.pt",
+        "learning_curve.png",
+        "options.png",
+    ):
+        assert (run / name).is_file(), name
+    summary = json.loads((run / "summary.json").read_text())
+    for key in ("experiment", "seed", "episodes", "final_return", "wall_seconds"):
+        assert key in summary
+    assert summary["experiment"] == "bimodal" and summary["episodes"] == 600
+    rows = list(csv.DictReader((run / "metrics.csv").open()))
+    assert len(rows) == 3  # 600 episodes / 200 per iteration
+    for key in ("eta", "xi", "kl", "cross_entropy", "effective_sample_size", "policy_entropy"):
+        assert key in rows[0]
+    assert json.loads((run / "config.json").read_text())["episodes"] == 600
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert "policy" in ckpt["algorithm"]
+    assert (run / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_same_seed_gives_the_same_run(tmp_path):
+    for name in ("a", "b"):
+        p = train(
+            "bimodal",
+            "--episodes",
+            "600",
+            "--seed",
+            "3",
+            "--contextual",
+            "--run-dir",
+            str(tmp_path / name),
+            "--no-progress",
+        )
+        assert p.returncode == 0, p.stderr
+    a = (tmp_path / "a" / "metrics.csv").read_text()
+    b = (tmp_path / "b" / "metrics.csv").read_text()
+    assert a == b
+    p = train(
+        "bimodal",
+        "--episodes",
+        "600",
+        "--seed",
+        "4",
+        "--contextual",
+        "--run-dir",
+        str(tmp_path / "c"),
+        "--no-progress",
+    )
+    assert (tmp_path / "c" / "metrics.csv").read_text() != a
+
+
+def test_existing_run_directory_is_never_overwritten(tmp_path):
+    run = tmp_path / "mine"
+    run.mkdir()
+    (run / "notes.txt").write_text("my notes")
+    p = train("bimodal", "--episodes", "200", "--run-dir", str(run), "--no-progress")
+    assert p.returncode == 2
+    assert "already exists" in p.stderr
+    assert (run / "notes.txt").read_text() == "my notes"
+    assert sorted(x.name for x in run.iterdir()) == ["notes.txt"]
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--samples-per-iteration", "1"], "samples_per_iteration must be >= 2"),
+        (["--episodes", "50"], "episodes (50) must be at least samples_per_iteration"),
+        (["--epsilon", "-1"], "epsilon must be finite and > 0, got -1.0"),
+    ],
+)
+def test_bad_config_gives_a_clear_error(tmp_path, args, message):
+    p = train("bimodal", *args, "--run-dir", str(tmp_path / "r"), "--no-progress")
+    assert p.returncode == 2
+    assert message in p.stderr

@@ -176,35 +176,6 @@ def _check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Ten
 # the generic K-block dual
 
 
-def _dual_terms(
-    log_eta: Tensor,
-    log_xi: Tensor,
-    xi_on: Tensor,
-    v: Tensor,
-    R: Tensor,
-    D: Tensor | None,
-    c: Tensor | None,
-    log_resp: Tensor,
-    eps: Tensor,
-    kappa: Tensor,
-) -> tuple[Tensor, Tensor]:
-    """Dual value and the (K, N, O) exponents A / eta, written with autograd-able torch ops.
-
-    This is the reference form of the dual (used by the tests' finite-difference checks);
-    the solver uses :func:`_dual_and_grad`, the same function with its analytic gradient.
-    """
-    eta = log_eta.clamp(_LOG_ETA_MIN, _LOG_ETA_MAX).exp()  # (K,)
-    xi = torch.where(xi_on, log_xi.clamp(max=_LOG_ETA_MAX).exp(), torch.zeros_like(log_xi))
-    delta = R if D is None else R + D @ v  # (K, N)
-    a = (delta.unsqueeze(-1) + (eta + xi)[:, None, None] * log_resp) / eta[:, None, None]
-    K, N, O = a.shape
-    lse = torch.logsumexp(a.reshape(K, N * O), dim=1) - math.log(N)  # (K,)
-    g = (eta * eps + xi * kappa + eta * lse).sum()
-    if c is not None:
-        g = g + c @ v
-    return g, a
-
-
 class _Problem:
     """Standardised K-block dual with its analytic gradient over x = [log eta, log xi, v].
 
@@ -252,6 +223,40 @@ class _Problem:
         s = e.sum(dim=1, keepdim=True)
         lse = (m + s.log()).squeeze(1) - self.log_n
         return (e / s).reshape(z.shape), lse, delta
+
+    def curvature(self, x: Tensor) -> Tensor:
+        """Positive semi-definite part of the Hessian in x, used as a preconditioner.
+
+        In y = (eta, xi, v) the Hessian of block k is exactly (1 / eta_k) Cov_P(z) with
+        z = [-h / eta_k, log p~, D] and h = delta + xi log p~ (the linear terms of the dual add
+        no curvature); the log-parametrisation scales it by diag(eta, xi, 1) on both sides
+        (its first-order term, which vanishes at the optimum, is left out).
+        """
+        K, n = self.K, x.shape[0]
+        _, eta, xi, _ = self.unpack(x)
+        P, _, delta = self.weights(x)
+        M = torch.zeros(n, n, dtype=x.dtype)
+        for k in range(K):
+            h = delta[k].unsqueeze(-1) + xi[k] * self.lr[k]  # (N, O)
+            cols = [k]
+            zs = [-h]  # d u / d log eta = -h / eta, times eta
+            if self.multi and bool(self.xi_on[k]):
+                cols.append(K + k)
+                zs.append(self.lr[k] * xi[k])
+            if self.P:
+                assert self.D is not None
+                cols.extend(range(2 * K, n))
+                zs.extend(self.D[k].unsqueeze(1).expand(-1, self.O, -1).unbind(-1))
+            Z = torch.stack([z.expand(self.N, self.O) for z in zs], -1).reshape(-1, len(cols))
+            p = P[k].reshape(-1, 1)
+            Zc = Z - (p * Z).sum(0)
+            idx = torch.tensor(cols)
+            M[idx[:, None], idx[None, :]] += (Zc * p).T @ Zc / eta[k]
+        d = M.diagonal()
+        top = float(d.max()) if n else 1.0
+        # unused or flat directions (xi switched off, O = 1, a constant feature): identity
+        d.copy_(torch.where(d > 1e-10 * top, d, torch.ones_like(d)) + 1e-10 * top)
+        return M
 
     def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
         a, eta, xi, v = self.unpack(x)
@@ -364,9 +369,20 @@ def solve_reps_dual(
     total_iter = 0
 
     def run_phase() -> bool:
-        nonlocal total_iter
+        # With options, LBFGS runs in whitened coordinates x = x0 + L^-T z, L L^T the
+        # curvature at x0: there the Hessian is ~I, which saves LBFGS iterations (the xi
+        # direction is badly scaled against eta and v otherwise).
+        nonlocal total_iter, x
+        x0 = x.clone()
+        L = torch.eye(x0.shape[0], dtype=torch.float64)
+        if prob.multi:  # measured: with one option the plain problem is as well scaled
+            try:
+                L = torch.linalg.cholesky(prob.curvature(x0))
+            except RuntimeError:
+                pass
+        z = torch.zeros_like(x0)
         opt = torch.optim.LBFGS(
-            [x],
+            [z],
             lr=1.0,
             max_iter=max_iter,
             tolerance_grad=tolerance_grad,
@@ -375,13 +391,17 @@ def solve_reps_dual(
             line_search_fn="strong_wolfe",
         )
 
+        def to_x(zz: Tensor) -> Tensor:
+            return x0 + torch.linalg.solve_triangular(L.T, zz[:, None], upper=True)[:, 0]
+
         def closure() -> Tensor:
-            g, grad = prob.value_and_grad(x)
-            x.grad = grad
+            g, grad = prob.value_and_grad(to_x(z))
+            z.grad = torch.linalg.solve_triangular(L, grad[:, None], upper=False)[:, 0]
             return g
 
         opt.step(closure)
-        total_iter += int(opt.state[x].get("n_iter", 0))
+        total_iter += int(opt.state[z].get("n_iter", 0))
+        x = to_x(z)
         _, grad = prob.value_and_grad(x)
         return float(grad.abs().max()) <= converged_grad
 

@@ -8,7 +8,7 @@ import torch
 
 from hireps_torch.dual import (
     DegenerateWeightsWarning,
-    _dual_terms,
+    _Problem,
     solve_episodic_dual,
     solve_reps_dual,
 )
@@ -42,55 +42,75 @@ def test_two_samples_closed_form():
 
 
 # ---- gradient vs finite differences ---------------------------------------------------------
-@pytest.mark.parametrize("with_xi", [False, True])
-def test_dual_gradient_matches_finite_differences(gen, with_xi):
-    K, N, O, P = 2, 40, 3, 4
+def make_problem(gen, K=2, N=40, O=3, P=4, xi_on=True):
     R = torch.randn(K, N, generator=gen, dtype=torch.float64)
     lr = torch.log_softmax(torch.randn(K, N, O, generator=gen, dtype=torch.float64), -1)
-    D = torch.randn(K, N, P, generator=gen, dtype=torch.float64)
-    c = torch.randn(P, generator=gen, dtype=torch.float64)
-    eps = torch.tensor([0.3, 0.7], dtype=torch.float64)
-    kap = torch.tensor([0.5, 0.6], dtype=torch.float64)
-    xi_on = torch.tensor([with_xi, with_xi])
+    D = torch.randn(K, N, P, generator=gen, dtype=torch.float64) if P else None
+    c = torch.randn(P, generator=gen, dtype=torch.float64) if P else None
+    eps = torch.linspace(0.3, 0.7, K, dtype=torch.float64)
+    kap = torch.linspace(0.5, 0.6, K, dtype=torch.float64)
+    prob = _Problem(R, D, c, lr, eps, kap)
+    prob.xi_on[:] = xi_on
+    return prob
 
-    def f(log_eta, log_xi, v):
-        return _dual_terms(log_eta, log_xi, xi_on, v, R, D, c, lr, eps, kap)[0]
 
-    args = (
-        torch.randn(K, generator=gen, dtype=torch.float64).requires_grad_(),
-        torch.randn(K, generator=gen, dtype=torch.float64).requires_grad_(),
-        torch.randn(P, generator=gen, dtype=torch.float64).requires_grad_(),
+@pytest.mark.parametrize("O,P,xi_on", [(1, 0, False), (3, 4, False), (3, 4, True), (2, 0, True)])
+def test_dual_gradient_matches_finite_differences(gen, O, P, xi_on):
+    prob = make_problem(gen, O=O, P=P, xi_on=xi_on)
+    x = 0.5 * torch.randn(2 * prob.K + prob.P, generator=gen, dtype=torch.float64)
+    _, grad = prob.value_and_grad(x)
+    h = 1e-6
+    fd = torch.zeros_like(x)
+    for j in range(x.shape[0]):
+        e = torch.zeros_like(x)
+        e[j] = h
+        fd[j] = (prob.value_and_grad(x + e)[0] - prob.value_and_grad(x - e)[0]) / (2 * h)
+    assert torch.allclose(grad, fd, atol=1e-7, rtol=1e-6)
+
+
+def test_curvature_matches_finite_difference_hessian_at_optimum(gen):
+    # At the optimum the first-order term of the log-parametrisation vanishes, so the
+    # preconditioner equals the true Hessian there.
+    R, lr, phi = random_problem(gen, N=60, O=3, F=2)
+    sol = solve_episodic_dual(
+        R, epsilon=0.5, log_responsibilities=lr, context_features=phi, kappa=0.6 * mean_entropy(lr)
     )
-    assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6, rtol=1e-5)
+    Rs = (R - R.mean()) / (R - R.mean()).std()
+    D = -(phi - phi.mean(0))[None]
+    prob = _Problem(
+        Rs[None],
+        D,
+        None,
+        lr[None],
+        torch.tensor([0.5], dtype=torch.float64),
+        torch.tensor([0.6 * mean_entropy(lr)], dtype=torch.float64),
+    )
+    prob.xi_on[:] = True
+    scale = float((R - R.mean()).std())
+    x = torch.cat(
+        [torch.tensor([math.log(sol.eta / scale), math.log(sol.xi / scale)]), sol.v / scale]
+    ).to(torch.float64)
+    H = torch.zeros(4, 4, dtype=torch.float64)
+    h = 1e-5
+    for j in range(4):
+        e = torch.zeros(4, dtype=torch.float64)
+        e[j] = h
+        H[:, j] = (prob.value_and_grad(x + e)[1] - prob.value_and_grad(x - e)[1]) / (2 * h)
+    assert torch.allclose(prob.curvature(x), H, atol=1e-5, rtol=1e-4)
 
 
 def test_dual_derivatives_are_the_constraint_residuals(gen):
     # dg/d(eta) = eps - KL and dg/d(xi) = kappa - cross-entropy: the optimum sits on the bounds.
-    R, lr, _ = random_problem(gen, N=50, O=3)
-    log_eta = torch.tensor([0.3], dtype=torch.float64, requires_grad=True)
-    log_xi = torch.tensor([-0.5], dtype=torch.float64, requires_grad=True)
-    eps = torch.tensor([0.4], dtype=torch.float64)
-    kap = torch.tensor([0.2], dtype=torch.float64)
-    g, a = _dual_terms(
-        log_eta,
-        log_xi,
-        torch.tensor([True]),
-        torch.zeros(0, dtype=torch.float64),
-        R[None],
-        None,
-        None,
-        lr[None],
-        eps,
-        kap,
-    )
-    g.backward()
-    w = torch.softmax(a.reshape(-1), 0).reshape(1, 50, 3)
-    w = w.detach()
-    kl = float((w * (torch.log(w) - lr[None] + math.log(50))).sum())
-    ce = float(-(w * lr[None]).sum())
+    prob = make_problem(gen, K=1, N=50, O=3, P=0)
+    x = torch.tensor([0.3, -0.5], dtype=torch.float64)
+    _, grad = prob.value_and_grad(x)
+    w, _, _ = prob.weights(x)
+    lr = prob.lr
+    kl = float((w * (torch.log(w) - lr + math.log(50))).sum())
+    ce = float(-(w * lr).sum())
     eta, xi = math.exp(0.3), math.exp(-0.5)
-    assert float(log_eta.grad) / eta == pytest.approx(0.4 - kl, abs=1e-10)
-    assert float(log_xi.grad) / xi == pytest.approx(0.2 - ce, abs=1e-10)
+    assert float(grad[0]) / eta == pytest.approx(float(prob.eps[0]) - kl, abs=1e-10)
+    assert float(grad[1]) / xi == pytest.approx(float(prob.kappa[0]) - ce, abs=1e-10)
 
 
 # ---- constraint satisfaction ----------------------------------------------------------------
@@ -173,7 +193,7 @@ def test_one_option_no_kappa_is_contextual_reps(gen):
     with torch.no_grad():
         w = torch.softmax((R - phic @ x[1:]) / x[0].exp(), 0)
     assert torch.allclose(sol.sample_weights, w, atol=1e-6)
-    assert sol.eta == pytest.approx(float(x[0].exp()), rel=1e-5)
+    assert sol.eta == pytest.approx(float(x[0].detach().exp()), rel=1e-5)
     assert torch.allclose(sol.v, x[1:].detach(), atol=1e-4)
 
 
@@ -219,8 +239,10 @@ def test_zero_variance_returns_give_uniform_weights():
 
 def test_epsilon_beyond_log_n_warns_and_stays_finite(gen):
     R = torch.randn(20, generator=gen, dtype=torch.float64)
-    with pytest.warns(DegenerateWeightsWarning, match="log N"):
+    with pytest.warns(DegenerateWeightsWarning) as record:
         sol = solve_episodic_dual(R, epsilon=5.0)
+    messages = " | ".join(str(r.message) for r in record)
+    assert "log N" in messages and "collapsed" in messages
     assert bool(torch.isfinite(sol.weights).all())
     assert sol.effective_sample_size < 1.5
     assert int(sol.sample_weights.argmax()) == int(R.argmax())

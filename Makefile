@@ -29,6 +29,7 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) benchmarks/dual_speed.py
+	OMP_NUM_THREADS=1 $(PY) benchmarks/bimodal_modes.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

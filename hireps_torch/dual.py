@@ -212,6 +212,9 @@ class _Problem:
     def weights(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(P (K, N, O), lse (K,), delta (K, N)) at x."""
         _, eta, xi, v = self.unpack(x)
+        return self._weights(eta, xi, v)
+
+    def _weights(self, eta: Tensor, xi: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         delta = self.R if self.D is None else self.R + self.D @ v
         if self.multi:
             z = (delta.unsqueeze(-1) + (eta + xi)[:, None, None] * self.lr) / eta[:, None, None]
@@ -233,8 +236,8 @@ class _Problem:
         (its first-order term, which vanishes at the optimum, is left out).
         """
         K, n = self.K, x.shape[0]
-        _, eta, xi, _ = self.unpack(x)
-        P, _, delta = self.weights(x)
+        _, eta, xi, v = self.unpack(x)
+        P, _, delta = self._weights(eta, xi, v)
         M = torch.zeros(n, n, dtype=x.dtype)
         for k in range(K):
             h = delta[k].unsqueeze(-1) + xi[k] * self.lr[k]  # (N, O)
@@ -259,8 +262,14 @@ class _Problem:
         return M
 
     def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Dual value and its gradient in x."""
+        g, grad, _ = self.evaluate(x)
+        return g, grad
+
+    def evaluate(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Dual value, gradient in x and the weights P (K, N, O), from one pass."""
         a, eta, xi, v = self.unpack(x)
-        P, lse, delta = self.weights(x)
+        P, lse, delta = self._weights(eta, xi, v)
         w = P.sum(-1) if self.multi else P.squeeze(-1)  # (K, N)
         pd = (w * delta).sum(1)  # (K,)
         g = (eta * self.eps + eta * lse).sum()
@@ -281,7 +290,7 @@ class _Problem:
                 g = g + self.c @ v
                 gv = gv + self.c
             grad[2 * self.K :] = gv
-        return g, grad
+        return g, grad, P
 
 
 def solve_reps_dual(
@@ -368,7 +377,8 @@ def solve_reps_dual(
     x[K : 2 * K] = math.log(0.1)
     total_iter = 0
 
-    def run_phase() -> bool:
+    def run_phase() -> tuple[bool, Tensor, Tensor]:
+        """One LBFGS solve from x; returns (converged, dual value, weights) at its end."""
         # With options, LBFGS runs in whitened coordinates x = x0 + L^-T z, L L^T the
         # curvature at x0: there the Hessian is ~I, which saves LBFGS iterations (the xi
         # direction is badly scaled against eta and v otherwise).
@@ -402,35 +412,29 @@ def solve_reps_dual(
         opt.step(closure)
         total_iter += int(opt.state[z].get("n_iter", 0))
         x = to_x(z)
-        _, grad = prob.value_and_grad(x)
-        return float(grad.abs().max()) <= converged_grad
+        g, grad, P = prob.evaluate(x)
+        return float(grad.abs().max()) <= converged_grad, g, P
 
     if kappa is not None and O > 1:
         # KKT for xi >= 0: solve with xi free; where xi ends ~0 with the bound slack,
         # switch it off and re-solve (then xi = 0 exactly and the bound holds as inequality).
         prob.xi_on[:] = True
-        converged = run_phase()
-        with torch.no_grad():
-            P, _, _ = prob.weights(x)
-            ce = -(P * log_resp).sum(dim=(1, 2))
-            xi_now = x[K : 2 * K].exp()
-        slack = (xi_now < 1e-6) & (ce <= kap + 1e-9)
+        converged, g, w = run_phase()
+        ce = -(w * log_resp).sum(dim=(1, 2))
+        slack = (x[K : 2 * K].exp() < 1e-6) & (ce <= kap + 1e-9)
         if bool(slack.any()):
             prob.xi_on &= ~slack
-            converged = run_phase()
+            converged, g, w = run_phase()
     else:
-        converged = run_phase()
+        converged, g, w = run_phase()
 
-    with torch.no_grad():
-        g, _ = prob.value_and_grad(x)
-        w, _, _ = prob.weights(x)
-        _, eta_s, xi_s, v_s = prob.unpack(x)
-        eta = eta_s * scale
-        xi = xi_s * scale
-        v_out = v_s * scale / col if col is not None else v_s.clone()
-        # every term scales with the return scale; the centring adds back the block means
-        dual_value = float(g) * scale + float(R.mean(dim=1).sum())
-    return _finish(w, log_resp, eta, xi, v_out, D, c, dual_value, converged, total_iter)
+    _, eta_s, xi_s, v_s = prob.unpack(x)
+    v_out = v_s * scale / col if col is not None else v_s.clone()
+    # every term scales with the return scale; the centring adds back the block means
+    dual_value = float(g) * scale + float(R.mean(dim=1).sum())
+    return _finish(
+        w, log_resp, eta_s * scale, xi_s * scale, v_out, D, c, dual_value, converged, total_iter
+    )
 
 
 def _finish(

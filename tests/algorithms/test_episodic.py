@@ -5,6 +5,7 @@ import torch
 
 from environments.toy import ContextualTwoGaussians, TwoGaussians
 from hireps_torch import REPS, DegenerateWeightsWarning, EpisodicHiREPS
+from train import modes_covered, option_summary
 
 
 def quadratic(theta):
@@ -121,20 +122,6 @@ def test_collapsing_epsilon_warns_and_keeps_policy_finite():
     assert float(torch.linalg.eigvalsh(pol.covariance).min()) >= 1e-6 * (1 - 1e-9)
 
 
-def modes_covered(algo, modes, min_prior=0.05, radius=0.25):
-    pol = algo.policy
-    prior = pol.gating.probs(torch.zeros(1, 0, dtype=torch.float64))[0]
-    n = 0
-    for m in modes.to(torch.float64):
-        n += any(
-            bool(pol.active[o])
-            and float(prior[o]) >= min_prior
-            and float((opt.bias - m).norm()) <= radius
-            for o, opt in enumerate(pol.options)
-        )
-    return n
-
-
 @pytest.mark.slow
 def test_hireps_keeps_both_modes_reps_picks_one():
     """Two-Gaussians task at train.py's defaults: HiREPS (10 options, kappa_rel 0.8) converges
@@ -150,7 +137,7 @@ def test_hireps_keeps_both_modes_reps_picks_one():
             th = algo.ask(200)
             d = algo.tell(None, th, task(th))
         assert d["mean_return"] > 0.99
-        both += modes_covered(algo, task.modes) == 2
+        both += modes_covered(option_summary(algo, task), task) == 2
     assert both >= 7, f"HiREPS covered both modes in only {both}/10 seeds"
 
     for seed in range(10):
@@ -159,7 +146,7 @@ def test_hireps_keeps_both_modes_reps_picks_one():
             th = algo.ask(200)
             d = algo.tell(None, th, task(th))
         assert d["mean_return"] > 0.99, f"REPS seed {seed} did not converge"
-        assert modes_covered(algo, task.modes) == 1
+        assert modes_covered(option_summary(algo, task), task) == 1
 
 
 @pytest.mark.slow

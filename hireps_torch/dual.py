@@ -302,7 +302,7 @@ def solve_reps_dual(
     c: Tensor | None = None,
     kappa: Tensor | None = None,
     max_iter: int = 300,
-    tolerance_grad: float = 1e-9,
+    tolerance_grad: float = 1e-7,
     converged_grad: float = 1e-6,
 ) -> RepsDualSolution:
     """Solve the K-block HiREPS dual (see the module docstring).
@@ -384,7 +384,7 @@ def solve_reps_dual(
         # direction is badly scaled against eta and v otherwise).
         nonlocal total_iter, x
         x0 = x.clone()
-        L = torch.eye(x0.shape[0], dtype=torch.float64)
+        L: Tensor | None = None
         if prob.multi:  # measured: with one option the plain problem is as well scaled
             try:
                 L = torch.linalg.cholesky(prob.curvature(x0))
@@ -402,11 +402,15 @@ def solve_reps_dual(
         )
 
         def to_x(zz: Tensor) -> Tensor:
+            if L is None:
+                return x0 + zz
             return x0 + torch.linalg.solve_triangular(L.T, zz[:, None], upper=True)[:, 0]
 
         def closure() -> Tensor:
             g, grad = prob.value_and_grad(to_x(z))
-            z.grad = torch.linalg.solve_triangular(L, grad[:, None], upper=False)[:, 0]
+            if L is not None:
+                grad = torch.linalg.solve_triangular(L, grad[:, None], upper=False)[:, 0]
+            z.grad = grad
             return g
 
         opt.step(closure)

@@ -14,7 +14,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 import tyro
@@ -23,6 +23,9 @@ from tqdm.auto import tqdm
 from environments.toy import ContextualTwoGaussians, TwoGaussians
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 from hireps_torch.runlog import RunWriter, default_run_dir
+
+if TYPE_CHECKING:
+    from hireps_torch.policies import HierarchicalPolicy
 
 
 @dataclass(frozen=True)
@@ -232,8 +235,192 @@ def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -
     plt.close(fig)
 
 
+# --------------------------------------------------------------------------------------------
+# pendulum swing-up (infinite-horizon HiREPS)
+
+
+@dataclass(frozen=True)
+class PendulumConfig:
+    """Pendulum swing-up with infinite-horizon HiREPS (paper Figs 16-18)."""
+
+    gating: Literal["learned", "constant", "flat"] = "learned"
+    """learned: softmax gating on the squared state expansion; constant: k-means over 1000
+    states uniform in +-[pi, 50], frozen; flat: one linear-Gaussian policy on the gating's
+    features."""
+    n_options: int = 5
+    """Number of options (ignored for flat)."""
+    steps_per_decision: int = 5
+    """d: control steps (at 100 Hz) per decision; restart probability 0.02 / d."""
+    episodes: int = 1000
+    """Total episodes (5 s of experience per parallel pendulum each)."""
+    episodes_per_iteration: int = 20
+    """Episodes per policy update = parallel pendulums."""
+    episode_seconds: float = 5.0
+    """Simulated time per episode."""
+    epsilon: float = 0.5
+    """KL bound per iteration."""
+    kappa_rel: float = 0.9
+    """Entropy bound relative to the mean responsibility entropy (learned gating only)."""
+    init_std: float = 1.5
+    """Initial exploration std of the desired angle (rad)."""
+    min_variance: float = 1e-4
+    """Floor on the option variance (rad^2)."""
+    fourier_bases: int = 5
+    """Fourier bases per state dimension of the value features."""
+    max_velocity: float = 20.0
+    """Velocity range (rad/s) the Fourier and gating features are scaled to."""
+    workers: int = 1
+    """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
+    eval_rollouts: int = 50
+    """Noise-free evaluation rollouts (5 s each) at the end."""
+    seed: int = 0
+    run_dir: Path | None = None
+    """Where to write the run (default runs/pendulum/<timestamp>); must not exist or be empty."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> HierarchicalPolicy:
+    """The policy of one gating kind: options linear in (theta, theta') -> desired angle."""
+    from hireps_torch.features import IdentityFeatures, QuadraticFeatures
+    from hireps_torch.policies import ConstantGating, HierarchicalPolicy, LinearGaussian
+
+    scale = torch.tensor([math.pi, cfg.max_velocity])
+    quad = QuadraticFeatures(2, scale=scale)
+    std = torch.tensor([cfg.init_std], dtype=torch.float64)
+    if cfg.gating == "flat":
+        return HierarchicalPolicy.create(
+            1, 2, 1, init_std=std, policy_features=quad, min_variance=cfg.min_variance
+        )
+    if cfg.gating == "constant":
+        box = torch.tensor([math.pi, 50.0], dtype=torch.float64)
+        points = (2 * torch.rand(1000, 2, generator=generator, dtype=torch.float64) - 1) * box
+        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
+        gating = ConstantGating.from_kmeans(points, cfg.n_options, seed=seed)
+        options = [
+            LinearGaussian(2, 1, std * torch.randn(1, generator=generator, dtype=torch.float64),
+                           std, cfg.min_variance)
+            for _ in range(cfg.n_options)
+        ]
+        return HierarchicalPolicy(gating, options, IdentityFeatures(2), IdentityFeatures(2))
+    return HierarchicalPolicy.create(
+        cfg.n_options,
+        2,
+        1,
+        init_std=std,
+        gating_features=quad,
+        min_variance=cfg.min_variance,
+        generator=generator,
+    )
+
+
+def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
+    """Infinite-horizon HiREPS on the swing-up; returns the summary."""
+    from environments.pendulum import PendulumParams, PendulumSwingUpBatchEnv, evaluate_swing_up
+    from environments.pendulum import sample_start
+    from hireps_torch.algorithms import InfiniteHorizonHiREPS
+    from hireps_torch.features import FourierFeatures
+    from hireps_torch.rollout import make_collector, policy_module, shutdown_collector
+    from hireps_torch.rollout import transitions
+
+    for name in ("n_options", "steps_per_decision", "episodes_per_iteration", "workers"):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+    if cfg.episodes < cfg.episodes_per_iteration:
+        raise ValueError(
+            f"episodes ({cfg.episodes}) must be at least episodes_per_iteration "
+            f"({cfg.episodes_per_iteration})"
+        )
+    params = PendulumParams(steps_per_decision=cfg.steps_per_decision)
+    decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
+    B = cfg.episodes_per_iteration
+    if cfg.workers > 1 and B % cfg.workers:
+        raise ValueError(f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})")
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    policy = build_pendulum_policy(cfg, gen)
+    vmax = cfg.max_velocity
+    algo = InfiniteHorizonHiREPS(
+        policy,
+        FourierFeatures([-math.pi, -vmax], [math.pi, vmax], cfg.fourier_bases),
+        sample_start(1000, params, gen),
+        gamma=params.gamma,
+        epsilon=cfg.epsilon,
+        kappa_rel=cfg.kappa_rel if cfg.gating == "learned" else None,
+        prune_threshold=1e-4 if cfg.gating == "learned" else 0.0,
+    )
+    per_worker = B // cfg.workers
+    env_seed = cfg.seed + 1
+
+    def make_env() -> PendulumSwingUpBatchEnv:
+        return PendulumSwingUpBatchEnv(per_worker, params, seed=env_seed)
+
+    iterations = cfg.episodes // B
+    frames = B * decisions
+    collector = make_collector(
+        make_env,
+        policy_module(policy),
+        frames_per_batch=frames,
+        total_frames=frames * iterations,
+        num_workers=cfg.workers,
+        seed=env_seed,
+    )
+    run_dir = cfg.run_dir or default_run_dir("pendulum")
+    try:
+        writer = RunWriter(run_dir, {"experiment": "pendulum", **dataclasses.asdict(cfg)})
+    except BaseException:
+        shutdown_collector(collector)
+        raise
+    label = f"pendulum/{cfg.gating}/{cfg.n_options if cfg.gating != 'flat' else 1}opt/d{cfg.steps_per_decision}"
+    bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
+    try:
+        for it, batch in enumerate(collector):
+            s, a, r, s_next, _ = transitions(batch, "state")
+            diag = algo.update(s, a, r, s_next)
+            if cfg.workers > 1:
+                collector.update_policy_weights_()
+            row = {
+                "iteration": it + 1,
+                "episodes": (it + 1) * B,
+                "average_return": float(r.mean()) / params.steps_per_decision,
+                **diag,
+            }
+            writer.log(row)
+            bar.update(1)
+            bar.set_postfix(ret=f"{row['average_return']:.0f}", kl=f"{diag['kl']:.2f}",
+                            opts=diag["n_active_options"])
+    finally:
+        bar.close()
+        shutdown_collector(collector)
+
+    def act(states: torch.Tensor) -> torch.Tensor:
+        return policy.mean_action(states)[0]
+
+    ev = evaluate_swing_up(act, params, n_rollouts=cfg.eval_rollouts, seed=cfg.seed + 777)
+    writer.checkpoint({"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)})
+    writer.plot_learning_curve("episodes", ["average_return"], title=label)
+    return writer.finish(
+        {
+            "experiment": "pendulum",
+            "gating": cfg.gating,
+            "n_options": 1 if cfg.gating == "flat" else cfg.n_options,
+            "steps_per_decision": cfg.steps_per_decision,
+            "seed": cfg.seed,
+            "episodes": iterations * B,
+            "iterations": iterations,
+            "final_average_return": writer.rows[-1]["average_return"],
+            "final_return": ev.average_return,
+            "success_rate": ev.success_rate,
+            "time_to_upright": ev.time_to_upright,
+            "reached_upright_share": ev.reached_share,
+            "n_active_options": int(policy.active.sum()),
+        }
+    )
+
+
 EXPERIMENTS: dict[str, tuple[Any, Any]] = {
     "bimodal": (BimodalConfig, run_bimodal),
+    "pendulum": (PendulumConfig, run_pendulum),
 }
 
 

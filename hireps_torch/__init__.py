@@ -1,6 +1,6 @@
 """hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch."""
 
-from hireps_torch.algorithms import REPS, EpisodicHiREPS
+from hireps_torch.algorithms import REPS, EpisodicHiREPS, InfiniteHorizonHiREPS
 from hireps_torch.dual import DegenerateWeightsWarning, DualSolution, solve_episodic_dual
 from hireps_torch.policies import HierarchicalPolicy, LinearGaussian, SoftmaxGating
 
@@ -11,6 +11,7 @@ __all__ = [
     "DualSolution",
     "EpisodicHiREPS",
     "HierarchicalPolicy",
+    "InfiniteHorizonHiREPS",
     "LinearGaussian",
     "SoftmaxGating",
     "solve_episodic_dual",

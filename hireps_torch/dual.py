@@ -53,6 +53,7 @@ __all__ = [
     "DualSolution",
     "RepsDualSolution",
     "solve_episodic_dual",
+    "solve_infinite_horizon_dual",
     "solve_reps_dual",
 ]
 
@@ -485,6 +486,85 @@ def _finish(
 # episodic / contextual HiREPS
 
 
+def _common_inputs(
+    returns: Tensor,
+    epsilon: float,
+    log_responsibilities: Tensor | None,
+    kappa: float | None,
+    name: str = "returns",
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """Validate (returns, epsilon, log responsibilities, kappa) of a one-block dual."""
+    R = _as_f64(name, returns)
+    if R.dim() != 1:
+        raise ValueError(f"{name} must have shape (N,), got {tuple(R.shape)}")
+    N = R.shape[0]
+    if N < 2:
+        raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
+    _check_finite(name, R)
+    eps_t = torch.as_tensor(float(epsilon), dtype=torch.float64)
+    _check_positive("epsilon", eps_t)
+    if float(epsilon) >= math.log(N):
+        warnings.warn(
+            f"epsilon = {float(epsilon):.4g} >= log N = {math.log(N):.4g} (N = {N}): the KL bound "
+            "cannot bind and the weights collapse onto the best sample(s); use a smaller epsilon "
+            "or more samples",
+            DegenerateWeightsWarning,
+            stacklevel=3,
+        )
+    if log_responsibilities is None:
+        lr = torch.zeros(N, 1, dtype=torch.float64)
+    else:
+        lr = _as_f64("log_responsibilities", log_responsibilities)
+        if lr.dim() != 2 or lr.shape[0] != N:
+            raise ValueError(
+                f"log_responsibilities must have shape (N, O) = ({N}, O), got {tuple(lr.shape)}"
+            )
+        lr = _check_log_resp(lr)
+    kap = None
+    if kappa is not None:
+        k = float(kappa)
+        if not math.isfinite(k) or k < 0:
+            raise ValueError(f"kappa must be finite and >= 0, got {kappa}")
+        kap = torch.tensor([k], dtype=torch.float64)
+    return R, eps_t, lr, kap
+
+
+def _features(name: str, x: Tensor, N: int) -> Tensor:
+    phi = _as_f64(name, x)
+    if phi.dim() != 2 or phi.shape[0] != N:
+        raise ValueError(f"{name} must have shape (N, F) = ({N}, F), got {tuple(phi.shape)}")
+    _check_finite(name, phi)
+    return phi
+
+
+def _one_block(sol: RepsDualSolution, F: int, epsilon: float) -> DualSolution:
+    """The K = 1 solution as a :class:`DualSolution`; warns when the weights collapsed."""
+    w = sol.weights[0]
+    N = w.shape[0]
+    ess = float(sol.effective_sample_size[0])
+    if ess < 1.5 and sol.eta[0].isfinite():
+        warnings.warn(
+            f"the weights collapsed onto ~{ess:.2f} effective samples (N = {N}, epsilon = "
+            f"{float(epsilon):.4g}); the refit will rely on its variance floor",
+            DegenerateWeightsWarning,
+            stacklevel=3,
+        )
+    return DualSolution(
+        eta=float(sol.eta[0]),
+        xi=float(sol.xi[0]),
+        v=sol.v[:F],
+        weights=w,
+        sample_weights=w.sum(-1),
+        kl=float(sol.kl[0]),
+        cross_entropy=float(sol.cross_entropy[0]),
+        effective_sample_size=ess,
+        feature_error=sol.feature_error,
+        dual_value=sol.dual_value,
+        converged=sol.converged,
+        iterations=sol.iterations,
+    )
+
+
 def solve_episodic_dual(
     returns: Tensor,
     *,
@@ -515,77 +595,83 @@ def solve_episodic_dual(
         ValueError: on non-finite returns or features, shape mismatches, N < 2, epsilon <= 0 or
             a negative kappa; each message names the offending value.
     """
-    R = _as_f64("returns", returns)
-    if R.dim() != 1:
-        raise ValueError(f"returns must have shape (N,), got {tuple(R.shape)}")
+    R, eps_t, lr, kap = _common_inputs(returns, epsilon, log_responsibilities, kappa)
     N = R.shape[0]
-    if N < 2:
-        raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
-    _check_finite("returns", R)
-    eps_t = torch.as_tensor(float(epsilon), dtype=torch.float64)
-    _check_positive("epsilon", eps_t)
-    if float(epsilon) >= math.log(N):
-        warnings.warn(
-            f"epsilon = {float(epsilon):.4g} >= log N = {math.log(N):.4g} (N = {N}): the KL bound "
-            "cannot bind and the weights collapse onto the best sample(s); use a smaller epsilon "
-            "or more samples",
-            DegenerateWeightsWarning,
-            stacklevel=2,
-        )
-
-    if log_responsibilities is None:
-        lr = torch.zeros(N, 1, dtype=torch.float64)
-    else:
-        lr = _as_f64("log_responsibilities", log_responsibilities)
-        if lr.dim() != 2 or lr.shape[0] != N:
-            raise ValueError(
-                f"log_responsibilities must have shape (N, O) = ({N}, O), got {tuple(lr.shape)}"
-            )
-        lr = _check_log_resp(lr)
-
     D = None
     F = 0
     if context_features is not None:
-        phi = _as_f64("context_features", context_features)
-        if phi.dim() != 2 or phi.shape[0] != N:
-            raise ValueError(
-                f"context_features must have shape (N, F) = ({N}, F), got {tuple(phi.shape)}"
-            )
-        _check_finite("context_features", phi)
+        phi = _features("context_features", context_features, N)
         F = phi.shape[1]
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
         D = -(phi - phi.mean(dim=0, keepdim=True)).unsqueeze(0)
-
-    kap = None
-    if kappa is not None:
-        k = float(kappa)
-        if not math.isfinite(k) or k < 0:
-            raise ValueError(f"kappa must be finite and >= 0, got {kappa}")
-        kap = torch.tensor([k], dtype=torch.float64)
-
     sol = solve_reps_dual(
         R.unsqueeze(0), lr.unsqueeze(0), eps_t.reshape(1), D=D, kappa=kap, max_iter=max_iter
     )
-    w = sol.weights[0]
-    ess = float(sol.effective_sample_size[0])
-    if ess < 1.5 and sol.eta[0].isfinite():
-        warnings.warn(
-            f"the weights collapsed onto ~{ess:.2f} effective samples (N = {N}, epsilon = "
-            f"{float(epsilon):.4g}); the refit will rely on its variance floor",
-            DegenerateWeightsWarning,
-            stacklevel=2,
+    return _one_block(sol, F, epsilon)
+
+
+# --------------------------------------------------------------------------------------------
+# infinite-horizon HiREPS
+
+
+def solve_infinite_horizon_dual(
+    rewards: Tensor,
+    features: Tensor,
+    next_features: Tensor,
+    initial_features: Tensor,
+    *,
+    gamma: float,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+) -> DualSolution:
+    """Solve the stationary (infinite-horizon) HiREPS dual with restart probability 1 - gamma.
+
+    Samples are transitions (s_i, a_i, r_i, s'_i) of the restart process. The new
+    distribution P_io ∝ p~_io^(1 + xi/eta) exp(delta_i / eta) uses the Bellman error
+
+        delta_i = r_i + gamma v^T phi(s'_i) - v^T phi(s_i),
+
+    and the dual is ``eta eps + xi kappa + (1 - gamma) v^T phi_hat_0 + eta log mean exp``.
+    At the optimum the state distribution is stationary under restarts:
+
+        sum_i w_i (phi(s_i) - gamma phi(s'_i)) = (1 - gamma) phi_hat_0   (``feature_error``).
+
+    Args:
+        rewards: (N,) reward of each transition (one decision).
+        features: (N, F) value features phi(s_i).
+        next_features: (N, F) value features phi(s'_i) of the state reached.
+        initial_features: (F,) mean value features of the start distribution, phi_hat_0.
+        gamma: 1 - restart probability, in (0, 1).
+        epsilon: KL bound, > 0.
+        log_responsibilities: (N, O) log p~(o | s_i, a_i) or None (one option).
+        kappa: absolute bound on the option cross-entropy or None.
+        max_iter: LBFGS iterations per phase.
+
+    Returns:
+        :class:`DualSolution`; ``v`` holds the value-function weights (F,).
+    """
+    R, eps_t, lr, kap = _common_inputs(rewards, epsilon, log_responsibilities, kappa, "rewards")
+    N = R.shape[0]
+    g = float(gamma)
+    if not (math.isfinite(g) and 0.0 < g < 1.0):
+        raise ValueError(f"gamma must be in (0, 1), got {gamma}")
+    phi = _features("features", features, N)
+    phi_next = _features("next_features", next_features, N)
+    F = phi.shape[1]
+    if phi_next.shape != phi.shape:
+        raise ValueError(
+            f"next_features must have the shape of features {tuple(phi.shape)}, got "
+            f"{tuple(phi_next.shape)}"
         )
-    return DualSolution(
-        eta=float(sol.eta[0]),
-        xi=float(sol.xi[0]),
-        v=sol.v[:F],
-        weights=w,
-        sample_weights=w.sum(-1),
-        kl=float(sol.kl[0]),
-        cross_entropy=float(sol.cross_entropy[0]),
-        effective_sample_size=ess,
-        feature_error=sol.feature_error,
-        dual_value=sol.dual_value,
-        converged=sol.converged,
-        iterations=sol.iterations,
+    phi0 = _as_f64("initial_features", initial_features).reshape(-1)
+    if phi0.shape != (F,):
+        raise ValueError(f"initial_features must have shape ({F},), got {tuple(phi0.shape)}")
+    _check_finite("initial_features", phi0)
+    D = (g * phi_next - phi).unsqueeze(0)
+    c = (1.0 - g) * phi0
+    sol = solve_reps_dual(
+        R.unsqueeze(0), lr.unsqueeze(0), eps_t.reshape(1), D=D, c=c, kappa=kap, max_iter=max_iter
     )
+    return _one_block(sol, F, epsilon)

@@ -7,10 +7,13 @@ column would make the dual's value multiplier unidentifiable.
 
 from __future__ import annotations
 
+import itertools
+import math
+
 import torch
 from torch import Tensor, nn
 
-__all__ = ["FeatureMap", "IdentityFeatures", "QuadraticFeatures"]
+__all__ = ["FeatureMap", "FourierFeatures", "IdentityFeatures", "QuadraticFeatures"]
 
 
 class FeatureMap(nn.Module):
@@ -69,3 +72,47 @@ class QuadraticFeatures(FeatureMap):
         z = x / self.scale.to(x.dtype)
         quad = z[..., self._rows] * z[..., self._cols]
         return torch.cat([z, quad], dim=-1)
+
+
+class FourierFeatures(FeatureMap):
+    """Fourier basis (Konidaris et al. 2011) with ``n_bases`` frequencies per dimension.
+
+    The state is scaled to ``u = (x - low) / (high - low)`` (in [0, 1] on the box) and
+
+        phi_c(x) = cos(pi c^T u),   c in {0, ..., n_bases - 1}^S,  c != 0,
+
+    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``. The constant c = 0 is left
+    out (see the module docstring). The paper's value functions use five bases.
+
+    Args:
+        low: (S,) lower corner of the state box.
+        high: (S,) upper corner, > low.
+        n_bases: frequencies per dimension, >= 2.
+    """
+
+    low: Tensor
+    width: Tensor
+    coefficients: Tensor
+
+    def __init__(self, low: Tensor | list[float], high: Tensor | list[float], n_bases: int = 5):
+        super().__init__()
+        lo = torch.as_tensor(low, dtype=torch.float64).reshape(-1)
+        hi = torch.as_tensor(high, dtype=torch.float64).reshape(-1)
+        if lo.shape != hi.shape or not bool((hi > lo).all()):
+            raise ValueError(f"need high > low elementwise with equal shapes, got {lo}, {hi}")
+        if n_bases < 2:
+            raise ValueError(f"n_bases must be >= 2, got {n_bases}")
+        S = lo.shape[0]
+        coeffs = torch.tensor(list(itertools.product(range(n_bases), repeat=S)), dtype=torch.float64)
+        self.in_features = S
+        self.out_features = n_bases**S - 1
+        self.register_buffer("low", lo)
+        self.register_buffer("width", hi - lo)
+        self.register_buffer("coefficients", coeffs[1:])
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x: (..., S) -> (..., n_bases^S - 1)."""
+        if x.shape[-1] != self.in_features:
+            raise ValueError(f"expected (..., {self.in_features}) states, got {tuple(x.shape)}")
+        u = (x.to(torch.float64) - self.low) / self.width
+        return torch.cos(math.pi * u @ self.coefficients.T).to(x.dtype)

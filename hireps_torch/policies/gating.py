@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-__all__ = ["SoftmaxGating"]
+__all__ = ["ConstantGating", "SoftmaxGating"]
 
 
 class SoftmaxGating(nn.Module):
@@ -116,3 +116,52 @@ class SoftmaxGating(nn.Module):
             opt.step(closure)
         self.weight[act] = Wp.detach().to(self.weight.dtype)
         self.bias[act] = (bp.detach() - bp.detach().mean()).to(self.bias.dtype)
+
+
+class ConstantGating(SoftmaxGating):
+    """Fixed hard gating: each state goes to the option of its nearest k-means centroid.
+
+    The paper's constant-gating baseline (Fig. 17): the state space is divided by k-means and
+    the division is never refitted (:meth:`weighted_fit` leaves it unchanged); only the
+    options learn. ``pi(o | s) = 1`` for the nearest centroid, 0 (log = -inf) otherwise.
+
+    Args:
+        centroids: (O, F) centroids in the gating-feature space.
+    """
+
+    centroids: Tensor
+
+    def __init__(self, centroids: Tensor) -> None:
+        c = torch.as_tensor(centroids, dtype=torch.float64)
+        if c.dim() != 2 or c.shape[0] < 1:
+            raise ValueError(f"centroids must have shape (O, F), got {tuple(c.shape)}")
+        super().__init__(c.shape[1], c.shape[0])
+        self.register_buffer("centroids", c.clone())
+
+    @classmethod
+    def from_kmeans(cls, points: Tensor, n_options: int, seed: int = 0) -> ConstantGating:
+        """k-means (scipy's ``kmeans2``, k-means++ start) of points (M, F) into O centroids."""
+        from scipy.cluster.vq import kmeans2
+
+        x = torch.as_tensor(points, dtype=torch.float64)
+        if x.dim() != 2 or x.shape[0] < n_options:
+            raise ValueError(
+                f"need points of shape (M, F) with M >= n_options = {n_options}, got "
+                f"{tuple(x.shape)}"
+            )
+        centroids, _ = kmeans2(x.numpy(), n_options, minit="++", seed=seed)
+        return cls(torch.from_numpy(centroids))
+
+    def log_probs(self, features: Tensor) -> Tensor:
+        """features: (N, F) -> (N, O) with 0 at the nearest centroid and -inf elsewhere."""
+        x = self._features(features)
+        nearest = torch.cdist(x, self.centroids.to(x.dtype)).argmin(dim=-1)
+        out = torch.full((x.shape[0], self.n_options), float("-inf"), dtype=x.dtype)
+        out[torch.arange(x.shape[0]), nearest] = 0.0
+        return out
+
+    @torch.no_grad()
+    def weighted_fit(
+        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
+    ) -> None:
+        """Constant gating: nothing to fit."""

@@ -1,0 +1,460 @@
+"""Pendulum swing-up with a PD-tracked desired angle (HiREPS paper, Section 5.4, Figs 16-18).
+
+Spec sheet
+==========
+Physics (pure, batched: :func:`pendulum_step`)
+    A point mass ``m`` on a massless rod of length ``l`` with viscous joint friction ``b``:
+
+        m l^2 theta'' = m g l sin(theta) - b theta' + u,     |u| <= u_max,
+
+    ``theta = 0`` is upright, ``theta = +-pi`` hanging down; theta is wrapped to [-pi, pi)
+    after every control step. One control step lasts ``dt`` and holds the torque constant;
+    it is integrated with one classical Runge-Kutta-4 step (energy drift without friction and
+    torque: < 1e-6 relative over 10 s, see the tests).
+
+Constants and sources
+    ======================  =========  =============================================
+    mass m                  10 kg      paper
+    length l                0.5 m      paper
+    friction b              0.2 N m s  paper ("friction coefficient 0.2", taken viscous)
+    torque limit u_max      30 N m     paper (m g l = 49 N m > 30: a pre-swing is needed)
+    control rate            100 Hz     paper (dt = 0.01 s)
+    gravity g               9.81 m/s^2 standard
+    PD gains kp, kd         60, 10     our choice: kp > m g l so a target of 0 holds the
+                                       pendulum up; kd damps that to zeta ~ 0.4
+    steps per decision d    5          paper's standard setting (a parameter)
+    restart prob. 1 - gamma 0.02 / d   paper, per decision
+    ======================  =========  =============================================
+
+Action (one per decision)
+    A desired joint angle ``theta_d`` (rad), clipped to [-2 pi, 2 pi] (a larger target only
+    saturates the torque earlier). For d control steps the PD controller applies
+    ``u = clip(kp (theta_d - theta) - kd theta', -u_max, u_max)``. Non-finite actions raise.
+
+Observation
+    ``(theta, theta')``: angle in [-pi, pi), angular velocity in rad/s (float32 in the adapters).
+
+Reward (per decision)
+    The sum over the decision's d control steps of the per-step reward, evaluated at the state
+    after each control step:
+
+        r = 500 - 500 (theta / pi)^2 - 10 |theta'|
+
+    (the paper's shape: a base value of 500, minus 500 x the deviation from upright, here
+    normalised to [0, 1] and squared, minus 10 x the speed). 500 is upright at rest, 0 hanging
+    at rest. "Average return" in the plots is the mean per-control-step reward.
+
+Start state
+    Hanging down with a perturbation: ``theta = wrap(pi + 0.1 n1)``, ``theta' = 0.1 n2``,
+    n1, n2 ~ N(0, 1) (the perturbation's size is our choice).
+
+Episode end
+    The task never terminates. With probability ``1 - gamma = 0.02 / d`` per decision the
+    system restarts from the start distribution (the infinite-horizon setting of the paper);
+    the adapters report that as ``truncated``. ``max_decisions`` (default: none) adds a time
+    cap, also reported as ``truncated``.
+
+Adapters: :class:`PendulumSwingUpEnv` (gymnasium, id ``hireps/PendulumSwingUp-v0``) and
+:class:`PendulumSwingUpBatchEnv` (TorchRL ``EnvBase`` with batch size B). Both call the same
+functions below and draw their randomness from one ``torch.Generator`` seeded by the caller, in
+the same order, so the same seed and actions give the same trajectory.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+__all__ = [
+    "PendulumParams",
+    "PendulumSwingUpBatchEnv",
+    "PendulumSwingUpEnv",
+    "SwingUpEvaluation",
+    "energy",
+    "evaluate_swing_up",
+    "pd_torque",
+    "pendulum_step",
+    "sample_start",
+    "step_reward",
+    "wrap_angle",
+]
+
+ENV_ID = "hireps/PendulumSwingUp-v0"
+
+
+@dataclass(frozen=True)
+class PendulumParams:
+    """Constants of the swing-up task (see the module docstring for their sources)."""
+
+    mass: float = 10.0
+    length: float = 0.5
+    friction: float = 0.2
+    max_torque: float = 30.0
+    dt: float = 0.01
+    gravity: float = 9.81
+    kp: float = 60.0
+    kd: float = 10.0
+    steps_per_decision: int = 5
+    action_limit: float = 2.0 * math.pi
+    start_noise: float = 0.1
+    restart_probability: float | None = None  # None: 0.02 / steps_per_decision
+
+    def __post_init__(self) -> None:
+        if self.steps_per_decision < 1:
+            raise ValueError(f"steps_per_decision must be >= 1, got {self.steps_per_decision}")
+        for name in ("mass", "length", "dt", "action_limit"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("friction", "max_torque", "kp", "kd", "start_noise"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        p = self.restart_probability
+        if p is not None and not 0.0 <= p < 1.0:
+            raise ValueError(f"restart_probability must be in [0, 1), got {p}")
+
+    @property
+    def restart(self) -> float:
+        """Restart probability per decision, 1 - gamma."""
+        if self.restart_probability is None:
+            return 0.02 / self.steps_per_decision
+        return self.restart_probability
+
+    @property
+    def gamma(self) -> float:
+        """Discount per decision of the infinite-horizon dual."""
+        return 1.0 - self.restart
+
+    @property
+    def decision_seconds(self) -> float:
+        return self.steps_per_decision * self.dt
+
+
+def wrap_angle(theta: Tensor) -> Tensor:
+    """Wrap angles to [-pi, pi)."""
+    return torch.remainder(theta + math.pi, 2.0 * math.pi) - math.pi
+
+
+def energy(state: Tensor, params: PendulumParams) -> Tensor:
+    """Mechanical energy (J), zero at the bottom at rest: (B, 2) -> (B,)."""
+    m, l, g = params.mass, params.length, params.gravity
+    return 0.5 * m * l**2 * state[..., 1] ** 2 + m * g * l * (1.0 + torch.cos(state[..., 0]))
+
+
+def step_reward(state: Tensor) -> Tensor:
+    """Per-control-step reward 500 - 500 (theta/pi)^2 - 10 |theta'|: (..., 2) -> (...)."""
+    return 500.0 - 500.0 * (state[..., 0] / math.pi) ** 2 - 10.0 * state[..., 1].abs()
+
+
+def pd_torque(state: Tensor, target: Tensor, params: PendulumParams) -> Tensor:
+    """PD torque toward ``target`` (B,), clipped to the torque limit: (B,)."""
+    u = params.kp * (target - state[..., 0]) - params.kd * state[..., 1]
+    return u.clamp(-params.max_torque, params.max_torque)
+
+
+def _accel(theta: Tensor, omega: Tensor, u: Tensor, p: PendulumParams) -> Tensor:
+    inertia = p.mass * p.length**2
+    return (p.mass * p.gravity * p.length * torch.sin(theta) - p.friction * omega + u) / inertia
+
+
+def control_step(state: Tensor, torque: Tensor, params: PendulumParams) -> Tensor:
+    """One control step (dt, torque held) with RK4: state (B, 2), torque (B,) -> (B, 2)."""
+    h = params.dt
+    th, om = state[..., 0], state[..., 1]
+    k1t, k1o = om, _accel(th, om, torque, params)
+    k2t, k2o = om + 0.5 * h * k1o, _accel(th + 0.5 * h * k1t, om + 0.5 * h * k1o, torque, params)
+    k3t, k3o = om + 0.5 * h * k2o, _accel(th + 0.5 * h * k2t, om + 0.5 * h * k2o, torque, params)
+    k4t, k4o = om + h * k3o, _accel(th + h * k3t, om + h * k3o, torque, params)
+    th = th + h / 6.0 * (k1t + 2.0 * k2t + 2.0 * k3t + k4t)
+    om = om + h / 6.0 * (k1o + 2.0 * k2o + 2.0 * k3o + k4o)
+    return torch.stack([wrap_angle(th), om], dim=-1)
+
+
+def check_action(action: Tensor, batch: int) -> Tensor:
+    """Validate a (B,) or (B, 1) desired-angle action; returns (B,)."""
+    a = torch.as_tensor(action)
+    if a.dim() == 2 and a.shape[1] == 1:
+        a = a[:, 0]
+    if a.shape != (batch,):
+        raise ValueError(
+            f"action must have shape ({batch},) or ({batch}, 1) (one desired angle per "
+            f"pendulum), got {tuple(a.shape)}"
+        )
+    bad = ~torch.isfinite(a)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"action contains a non-finite desired angle at index {i}: {a[i].item()}")
+    return a
+
+
+def pendulum_step(
+    state: Tensor, action: Tensor, params: PendulumParams
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One decision: track the desired angle with the PD controller for d control steps.
+
+    Args:
+        state: (B, 2) float64 ``(theta, theta')``.
+        action: (B,) or (B, 1) desired angles; clipped to +-``params.action_limit``.
+        params: the task constants.
+
+    Returns:
+        next_state (B, 2), reward (B,) summed over the d control steps, and the path
+        (B, d, 2) of states after each control step.
+    """
+    if state.dim() != 2 or state.shape[1] != 2:
+        raise ValueError(f"state must have shape (B, 2), got {tuple(state.shape)}")
+    target = check_action(action, state.shape[0]).to(state.dtype)
+    target = target.clamp(-params.action_limit, params.action_limit)
+    path = []
+    s = state
+    for _ in range(params.steps_per_decision):
+        s = control_step(s, pd_torque(s, target, params), params)
+        path.append(s)
+    p = torch.stack(path, dim=1)
+    return s, step_reward(p).sum(dim=1), p
+
+
+def sample_start(n: int, params: PendulumParams, generator: torch.Generator | None) -> Tensor:
+    """n start states hanging down with a perturbation: (n, 2) float64."""
+    noise = torch.randn(n, 2, generator=generator, dtype=torch.float64) * params.start_noise
+    return torch.stack([wrap_angle(math.pi + noise[:, 0]), noise[:, 1]], dim=-1)
+
+
+def _draw_restart(n: int, params: PendulumParams, generator: torch.Generator) -> Tensor:
+    """(n,) bool: which systems restart after this decision (one uniform draw each)."""
+    u = torch.rand(n, generator=generator, dtype=torch.float64)
+    return u < params.restart
+
+
+# --------------------------------------------------------------------------------------------
+# gymnasium adapter
+
+
+class PendulumSwingUpEnv(gym.Env):
+    """Gymnasium adapter over :func:`pendulum_step` (one pendulum; see the module docstring).
+
+    ``observation_space``: Box([-pi, -inf], [pi, inf]) float32; ``action_space``:
+    Box(-2 pi, 2 pi, (1,)) float32 (the desired angle). ``info`` holds the float64 state and the
+    per-control-step path.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, params: PendulumParams | None = None, max_decisions: int | None = None):
+        self.params = params or PendulumParams()
+        self.max_decisions = max_decisions
+        lim = np.float32(self.params.action_limit)
+        self.action_space = gym.spaces.Box(-lim, lim, shape=(1,), dtype=np.float32)
+        hi = np.array([math.pi, np.inf], dtype=np.float32)
+        self.observation_space = gym.spaces.Box(-hi, hi, dtype=np.float32)
+        self._gen = torch.Generator()
+        self._gen.manual_seed(0)
+        self._state = sample_start(1, self.params, self._gen)
+        self._t = 0
+
+    def _obs(self) -> np.ndarray:
+        return self._state[0].numpy().astype(np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        if seed is not None:
+            self._gen.manual_seed(int(seed))
+        self._state = sample_start(1, self.params, self._gen)
+        self._t = 0
+        return self._obs(), {"state": self._state[0].numpy().copy()}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        a = torch.as_tensor(np.asarray(action, dtype=np.float64)).reshape(-1)
+        if a.shape != (1,):
+            raise ValueError(f"action must hold one desired angle, got shape {tuple(a.shape)}")
+        self._state, reward, path = pendulum_step(self._state, a, self.params)
+        self._t += 1
+        restart = bool(_draw_restart(1, self.params, self._gen)[0])
+        capped = self.max_decisions is not None and self._t >= self.max_decisions
+        info = {"state": self._state[0].numpy().copy(), "path": path[0].numpy()}
+        return self._obs(), float(reward[0]), False, restart or capped, info
+
+
+gym.register(id=ENV_ID, entry_point=PendulumSwingUpEnv, disable_env_checker=True)
+
+
+# --------------------------------------------------------------------------------------------
+# TorchRL adapter
+
+
+class PendulumSwingUpBatchEnv(EnvBase):
+    """Batched TorchRL adapter over :func:`pendulum_step`: B pendulums stepped together.
+
+    Keys: ``observation`` (B, 2) float32, ``action`` (B, 1) float32 in [-2 pi, 2 pi],
+    ``reward`` (B, 1) float32, ``done``/``terminated``/``truncated`` (B, 1) bool
+    (``terminated`` is always False; ``truncated`` marks a restart or the time cap), and
+    ``state`` (B, 2) float64, the exact state. Partial resets (``_reset`` mask) restart only the
+    masked pendulums.
+
+    Args:
+        batch_size: B.
+        params: task constants.
+        max_decisions: optional time cap in decisions.
+        seed: seed of the environment's generator.
+        device: torch device of the tensors.
+    """
+
+    def __init__(
+        self,
+        batch_size: int = 20,
+        params: PendulumParams | None = None,
+        max_decisions: int | None = None,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        super().__init__(batch_size=torch.Size([batch_size]), device=device)
+        self.params = params or PendulumParams()
+        self.max_decisions = max_decisions
+        B = batch_size
+        lim = self.params.action_limit
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(B, 2), dtype=torch.float32, device=self.device),
+            state=Unbounded(shape=(B, 2), dtype=torch.float64, device=self.device),
+            shape=(B,),
+            device=self.device,
+        )
+        self.action_spec = Bounded(
+            low=-lim, high=lim, shape=(B, 1), dtype=torch.float32, device=self.device
+        )
+        self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device),
+            terminated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device),
+            truncated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device),
+            shape=(B,),
+            device=self.device,
+        )
+        self._gen = torch.Generator()
+        self._gen.manual_seed(int(seed))
+        self._state = sample_start(B, self.params, self._gen).to(self.device)
+        self._t = torch.zeros(B, dtype=torch.long, device=self.device)
+
+    def _td(self, reward: Tensor | None = None, trunc: Tensor | None = None) -> TensorDictBase:
+        B = self.batch_size[0]
+        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
+        t = false if trunc is None else trunc[:, None]
+        out = {
+            "observation": self._state.to(torch.float32),
+            "state": self._state.clone(),
+            "done": t.clone(),
+            "terminated": false,
+            "truncated": t.clone(),
+        }
+        if reward is not None:
+            out["reward"] = reward[:, None].to(torch.float32)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
+        B = self.batch_size[0]
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        fresh = sample_start(B, self.params, self._gen).to(self.device)
+        if mask is None:
+            self._state = fresh
+            self._t.zero_()
+        else:
+            m = mask.reshape(B).to(self.device)
+            self._state = torch.where(m[:, None], fresh, self._state)
+            self._t = torch.where(m, torch.zeros_like(self._t), self._t)
+        return self._td()
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        B = self.batch_size[0]
+        action = tensordict.get("action").to(torch.float64)
+        self._state, reward, _ = pendulum_step(self._state, check_action(action, B), self.params)
+        self._t += 1
+        trunc = _draw_restart(B, self.params, self._gen).to(self.device)
+        if self.max_decisions is not None:
+            trunc = trunc | (self._t >= self.max_decisions)
+        return self._td(reward, trunc)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._gen.manual_seed(0 if seed is None else int(seed))
+
+
+# --------------------------------------------------------------------------------------------
+# evaluation
+
+
+@dataclass(frozen=True)
+class SwingUpEvaluation:
+    """Result of :func:`evaluate_swing_up` (means over the rollouts).
+
+    Attributes:
+        success_rate: share of rollouts within ``angle_tol`` of upright with
+            |theta'| < ``velocity_tol`` at every control step of the last ``hold_seconds``.
+        time_to_upright: mean time (s) to first reach that region, over the rollouts that
+            reach it (nan if none does).
+        reached_share: share of rollouts that reach it at all.
+        average_return: mean per-control-step reward.
+    """
+
+    success_rate: float
+    time_to_upright: float
+    reached_share: float
+    average_return: float
+
+
+def evaluate_swing_up(
+    act: Any,
+    params: PendulumParams | None = None,
+    *,
+    n_rollouts: int = 50,
+    seconds: float = 5.0,
+    hold_seconds: float = 1.0,
+    angle_tol: float = 0.1,
+    velocity_tol: float = 1.0,
+    seed: int = 12345,
+) -> SwingUpEvaluation:
+    """Roll a policy out from the standard start distribution, without restarts.
+
+    Args:
+        act: callable ``states (B, 2) float64 -> desired angles (B,) or (B, 1)``, e.g. the
+            noise-free hierarchical policy.
+        params: task constants (their ``steps_per_decision`` sets how long a decision holds).
+        n_rollouts: B, rolled out together.
+        seconds: rollout length.
+        hold_seconds: the final window that must stay upright for a success.
+        angle_tol: |theta| bound for "upright" (rad).
+        velocity_tol: |theta'| bound for "upright" (rad/s).
+        seed: seed of the start states.
+    """
+    p = params or PendulumParams()
+    gen = torch.Generator()
+    gen.manual_seed(int(seed))
+    state = sample_start(n_rollouts, p, gen)
+    n_decisions = max(1, round(seconds / p.decision_seconds))
+    paths = []
+    with torch.no_grad():
+        for _ in range(n_decisions):
+            state, _, path = pendulum_step(state, act(state), p)
+            paths.append(path)
+    traj = torch.cat(paths, dim=1)  # (B, T, 2)
+    up = (traj[..., 0].abs() < angle_tol) & (traj[..., 1].abs() < velocity_tol)
+    hold = max(1, round(hold_seconds / p.dt))
+    success = up[:, -hold:].all(dim=1)
+    reached = up.any(dim=1)
+    first = up.to(torch.int64).argmax(dim=1).to(torch.float64) * p.dt + p.dt
+    t_up = float(first[reached].mean()) if bool(reached.any()) else math.nan
+    return SwingUpEvaluation(
+        success_rate=float(success.to(torch.float64).mean()),
+        time_to_upright=t_up,
+        reached_share=float(reached.to(torch.float64).mean()),
+        average_return=float(step_reward(traj).mean()),
+    )

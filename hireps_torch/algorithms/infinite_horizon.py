@@ -1,0 +1,199 @@
+"""Infinite-horizon HiREPS: a stationary state-action-option distribution under restarts.
+
+Each iteration (Daniel, Neumann & Peters, "Hierarchical Relative Entropy Policy Search",
+infinite-horizon formulation):
+
+1. the hierarchical policy pi(a | s) = sum_o pi(o | s) pi(a | s, o) acts in the restart process
+   (with probability 1 - gamma per decision the system restarts from the start distribution);
+   each sample is one decision: (s_i, a_i, r_i, s'_i);
+2. responsibilities p~_io = p(o | s_i, a_i) of the sampling policy and the entropy bound
+   kappa = kappa_rel * mean_i H[p~_i.];
+3. the dual (:func:`hireps_torch.dual.solve_infinite_horizon_dual`)
+
+       P_io ∝ p~_io^(1 + xi/eta) exp((r_i + gamma v^T phi(s'_i) - v^T phi(s_i)) / eta)
+
+   with KL(P || q p~) = epsilon, E_P[-log p~] <= kappa and the stationarity constraint
+   sum_i w_i (phi(s_i) - gamma phi(s'_i)) = (1 - gamma) phi_hat_0 on the value features phi;
+4. weighted maximum-likelihood refit of gating and options with the weights P
+   (:meth:`HierarchicalPolicy.weighted_fit`), then pruning;
+5. diagnostics: eta, xi, kappa, realised KL, cross-entropy, effective sample size, entropies.
+
+One option and ``kappa_rel=None`` give infinite-horizon REPS (Peters et al. 2010).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hireps_torch.dual import solve_infinite_horizon_dual
+from hireps_torch.features import FeatureMap
+from hireps_torch.policies import HierarchicalPolicy
+
+__all__ = ["InfiniteHorizonHiREPS"]
+
+
+class InfiniteHorizonHiREPS:
+    """Infinite-horizon HiREPS over transitions of a restart process.
+
+    Example::
+
+        algo = InfiniteHorizonHiREPS(policy, FourierFeatures(low, high), start_states,
+                                     gamma=0.996, epsilon=0.5)
+        diagnostics = algo.update(states, actions, rewards, next_states)
+
+    Args:
+        policy: the hierarchical policy (updated in place); its context is the state.
+        value_features: features phi(s) of the value function (e.g. :class:`FourierFeatures`).
+        initial_states: (M, S) draws from the start distribution; phi_hat_0 is their mean
+            feature vector.
+        gamma: 1 - restart probability per decision, in (0, 1).
+        epsilon: KL bound per iteration, > 0.
+        kappa_rel: entropy bound as a fraction of the current mean option entropy; None: off.
+        prune_threshold: options whose prior mass falls below this are pruned (0: never).
+    """
+
+    def __init__(
+        self,
+        policy: HierarchicalPolicy,
+        value_features: FeatureMap,
+        initial_states: Tensor,
+        *,
+        gamma: float,
+        epsilon: float = 0.5,
+        kappa_rel: float | None = 0.9,
+        prune_threshold: float = 1e-4,
+    ) -> None:
+        if not (math.isfinite(epsilon) and epsilon > 0):
+            raise ValueError(f"epsilon must be finite and > 0, got {epsilon}")
+        if not (math.isfinite(gamma) and 0.0 < gamma < 1.0):
+            raise ValueError(f"gamma must be in (0, 1), got {gamma}")
+        if kappa_rel is not None and not (math.isfinite(kappa_rel) and kappa_rel >= 0):
+            raise ValueError(f"kappa_rel must be finite and >= 0 (or None), got {kappa_rel}")
+        s0 = torch.as_tensor(initial_states, dtype=torch.float64)
+        if s0.dim() != 2 or s0.shape[1] != value_features.in_features or s0.shape[0] < 1:
+            raise ValueError(
+                f"initial_states must have shape (M, {value_features.in_features}), got "
+                f"{tuple(s0.shape)}"
+            )
+        self.policy = policy
+        self.value_features = value_features
+        self.initial_features = value_features(s0).mean(0)
+        self.gamma = float(gamma)
+        self.epsilon = float(epsilon)
+        self.kappa_rel = None if kappa_rel is None else float(kappa_rel)
+        self.prune_threshold = float(prune_threshold)
+        self.iteration = 0
+        self.value_weights = torch.zeros(value_features.out_features, dtype=torch.float64)
+
+    def _check(self, name: str, x: Tensor, shape: tuple[int, ...]) -> Tensor:
+        t = torch.as_tensor(x, dtype=torch.float64)
+        if t.shape != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()):
+            i = tuple(int(j) for j in (~torch.isfinite(t)).nonzero()[0])
+            raise ValueError(f"{name} contains a non-finite value at {i}: {t[i].item()}")
+        return t
+
+    def value(self, states: Tensor) -> Tensor:
+        """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,)."""
+        return self.value_features(torch.as_tensor(states, dtype=torch.float64)) @ (
+            self.value_weights
+        )
+
+    @torch.no_grad()
+    def update(
+        self, states: Tensor, actions: Tensor, rewards: Tensor, next_states: Tensor
+    ) -> dict[str, Any]:
+        """One policy update from transitions sampled with the current policy.
+
+        Args:
+            states: (N, S) states where the decisions were taken.
+            actions: (N, A) actions taken.
+            rewards: (N,) reward of each decision.
+            next_states: (N, S) states reached (before any restart).
+
+        Returns:
+            Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
+            option_entropy, policy_entropy, n_active_options, pruned, mean_reward,
+            feature_error, dual_converged, dual_iterations, iteration``.
+        """
+        R = torch.as_tensor(rewards, dtype=torch.float64).reshape(-1)
+        N = R.shape[0]
+        S = self.value_features.in_features
+        s = self._check("states", states, (N, S))
+        s_next = self._check("next_states", next_states, (N, S))
+        a = self._check("actions", actions, (N, self.policy.action_dim))
+
+        log_resp = self.policy.log_responsibilities(s, a)
+        active = self.policy.active
+        n_active = int(active.sum())
+        lr_act = log_resp[:, active]
+        p = lr_act.exp()
+        option_entropy = (
+            float(-(torch.where(p > 0, p * lr_act, 0.0)).sum(-1).mean()) if n_active > 1 else 0.0
+        )
+        kappa = None
+        if self.kappa_rel is not None and n_active > 1:
+            kappa = self.kappa_rel * option_entropy
+
+        sol = solve_infinite_horizon_dual(
+            R,
+            self.value_features(s),
+            self.value_features(s_next),
+            self.initial_features,
+            gamma=self.gamma,
+            epsilon=self.epsilon,
+            log_responsibilities=lr_act if n_active > 1 else None,
+            kappa=kappa,
+        )
+        self.value_weights = sol.v.clone()
+        weights = torch.zeros(N, self.policy.n_options, dtype=torch.float64)
+        weights[:, active] = sol.weights
+        self.policy.weighted_fit(s, a, weights)
+        pruned: list[int] = []
+        if self.policy.n_options > 1 and self.prune_threshold > 0:
+            pruned = self.policy.prune(s, self.prune_threshold)
+        self.iteration += 1
+
+        prior = self.policy.gating.probs(self.policy.gating_features(s)).mean(0)
+        ent = torch.stack([o.entropy() for o in self.policy.sub_policies])
+        return {
+            "iteration": self.iteration,
+            "eta": sol.eta,
+            "xi": sol.xi,
+            "kappa": math.nan if kappa is None else kappa,
+            "kl": sol.kl,
+            "cross_entropy": sol.cross_entropy,
+            "effective_sample_size": sol.effective_sample_size,
+            "option_entropy": option_entropy,
+            "policy_entropy": float((prior * ent).sum()),
+            "n_active_options": int(self.policy.active.sum()),
+            "pruned": pruned,
+            "mean_reward": float(R.mean()),
+            "feature_error": sol.feature_error,
+            "dual_converged": sol.converged,
+            "dual_iterations": sol.iterations,
+        }
+
+    # ---- checkpointing ----------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "policy": self.policy.state_dict(),
+            "value_weights": self.value_weights.clone(),
+            "iteration": self.iteration,
+            "gamma": self.gamma,
+            "epsilon": self.epsilon,
+            "kappa_rel": self.kappa_rel,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.value_weights = state["value_weights"].clone()
+        self.iteration = int(state["iteration"])
+        self.gamma = float(state["gamma"])
+        self.epsilon = float(state["epsilon"])
+        self.kappa_rel = state["kappa_rel"]

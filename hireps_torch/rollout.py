@@ -1,0 +1,166 @@
+"""TorchRL glue: the hierarchical policy as a TensorDictModule, collectors and their shutdown.
+
+The library's algorithms take and return tensors; TensorDicts appear only here.
+
+    actor = policy_module(policy)                       # observation -> action, option
+    collector = make_collector(lambda: MyBatchEnv(20), actor, frames_per_batch=2000)
+    for batch in collector:                             # (B, T) TensorDict
+        s, a, r, s_next, option = transitions(batch)
+        algo.update(s, a, r, s_next)
+        collector.update_policy_weights_()              # needed with several workers
+    shutdown_collector(collector)
+"""
+
+from __future__ import annotations
+
+import gc
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import Tensor, nn
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.envs import EnvBase
+
+from hireps_torch.policies import HierarchicalPolicy
+
+__all__ = [
+    "PolicyActor",
+    "make_collector",
+    "policy_module",
+    "shutdown_collector",
+    "transitions",
+]
+
+
+class PolicyActor(nn.Module):
+    """``observation (B, S) -> action (B, A), option (B,)`` for a :class:`HierarchicalPolicy`.
+
+    At each call (each decision) an option is drawn from the gating and an action from that
+    option (global torch RNG, so ``torch.manual_seed`` makes runs repeat); with
+    ``deterministic=True`` the mean of the most probable option is returned instead. The
+    action has the observation's dtype.
+    """
+
+    def __init__(self, policy: HierarchicalPolicy, deterministic: bool = False) -> None:
+        super().__init__()
+        self.policy = policy
+        self.deterministic = deterministic
+
+    @torch.no_grad()
+    def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
+        lead = observation.shape[:-1]
+        s = observation.reshape(-1, observation.shape[-1]).to(torch.float64)
+        if self.deterministic:
+            a, o = self.policy.mean_action(s)
+        else:
+            a, o = self.policy.sample(s)
+        return (
+            a.to(observation.dtype).reshape(*lead, -1),
+            o.reshape(lead),
+        )
+
+
+def policy_module(
+    policy: HierarchicalPolicy,
+    deterministic: bool = False,
+    observation_key: str = "observation",
+) -> TensorDictModule:
+    """Wrap the policy for TorchRL: reads ``observation_key``, writes ``action`` and ``option``."""
+    return TensorDictModule(
+        PolicyActor(policy, deterministic),
+        in_keys=[observation_key],
+        out_keys=["action", "option"],
+    )
+
+
+def make_collector(
+    create_env_fn: Callable[[], EnvBase],
+    policy: TensorDictModule,
+    *,
+    frames_per_batch: int,
+    total_frames: int = -1,
+    num_workers: int = 1,
+    seed: int | None = None,
+) -> Collector | MultiSyncCollector:
+    """A TorchRL collector over ``create_env_fn()``.
+
+    ``num_workers = 1`` gives a single-process :class:`~torchrl.collectors.Collector` (the
+    policy is used in place, so its updates are seen at once); ``num_workers > 1`` a
+    :class:`~torchrl.collectors.MultiSyncCollector` with that many worker processes, each
+    collecting ``frames_per_batch / num_workers`` frames of every batch (call
+    ``collector.update_policy_weights_()`` after each policy update, and
+    :func:`shutdown_collector` at the end; a script that builds one needs an
+    ``if __name__ == "__main__":`` guard because torchrl uses the "spawn" start method).
+    """
+    if num_workers < 1:
+        raise ValueError(f"num_workers must be >= 1, got {num_workers}")
+    if frames_per_batch < 1:
+        raise ValueError(f"frames_per_batch must be >= 1, got {frames_per_batch}")
+    collector: Collector | MultiSyncCollector
+    if num_workers == 1:
+        collector = Collector(
+            create_env_fn,
+            policy,
+            frames_per_batch=frames_per_batch,
+            total_frames=total_frames,
+            auto_register_policy_transforms=False,
+        )
+    else:
+        if frames_per_batch % num_workers:
+            raise ValueError(
+                f"frames_per_batch = {frames_per_batch} must be divisible by num_workers = "
+                f"{num_workers}"
+            )
+        collector = MultiSyncCollector(
+            [create_env_fn] * num_workers,
+            policy,
+            frames_per_batch=frames_per_batch,
+            total_frames=total_frames,
+            cat_results="stack",
+            auto_register_policy_transforms=False,
+        )
+    if seed is not None:
+        collector.set_seed(int(seed))
+    return collector
+
+
+def shutdown_collector(collector: Any) -> None:
+    """Shut a collector down so that the interpreter can exit.
+
+    ``MultiSyncCollector``'s weight-sync schemes can deadlock in ``__del__`` at interpreter
+    exit (see ENVIRONMENT.md); shutting the collector and then each scheme down explicitly
+    avoids it.
+    """
+    try:
+        collector.shutdown()
+    finally:
+        schemes = getattr(collector, "_weight_sync_schemes", None) or {}
+        for scheme in list(schemes.values()):
+            stop = getattr(scheme, "shutdown", None)
+            if callable(stop):
+                try:
+                    stop()
+                except Exception:  # pragma: no cover - best effort at teardown
+                    pass
+        gc.collect()
+
+
+def transitions(
+    batch: TensorDictBase, state_key: str = "observation"
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Flatten a collected (..., T) batch into decision samples.
+
+    Returns:
+        states (N, S), actions (N, A), rewards (N,), next_states (N, S) (float64; the state
+        reached by the decision, before a reset) and options (N,) int64.
+    """
+    flat = batch.reshape(-1)
+    s = flat.get(state_key).to(torch.float64)
+    s_next = flat.get(("next", state_key)).to(torch.float64)
+    a = flat.get("action").to(torch.float64)
+    r = flat.get(("next", "reward")).to(torch.float64).reshape(-1)
+    o = flat.get("option").reshape(-1)
+    return s, a.reshape(s.shape[0], -1), r, s_next, o

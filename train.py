@@ -257,6 +257,13 @@ class PendulumConfig:
     """Episodes per policy update = parallel pendulums."""
     episode_seconds: float = 5.0
     """Simulated time per episode."""
+    kp: float = 60.0
+    """PD controller stiffness (N m / rad)."""
+    kd: float = 10.0
+    """PD controller damping (N m s / rad)."""
+    reset_each_iteration: bool = True
+    """Start every iteration's episodes from the start distribution (else the pendulums run on
+    across iterations, restarting only at the restart probability)."""
     epsilon: float = 0.5
     """KL bound per iteration."""
     kappa_rel: float = 0.9
@@ -265,6 +272,9 @@ class PendulumConfig:
     """Initial exploration std of the desired angle (rad)."""
     min_variance: float = 1e-4
     """Floor on the option variance (rad^2)."""
+    init_gain_std: float = 0.0
+    """Std of the options' initial random feedback gains on (theta, theta') (0: constant
+    initial targets)."""
     fourier_bases: int = 5
     """Fourier bases per state dimension of the value features."""
     max_velocity: float = 20.0
@@ -298,12 +308,17 @@ def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> Hi
         seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
         gating = ConstantGating.from_kmeans(points, cfg.n_options, seed=seed)
         options = [
-            LinearGaussian(2, 1, std * torch.randn(1, generator=generator, dtype=torch.float64),
-                           std, cfg.min_variance)
+            LinearGaussian(
+                2,
+                1,
+                std * torch.randn(1, generator=generator, dtype=torch.float64),
+                std,
+                cfg.min_variance,
+            )
             for _ in range(cfg.n_options)
         ]
         return HierarchicalPolicy(gating, options, IdentityFeatures(2), IdentityFeatures(2))
-    return HierarchicalPolicy.create(
+    policy = HierarchicalPolicy.create(
         cfg.n_options,
         2,
         1,
@@ -312,16 +327,24 @@ def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> Hi
         min_variance=cfg.min_variance,
         generator=generator,
     )
+    if cfg.init_gain_std > 0:
+        for opt in policy.sub_policies:
+            gains = torch.randn(1, 2, generator=generator, dtype=torch.float64)
+            opt.weight.copy_(cfg.init_gain_std * gains * torch.tensor([1.0, 0.1]))
+    return policy
 
 
 def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the swing-up; returns the summary."""
-    from environments.pendulum import PendulumParams, PendulumSwingUpBatchEnv, evaluate_swing_up
-    from environments.pendulum import sample_start
+    from environments.pendulum import (
+        PendulumParams,
+        PendulumSwingUpBatchEnv,
+        evaluate_swing_up,
+        sample_start,
+    )
     from hireps_torch.algorithms import InfiniteHorizonHiREPS
     from hireps_torch.features import FourierFeatures
-    from hireps_torch.rollout import make_collector, policy_module, shutdown_collector
-    from hireps_torch.rollout import transitions
+    from hireps_torch.rollout import make_collector, policy_module, shutdown_collector, transitions
 
     for name in ("n_options", "steps_per_decision", "episodes_per_iteration", "workers"):
         if getattr(cfg, name) < 1:
@@ -331,18 +354,22 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
             f"episodes ({cfg.episodes}) must be at least episodes_per_iteration "
             f"({cfg.episodes_per_iteration})"
         )
-    params = PendulumParams(steps_per_decision=cfg.steps_per_decision)
+    params = PendulumParams(steps_per_decision=cfg.steps_per_decision, kp=cfg.kp, kd=cfg.kd)
     decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
     B = cfg.episodes_per_iteration
     if cfg.workers > 1 and B % cfg.workers:
-        raise ValueError(f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})")
+        raise ValueError(
+            f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})"
+        )
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     policy = build_pendulum_policy(cfg, gen)
     vmax = cfg.max_velocity
     algo = InfiniteHorizonHiREPS(
         policy,
-        FourierFeatures([-math.pi, -vmax], [math.pi, vmax], cfg.fourier_bases),
+        FourierFeatures(
+            [-math.pi, -vmax], [math.pi, vmax], cfg.fourier_bases, periodic=[True, False]
+        ),
         sample_start(1000, params, gen),
         gamma=params.gamma,
         epsilon=cfg.epsilon,
@@ -363,6 +390,7 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
         frames_per_batch=frames,
         total_frames=frames * iterations,
         num_workers=cfg.workers,
+        reset_at_each_iter=cfg.reset_each_iteration,
         seed=env_seed,
     )
     run_dir = cfg.run_dir or default_run_dir("pendulum")
@@ -371,7 +399,8 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
     except BaseException:
         shutdown_collector(collector)
         raise
-    label = f"pendulum/{cfg.gating}/{cfg.n_options if cfg.gating != 'flat' else 1}opt/d{cfg.steps_per_decision}"
+    n_opt = cfg.n_options if cfg.gating != "flat" else 1
+    label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
     bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
     try:
         for it, batch in enumerate(collector):
@@ -387,8 +416,11 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
             }
             writer.log(row)
             bar.update(1)
-            bar.set_postfix(ret=f"{row['average_return']:.0f}", kl=f"{diag['kl']:.2f}",
-                            opts=diag["n_active_options"])
+            bar.set_postfix(
+                ret=f"{row['average_return']:.0f}",
+                kl=f"{diag['kl']:.2f}",
+                opts=diag["n_active_options"],
+            )
     finally:
         bar.close()
         shutdown_collector(collector)

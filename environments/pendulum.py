@@ -285,7 +285,7 @@ class PendulumSwingUpEnv(gym.Env):
         return self._obs(), float(reward[0]), False, restart or capped, info
 
 
-gym.register(id=ENV_ID, entry_point=PendulumSwingUpEnv, disable_env_checker=True)
+gym.register(id=ENV_ID, entry_point=f"{__name__}:PendulumSwingUpEnv", disable_env_checker=True)
 
 
 # --------------------------------------------------------------------------------------------

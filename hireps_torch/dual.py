@@ -51,6 +51,7 @@ from torch import Tensor
 __all__ = [
     "DegenerateWeightsWarning",
     "DualSolution",
+    "InfeasibleConstraintsWarning",
     "RepsDualSolution",
     "solve_episodic_dual",
     "solve_infinite_horizon_dual",
@@ -64,6 +65,10 @@ _LOG_ETA_MAX = 30.0
 
 class DegenerateWeightsWarning(RuntimeWarning):
     """The weights collapsed (or will collapse) onto very few samples."""
+
+
+class InfeasibleConstraintsWarning(RuntimeWarning):
+    """No distribution within the KL bound satisfies the feature constraints."""
 
 
 @dataclass(frozen=True)
@@ -80,7 +85,9 @@ class RepsDualSolution:
         effective_sample_size: (K,) 1 / sum_i w_ki^2 with w_ki = sum_o P_kio.
         feature_error: max abs violation of the feature constraints, caller's units.
         dual_value: value of the dual at the optimum, caller's units.
-        converged: whether LBFGS met its gradient tolerance.
+        converged: whether LBFGS met its gradient tolerance (False, with an
+            :class:`InfeasibleConstraintsWarning`, when the feature constraints cannot be met
+            within the KL bound).
         iterations: LBFGS iterations over all phases.
     """
 
@@ -434,6 +441,17 @@ def solve_reps_dual(
         converged, g, w = run_phase()
 
     _, eta_s, xi_s, v_s = prob.unpack(x)
+    if prob.P and bool((x[:K] >= _LOG_ETA_MAX).any()):
+        # eta ran to its upper clamp: no distribution within the KL bound meets the feature
+        # constraints; the weights are then the closest one (in KL) that does.
+        converged = False
+        warnings.warn(
+            "the feature constraints cannot be met within the KL bound epsilon = "
+            f"{eps.tolist()}: the weights are the closest distribution that meets them and "
+            "their KL exceeds epsilon (more samples, a larger epsilon or fewer features help)",
+            InfeasibleConstraintsWarning,
+            stacklevel=2,
+        )
     v_out = v_s * scale / col if col is not None else v_s.clone()
     # every term scales with the return scale; the centring adds back the block means
     dual_value = float(g) * scale + float(R.mean(dim=1).sum())

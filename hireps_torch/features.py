@@ -81,20 +81,30 @@ class FourierFeatures(FeatureMap):
 
         phi_c(x) = cos(pi c^T u),   c in {0, ..., n_bases - 1}^S,  c != 0,
 
-    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``. The constant c = 0 is left
-    out (see the module docstring). The paper's value functions use five bases.
+    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``. Dimensions marked
+    ``periodic`` (angles with period high - low) use the frequencies 2 pi k / (high - low)
+    instead and both cos and sin of every coupled phase, so the features are continuous across
+    the wrap: ``2 (n_bases^S - 1)`` features then. The constant c = 0 is left out (see the
+    module docstring). The paper's value functions use five bases.
 
     Args:
         low: (S,) lower corner of the state box.
         high: (S,) upper corner, > low.
         n_bases: frequencies per dimension, >= 2.
+        periodic: (S,) bools, or None for none.
     """
 
     low: Tensor
     width: Tensor
     coefficients: Tensor
 
-    def __init__(self, low: Tensor | list[float], high: Tensor | list[float], n_bases: int = 5):
+    def __init__(
+        self,
+        low: Tensor | list[float],
+        high: Tensor | list[float],
+        n_bases: int = 5,
+        periodic: list[bool] | None = None,
+    ):
         super().__init__()
         lo = torch.as_tensor(low, dtype=torch.float64).reshape(-1)
         hi = torch.as_tensor(high, dtype=torch.float64).reshape(-1)
@@ -103,16 +113,26 @@ class FourierFeatures(FeatureMap):
         if n_bases < 2:
             raise ValueError(f"n_bases must be >= 2, got {n_bases}")
         S = lo.shape[0]
-        coeffs = torch.tensor(list(itertools.product(range(n_bases), repeat=S)), dtype=torch.float64)
+        per = [False] * S if periodic is None else [bool(p) for p in periodic]
+        if len(per) != S:
+            raise ValueError(f"periodic must have {S} entries, got {periodic}")
+        coeffs = torch.tensor(
+            list(itertools.product(range(n_bases), repeat=S)), dtype=torch.float64
+        )
+        # phase = pi c^T u; a periodic dimension doubles its frequency (whole periods on the box)
+        coeffs = coeffs * torch.tensor([2.0 if p else 1.0 for p in per], dtype=torch.float64)
         self.in_features = S
-        self.out_features = n_bases**S - 1
+        self.with_sin = any(per)
+        self.out_features = (n_bases**S - 1) * (2 if self.with_sin else 1)
         self.register_buffer("low", lo)
         self.register_buffer("width", hi - lo)
         self.register_buffer("coefficients", coeffs[1:])
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (..., S) -> (..., n_bases^S - 1)."""
+        """x: (..., S) -> (..., out_features)."""
         if x.shape[-1] != self.in_features:
             raise ValueError(f"expected (..., {self.in_features}) states, got {tuple(x.shape)}")
         u = (x.to(torch.float64) - self.low) / self.width
-        return torch.cos(math.pi * u @ self.coefficients.T).to(x.dtype)
+        phase = math.pi * u @ self.coefficients.T
+        out = torch.cat([phase.cos(), phase.sin()], -1) if self.with_sin else phase.cos()
+        return out.to(x.dtype)

@@ -83,6 +83,7 @@ def make_collector(
     frames_per_batch: int,
     total_frames: int = -1,
     num_workers: int = 1,
+    reset_at_each_iter: bool = False,
     seed: int | None = None,
 ) -> Collector | MultiSyncCollector:
     """A TorchRL collector over ``create_env_fn()``.
@@ -94,6 +95,8 @@ def make_collector(
     ``collector.update_policy_weights_()`` after each policy update, and
     :func:`shutdown_collector` at the end; a script that builds one needs an
     ``if __name__ == "__main__":`` guard because torchrl uses the "spawn" start method).
+    ``reset_at_each_iter`` restarts every environment at the start of each batch (episodes
+    that begin with the batch), otherwise the environments continue across batches.
     """
     if num_workers < 1:
         raise ValueError(f"num_workers must be >= 1, got {num_workers}")
@@ -106,6 +109,7 @@ def make_collector(
             policy,
             frames_per_batch=frames_per_batch,
             total_frames=total_frames,
+            reset_at_each_iter=reset_at_each_iter,
             auto_register_policy_transforms=False,
         )
     else:
@@ -120,6 +124,7 @@ def make_collector(
             frames_per_batch=frames_per_batch,
             total_frames=total_frames,
             cat_results="stack",
+            reset_at_each_iter=reset_at_each_iter,
             auto_register_policy_transforms=False,
         )
     if seed is not None:

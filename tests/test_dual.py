@@ -8,8 +8,10 @@ import torch
 
 from hireps_torch.dual import (
     DegenerateWeightsWarning,
+    InfeasibleConstraintsWarning,
     _Problem,
     solve_episodic_dual,
+    solve_infinite_horizon_dual,
     solve_reps_dual,
 )
 
@@ -293,3 +295,73 @@ def test_no_warning_in_regular_use(gen):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr)
+
+
+# ---- infinite-horizon dual ------------------------------------------------------------------
+def random_chain(gen, N=400, O=3, F=6):
+    """Transitions of a random 1-D chain (s' follows s) with Fourier-like features."""
+    s = torch.cumsum(0.3 * torch.randn(N + 1, generator=gen, dtype=torch.float64), 0)
+    freq = torch.arange(1, F + 1, dtype=torch.float64)
+    phi_all = torch.cos(0.5 * freq * s[:, None])
+    r = -(s[:-1] ** 2) + torch.randn(N, generator=gen, dtype=torch.float64)
+    lr = torch.log_softmax(2.0 * torch.randn(N, O, generator=gen, dtype=torch.float64), -1)
+    phi0 = torch.cos(0.5 * freq * 0.1 * torch.randn(50, 1, generator=gen, dtype=torch.float64))
+    return r, phi_all[:-1], phi_all[1:], phi0.mean(0), lr
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("use_options", [False, True])
+def test_infinite_horizon_constraints_hold_at_optimum(seed, use_options):
+    gen = torch.Generator().manual_seed(seed)
+    r, phi, phi_next, phi0, lr = random_chain(gen)
+    gamma, eps = [0.95, 0.98, 0.996][seed], [1.0, 0.2, 0.5][seed]
+    kappa = 0.6 * mean_entropy(lr) if use_options else None
+    sol = solve_infinite_horizon_dual(
+        r,
+        phi,
+        phi_next,
+        phi0,
+        gamma=gamma,
+        epsilon=eps,
+        log_responsibilities=lr if use_options else None,
+        kappa=kappa,
+    )
+    assert sol.converged
+    assert sol.kl == pytest.approx(eps, abs=1e-3)
+    if use_options:
+        assert sol.cross_entropy == pytest.approx(kappa, abs=1e-3)
+    # stationarity under restarts: sum_i w_i (phi_i - gamma phi'_i) = (1 - gamma) phi_hat_0
+    w = sol.sample_weights
+    resid = w @ (phi - gamma * phi_next) - (1 - gamma) * phi0
+    assert float(resid.abs().max()) < 1e-5
+    assert sol.feature_error < 1e-5
+    # the weights are the Bellman-error softmax with the returned v and eta
+    delta = r + gamma * phi_next @ sol.v - phi @ sol.v
+    if not use_options:
+        expected = torch.softmax(delta / sol.eta, 0)
+        assert torch.allclose(w, expected, atol=1e-8)
+
+
+def test_infeasible_stationarity_is_reported_not_hidden():
+    # seed 0 with gamma = 0.9: meeting the stationarity constraint needs KL ~0.57
+    r, phi, phi_next, phi0, _ = random_chain(torch.Generator().manual_seed(0))
+    with pytest.warns(InfeasibleConstraintsWarning, match="cannot be met"):
+        sol = solve_infinite_horizon_dual(r, phi, phi_next, phi0, gamma=0.9, epsilon=0.2)
+    assert not sol.converged
+    assert sol.kl > 0.2
+    assert sol.feature_error < 1e-5  # still the closest distribution that meets them
+    assert bool(torch.isfinite(sol.weights).all())
+
+
+def test_infinite_horizon_dual_bad_input(gen):
+    r, phi, phi_next, phi0, _ = random_chain(gen, N=50, F=3)
+    with pytest.raises(ValueError, match="gamma"):
+        solve_infinite_horizon_dual(r, phi, phi_next, phi0, gamma=1.0, epsilon=0.5)
+    with pytest.raises(ValueError, match="next_features"):
+        solve_infinite_horizon_dual(r, phi, phi_next[:, :2], phi0, gamma=0.9, epsilon=0.5)
+    with pytest.raises(ValueError, match="initial_features"):
+        solve_infinite_horizon_dual(r, phi, phi_next, phi0[:2], gamma=0.9, epsilon=0.5)
+    bad = r.clone()
+    bad[3] = math.nan
+    with pytest.raises(ValueError, match="rewards"):
+        solve_infinite_horizon_dual(bad, phi, phi_next, phi0, gamma=0.9, epsilon=0.5)

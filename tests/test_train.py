@@ -103,3 +103,97 @@ def test_bad_config_gives_a_clear_error(tmp_path, args, message):
     p = train("bimodal", *args, "--run-dir", str(tmp_path / "r"), "--no-progress")
     assert p.returncode == 2
     assert message in p.stderr
+
+
+def test_pendulum_subprocess_writes_the_run_directory(tmp_path):
+    run = tmp_path / "run"
+    p = train(
+        "pendulum",
+        "--episodes",
+        "40",
+        "--eval-rollouts",
+        "5",
+        "--run-dir",
+        str(run),
+        "--no-progress",
+    )
+    assert p.returncode == 0, p.stderr
+    for name in (
+        "config.json",
+        "metrics.csv",
+        "summary.json",
+        "checkpoint.pt",
+        "learning_curve.png",
+    ):
+        assert (run / name).is_file(), name
+    summary = json.loads((run / "summary.json").read_text())
+    for key in (
+        "experiment",
+        "seed",
+        "episodes",
+        "final_return",
+        "wall_seconds",
+        "success_rate",
+        "time_to_upright",
+    ):
+        assert key in summary
+    assert summary["episodes"] == 40
+    rows = list(csv.DictReader((run / "metrics.csv").open()))
+    assert len(rows) == 2
+    assert abs(float(rows[0]["kl"]) - 0.5) < 1e-3
+
+
+@pytest.mark.parametrize("gating", ["constant", "flat"])
+def test_pendulum_baselines_run(tmp_path, gating):
+    p = train(
+        "pendulum",
+        "--gating",
+        gating,
+        "--n-options",
+        "20",
+        "--episodes",
+        "20",
+        "--eval-rollouts",
+        "2",
+        "--run-dir",
+        str(tmp_path / "r"),
+        "--no-progress",
+    )
+    assert p.returncode == 0, p.stderr
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary["gating"] == gating
+    assert summary["n_options"] == (1 if gating == "flat" else 20)
+
+
+def test_pendulum_with_worker_processes_exits_cleanly(tmp_path):
+    """MultiSyncCollector with 2 workers: the run finishes and the interpreter exits."""
+    p = train(
+        "pendulum",
+        "--workers",
+        "2",
+        "--episodes",
+        "40",
+        "--eval-rollouts",
+        "2",
+        "--run-dir",
+        str(tmp_path / "r"),
+        "--no-progress",
+    )
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "r" / "summary.json").is_file()
+
+
+def test_pendulum_same_seed_same_run(tmp_path):
+    import train as train_module
+
+    outs = []
+    for k in range(2):
+        cfg = train_module.PendulumConfig(
+            episodes=40, eval_rollouts=3, progress=False, run_dir=tmp_path / f"r{k}", seed=3
+        )
+        train_module.run_pendulum(cfg)
+        outs.append((tmp_path / f"r{k}" / "metrics.csv").read_text())
+        ck = torch.load(tmp_path / f"r{k}" / "checkpoint.pt", weights_only=False)
+        outs.append(ck["algorithm"]["policy"])
+    assert outs[0] == outs[2]
+    assert all(torch.equal(outs[1][k], outs[3][k]) for k in outs[1])

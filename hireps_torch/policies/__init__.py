@@ -6,5 +6,8 @@ from hireps_torch.policies.linear_gaussian import LinearGaussian, weighted_least
 
 __all__ = [
     "ConstantGating",
-    "HierarchicalPolicy", "LinearGaussian", "SoftmaxGating", "weighted_least_squares",
+    "HierarchicalPolicy",
+    "LinearGaussian",
+    "SoftmaxGating",
+    "weighted_least_squares",
 ]

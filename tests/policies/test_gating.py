@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from hireps_torch.policies import SoftmaxGating
+from hireps_torch.policies import ConstantGating, HierarchicalPolicy, LinearGaussian, SoftmaxGating
 
 
 def test_context_free_fit_is_weighted_mean_of_targets(gen):
@@ -46,3 +46,30 @@ def test_bad_shapes_raise():
         g.weighted_fit(torch.zeros(4, 2), torch.zeros(4, 2), torch.ones(4))
     with pytest.raises(ValueError, match="n_options"):
         SoftmaxGating(2, 0)
+
+
+def test_constant_gating_assigns_the_nearest_kmeans_centroid_and_never_changes(gen):
+    box = torch.tensor([3.14, 50.0], dtype=torch.float64)
+    pts = (2 * torch.rand(1000, 2, generator=gen, dtype=torch.float64) - 1) * box
+    g = ConstantGating.from_kmeans(pts, 5, seed=0)
+    assert g.centroids.shape == (5, 2)
+    x = torch.randn(200, 2, generator=gen, dtype=torch.float64) * box
+    lp = g.log_probs(x)
+    nearest = torch.cdist(x, g.centroids).argmin(-1)
+    assert torch.equal(lp.argmax(-1), nearest)
+    assert torch.equal(lp.exp().sum(-1), torch.ones(200, dtype=torch.float64))
+    before = {k: v.clone() for k, v in g.state_dict().items()}
+    g.weighted_fit(x, torch.softmax(torch.randn(200, 5, generator=gen), -1), torch.ones(200))
+    assert all(torch.equal(before[k], v) for k, v in g.state_dict().items())
+    # in a hierarchical policy, each option only learns from its own region
+    opts = [LinearGaussian(2, 1, torch.zeros(1), torch.ones(1)) for _ in range(5)]
+    pol = HierarchicalPolicy(g, opts)
+    a = torch.randn(200, 1, generator=gen, dtype=torch.float64)
+    resp = pol.responsibilities(x, a)
+    assert torch.equal(resp.argmax(-1), nearest)
+    assert float(resp.max(-1).values.min()) == 1.0
+
+
+def test_constant_gating_needs_enough_points():
+    with pytest.raises(ValueError, match="n_options"):
+        ConstantGating.from_kmeans(torch.zeros(3, 2), 5)

@@ -1,0 +1,162 @@
+"""Pendulum swing-up: physics, the two adapters, bad input."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+from torchrl.envs.utils import check_env_specs
+
+from environments.pendulum import (
+    ENV_ID,
+    PendulumParams,
+    PendulumSwingUpBatchEnv,
+    PendulumSwingUpEnv,
+    control_step,
+    energy,
+    evaluate_swing_up,
+    pd_torque,
+    pendulum_step,
+    sample_start,
+    step_reward,
+    wrap_angle,
+)
+
+
+def test_gymnasium_env_passes_check_env():
+    env = gym.make(ENV_ID)
+    check_env(env.unwrapped)
+
+
+def test_torchrl_env_passes_check_env_specs():
+    check_env_specs(PendulumSwingUpBatchEnv(5, seed=1))
+
+
+def test_adapters_give_the_same_trajectory_for_the_same_seed_and_actions():
+    params = PendulumParams(restart_probability=0.0)
+    actions = (
+        torch.linspace(-3.0, 3.0, 40, dtype=torch.float64).reshape(-1, 1)
+        * torch.tensor([1.0, -1.0]).repeat(20)[:, None]
+    )
+    g = PendulumSwingUpEnv(params)
+    obs_g, info = g.reset(seed=7)
+    t = PendulumSwingUpBatchEnv(1, params, seed=123)
+    t.set_seed(7)
+    td = t.reset()
+    assert np.allclose(td["state"][0].numpy(), info["state"], atol=0, rtol=0)
+    for a in actions:
+        obs_g, r_g, term, trunc, info = g.step(a.numpy().astype(np.float32))
+        td["action"] = a.to(torch.float32).reshape(1, 1)
+        td = t.step(td)["next"]
+        assert np.array_equal(td["state"][0].numpy(), info["state"])
+        assert float(td["reward"][0, 0]) == pytest.approx(r_g, rel=1e-6)
+        assert not term and not trunc and not bool(td["done"].any())
+
+
+def test_restarts_happen_at_the_stated_rate():
+    params = PendulumParams(steps_per_decision=1, restart_probability=0.2)
+    env = PendulumSwingUpBatchEnv(2000, params, seed=0)
+    td = env.reset()
+    td["action"] = torch.zeros(2000, 1)
+    out = env.step(td)["next"]
+    rate = float(out["truncated"].float().mean())
+    assert rate == pytest.approx(0.2, abs=0.03)
+    assert not bool(out["terminated"].any())
+    assert PendulumParams(steps_per_decision=5).gamma == pytest.approx(1 - 0.004)
+
+
+def test_pd_controller_never_exceeds_the_torque_limit():
+    p = PendulumParams()
+    g = torch.Generator().manual_seed(0)
+    state = torch.randn(5000, 2, generator=g, dtype=torch.float64) * torch.tensor([3.0, 40.0])
+    target = torch.randn(5000, generator=g, dtype=torch.float64) * 20
+    u = pd_torque(state, target, p)
+    assert float(u.abs().max()) <= p.max_torque
+    assert float(u.abs().max()) == pytest.approx(p.max_torque)  # it does saturate
+    # and along a trajectory driven by extreme targets
+    s = sample_start(64, p, g)
+    for k in range(50):
+        a = torch.full((64,), 6.0 if k % 2 else -6.0, dtype=torch.float64)
+        assert float(pd_torque(s, a.clamp(-p.action_limit, p.action_limit), p).abs().max()) <= 30
+        s, _, _ = pendulum_step(s, a, p)
+
+
+def test_energy_is_conserved_without_friction_and_torque():
+    p = PendulumParams(friction=0.0)
+    s = torch.tensor([[2.0, 0.0], [0.3, 5.0], [-3.0, -1.0]], dtype=torch.float64)
+    e0 = energy(s, p)
+    zero = torch.zeros(3, dtype=torch.float64)
+    for _ in range(1000):  # 10 s
+        s = control_step(s, zero, p)
+    rel = ((energy(s, p) - e0).abs() / e0).max()
+    assert float(rel) < 1e-6
+
+
+def test_friction_dissipates_energy():
+    p = PendulumParams()
+    s = torch.tensor([[2.0, 0.0]], dtype=torch.float64)
+    e0 = energy(s, p)
+    for _ in range(300):
+        s = control_step(s, torch.zeros(1, dtype=torch.float64), p)
+    assert float(energy(s, p)) < float(e0)
+
+
+def test_hanging_at_rest_stays_and_upright_is_unstable():
+    p = PendulumParams()
+    zero = torch.zeros(1, dtype=torch.float64)
+    s = torch.tensor([[-math.pi, 0.0]], dtype=torch.float64)
+    for _ in range(100):
+        s = control_step(s, zero, p)
+    assert float(wrap_angle(s[0, 0] - math.pi).abs()) < 1e-9
+    s = torch.tensor([[1e-3, 0.0]], dtype=torch.float64)
+    for _ in range(100):
+        s = control_step(s, zero, p)
+    assert float(s[0, 0].abs()) > 1e-2  # falls
+
+
+def test_reward_formula_at_hand_computed_states():
+    s = torch.tensor([[0.0, 0.0], [math.pi / 2, 0.0], [-math.pi / 2, 3.0], [-math.pi, 0.0]])
+    assert step_reward(s).tolist() == pytest.approx([500.0, 375.0, 345.0, 0.0])
+    # a decision sums d per-step rewards
+    p = PendulumParams(steps_per_decision=3)
+    state = torch.tensor([[0.2, 0.1]], dtype=torch.float64)
+    _, r, path = pendulum_step(state, torch.tensor([0.0], dtype=torch.float64), p)
+    assert path.shape == (1, 3, 2)
+    assert float(r[0]) == pytest.approx(float(step_reward(path).sum()))
+
+
+def test_bad_actions_raise_clear_errors():
+    p = PendulumParams()
+    s = sample_start(3, p, None)
+    with pytest.raises(ValueError, match="non-finite desired angle at index 1"):
+        pendulum_step(s, torch.tensor([0.0, math.nan, 0.0], dtype=torch.float64), p)
+    with pytest.raises(ValueError, match="shape"):
+        pendulum_step(s, torch.zeros(2, dtype=torch.float64), p)
+    env = PendulumSwingUpEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="non-finite"):
+        env.step(np.array([np.inf], dtype=np.float32))
+    with pytest.raises(ValueError, match="steps_per_decision"):
+        PendulumParams(steps_per_decision=0)
+    # out-of-range targets are clipped, not an error
+    far = pendulum_step(s, torch.full((3,), 100.0, dtype=torch.float64), p)[0]
+    lim = pendulum_step(s, torch.full((3,), p.action_limit, dtype=torch.float64), p)[0]
+    assert torch.equal(far, lim)
+
+
+def test_evaluation_of_an_energy_pumping_controller_succeeds():
+    p = PendulumParams()
+    e_up = 2 * p.mass * p.gravity * p.length
+
+    def act(s):
+        th, om = s[:, 0], s[:, 1]
+        pump = th + 3 * torch.sign(om + 1e-9) * (energy(s, p) < e_up).double()
+        return torch.where(th.abs() < 0.6, -th - 0.3 * om, pump - 0.5 * om * (energy(s, p) >= e_up))
+
+    ev = evaluate_swing_up(act, p, n_rollouts=10)
+    assert ev.success_rate == 1.0
+    assert 0.5 < ev.time_to_upright < 3.0
+    idle = evaluate_swing_up(lambda s: torch.full((s.shape[0],), math.pi), p, n_rollouts=10)
+    assert idle.success_rate == 0.0 and idle.reached_share == 0.0

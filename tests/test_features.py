@@ -1,0 +1,42 @@
+"""Feature maps: shapes, the Fourier basis and its periodic variant."""
+
+import math
+
+import pytest
+import torch
+
+from hireps_torch.features import FourierFeatures, QuadraticFeatures
+
+
+def test_fourier_basis_matches_its_formula():
+    f = FourierFeatures([-1.0, 0.0], [1.0, 10.0], n_bases=3)
+    assert f.out_features == 8
+    x = torch.tensor([[0.2, 7.0]], dtype=torch.float64)
+    u = torch.tensor([0.6, 0.7], dtype=torch.float64)
+    expected = [
+        math.cos(math.pi * (c0 * u[0] + c1 * u[1]))
+        for c0 in range(3)
+        for c1 in range(3)
+        if (c0, c1) != (0, 0)
+    ]
+    assert f(x)[0].tolist() == pytest.approx(expected)
+
+
+def test_periodic_fourier_features_are_continuous_across_the_wrap():
+    f = FourierFeatures([-math.pi, -20.0], [math.pi, 20.0], n_bases=5, periodic=[True, False])
+    assert f.out_features == 48
+    a = torch.tensor([[math.pi - 1e-9, 3.0]], dtype=torch.float64)
+    b = torch.tensor([[-math.pi, 3.0]], dtype=torch.float64)
+    assert torch.allclose(f(a), f(b), atol=1e-7)
+    plain = FourierFeatures([-math.pi, -20.0], [math.pi, 20.0], n_bases=5)
+    assert float((plain(a) - plain(b)).abs().max()) > 1.0  # the plain basis jumps there
+
+
+def test_feature_maps_reject_bad_arguments():
+    with pytest.raises(ValueError, match="high > low"):
+        FourierFeatures([0.0], [0.0])
+    with pytest.raises(ValueError, match="n_bases"):
+        FourierFeatures([0.0], [1.0], n_bases=1)
+    with pytest.raises(ValueError, match="expected"):
+        FourierFeatures([0.0], [1.0])(torch.zeros(3, 2))
+    assert QuadraticFeatures(2)(torch.ones(4, 2)).shape == (4, 5)

@@ -1,0 +1,208 @@
+"""Pendulum swing-up ablations of the HiREPS paper (Figs 16a, 16b, 17, 18), plus env speed.
+
+1. Speed of the batched pendulum (``PendulumSwingUpBatchEnv.step``, one decision of d = 5
+   control steps per call) at 20, 200 and 2000 parallel pendulums, next to gymnasium's own
+   ``Pendulum-v1`` stepped in a Python loop, measured in the same run (control steps/s).
+2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
+   (each unique configuration runs once per seed and is shared between figures):
+
+   - 16a: options 1 / 2 / 5 / 10 (d = 5)
+   - 16b: d = 1 / 2 / 5 / 10 (5 options)
+   - 17:  constant k-means gating with 5 / 20 / 100 options vs learned gating with 5
+   - 18:  flat policy on the gating features vs 1 vs 5 options
+
+Writes ``results.json`` (every run's curve and summary), ``results.md`` (mean +- std of the
+final average return and the success rate per configuration) and one PNG per figure (mean
+curve with a +-1 std band) to ``--out``; prints the table, the wall time of each standard
+run and of the whole ablation.
+
+    OMP_NUM_THREADS=1 python benchmarks/pendulum_ablations.py [--seeds 5] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
+from hireps_torch.runlog import atomic_write  # noqa: E402
+from train import PendulumConfig, run_pendulum  # noqa: E402
+
+CONFIGS: dict[str, dict[str, Any]] = {
+    "learned-1": {"n_options": 1},
+    "learned-2": {"n_options": 2},
+    "learned-5": {"n_options": 5},
+    "learned-10": {"n_options": 10},
+    "d1": {"steps_per_decision": 1},
+    "d2": {"steps_per_decision": 2},
+    "d10": {"steps_per_decision": 10},
+    "constant-5": {"gating": "constant", "n_options": 5},
+    "constant-20": {"gating": "constant", "n_options": 20},
+    "constant-100": {"gating": "constant", "n_options": 100},
+    "flat": {"gating": "flat"},
+}
+FIGURES: dict[str, list[tuple[str, str]]] = {
+    "fig16a_options": [
+        ("1 option", "learned-1"),
+        ("2 options", "learned-2"),
+        ("5 options", "learned-5"),
+        ("10 options", "learned-10"),
+    ],
+    "fig16b_steps_per_decision": [
+        ("d = 1", "d1"),
+        ("d = 2", "d2"),
+        ("d = 5", "learned-5"),
+        ("d = 10", "d10"),
+    ],
+    "fig17_constant_gating": [
+        ("constant, 5", "constant-5"),
+        ("constant, 20", "constant-20"),
+        ("constant, 100", "constant-100"),
+        ("learned, 5", "learned-5"),
+    ],
+    "fig18_flat_policy": [("flat", "flat"), ("1 option", "learned-1"), ("5 options", "learned-5")],
+}
+
+
+def env_speed() -> None:
+    """Control steps per second: batched torch pendulum vs gymnasium Pendulum-v1 in a loop."""
+    import gymnasium as gym
+
+    print("environment speed (control steps/s, one process, one thread)")
+    for B in (20, 200, 2000):
+        env = PendulumSwingUpBatchEnv(B, seed=0)
+        td = env.reset()
+        td["action"] = torch.zeros(B, 1)
+        n = 100
+        t = time.perf_counter()
+        for _ in range(n):
+            td = env.step(td)["next"].clone()
+            td["action"] = torch.zeros(B, 1)
+        dt = time.perf_counter() - t
+        steps = n * B * env.params.steps_per_decision
+        print(f"  batched torch env, B = {B:>4}: {steps / dt:>12,.0f}")
+    genv = gym.make("Pendulum-v1")
+    genv.reset(seed=0)
+    a = genv.action_space.sample()
+    n = 20000
+    t = time.perf_counter()
+    for _ in range(n):
+        genv.step(a)
+    dt = time.perf_counter() - t
+    print(f"  gymnasium Pendulum-v1 loop : {n / dt:>12,.0f}")
+
+
+def read_curve(run_dir: Path) -> tuple[list[float], list[float]]:
+    with (run_dir / "metrics.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    return [float(r["episodes"]) for r in rows], [float(r["average_return"]) for r in rows]
+
+
+def plot_figure(name: str, lines: list[tuple[str, str]], results: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, key in lines:
+        curves = torch.tensor([r["curve"] for r in results[key]], dtype=torch.float64)
+        x = results[key][0]["episodes_axis"]
+        m, s = curves.mean(0), curves.std(0) if curves.shape[0] > 1 else curves[0] * 0
+        ax.plot(x, m.numpy(), label=label)
+        ax.fill_between(x, (m - s).numpy(), (m + s).numpy(), alpha=0.2)
+    ax.set_xlabel("episodes")
+    ax.set_ylabel("average return (per control step)")
+    ax.set_title(f"{name} ({len(results[lines[0][1]])} seeds, mean ± std)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    atomic_write(out / f"{name}.png", lambda p: fig.savefig(p, format="png", dpi=110))
+    plt.close(fig)
+
+
+def mean_std(xs: list[float]) -> str:
+    if len(xs) == 1:
+        return f"{xs[0]:.1f}"
+    return f"{statistics.mean(xs):.1f} ± {statistics.stdev(xs):.1f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--episodes", type=int, default=PendulumConfig.episodes)
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "pendulum_ablations")
+    ap.add_argument("--configs", nargs="*", default=list(CONFIGS), help="subset to run")
+    ap.add_argument("--skip-speed", action="store_true")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    out: Path = args.out / time.strftime("%Y%m%d-%H%M%S")
+    out.mkdir(parents=True, exist_ok=False)
+    if not args.skip_speed:
+        env_speed()
+
+    results: dict[str, list[dict[str, Any]]] = {}
+    t_all = time.perf_counter()
+    for key in args.configs:
+        results[key] = []
+        for seed in range(args.seeds):
+            cfg = PendulumConfig(
+                seed=seed,
+                episodes=args.episodes,
+                progress=False,
+                run_dir=out / "runs" / key / f"seed{seed}",
+                **CONFIGS[key],
+            )
+            summary = run_pendulum(cfg)
+            x, y = read_curve(cfg.run_dir)  # type: ignore[arg-type]
+            results[key].append({**summary, "curve": y, "episodes_axis": x})
+            print(
+                f"  {key:<13} seed {seed}: final average return "
+                f"{summary['final_average_return']:7.1f}, success {summary['success_rate']:.2f}, "
+                f"{summary['wall_seconds']:.1f} s",
+                flush=True,
+            )
+    total = time.perf_counter() - t_all
+
+    lines = [
+        "| configuration | final average return | success rate | seeds with success >= 0.9 "
+        "| s/run |",
+        "|---|--:|--:|--:|--:|",
+    ]
+    for key, runs in results.items():
+        succ = [r["success_rate"] for r in runs]
+        lines.append(
+            f"| {key} | {mean_std([r['final_average_return'] for r in runs])} | "
+            f"{mean_std(succ)} | {sum(s >= 0.9 for s in succ)}/{len(succ)} | "
+            f"{statistics.mean(r['wall_seconds'] for r in runs):.1f} |"
+        )
+    table = "\n".join(lines)
+    print(table)
+    std_runs = results.get("learned-5", [])
+    if std_runs:
+        walls = ", ".join(f"{r['wall_seconds']:.1f}" for r in std_runs)
+        print(f"standard configuration (5 options, d = 5, {args.episodes} episodes): {walls} s")
+    print(f"whole ablation: {total / 60:.1f} min for {sum(map(len, results.values()))} runs")
+    for name, fig_lines in FIGURES.items():
+        if all(k in results for _, k in fig_lines):
+            plot_figure(name, fig_lines, results, out)
+    atomic_write(
+        out / "results.json",
+        lambda p: p.write_text(json.dumps({"results": results, "total_seconds": total})),
+    )
+    atomic_write(out / "results.md", lambda p: p.write_text(table + "\n"))
+    print(f"written to {out}")
+
+
+if __name__ == "__main__":
+    main()

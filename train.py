@@ -261,6 +261,8 @@ class PendulumConfig:
     """PD controller stiffness (N m / rad)."""
     kd: float = 10.0
     """PD controller damping (N m s / rad)."""
+    start_noise: float = 0.1
+    """Std of the start perturbation around hanging down (rad and rad/s)."""
     reset_each_iteration: bool = True
     """Start every iteration's episodes from the start distribution (else the pendulums run on
     across iterations, restarting only at the restart probability)."""
@@ -354,7 +356,9 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
             f"episodes ({cfg.episodes}) must be at least episodes_per_iteration "
             f"({cfg.episodes_per_iteration})"
         )
-    params = PendulumParams(steps_per_decision=cfg.steps_per_decision, kp=cfg.kp, kd=cfg.kd)
+    params = PendulumParams(
+        steps_per_decision=cfg.steps_per_decision, kp=cfg.kp, kd=cfg.kd, start_noise=cfg.start_noise
+    )
     decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
     B = cfg.episodes_per_iteration
     if cfg.workers > 1 and B % cfg.workers:

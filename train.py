@@ -274,9 +274,6 @@ class PendulumConfig:
     """Initial exploration std of the desired angle (rad)."""
     min_variance: float = 1e-4
     """Floor on the option variance (rad^2)."""
-    init_gain_std: float = 0.0
-    """Std of the options' initial random feedback gains on (theta, theta') (0: constant
-    initial targets)."""
     fourier_bases: int = 5
     """Fourier bases per state dimension of the value features."""
     max_velocity: float = 20.0
@@ -294,46 +291,31 @@ class PendulumConfig:
 
 def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> HierarchicalPolicy:
     """The policy of one gating kind: options linear in (theta, theta') -> desired angle."""
-    from hireps_torch.features import IdentityFeatures, QuadraticFeatures
-    from hireps_torch.policies import ConstantGating, HierarchicalPolicy, LinearGaussian
+    from hireps_torch.features import QuadraticFeatures
+    from hireps_torch.policies import ConstantGating, HierarchicalPolicy
 
-    scale = torch.tensor([math.pi, cfg.max_velocity])
-    quad = QuadraticFeatures(2, scale=scale)
+    quad = QuadraticFeatures(2, scale=torch.tensor([math.pi, cfg.max_velocity]))
     std = torch.tensor([cfg.init_std], dtype=torch.float64)
     if cfg.gating == "flat":
         return HierarchicalPolicy.create(
             1, 2, 1, init_std=std, policy_features=quad, min_variance=cfg.min_variance
         )
-    if cfg.gating == "constant":
+    gating = None
+    if cfg.gating == "constant":  # k-means on the raw state, as in the paper
         box = torch.tensor([math.pi, 50.0], dtype=torch.float64)
         points = (2 * torch.rand(1000, 2, generator=generator, dtype=torch.float64) - 1) * box
         seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
         gating = ConstantGating.from_kmeans(points, cfg.n_options, seed=seed)
-        options = [
-            LinearGaussian(
-                2,
-                1,
-                std * torch.randn(1, generator=generator, dtype=torch.float64),
-                std,
-                cfg.min_variance,
-            )
-            for _ in range(cfg.n_options)
-        ]
-        return HierarchicalPolicy(gating, options, IdentityFeatures(2), IdentityFeatures(2))
-    policy = HierarchicalPolicy.create(
+    return HierarchicalPolicy.create(
         cfg.n_options,
         2,
         1,
         init_std=std,
-        gating_features=quad,
+        gating_features=quad if gating is None else None,
         min_variance=cfg.min_variance,
         generator=generator,
+        gating=gating,
     )
-    if cfg.init_gain_std > 0:
-        for opt in policy.sub_policies:
-            gains = torch.randn(1, 2, generator=generator, dtype=torch.float64)
-            opt.weight.copy_(cfg.init_gain_std * gains * torch.tensor([1.0, 0.1]))
-    return policy
 
 
 def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
@@ -439,7 +421,7 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
         {
             "experiment": "pendulum",
             "gating": cfg.gating,
-            "n_options": 1 if cfg.gating == "flat" else cfg.n_options,
+            "n_options": n_opt,
             "steps_per_decision": cfg.steps_per_decision,
             "seed": cfg.seed,
             "episodes": iterations * B,

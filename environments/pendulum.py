@@ -376,8 +376,8 @@ class PendulumSwingUpBatchEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         B = self.batch_size[0]
-        action = tensordict.get("action").to(torch.float64)
-        self._state, reward, _ = pendulum_step(self._state, check_action(action, B), self.params)
+        action = tensordict.get("action").to(torch.float64)  # checked by pendulum_step
+        self._state, reward, _ = pendulum_step(self._state, action, self.params)
         self._t += 1
         trunc = _draw_restart(B, self.params, self._gen).to(self.device)
         if self.max_decisions is not None:

@@ -22,22 +22,28 @@ def train(*args, cwd=ROOT):
     )
 
 
-def test_bimodal_subprocess_writes_the_run_directory(tmp_path):
-    run = tmp_path / "run"
-    p = train("bimodal", "--episodes", "600", "--run-dir", str(run), "--no-progress")
-    assert p.returncode == 0, p.stderr
+def check_run_dir(run, files=(), keys=()):
+    """Every run directory holds these files and summary keys; returns the summary."""
     for name in (
         "config.json",
         "metrics.csv",
         "summary.json",
         "checkpoint.pt",
         "learning_curve.png",
-        "options.png",
+        *files,
     ):
         assert (run / name).is_file(), name
     summary = json.loads((run / "summary.json").read_text())
-    for key in ("experiment", "seed", "episodes", "final_return", "wall_seconds"):
+    for key in ("experiment", "seed", "episodes", "final_return", "wall_seconds", *keys):
         assert key in summary
+    return summary
+
+
+def test_bimodal_subprocess_writes_the_run_directory(tmp_path):
+    run = tmp_path / "run"
+    p = train("bimodal", "--episodes", "600", "--run-dir", str(run), "--no-progress")
+    assert p.returncode == 0, p.stderr
+    summary = check_run_dir(run, files=("options.png",))
     assert summary["experiment"] == "bimodal" and summary["episodes"] == 600
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     assert len(rows) == 3  # 600 episodes / 200 per iteration
@@ -118,25 +124,7 @@ def test_pendulum_subprocess_writes_the_run_directory(tmp_path):
         "--no-progress",
     )
     assert p.returncode == 0, p.stderr
-    for name in (
-        "config.json",
-        "metrics.csv",
-        "summary.json",
-        "checkpoint.pt",
-        "learning_curve.png",
-    ):
-        assert (run / name).is_file(), name
-    summary = json.loads((run / "summary.json").read_text())
-    for key in (
-        "experiment",
-        "seed",
-        "episodes",
-        "final_return",
-        "wall_seconds",
-        "success_rate",
-        "time_to_upright",
-    ):
-        assert key in summary
+    summary = check_run_dir(run, keys=("success_rate", "time_to_upright"))
     assert summary["episodes"] == 40
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     assert len(rows) == 2

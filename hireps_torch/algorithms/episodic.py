@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from hireps_torch.algorithms._options import option_bound, refit_and_report
 from hireps_torch.dual import solve_episodic_dual
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
@@ -208,50 +209,22 @@ class EpisodicHiREPS:
         if c.shape[0] != N:
             raise ValueError(f"got {c.shape[0]} contexts for {N} returns")
 
-        log_resp = self.policy.log_responsibilities(c, theta)
-        active = self.policy.active
-        n_active = int(active.sum())
-        lr_act = log_resp[:, active]
-        p = lr_act.exp()
-        option_entropy = float(-(p * lr_act).sum(-1).mean()) if n_active > 1 else 0.0
-        kappa = None
-        if self.kappa_rel is not None and n_active > 1:
-            kappa = self.kappa_rel * option_entropy
+        bound = option_bound(self.policy, c, theta, self.kappa_rel)
         phi = self.context_features(c) if self.context_features is not None else None
-
         sol = solve_episodic_dual(
             R,
             epsilon=self.epsilon,
-            log_responsibilities=lr_act if n_active > 1 else None,
+            log_responsibilities=bound.log_responsibilities,
             context_features=phi,
-            kappa=kappa,
+            kappa=bound.kappa,
         )
-        weights = torch.zeros(N, self.policy.n_options, dtype=torch.float64)
-        weights[:, active] = sol.weights
-        self.policy.weighted_fit(c, theta, weights)
-        pruned = self.policy.prune(c, self.prune_threshold) if self.policy.n_options > 1 else []
+        report = refit_and_report(self.policy, c, theta, sol, bound, self.prune_threshold)
         self.iteration += 1
-
-        prior = self.policy.gating.probs(self.policy.gating_features(c)).mean(0)
-        ent = torch.stack([o.entropy() for o in self.policy.sub_policies])
-        policy_entropy = float((prior * ent).sum())
         return {
             "iteration": self.iteration,
-            "eta": sol.eta,
-            "xi": sol.xi,
-            "kappa": math.nan if kappa is None else kappa,
-            "kl": sol.kl,
-            "cross_entropy": sol.cross_entropy,
-            "effective_sample_size": sol.effective_sample_size,
-            "option_entropy": option_entropy,
-            "policy_entropy": policy_entropy,
-            "n_active_options": int(self.policy.active.sum()),
-            "pruned": pruned,
+            **report,
             "mean_return": float(R.mean()),
             "max_return": float(R.max()),
-            "dual_converged": sol.converged,
-            "dual_iterations": sol.iterations,
-            "feature_error": sol.feature_error,
         }
 
     # ---- checkpointing ----------------------------------------------------------------------

@@ -29,6 +29,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from hireps_torch.algorithms._options import option_bound, refit_and_report
 from hireps_torch.dual import solve_infinite_horizon_dual
 from hireps_torch.features import FeatureMap
 from hireps_torch.policies import HierarchicalPolicy
@@ -128,18 +129,7 @@ class InfiniteHorizonHiREPS:
         s_next = self._check("next_states", next_states, (N, S))
         a = self._check("actions", actions, (N, self.policy.action_dim))
 
-        log_resp = self.policy.log_responsibilities(s, a)
-        active = self.policy.active
-        n_active = int(active.sum())
-        lr_act = log_resp[:, active]
-        p = lr_act.exp()
-        option_entropy = (
-            float(-(torch.where(p > 0, p * lr_act, 0.0)).sum(-1).mean()) if n_active > 1 else 0.0
-        )
-        kappa = None
-        if self.kappa_rel is not None and n_active > 1:
-            kappa = self.kappa_rel * option_entropy
-
+        bound = option_bound(self.policy, s, a, self.kappa_rel)
         sol = solve_infinite_horizon_dual(
             R,
             self.value_features(s),
@@ -147,37 +137,13 @@ class InfiniteHorizonHiREPS:
             self.initial_features,
             gamma=self.gamma,
             epsilon=self.epsilon,
-            log_responsibilities=lr_act if n_active > 1 else None,
-            kappa=kappa,
+            log_responsibilities=bound.log_responsibilities,
+            kappa=bound.kappa,
         )
         self.value_weights = sol.v.clone()
-        weights = torch.zeros(N, self.policy.n_options, dtype=torch.float64)
-        weights[:, active] = sol.weights
-        self.policy.weighted_fit(s, a, weights)
-        pruned: list[int] = []
-        if self.policy.n_options > 1 and self.prune_threshold > 0:
-            pruned = self.policy.prune(s, self.prune_threshold)
+        report = refit_and_report(self.policy, s, a, sol, bound, self.prune_threshold)
         self.iteration += 1
-
-        prior = self.policy.gating.probs(self.policy.gating_features(s)).mean(0)
-        ent = torch.stack([o.entropy() for o in self.policy.sub_policies])
-        return {
-            "iteration": self.iteration,
-            "eta": sol.eta,
-            "xi": sol.xi,
-            "kappa": math.nan if kappa is None else kappa,
-            "kl": sol.kl,
-            "cross_entropy": sol.cross_entropy,
-            "effective_sample_size": sol.effective_sample_size,
-            "option_entropy": option_entropy,
-            "policy_entropy": float((prior * ent).sum()),
-            "n_active_options": int(self.policy.active.sum()),
-            "pruned": pruned,
-            "mean_reward": float(R.mean()),
-            "feature_error": sol.feature_error,
-            "dual_converged": sol.converged,
-            "dual_iterations": sol.iterations,
-        }
+        return {"iteration": self.iteration, **report, "mean_reward": float(R.mean())}
 
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -5,10 +5,53 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-__all__ = ["ConstantGating", "SoftmaxGating"]
+__all__ = ["ConstantGating", "Gating", "SoftmaxGating"]
 
 
-class SoftmaxGating(nn.Module):
+class Gating(nn.Module):
+    """Base of the gatings: ``features (N, F) -> log pi(o | s) (N, O)`` over the active options.
+
+    Holds ``in_features``, ``n_options`` and the ``active`` bool buffer (pruned options are
+    masked, never removed, so ``state_dict`` shapes never change). Subclasses implement
+    :meth:`log_probs` and :meth:`weighted_fit`.
+    """
+
+    active: Tensor
+
+    def __init__(self, in_features: int, n_options: int) -> None:
+        super().__init__()
+        if n_options < 1:
+            raise ValueError(f"n_options must be >= 1, got {n_options}")
+        if in_features < 0:
+            raise ValueError(f"in_features must be >= 0, got {in_features}")
+        self.in_features = in_features
+        self.n_options = n_options
+        self.register_buffer("active", torch.ones(n_options, dtype=torch.bool))
+
+    def _features(self, features: Tensor) -> Tensor:
+        if features.dim() != 2 or features.shape[1] != self.in_features:
+            raise ValueError(
+                f"gating features must have shape (N, {self.in_features}), got "
+                f"{tuple(features.shape)}"
+            )
+        return features.to(torch.float64)
+
+    def log_probs(self, features: Tensor) -> Tensor:
+        """features: (N, F) -> log pi(o | s): (N, O), -inf for pruned options."""
+        raise NotImplementedError
+
+    def probs(self, features: Tensor) -> Tensor:
+        """features: (N, F) -> pi(o | s): (N, O)."""
+        return self.log_probs(features).exp()
+
+    def weighted_fit(
+        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
+    ) -> None:
+        """Fit to soft targets (N, O) with sample weights (N,)."""
+        raise NotImplementedError
+
+
+class SoftmaxGating(Gating):
     """Softmax gating ``pi(o | s) = softmax_o(weight @ phi(s) + bias)`` over the active options.
 
     Shapes: ``features: (N, F)`` -> ``(N, O)``. Pruned options are kept in the parameter
@@ -23,30 +66,16 @@ class SoftmaxGating(nn.Module):
         dtype: parameter dtype.
     """
 
-    active: Tensor
-
     def __init__(
         self, in_features: int, n_options: int, l2: float = 1e-4, dtype: torch.dtype = torch.float64
     ) -> None:
-        super().__init__()
-        if n_options < 1:
-            raise ValueError(f"n_options must be >= 1, got {n_options}")
-        if in_features < 0:
-            raise ValueError(f"in_features must be >= 0, got {in_features}")
-        self.in_features = in_features
-        self.n_options = n_options
+        super().__init__(in_features, n_options)
         self.l2 = float(l2)
         self.weight = nn.Parameter(torch.zeros(n_options, in_features, dtype=dtype), False)
         self.bias = nn.Parameter(torch.zeros(n_options, dtype=dtype), False)
-        self.register_buffer("active", torch.ones(n_options, dtype=torch.bool))
 
     def _features(self, features: Tensor) -> Tensor:
-        if features.dim() != 2 or features.shape[1] != self.in_features:
-            raise ValueError(
-                f"gating features must have shape (N, {self.in_features}), got "
-                f"{tuple(features.shape)}"
-            )
-        return features.to(self.bias.dtype)
+        return super()._features(features).to(self.bias.dtype)
 
     def log_probs(self, features: Tensor) -> Tensor:
         """features: (N, F) -> log pi(o | s): (N, O), -inf for pruned options."""
@@ -54,10 +83,6 @@ class SoftmaxGating(nn.Module):
         logits = x @ self.weight.T + self.bias
         logits = logits.masked_fill(~self.active, float("-inf"))
         return torch.log_softmax(logits, dim=-1)
-
-    def probs(self, features: Tensor) -> Tensor:
-        """features: (N, F) -> pi(o | s): (N, O)."""
-        return self.log_probs(features).exp()
 
     @torch.no_grad()
     def weighted_fit(
@@ -118,7 +143,7 @@ class SoftmaxGating(nn.Module):
         self.bias[act] = (bp.detach() - bp.detach().mean()).to(self.bias.dtype)
 
 
-class ConstantGating(SoftmaxGating):
+class ConstantGating(Gating):
     """Fixed hard gating: each state goes to the option of its nearest k-means centroid.
 
     The paper's constant-gating baseline (Fig. 17): the state space is divided by k-means and

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from hireps_torch.features import FeatureMap, IdentityFeatures
-from hireps_torch.policies.gating import SoftmaxGating
+from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import LinearGaussian
 
 __all__ = ["HierarchicalPolicy"]
@@ -29,13 +29,13 @@ class HierarchicalPolicy(nn.Module):
         policy_features: feature map for the sub-policies (identity by default).
     """
 
-    gating: SoftmaxGating
+    gating: Gating
     gating_features: FeatureMap
     policy_features: FeatureMap
 
     def __init__(
         self,
-        gating: SoftmaxGating,
+        gating: Gating,
         options: Sequence[LinearGaussian],
         gating_features: FeatureMap | None = None,
         policy_features: FeatureMap | None = None,
@@ -67,11 +67,14 @@ class HierarchicalPolicy(nn.Module):
         policy_features: FeatureMap | None = None,
         min_variance: float = 1e-8,
         generator: torch.Generator | None = None,
+        gating: Gating | None = None,
     ) -> HierarchicalPolicy:
-        """Build a softmax-gated mixture of linear-Gaussian options.
+        """Build a mixture of linear-Gaussian options.
 
         Option means start at ``init_mean + spread * init_std * randn`` (exactly ``init_mean``
-        for one option), covariances at ``init_std^2 I``, the gating uniform.
+        for one option), covariances at ``init_std^2 I``. The gating is ``gating`` when given
+        (e.g. a :class:`ConstantGating` on ``gating_features``), else a uniform
+        :class:`SoftmaxGating`.
         """
         gf = gating_features or IdentityFeatures(context_dim)
         pf = policy_features or IdentityFeatures(context_dim)
@@ -90,7 +93,9 @@ class HierarchicalPolicy(nn.Module):
                 + spread * std * torch.randn(action_dim, generator=generator, dtype=torch.float64)
             )
             opts.append(LinearGaussian(pf.out_features, action_dim, m, std, min_variance))
-        return cls(SoftmaxGating(gf.out_features, n_options), opts, gf, pf)
+        if gating is None:
+            gating = SoftmaxGating(gf.out_features, n_options)
+        return cls(gating, opts, gf, pf)
 
     # ---- helpers ----------------------------------------------------------------------------
     @property

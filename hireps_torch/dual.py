@@ -61,6 +61,8 @@ __all__ = [
 _LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it is exactly 0
 _LOG_ETA_MIN = -30.0  # eta >= e^-30 (standardised units): past this the weights are one-hot
 _LOG_ETA_MAX = 30.0
+_V_MAX = 1.0e8  # |v| (standardised) past this means the dual ran off to -infinity
+_CONFLICT_RIDGE = 1.0e-2  # ridge on the standardised v when the feature constraints conflict
 
 
 class DegenerateWeightsWarning(RuntimeWarning):
@@ -209,6 +211,7 @@ class _Problem:
         self.multi = self.O > 1
         self.log_n = math.log(self.N)
         self.xi_on = torch.zeros(self.K, dtype=torch.bool)
+        self.ridge = 0.0  # (ridge / 2) |v|^2 added to the dual when the constraints conflict
 
     def unpack(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         K = self.K
@@ -264,6 +267,7 @@ class _Problem:
             idx = torch.tensor(cols)
             M[idx[:, None], idx[None, :]] += (Zc * p).T @ Zc / eta[k]
         d = M.diagonal()
+        d[2 * K :] += self.ridge
         top = float(d.max()) if n else 1.0
         # unused or flat directions (xi switched off, O = 1, a constant feature): identity
         d.copy_(torch.where(d > 1e-10 * top, d, torch.ones_like(d)) + 1e-10 * top)
@@ -297,6 +301,9 @@ class _Problem:
             if self.c is not None:
                 g = g + self.c @ v
                 gv = gv + self.c
+            if self.ridge > 0:
+                g = g + 0.5 * self.ridge * (v @ v)
+                gv = gv + self.ridge * v
             grad[2 * self.K :] = gv
         return g, grad, P
 
@@ -427,18 +434,39 @@ def solve_reps_dual(
         g, grad, P = prob.evaluate(x)
         return float(grad.abs().max()) <= converged_grad, g, P
 
-    if kappa is not None and O > 1:
-        # KKT for xi >= 0: solve with xi free; where xi ends ~0 with the bound slack,
-        # switch it off and re-solve (then xi = 0 exactly and the bound holds as inequality).
-        prob.xi_on[:] = True
-        converged, g, w = run_phase()
-        ce = -(w * log_resp).sum(dim=(1, 2))
-        slack = (x[K : 2 * K].exp() < 1e-6) & (ce <= kap + 1e-9)
-        if bool(slack.any()):
-            prob.xi_on &= ~slack
+    def solve() -> tuple[bool, Tensor, Tensor]:
+        nonlocal x
+        if kappa is not None and O > 1:
+            # KKT for xi >= 0: solve with xi free; where xi ends ~0 with the bound slack,
+            # switch it off and re-solve (then xi = 0 exactly and the bound holds as inequality).
+            prob.xi_on[:] = True
             converged, g, w = run_phase()
-    else:
-        converged, g, w = run_phase()
+            ce = -(w * log_resp).sum(dim=(1, 2))
+            slack = (x[K : 2 * K].exp() < 1e-6) & (ce <= kap + 1e-9)
+            if bool(slack.any()):
+                prob.xi_on &= ~slack
+                converged, g, w = run_phase()
+            return converged, g, w
+        return run_phase()
+
+    x_start = x.clone()
+    converged, g, w = solve()
+    if prob.P and _conflicting(prob, x, g):
+        # No reweighting of the samples meets the feature constraints at all (c lies outside
+        # the convex hull of the rows of -D: few samples against many features). The dual is
+        # then unbounded below; a ridge on v makes it bounded again, which turns the feature
+        # constraints into a quadratic penalty while the KL bound is still met.
+        warnings.warn(
+            "no reweighting of the samples meets the feature constraints (too few samples for "
+            f"the {prob.P} features?): they are relaxed to a quadratic penalty (ridge "
+            f"{_CONFLICT_RIDGE} on the standardised value weights); the KL bound still holds",
+            InfeasibleConstraintsWarning,
+            stacklevel=2,
+        )
+        prob.ridge = _CONFLICT_RIDGE
+        x = x_start
+        _, g, w = solve()
+        converged = False
 
     _, eta_s, xi_s, v_s = prob.unpack(x)
     if prob.P and bool((x[:K] >= _LOG_ETA_MAX).any()):
@@ -458,6 +486,23 @@ def solve_reps_dual(
     return _finish(
         w, log_resp, eta_s * scale, xi_s * scale, v_out, D, c, dual_value, converged, total_iter
     )
+
+
+def _conflicting(prob: _Problem, x: Tensor, g: Tensor) -> bool:
+    """Whether a solve shows that no reweighting meets the feature constraints.
+
+    The dual is then unbounded below: the solve runs off (non-finite, or |v| past ``_V_MAX``),
+    or it stops with eta at a clamp while the constraint residual (the v-gradient) is still
+    large. With eta at its upper clamp and a small residual the constraints are feasible but
+    need more KL than epsilon; that case is reported separately.
+    """
+    K = prob.K
+    if not (bool(torch.isfinite(x).all()) and bool(torch.isfinite(g))):
+        return True
+    at_clamp = bool(((x[:K] >= _LOG_ETA_MAX) | (x[:K] <= _LOG_ETA_MIN)).any())
+    if at_clamp:  # v grows with eta there, so only the residual tells
+        return float(prob.evaluate(x)[1][2 * K :].abs().max()) > 1e-3
+    return float(x[2 * K :].abs().max()) >= _V_MAX
 
 
 def _finish(

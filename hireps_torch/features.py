@@ -81,7 +81,9 @@ class FourierFeatures(FeatureMap):
 
         phi_c(x) = cos(pi c^T u),   c in {0, ..., n_bases - 1}^S,  c != 0,
 
-    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``. Dimensions marked
+    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``; ``coupling = k`` keeps only
+    the terms in which at most k dimensions have a non-zero frequency (k = 1: the
+    ``S (n_bases - 1)`` uncoupled terms), for when there are few samples. Dimensions marked
     ``periodic`` (angles with period high - low) use the frequencies 2 pi k / (high - low)
     instead and both cos and sin of every coupled phase, so the features are continuous across
     the wrap: ``2 (n_bases^S - 1)`` features then. The constant c = 0 is left out (see the
@@ -92,6 +94,7 @@ class FourierFeatures(FeatureMap):
         high: (S,) upper corner, > low.
         n_bases: frequencies per dimension, >= 2.
         periodic: (S,) bools, or None for none.
+        coupling: most dimensions one term may couple, in 1..S; None: all (S).
     """
 
     low: Tensor
@@ -104,6 +107,7 @@ class FourierFeatures(FeatureMap):
         high: Tensor | list[float],
         n_bases: int = 5,
         periodic: list[bool] | None = None,
+        coupling: int | None = None,
     ):
         super().__init__()
         lo = torch.as_tensor(low, dtype=torch.float64).reshape(-1)
@@ -116,14 +120,18 @@ class FourierFeatures(FeatureMap):
         per = [False] * S if periodic is None else [bool(p) for p in periodic]
         if len(per) != S:
             raise ValueError(f"periodic must have {S} entries, got {periodic}")
+        if coupling is not None and not 1 <= coupling <= S:
+            raise ValueError(f"coupling must be in 1..{S} (or None), got {coupling}")
         coeffs = torch.tensor(
             list(itertools.product(range(n_bases), repeat=S)), dtype=torch.float64
         )
+        if coupling is not None:  # the zero row (constant) stays first
+            coeffs = coeffs[(coeffs != 0).sum(dim=1) <= coupling]
         # phase = pi c^T u; a periodic dimension doubles its frequency (whole periods on the box)
         coeffs = coeffs * torch.tensor([2.0 if p else 1.0 for p in per], dtype=torch.float64)
         self.in_features = S
         self.with_sin = any(per)
-        self.out_features = (n_bases**S - 1) * (2 if self.with_sin else 1)
+        self.out_features = (coeffs.shape[0] - 1) * (2 if self.with_sin else 1)
         self.register_buffer("low", lo)
         self.register_buffer("width", hi - lo)
         self.register_buffer("coefficients", coeffs[1:])

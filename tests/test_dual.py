@@ -353,6 +353,37 @@ def test_infeasible_stationarity_is_reported_not_hidden():
     assert bool(torch.isfinite(sol.weights).all())
 
 
+@pytest.mark.parametrize("O", [1, 3])
+def test_conflicting_constraints_give_finite_weights_within_the_kl_bound(O):
+    # Every sample has phi - gamma phi' > 0 in feature 0 while (1 - gamma) phi_hat_0 < 0 there:
+    # no reweighting meets stationarity, the unregularised dual is unbounded below (it used to
+    # run off to NaN weights).
+    gen = torch.Generator().manual_seed(3)
+    N, F, gamma = 120, 4, 0.95
+    phi = torch.randn(N, F, generator=gen, dtype=torch.float64)
+    phi_next = torch.randn(N, F, generator=gen, dtype=torch.float64)
+    phi_next[:, 0] = (phi[:, 0] - 0.1 - torch.rand(N, generator=gen, dtype=torch.float64)) / gamma
+    phi0 = torch.randn(F, generator=gen, dtype=torch.float64)
+    phi0[0] = -1.0
+    r = torch.randn(N, generator=gen, dtype=torch.float64)
+    lr = None
+    kappa = None
+    if O > 1:
+        lr = torch.log_softmax(torch.randn(N, O, generator=gen, dtype=torch.float64), -1)
+        kappa = 0.8 * mean_entropy(lr)
+    with pytest.warns(InfeasibleConstraintsWarning, match="no reweighting"):
+        sol = solve_infinite_horizon_dual(
+            r, phi, phi_next, phi0, gamma=gamma, epsilon=0.5, log_responsibilities=lr,
+            kappa=kappa,
+        )
+    assert not sol.converged
+    assert bool(torch.isfinite(sol.weights).all())
+    assert sol.kl == pytest.approx(0.5, abs=1e-4)
+    assert sol.effective_sample_size > 10
+    if kappa is not None:
+        assert sol.cross_entropy <= kappa + 1e-4
+
+
 def test_infinite_horizon_dual_bad_input(gen):
     r, phi, phi_next, phi0, _ = random_chain(gen, N=50, F=3)
     with pytest.raises(ValueError, match="gamma"):

@@ -32,6 +32,22 @@ def test_periodic_fourier_features_are_continuous_across_the_wrap():
     assert float((plain(a) - plain(b)).abs().max()) > 1.0  # the plain basis jumps there
 
 
+def test_fourier_coupling_keeps_the_terms_with_few_coupled_dimensions():
+    full = FourierFeatures([0.0] * 3, [1.0] * 3, n_bases=5)
+    one = FourierFeatures([0.0] * 3, [1.0] * 3, n_bases=5, coupling=1)
+    two = FourierFeatures([0.0] * 3, [1.0] * 3, n_bases=5, coupling=2)
+    assert (full.out_features, one.out_features, two.out_features) == (124, 12, 60)
+    x = torch.rand(7, 3, dtype=torch.float64)
+    # every kept term is a column of the full basis
+    fx = full(x)
+    for sub in (one, two):
+        sx = sub(x)
+        for j in range(sub.out_features):
+            assert float((fx - sx[:, j : j + 1]).abs().amax(0).min()) < 1e-12
+    with pytest.raises(ValueError, match="coupling"):
+        FourierFeatures([0.0] * 3, [1.0] * 3, coupling=4)
+
+
 def test_feature_maps_reject_bad_arguments():
     with pytest.raises(ValueError, match="high > low"):
         FourierFeatures([0.0], [0.0])

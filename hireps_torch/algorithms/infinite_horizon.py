@@ -107,7 +107,12 @@ class InfiniteHorizonHiREPS:
 
     @torch.no_grad()
     def update(
-        self, states: Tensor, actions: Tensor, rewards: Tensor, next_states: Tensor
+        self,
+        states: Tensor,
+        actions: Tensor,
+        rewards: Tensor,
+        next_states: Tensor,
+        terminated: Tensor | None = None,
     ) -> dict[str, Any]:
         """One policy update from transitions sampled with the current policy.
 
@@ -116,6 +121,10 @@ class InfiniteHorizonHiREPS:
             actions: (N, A) actions taken.
             rewards: (N,) reward of each decision.
             next_states: (N, S) states reached (before any restart).
+            terminated: optional (N,) bool, the decision ended the episode in a terminal state
+                (e.g. a ball that fell off). The process then restarts for sure, so the next
+                state's expected features are those of the start distribution, phi_hat_0,
+                in the Bellman error and the stationarity constraint.
 
         Returns:
             Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
@@ -129,11 +138,20 @@ class InfiniteHorizonHiREPS:
         s_next = self._check("next_states", next_states, (N, S))
         a = self._check("actions", actions, (N, self.policy.action_dim))
 
+        next_features = self.value_features(s_next)
+        if terminated is not None:
+            term = torch.as_tensor(terminated).reshape(-1)
+            if term.shape != (N,) or term.dtype != torch.bool:
+                raise ValueError(
+                    f"terminated must be a bool tensor of shape ({N},), got {term.dtype} "
+                    f"{tuple(term.shape)}"
+                )
+            next_features = torch.where(term[:, None], self.initial_features, next_features)
         bound = option_bound(self.policy, s, a, self.kappa_rel)
         sol = solve_infinite_horizon_dual(
             R,
             self.value_features(s),
-            self.value_features(s_next),
+            next_features,
             self.initial_features,
             gamma=self.gamma,
             epsilon=self.epsilon,

@@ -7,7 +7,7 @@ import torch
 
 from environments.pendulum import PendulumParams, pendulum_step, sample_start
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
-from hireps_torch.features import FourierFeatures, QuadraticFeatures
+from hireps_torch.features import FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
 
@@ -55,6 +55,39 @@ def test_update_meets_kl_entropy_and_stationarity(gen):
         assert math.isfinite(d[key]), key
     # the value estimate is the dual's v on the value features
     assert algo.value(s[:3]).shape == (3,)
+
+
+def test_terminated_transitions_lead_to_the_start_distribution(gen):
+    # After a terminal transition the process restarts for sure: the next state's features are
+    # phi_hat_0. Passing next states whose features are exactly phi_hat_0 must give the same
+    # update as flagging them terminated.
+    algo, p = make_algo(gen, n_options=1, kappa_rel=None)
+    s, a, r, s2 = rollout(algo, p, gen, B=10, T=20)
+    term = torch.zeros(s.shape[0], dtype=torch.bool)
+    term[::7] = True
+    state = algo.state_dict()
+    d_flag = algo.update(s, a, r, s2, term)
+    v_flag = algo.value_weights.clone()
+    algo.load_state_dict(state)
+    sentinel = torch.tensor([0.123, -4.56], dtype=torch.float64)
+
+    class SentinelIsStart(FeatureMap):  # phi(sentinel) = phi_hat_0, else the Fourier features
+        def __init__(self, inner, phi0):
+            super().__init__()
+            self.inner, self.phi0 = inner, phi0
+            self.in_features, self.out_features = inner.in_features, inner.out_features
+
+        def forward(self, x):
+            return torch.where((x == sentinel).all(-1, keepdim=True), self.phi0, self.inner(x))
+
+    algo.value_features = SentinelIsStart(algo.value_features, algo.initial_features)
+    s2_alt = torch.where(term[:, None], sentinel, s2)
+    d_alt = algo.update(s, a, r, s2_alt)
+    assert torch.allclose(algo.value_weights, v_flag, atol=1e-8)
+    assert d_flag["kl"] == pytest.approx(d_alt["kl"], abs=1e-9)
+    assert d_flag["feature_error"] == pytest.approx(d_alt["feature_error"], abs=1e-9)
+    with pytest.raises(ValueError, match="terminated"):
+        algo.update(s, a, r, s2, term[:-1])
 
 
 def test_update_is_deterministic_and_state_dict_round_trips():

@@ -1,12 +1,15 @@
 """hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch."""
 
 from hireps_torch.algorithms import REPS, EpisodicHiREPS, InfiniteHorizonHiREPS
+from hireps_torch.dmp import DMP, DMPTrajectory
 from hireps_torch.dual import DegenerateWeightsWarning, DualSolution, solve_episodic_dual
 from hireps_torch.policies import HierarchicalPolicy, LinearGaussian, SoftmaxGating
 
 __version__ = "0.1.0"
 __all__ = [
+    "DMP",
     "REPS",
+    "DMPTrajectory",
     "DegenerateWeightsWarning",
     "DualSolution",
     "EpisodicHiREPS",

@@ -452,14 +452,18 @@ def solve_reps_dual(
     x_start = x.clone()
     converged, g, w = solve()
     if prob.P and _conflicting(prob, x, g):
-        # No reweighting of the samples meets the feature constraints at all (c lies outside
-        # the convex hull of the rows of -D: few samples against many features). The dual is
-        # then unbounded below; a ridge on v makes it bounded again, which turns the feature
-        # constraints into a quadratic penalty while the KL bound is still met.
+        # No distribution within the KL bound meets the feature constraints: either none at
+        # all does (c lies outside the convex hull of the rows of -D, typical of few samples
+        # against many features) or only ones with KL > epsilon do. The dual is then unbounded
+        # below (eta or v run off). A ridge on v bounds it again: the feature constraints
+        # become a quadratic penalty while the KL bound, the point of REPS, still holds (the
+        # alternative, the closest distribution that meets them, can collapse onto a single
+        # sample and wreck the policy).
         warnings.warn(
-            "no reweighting of the samples meets the feature constraints (too few samples for "
-            f"the {prob.P} features?): they are relaxed to a quadratic penalty (ridge "
-            f"{_CONFLICT_RIDGE} on the standardised value weights); the KL bound still holds",
+            f"the feature constraints cannot be met within the KL bound epsilon = "
+            f"{eps.tolist()} (too few samples for the {prob.P} features?): they are relaxed "
+            f"to a quadratic penalty (ridge {_CONFLICT_RIDGE} on the standardised value "
+            "weights) and the KL bound is kept; see feature_error",
             InfeasibleConstraintsWarning,
             stacklevel=2,
         )
@@ -469,17 +473,6 @@ def solve_reps_dual(
         converged = False
 
     _, eta_s, xi_s, v_s = prob.unpack(x)
-    if prob.P and bool((x[:K] >= _LOG_ETA_MAX).any()):
-        # eta ran to its upper clamp: no distribution within the KL bound meets the feature
-        # constraints; the weights are then the closest one (in KL) that does.
-        converged = False
-        warnings.warn(
-            "the feature constraints cannot be met within the KL bound epsilon = "
-            f"{eps.tolist()}: the weights are the closest distribution that meets them and "
-            "their KL exceeds epsilon (more samples, a larger epsilon or fewer features help)",
-            InfeasibleConstraintsWarning,
-            stacklevel=2,
-        )
     v_out = v_s * scale / col if col is not None else v_s.clone()
     # every term scales with the return scale; the centring adds back the block means
     dual_value = float(g) * scale + float(R.mean(dim=1).sum())
@@ -489,18 +482,18 @@ def solve_reps_dual(
 
 
 def _conflicting(prob: _Problem, x: Tensor, g: Tensor) -> bool:
-    """Whether a solve shows that no reweighting meets the feature constraints.
+    """Whether a solve shows that no distribution within the KL bound meets the features.
 
-    The dual is then unbounded below: the solve runs off (non-finite, or |v| past ``_V_MAX``),
-    or it stops with eta at a clamp while the constraint residual (the v-gradient) is still
-    large. With eta at its upper clamp and a small residual the constraints are feasible but
-    need more KL than epsilon; that case is reported separately.
+    The dual is then unbounded below and the solve runs off: non-finite values, eta at its
+    upper clamp, eta at its lower clamp with the constraint residual (the v-gradient) still
+    large, or |v| past ``_V_MAX``.
     """
     K = prob.K
     if not (bool(torch.isfinite(x).all()) and bool(torch.isfinite(g))):
         return True
-    at_clamp = bool(((x[:K] >= _LOG_ETA_MAX) | (x[:K] <= _LOG_ETA_MIN)).any())
-    if at_clamp:  # v grows with eta there, so only the residual tells
+    if bool((x[:K] >= _LOG_ETA_MAX).any()):
+        return True
+    if bool((x[:K] <= _LOG_ETA_MIN).any()):  # v grows as eta shrinks: the residual tells
         return float(prob.evaluate(x)[1][2 * K :].abs().max()) > 1e-3
     return float(x[2 * K :].abs().max()) >= _V_MAX
 

@@ -436,9 +436,176 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
     )
 
 
+# --------------------------------------------------------------------------------------------
+# ball on a beam (infinite-horizon HiREPS, 30 episodes)
+
+
+@dataclass(frozen=True)
+class BallOnBeamConfig:
+    """Ball on a beam with infinite-horizon HiREPS (paper Fig 19): 3 episodes per iteration."""
+
+    n_options: int = 5
+    """Number of linear-Gaussian options (the paper does not say; 5 as in its other tasks)."""
+    episodes: int = 30
+    """Total episodes (20 s of experience per beam each)."""
+    episodes_per_iteration: int = 3
+    """Episodes per policy update = parallel beams."""
+    epsilon: float = 0.5
+    """KL bound per iteration."""
+    kappa_rel: float = 0.9
+    """Entropy bound relative to the mean responsibility entropy."""
+    init_std: float = 0.05
+    """Initial exploration std of the desired beam angle (rad)."""
+    min_variance: float = 1e-6
+    """Floor on the option variance (rad^2)."""
+    fourier_bases: int = 5
+    """Fourier bases per state dimension of the value features."""
+    fourier_coupling: int | None = 1
+    """Most state dimensions one Fourier term may couple (1: no cross terms, 3 * 4 features;
+    None: all 5^3 - 1 = 124, more than the 120 decisions of one iteration)."""
+    max_velocity: float = 1.0
+    """Ball speed (m/s) the value and gating features are scaled to."""
+    eval_episodes: int = 10
+    """Noise-free evaluation episodes after every iteration (alternating sides)."""
+    seed: int = 0
+    run_dir: Path | None = None
+    """Where to write the run (default runs/ball_on_beam/<timestamp>); must not exist or be
+    empty."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+def build_ball_on_beam_policy(
+    cfg: BallOnBeamConfig, generator: torch.Generator | None = None
+) -> HierarchicalPolicy:
+    """Options linear in (x, x', alpha) -> desired beam angle, softmax gating on the squared
+    expansion of the state (scaled by the beam's half length, ``max_velocity`` and the angle
+    limit). Load a run's policy with ``policy.load_state_dict(ckpt["algorithm"]["policy"])``."""
+    from environments.ball_on_beam import BeamParams
+    from hireps_torch.features import QuadraticFeatures
+    from hireps_torch.policies import HierarchicalPolicy
+
+    p = BeamParams()
+    box = torch.tensor([p.half_length, cfg.max_velocity, p.max_angle])
+    return HierarchicalPolicy.create(
+        cfg.n_options,
+        3,
+        1,
+        init_std=cfg.init_std,
+        gating_features=QuadraticFeatures(3, scale=box),
+        min_variance=cfg.min_variance,
+        generator=generator,
+    )
+
+
+def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
+    """Infinite-horizon HiREPS on the simulated ball on a beam; returns the summary."""
+    from environments.ball_on_beam import (
+        BallOnBeamBatchEnv,
+        BeamParams,
+        evaluate_beam,
+        sample_start,
+    )
+    from hireps_torch.algorithms import InfiniteHorizonHiREPS
+    from hireps_torch.features import FourierFeatures
+    from hireps_torch.rollout import make_collector, policy_module, shutdown_collector, transitions
+
+    for name in ("n_options", "episodes_per_iteration", "eval_episodes"):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+    if cfg.episodes < cfg.episodes_per_iteration:
+        raise ValueError(
+            f"episodes ({cfg.episodes}) must be at least episodes_per_iteration "
+            f"({cfg.episodes_per_iteration})"
+        )
+    params = BeamParams()
+    B = cfg.episodes_per_iteration
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    policy = build_ball_on_beam_policy(cfg, gen)
+    box = torch.tensor([params.half_length, cfg.max_velocity, params.max_angle])
+    sides = torch.where(torch.arange(1000) % 2 == 0, 1.0, -1.0)
+    algo = InfiniteHorizonHiREPS(
+        policy,
+        FourierFeatures(-box, box, cfg.fourier_bases, coupling=cfg.fourier_coupling),
+        sample_start(sides, params, gen),
+        gamma=params.gamma,
+        epsilon=cfg.epsilon,
+        kappa_rel=cfg.kappa_rel,
+    )
+    iterations = cfg.episodes // B
+    frames = B * params.decisions_per_episode
+    env_seed = cfg.seed + 1
+    collector = make_collector(
+        lambda: BallOnBeamBatchEnv(B, params, seed=env_seed),
+        policy_module(policy),
+        frames_per_batch=frames,
+        total_frames=frames * iterations,
+        reset_at_each_iter=True,
+        seed=env_seed,
+    )
+
+    def act(states: torch.Tensor) -> torch.Tensor:
+        return policy.mean_action(states)[0]
+
+    run_dir = cfg.run_dir or default_run_dir("ball_on_beam")
+    try:
+        writer = RunWriter(run_dir, {"experiment": "ball_on_beam", **dataclasses.asdict(cfg)})
+    except BaseException:
+        shutdown_collector(collector)
+        raise
+    label = f"ball_on_beam/{cfg.n_options}opt"
+    bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
+    first_success: int | None = None
+    try:
+        for it, batch in enumerate(collector):
+            s, a, r, s_next, _ = transitions(batch, "state")
+            terminated = batch["next", "terminated"].reshape(-1)
+            diag = algo.update(s, a, r, s_next, terminated)
+            ev = evaluate_beam(act, params, n_episodes=cfg.eval_episodes, seed=cfg.seed + 777)
+            episodes = (it + 1) * B
+            if first_success is None and ev.success_rate >= 0.9:
+                first_success = episodes
+            row = {
+                "iteration": it + 1,
+                "episodes": episodes,
+                "average_return": float(r.sum()) / B,
+                "falls": int(terminated.sum()),
+                "eval_return": ev.average_return,
+                "eval_success_rate": ev.success_rate,
+                **diag,
+            }
+            writer.log(row)
+            bar.update(1)
+            bar.set_postfix(ret=f"{row['average_return']:.1f}", success=ev.success_rate)
+    finally:
+        bar.close()
+        shutdown_collector(collector)
+
+    writer.checkpoint({"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)})
+    writer.plot_learning_curve("episodes", ["average_return", "eval_return"], title=label)
+    last = writer.rows[-1]
+    return writer.finish(
+        {
+            "experiment": "ball_on_beam",
+            "n_options": cfg.n_options,
+            "seed": cfg.seed,
+            "episodes": iterations * B,
+            "iterations": iterations,
+            "final_average_return": last["average_return"],
+            "final_eval_return": last["eval_return"],
+            "final_return": last["eval_return"],
+            "success_rate": last["eval_success_rate"],
+            "episodes_to_success": first_success,
+            "n_active_options": int(policy.active.sum()),
+        }
+    )
+
+
 EXPERIMENTS: dict[str, tuple[Any, Any]] = {
     "bimodal": (BimodalConfig, run_bimodal),
     "pendulum": (PendulumConfig, run_pendulum),
+    "ball-on-beam": (BallOnBeamConfig, run_ball_on_beam),
 }
 
 

@@ -22,7 +22,6 @@ run and of the whole ablation.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import statistics
 import sys
@@ -35,6 +34,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks._common import mean_std, plot_band, read_curve  # noqa: E402
 from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
 from hireps_torch.runlog import atomic_write  # noqa: E402
 from train import PendulumConfig, run_pendulum  # noqa: E402
@@ -103,12 +103,6 @@ def env_speed() -> None:
     print(f"  gymnasium Pendulum-v1 loop : {n / dt:>12,.0f}")
 
 
-def read_curve(run_dir: Path) -> tuple[list[float], list[float]]:
-    with (run_dir / "metrics.csv").open() as f:
-        rows = list(csv.DictReader(f))
-    return [float(r["episodes"]) for r in rows], [float(r["average_return"]) for r in rows]
-
-
 def plot_figure(name: str, lines: list[tuple[str, str]], results: dict, out: Path) -> None:
     import matplotlib
 
@@ -117,11 +111,8 @@ def plot_figure(name: str, lines: list[tuple[str, str]], results: dict, out: Pat
 
     fig, ax = plt.subplots(figsize=(6, 4))
     for label, key in lines:
-        curves = torch.tensor([r["curve"] for r in results[key]], dtype=torch.float64)
-        x = results[key][0]["episodes_axis"]
-        m, s = curves.mean(0), curves.std(0) if curves.shape[0] > 1 else curves[0] * 0
-        ax.plot(x, m.numpy(), label=label)
-        ax.fill_between(x, (m - s).numpy(), (m + s).numpy(), alpha=0.2)
+        curves = [r["curve"] for r in results[key]]
+        plot_band(ax, results[key][0]["episodes_axis"], curves, label)
     ax.set_xlabel("episodes")
     ax.set_ylabel("average return (per control step)")
     ax.set_title(f"{name} ({len(results[lines[0][1]])} seeds, mean ± std)")
@@ -129,12 +120,6 @@ def plot_figure(name: str, lines: list[tuple[str, str]], results: dict, out: Pat
     fig.tight_layout()
     atomic_write(out / f"{name}.png", lambda p: fig.savefig(p, format="png", dpi=110))
     plt.close(fig)
-
-
-def mean_std(xs: list[float]) -> str:
-    if len(xs) == 1:
-        return f"{xs[0]:.1f}"
-    return f"{statistics.mean(xs):.1f} ± {statistics.stdev(xs):.1f}"
 
 
 def main() -> None:

@@ -185,3 +185,35 @@ def test_pendulum_same_seed_same_run(tmp_path):
         outs.append(ck["algorithm"]["policy"])
     assert outs[0] == outs[2]
     assert all(torch.equal(outs[1][k], outs[3][k]) for k in outs[1])
+
+
+def test_ball_on_beam_subprocess_writes_the_run_directory(tmp_path):
+    run = tmp_path / "run"
+    p = train("ball-on-beam", "--episodes", "6", "--run-dir", str(run), "--no-progress")
+    assert p.returncode == 0, p.stderr
+    summary = check_run_dir(run, keys=("success_rate", "episodes_to_success"))
+    assert summary["experiment"] == "ball_on_beam" and summary["episodes"] == 6
+    assert 0.0 <= summary["success_rate"] <= 1.0
+    rows = list(csv.DictReader((run / "metrics.csv").open()))
+    assert len(rows) == 2  # 3 episodes per iteration
+    assert abs(float(rows[0]["kl"]) - 0.5) < 1e-3
+    for key in ("eta", "xi", "effective_sample_size", "policy_entropy", "falls", "eval_return"):
+        assert key in rows[0]
+
+
+def test_ball_on_beam_same_seed_same_run(tmp_path):
+    import train as train_module
+
+    outs = []
+    for k in range(2):
+        cfg = train_module.BallOnBeamConfig(
+            episodes=6, eval_episodes=2, progress=False, run_dir=tmp_path / f"r{k}", seed=4
+        )
+        train_module.run_ball_on_beam(cfg)
+        outs.append((tmp_path / f"r{k}" / "metrics.csv").read_text())
+    assert outs[0] == outs[1]
+    cfg = train_module.BallOnBeamConfig(
+        episodes=6, eval_episodes=2, progress=False, run_dir=tmp_path / "other", seed=5
+    )
+    train_module.run_ball_on_beam(cfg)
+    assert (tmp_path / "other" / "metrics.csv").read_text() != outs[0]

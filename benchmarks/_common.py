@@ -1,0 +1,33 @@
+"""Small helpers shared by the benchmark scripts (not part of the library)."""
+
+from __future__ import annotations
+
+import csv
+import statistics
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def read_curve(run_dir: Path, key: str = "average_return") -> tuple[list[float], list[float]]:
+    """(episodes, ``key``) per iteration from a run directory's metrics.csv."""
+    with (run_dir / "metrics.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    return [float(r["episodes"]) for r in rows], [float(r[key]) for r in rows]
+
+
+def mean_std(xs: list[float]) -> str:
+    """'mean ± std' (one decimal), or the value alone for one sample."""
+    if len(xs) == 1:
+        return f"{xs[0]:.1f}"
+    return f"{statistics.mean(xs):.1f} ± {statistics.stdev(xs):.1f}"
+
+
+def plot_band(ax: Any, x: list[float], curves: list[list[float]], label: str) -> None:
+    """Mean curve with a ±1 std band over seeds."""
+    c = torch.tensor(curves, dtype=torch.float64)
+    m = c.mean(0)
+    s = c.std(0) if c.shape[0] > 1 else torch.zeros_like(m)
+    ax.plot(x, m.numpy(), label=label)
+    ax.fill_between(x, (m - s).numpy(), (m + s).numpy(), alpha=0.2)

@@ -1,0 +1,468 @@
+"""Ball on a beam held by a robot (HiREPS paper, Section 5.5, Fig 19), simulated.
+
+Spec sheet
+==========
+Physics (pure, batched: :func:`beam_step`)
+    A 1 m beam, pivoting about its centre, is the robot's end effector. A solid ball rolls on
+    it without slipping; ``x`` is the ball's position along the beam (m, 0 = centre, +x to the
+    right) and ``alpha`` the beam angle (rad, positive raises the right end, so the ball rolls
+    toward -x). Rolling-ball dynamics (Lagrange, ball radius small against the beam, rolling
+    resistance taken viscous):
+
+        (1 + I / (m r^2)) x'' = x alpha'^2 - g sin(alpha) - c_roll x',   I / (m r^2) = 2/5,
+
+    i.e. ``x'' = 5/7 (x alpha'^2 - g sin alpha - c x')``. The beam is positioned by the robot's
+    joint servo, modelled as a first-order lag toward the commanded angle ``alpha_d``:
+
+        alpha' = (alpha_d - alpha) / tau.
+
+    The state ``(x, x', alpha)`` is integrated with one classical Runge-Kutta-4 step per
+    control step of ``dt`` (``alpha_d`` held constant over the decision).
+
+Constants and sources
+    ==========================  ==========  ==========================================
+    beam length                 1 m         paper ("a 1 m beam")
+    goals                       +-0.1 m     paper (10 cm left and right of the centre)
+    decision interval           0.5 s       paper (new desired beam angle every 0.5 s)
+    episode length              20 s        paper (40 decisions)
+    control step dt             0.02 s      our choice (50 Hz inside the decision)
+    servo time constant tau     0.1 s       our choice
+    beam angle limit            0.15 rad    our choice (~8.6 deg; commands are clipped)
+    rolling resistance c        0.2 1/s     our choice
+    gravity g                   9.81 m/s^2  standard
+    start position              +-0.45 m    our choice ("the ball starts at the end"),
+                                            at rest, beam level, position noise 0.01 m std
+    fall penalty                100         our choice (> 20 s at the beam end at rest: 80)
+    ==========================  ==========  ==========================================
+
+Action (one per decision)
+    The desired beam angle ``alpha_d`` (rad). Commands beyond the beam's limit are clipped to
+    ``+-max_angle`` (a robot's joint limit would do the same); non-finite commands raise.
+
+Observation
+    ``(x, x', alpha)`` (m, m/s, rad), float32 in the adapters; the exact float64 state is in
+    ``state`` / ``info["state"]``.
+
+Reward (per decision)
+    The sum over the decision's control steps of ``-(d^2 + x'^2)``, evaluated after each
+    control step, with ``d = min(|x - 0.1|, |x + 0.1|)`` the distance to the closer goal. If the
+    ball leaves the beam (``|x| > 0.5``) the episode terminates: the steps after the fall earn
+    nothing and the decision's reward gets ``-fall_penalty`` added.
+
+Start state and episode end
+    Episodes alternate between starting near the right end (``x = +0.45``) and near the left
+    end (``x = -0.45``), plus N(0, 0.01^2) position noise, at rest with a level beam; a reset
+    with a seed starts again on the right. An episode ends after 40 decisions (``truncated``)
+    or when the ball falls (``terminated``).
+
+For infinite-horizon HiREPS an episode end is a restart: the restart probability per decision
+is ``1 / 40`` (``gamma = 0.975``).
+
+Adapters: :class:`BallOnBeamEnv` (gymnasium, id ``hireps/BallOnBeam-v0``) and
+:class:`BallOnBeamBatchEnv` (TorchRL ``EnvBase``, B beams). Both call :func:`beam_step` and
+:func:`sample_start` and draw the start noise from one seeded ``torch.Generator`` in the same
+order, so the same seed and actions give the same trajectory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+__all__ = [
+    "BallOnBeamBatchEnv",
+    "BallOnBeamEnv",
+    "BeamEvaluation",
+    "BeamParams",
+    "beam_step",
+    "evaluate_beam",
+    "goal_distance",
+    "sample_start",
+    "step_reward",
+]
+
+ENV_ID = "hireps/BallOnBeam-v0"
+
+
+@dataclass(frozen=True)
+class BeamParams:
+    """Constants of the ball-on-a-beam task (see the module docstring for their sources)."""
+
+    half_length: float = 0.5
+    goal: float = 0.1
+    decision_seconds: float = 0.5
+    episode_seconds: float = 20.0
+    dt: float = 0.02
+    servo_tau: float = 0.1
+    max_angle: float = 0.15
+    rolling_resistance: float = 0.2
+    gravity: float = 9.81
+    start_position: float = 0.45
+    start_noise: float = 0.01
+    fall_penalty: float = 100.0
+
+    def __post_init__(self) -> None:
+        for name in ("half_length", "decision_seconds", "episode_seconds", "dt", "servo_tau",
+                     "max_angle", "gravity"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("goal", "rolling_resistance", "start_noise", "fall_penalty"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.start_position < self.half_length:
+            raise ValueError(
+                f"start_position must be in [0, half_length), got {self.start_position}"
+            )
+        if self.steps_per_decision < 1 or self.decisions_per_episode < 1:
+            raise ValueError(
+                f"need dt <= decision_seconds <= episode_seconds, got dt={self.dt}, "
+                f"decision_seconds={self.decision_seconds}, episode_seconds={self.episode_seconds}"
+            )
+
+    @property
+    def steps_per_decision(self) -> int:
+        """Control steps per decision (25 by default)."""
+        return round(self.decision_seconds / self.dt)
+
+    @property
+    def decisions_per_episode(self) -> int:
+        """Decisions per episode (40 by default)."""
+        return round(self.episode_seconds / self.decision_seconds)
+
+    @property
+    def gamma(self) -> float:
+        """Discount per decision of the infinite-horizon dual: 1 - 1 / decisions_per_episode."""
+        return 1.0 - 1.0 / self.decisions_per_episode
+
+
+def goal_distance(x: Tensor, params: BeamParams) -> Tensor:
+    """Distance of the ball to the closer goal: (...,) -> (...,)."""
+    return torch.minimum((x - params.goal).abs(), (x + params.goal).abs())
+
+
+def step_reward(state: Tensor, params: BeamParams) -> Tensor:
+    """Per-control-step reward -(d^2 + x'^2): (..., 3) -> (...)."""
+    return -(goal_distance(state[..., 0], params) ** 2 + state[..., 1] ** 2)
+
+
+def _derivative(s: Tensor, target: Tensor, p: BeamParams) -> Tensor:
+    x, v, alpha = s[..., 0], s[..., 1], s[..., 2]
+    alpha_dot = (target - alpha) / p.servo_tau
+    acc = (5.0 / 7.0) * (x * alpha_dot**2 - p.gravity * torch.sin(alpha) - p.rolling_resistance * v)
+    return torch.stack([v, acc, alpha_dot], dim=-1)
+
+
+def control_step(state: Tensor, target: Tensor, params: BeamParams) -> Tensor:
+    """One RK4 control step of ``dt`` toward the commanded angle: (B, 3), (B,) -> (B, 3)."""
+    h = params.dt
+    k1 = _derivative(state, target, params)
+    k2 = _derivative(state + 0.5 * h * k1, target, params)
+    k3 = _derivative(state + 0.5 * h * k2, target, params)
+    k4 = _derivative(state + h * k3, target, params)
+    return state + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def check_action(action: Tensor, batch: int) -> Tensor:
+    """Validate a (B,) or (B, 1) desired-angle action; returns (B,)."""
+    a = torch.as_tensor(action)
+    if a.dim() == 2 and a.shape[1] == 1:
+        a = a[:, 0]
+    if a.shape != (batch,):
+        raise ValueError(
+            f"action must have shape ({batch},) or ({batch}, 1) (one desired beam angle per "
+            f"beam), got {tuple(a.shape)}"
+        )
+    bad = ~torch.isfinite(a)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"action contains a non-finite beam angle at index {i}: {a[i].item()}")
+    return a
+
+
+def beam_step(
+    state: Tensor, action: Tensor, params: BeamParams
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One decision: the servo tracks the desired beam angle for the decision's control steps.
+
+    Args:
+        state: (B, 3) float64 ``(x, x', alpha)``; every ball must still be on the beam.
+        action: (B,) or (B, 1) desired beam angles; clipped to ``+-params.max_angle``.
+        params: the task constants.
+
+    Returns:
+        next_state (B, 3); reward (B,) summed over the control steps (with the fall penalty);
+        fell (B,) bool, the ball left the beam during the decision (the state then stays where
+        it left the beam); path (B, steps_per_decision, 3), the state after each control step
+        (held after a fall).
+    """
+    if state.dim() != 2 or state.shape[1] != 3:
+        raise ValueError(f"state must have shape (B, 3), got {tuple(state.shape)}")
+    off = state[:, 0].abs() > params.half_length
+    if bool(off.any()):
+        i = int(off.nonzero()[0, 0])
+        raise ValueError(f"ball {i} is already off the beam: x = {state[i, 0].item()}")
+    target = check_action(action, state.shape[0]).to(state.dtype)
+    target = target.clamp(-params.max_angle, params.max_angle)
+    fell = torch.zeros(state.shape[0], dtype=torch.bool, device=state.device)
+    reward = torch.zeros(state.shape[0], dtype=state.dtype, device=state.device)
+    path = []
+    s = state
+    for _ in range(params.steps_per_decision):
+        nxt = control_step(s, target, params)
+        s = torch.where(fell[:, None], s, nxt)
+        reward = reward + torch.where(fell, 0.0, step_reward(s, params))
+        fell = fell | (s[:, 0].abs() > params.half_length)
+        path.append(s)
+    reward = reward - params.fall_penalty * fell.to(state.dtype)
+    return s, reward, fell, torch.stack(path, dim=1)
+
+
+def sample_start(
+    sides: Tensor, params: BeamParams, generator: torch.Generator | None
+) -> Tensor:
+    """Start states at the given ends (+1 right, -1 left): (n,) -> (n, 3) float64."""
+    side = torch.as_tensor(sides, dtype=torch.float64)
+    noise = torch.randn(side.shape[0], generator=generator, dtype=torch.float64)
+    x = (side * params.start_position + params.start_noise * noise).clamp(
+        -params.start_position - 0.04, params.start_position + 0.04
+    )
+    zeros = torch.zeros_like(x)
+    return torch.stack([x, zeros, zeros], dim=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# gymnasium adapter
+
+
+class BallOnBeamEnv(gym.Env):
+    """Gymnasium adapter over :func:`beam_step` (one beam; see the module docstring).
+
+    ``observation_space``: Box([-0.5, -inf, -max_angle], [0.5, inf, max_angle]) float32;
+    ``action_space``: Box(-max_angle, max_angle, (1,)) float32. ``info`` holds the float64
+    state and the per-control-step path.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, params: BeamParams | None = None):
+        self.params = params or BeamParams()
+        lim = np.float32(self.params.max_angle)
+        self.action_space = gym.spaces.Box(-lim, lim, shape=(1,), dtype=np.float32)
+        hi = np.array([self.params.half_length + 0.1, np.inf, lim], dtype=np.float32)
+        self.observation_space = gym.spaces.Box(-hi, hi, dtype=np.float32)
+        self._gen = torch.Generator()
+        self._gen.manual_seed(0)
+        self._episode = 0
+        self._state = sample_start(torch.ones(1), self.params, self._gen)
+        self._t = 0
+
+    def _obs(self) -> np.ndarray:
+        return self._state[0].numpy().astype(np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        if seed is not None:
+            self._gen.manual_seed(int(seed))
+            self._episode = 0
+        side = 1.0 if self._episode % 2 == 0 else -1.0
+        self._episode += 1
+        self._state = sample_start(torch.tensor([side]), self.params, self._gen)
+        self._t = 0
+        return self._obs(), {"state": self._state[0].numpy().copy()}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        a = torch.as_tensor(np.asarray(action, dtype=np.float64)).reshape(-1)
+        if a.shape != (1,):
+            raise ValueError(f"action must hold one beam angle, got shape {tuple(a.shape)}")
+        self._state, reward, fell, path = beam_step(self._state, a, self.params)
+        self._t += 1
+        capped = self._t >= self.params.decisions_per_episode
+        info = {"state": self._state[0].numpy().copy(), "path": path[0].numpy()}
+        terminated = bool(fell[0])
+        return self._obs(), float(reward[0]), terminated, capped and not terminated, info
+
+
+gym.register(id=ENV_ID, entry_point=f"{__name__}:BallOnBeamEnv", disable_env_checker=True)
+
+
+# --------------------------------------------------------------------------------------------
+# TorchRL adapter
+
+
+class BallOnBeamBatchEnv(EnvBase):
+    """Batched TorchRL adapter over :func:`beam_step`: B beams stepped together.
+
+    Keys: ``observation`` (B, 3) float32, ``action`` (B, 1) float32 in +-max_angle,
+    ``reward`` (B, 1) float32, ``done``/``terminated`` (the ball fell) /``truncated`` (the 20 s
+    are over) (B, 1) bool, and ``state`` (B, 3) float64. Beam ``i``'s k-th episode is the
+    ``(k B + i)``-th overall and starts on the right when that number is even, so episodes
+    alternate sides as in the paper. Partial resets (``_reset`` mask) restart only the masked
+    beams.
+
+    Args:
+        batch_size: B.
+        params: task constants.
+        seed: seed of the start-noise generator.
+        device: torch device of the tensors.
+    """
+
+    def __init__(
+        self,
+        batch_size: int = 3,
+        params: BeamParams | None = None,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        super().__init__(batch_size=torch.Size([batch_size]), device=device)
+        self.params = params or BeamParams()
+        B = batch_size
+        lim = self.params.max_angle
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(B, 3), dtype=torch.float32, device=self.device),
+            state=Unbounded(shape=(B, 3), dtype=torch.float64, device=self.device),
+            shape=(B,),
+            device=self.device,
+        )
+        self.action_spec = Bounded(
+            low=-lim, high=lim, shape=(B, 1), dtype=torch.float32, device=self.device
+        )
+        self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=self.device)
+        flag = Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(
+            done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(),
+            shape=(B,), device=self.device,
+        )
+        self._gen = torch.Generator()
+        self._gen.manual_seed(int(seed))
+        self._episodes = torch.zeros(B, dtype=torch.long)
+        self._state = self._fresh(torch.zeros(B, dtype=torch.bool))  # provisional, no episode
+        self._t = torch.zeros(B, dtype=torch.long, device=self.device)
+
+    def _fresh(self, mask: Tensor) -> Tensor:
+        """Start states for all beams (advancing the episode count of the masked ones)."""
+        B = self.batch_size[0]
+        index = self._episodes * B + torch.arange(B)
+        sides = torch.where(index % 2 == 0, 1.0, -1.0)
+        self._episodes = self._episodes + mask.cpu().long()
+        return sample_start(sides, self.params, self._gen).to(self.device)
+
+    def _td(self, reward: Tensor | None = None, fell: Tensor | None = None) -> TensorDictBase:
+        B = self.batch_size[0]
+        false = torch.zeros(B, dtype=torch.bool, device=self.device)
+        term = false if fell is None else fell
+        trunc = (self._t >= self.params.decisions_per_episode) & ~term
+        out = {
+            "observation": self._state.to(torch.float32),
+            "state": self._state.clone(),
+            "done": (term | trunc)[:, None],
+            "terminated": term[:, None].clone(),
+            "truncated": trunc[:, None],
+        }
+        if reward is not None:
+            out["reward"] = reward[:, None].to(torch.float32)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
+        B = self.batch_size[0]
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        m = torch.ones(B, dtype=torch.bool) if mask is None else mask.reshape(B).cpu()
+        fresh = self._fresh(m)
+        md = m.to(self.device)
+        self._state = torch.where(md[:, None], fresh, self._state)
+        self._t = torch.where(md, torch.zeros_like(self._t), self._t)
+        return self._td()
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").to(torch.float64)  # checked by beam_step
+        self._state, reward, fell, _ = beam_step(self._state, action, self.params)
+        self._t += 1
+        return self._td(reward, fell)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._gen.manual_seed(0 if seed is None else int(seed))
+        self._episodes.zero_()
+
+
+# --------------------------------------------------------------------------------------------
+# evaluation
+
+
+@dataclass(frozen=True)
+class BeamEvaluation:
+    """Result of :func:`evaluate_beam` (over the evaluation episodes).
+
+    Attributes:
+        success_rate: share of episodes in which the ball stays within ``tolerance`` of a goal
+            at every control step of the last ``hold_seconds``.
+        fell_share: share of episodes in which the ball fell off.
+        average_return: mean episode return (with fall penalties).
+        positions: (E, T) ball position after each control step (held after a fall).
+    """
+
+    success_rate: float
+    fell_share: float
+    average_return: float
+    positions: Tensor
+
+
+def evaluate_beam(
+    act: Any,
+    params: BeamParams | None = None,
+    *,
+    n_episodes: int = 10,
+    hold_seconds: float = 5.0,
+    tolerance: float = 0.03,
+    seed: int = 12345,
+) -> BeamEvaluation:
+    """Run ``n_episodes`` full episodes of a policy, alternating start sides (right first).
+
+    Args:
+        act: callable ``states (E, 3) float64 -> desired angles (E,) or (E, 1)``, e.g. the
+            noise-free hierarchical policy.
+        params: task constants.
+        n_episodes: E, run together.
+        hold_seconds: final window in which the ball must stay near a goal for a success.
+        tolerance: distance to the closer goal (m) that counts as "at the goal".
+        seed: seed of the start noise.
+    """
+    p = params or BeamParams()
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    gen = torch.Generator()
+    gen.manual_seed(int(seed))
+    sides = torch.where(torch.arange(n_episodes) % 2 == 0, 1.0, -1.0)
+    state = sample_start(sides, p, gen)
+    returns = torch.zeros(n_episodes, dtype=torch.float64)
+    fell = torch.zeros(n_episodes, dtype=torch.bool)
+    paths = []
+    with torch.no_grad():
+        for _ in range(p.decisions_per_episode):
+            safe = torch.where(fell[:, None], torch.zeros_like(state), state)
+            nxt, r, f, path = beam_step(safe, act(state), p)
+            returns += torch.where(fell, 0.0, r)
+            path = torch.where(fell[:, None, None], state[:, None, :], path)
+            state = torch.where(fell[:, None], state, nxt)
+            fell = fell | f
+            paths.append(path)
+    traj = torch.cat(paths, dim=1)
+    hold = max(1, round(hold_seconds / p.dt))
+    near = goal_distance(traj[..., 0], p) < tolerance
+    success = near[:, -hold:].all(dim=1) & ~fell
+    return BeamEvaluation(
+        success_rate=float(success.to(torch.float64).mean()),
+        fell_share=float(fell.to(torch.float64).mean()),
+        average_return=float(returns.mean()),
+        positions=traj[..., 0],
+    )

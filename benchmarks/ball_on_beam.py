@@ -85,8 +85,8 @@ def plot_episode(run: dict[str, Any], out: Path) -> None:
     ax.set_xlabel("time (s)")
     ax.set_ylabel("ball position (m)")
     ax.set_title(
-        f"learned policy, seed {run['seed']} after {run['episodes']} episodes "
-        "(goals ± 3 cm in green; last 5 s shaded)"
+        f"seed {run['seed']}, {run['episodes']} episodes: goals ± 3 cm green, last 5 s grey",
+        fontsize=10,
     )
     ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()

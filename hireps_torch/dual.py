@@ -36,7 +36,11 @@ invariant to both; eta, xi and v are mapped back to the caller's units); eta and
 space; log-sum-exp subtracts the max. The entropy bound is handled by its KKT conditions: the
 dual is first solved with xi = 0, and xi is freed (as exp(b) > 0) only for blocks whose
 cross-entropy then exceeds kappa, which makes the bound hold with equality exactly when it is
-active.
+active. When no distribution within the KL bound meets the feature constraints (few samples
+against many features, common in the infinite-horizon dual) the dual is unbounded below; the
+solver detects it, warns (:class:`InfeasibleConstraintsWarning`) and re-solves with a ridge
+on the standardised v, which turns the feature constraints into a quadratic penalty and keeps
+the KL bound (``feature_error`` then reports the remaining violation).
 """
 
 from __future__ import annotations
@@ -89,7 +93,7 @@ class RepsDualSolution:
         dual_value: value of the dual at the optimum, caller's units.
         converged: whether LBFGS met its gradient tolerance (False, with an
             :class:`InfeasibleConstraintsWarning`, when the feature constraints cannot be met
-            within the KL bound).
+            within the KL bound and were relaxed to a penalty).
         iterations: LBFGS iterations over all phases.
     """
 

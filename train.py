@@ -289,6 +289,18 @@ class PendulumConfig:
     """Show a progress bar."""
 
 
+def _validate_episodic_budget(cfg: Any, positive: tuple[str, ...]) -> None:
+    """Every field in ``positive`` >= 1 and at least one iteration's episodes."""
+    for name in positive:
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+    if cfg.episodes < cfg.episodes_per_iteration:
+        raise ValueError(
+            f"episodes ({cfg.episodes}) must be at least episodes_per_iteration "
+            f"({cfg.episodes_per_iteration})"
+        )
+
+
 def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> HierarchicalPolicy:
     """The policy of one gating kind: options linear in (theta, theta') -> desired angle."""
     from hireps_torch.features import QuadraticFeatures
@@ -330,14 +342,9 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
     from hireps_torch.features import FourierFeatures
     from hireps_torch.rollout import make_collector, policy_module, shutdown_collector, transitions
 
-    for name in ("n_options", "steps_per_decision", "episodes_per_iteration", "workers"):
-        if getattr(cfg, name) < 1:
-            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
-    if cfg.episodes < cfg.episodes_per_iteration:
-        raise ValueError(
-            f"episodes ({cfg.episodes}) must be at least episodes_per_iteration "
-            f"({cfg.episodes_per_iteration})"
-        )
+    _validate_episodic_budget(
+        cfg, ("n_options", "steps_per_decision", "episodes_per_iteration", "workers")
+    )
     params = PendulumParams(
         steps_per_decision=cfg.steps_per_decision, kp=cfg.kp, kd=cfg.kd, start_noise=cfg.start_noise
     )
@@ -513,14 +520,7 @@ def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
     from hireps_torch.features import FourierFeatures
     from hireps_torch.rollout import make_collector, policy_module, shutdown_collector, transitions
 
-    for name in ("n_options", "episodes_per_iteration", "eval_episodes"):
-        if getattr(cfg, name) < 1:
-            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
-    if cfg.episodes < cfg.episodes_per_iteration:
-        raise ValueError(
-            f"episodes ({cfg.episodes}) must be at least episodes_per_iteration "
-            f"({cfg.episodes_per_iteration})"
-        )
+    _validate_episodic_budget(cfg, ("n_options", "episodes_per_iteration", "eval_episodes"))
     params = BeamParams()
     B = cfg.episodes_per_iteration
     torch.manual_seed(cfg.seed)

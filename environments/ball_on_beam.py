@@ -77,6 +77,8 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from environments._common import check_scalar_action
+
 __all__ = [
     "BallOnBeamBatchEnv",
     "BallOnBeamEnv",
@@ -170,23 +172,6 @@ def control_step(state: Tensor, target: Tensor, params: BeamParams) -> Tensor:
     return state + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
-def check_action(action: Tensor, batch: int) -> Tensor:
-    """Validate a (B,) or (B, 1) desired-angle action; returns (B,)."""
-    a = torch.as_tensor(action)
-    if a.dim() == 2 and a.shape[1] == 1:
-        a = a[:, 0]
-    if a.shape != (batch,):
-        raise ValueError(
-            f"action must have shape ({batch},) or ({batch}, 1) (one desired beam angle per "
-            f"beam), got {tuple(a.shape)}"
-        )
-    bad = ~torch.isfinite(a)
-    if bool(bad.any()):
-        i = int(bad.nonzero()[0, 0])
-        raise ValueError(f"action contains a non-finite beam angle at index {i}: {a[i].item()}")
-    return a
-
-
 def beam_step(
     state: Tensor, action: Tensor, params: BeamParams
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -209,7 +194,7 @@ def beam_step(
     if bool(off.any()):
         i = int(off.nonzero()[0, 0])
         raise ValueError(f"ball {i} is already off the beam: x = {state[i, 0].item()}")
-    target = check_action(action, state.shape[0]).to(state.dtype)
+    target = check_scalar_action(action, state.shape[0], "beam angle").to(state.dtype)
     target = target.clamp(-params.max_angle, params.max_angle)
     fell = torch.zeros(state.shape[0], dtype=torch.bool, device=state.device)
     reward = torch.zeros(state.shape[0], dtype=state.dtype, device=state.device)

@@ -74,6 +74,8 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from environments._common import check_scalar_action
+
 __all__ = [
     "PendulumParams",
     "PendulumSwingUpBatchEnv",
@@ -178,23 +180,6 @@ def control_step(state: Tensor, torque: Tensor, params: PendulumParams) -> Tenso
     return torch.stack([wrap_angle(th), om], dim=-1)
 
 
-def check_action(action: Tensor, batch: int) -> Tensor:
-    """Validate a (B,) or (B, 1) desired-angle action; returns (B,)."""
-    a = torch.as_tensor(action)
-    if a.dim() == 2 and a.shape[1] == 1:
-        a = a[:, 0]
-    if a.shape != (batch,):
-        raise ValueError(
-            f"action must have shape ({batch},) or ({batch}, 1) (one desired angle per "
-            f"pendulum), got {tuple(a.shape)}"
-        )
-    bad = ~torch.isfinite(a)
-    if bool(bad.any()):
-        i = int(bad.nonzero()[0, 0])
-        raise ValueError(f"action contains a non-finite desired angle at index {i}: {a[i].item()}")
-    return a
-
-
 def pendulum_step(
     state: Tensor, action: Tensor, params: PendulumParams
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -211,7 +196,7 @@ def pendulum_step(
     """
     if state.dim() != 2 or state.shape[1] != 2:
         raise ValueError(f"state must have shape (B, 2), got {tuple(state.shape)}")
-    target = check_action(action, state.shape[0]).to(state.dtype)
+    target = check_scalar_action(action, state.shape[0], "desired angle").to(state.dtype)
     target = target.clamp(-params.action_limit, params.action_limit)
     path = []
     s = state

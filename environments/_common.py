@@ -1,9 +1,24 @@
-"""Helpers shared by the task modules (not part of their public API)."""
+"""Adapters shared by the tasks with a float64 state and one scalar action per decision.
+
+A task subclasses :class:`BatchedTask` with three hooks (start states, one decision of its pure
+physics, truncation); :class:`ScalarActionGymEnv` (one system) and
+:class:`ScalarActionBatchEnv` (B systems, TorchRL) are the two thin adapters over it. Both
+step the same task code and draw from its one seeded generator in the same order (start states
+at a reset; after each decision whatever :meth:`BatchedTask.truncated` draws), so the same seed
+and actions give the same trajectory in both.
+"""
 
 from __future__ import annotations
 
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
 import torch
+from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
 
 
 def check_scalar_action(action: Tensor, batch: int, what: str) -> Tensor:
@@ -27,3 +42,163 @@ def check_scalar_action(action: Tensor, batch: int, what: str) -> Tensor:
         i = int(bad.nonzero()[0, 0])
         raise ValueError(f"action contains a non-finite {what} at index {i}: {a[i].item()}")
     return a
+
+
+class BatchedTask:
+    """B systems of one task: float64 states (B, S), decision counters, one seeded generator.
+
+    Subclasses set ``state_dim``, ``action_limit`` and ``action_name`` and implement
+    :meth:`start_states`, :meth:`transition` and :meth:`truncated`.
+    """
+
+    state_dim: int
+    action_limit: float
+    action_name: str
+
+    def __init__(self, batch: int, seed: int = 0, device: str | torch.device = "cpu") -> None:
+        if batch < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch}")
+        self.batch = batch
+        self.device = torch.device(device)
+        self.gen = torch.Generator()
+        self.gen.manual_seed(int(seed))
+        self.t = torch.zeros(batch, dtype=torch.long, device=self.device)
+        self.state = torch.zeros(batch, self.state_dim, dtype=torch.float64, device=self.device)
+
+    # ---- hooks ------------------------------------------------------------------------------
+    def start_states(self, mask: Tensor) -> Tensor:
+        """(B, S) start states for all systems; only the masked (B,) ones will be used."""
+        raise NotImplementedError
+
+    def transition(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """One decision: (next_state (B, S), reward (B,), terminated (B,), path (B, T, S))."""
+        raise NotImplementedError
+
+    def truncated(self, terminated: Tensor) -> Tensor:
+        """(B,) bool: which systems' episodes end without a terminal state (after ``t += 1``)."""
+        raise NotImplementedError
+
+    # ---- shared -----------------------------------------------------------------------------
+    def seed(self, seed: int | None) -> None:
+        self.gen.manual_seed(0 if seed is None else int(seed))
+
+    def reset(self, mask: Tensor | None = None) -> None:
+        """Restart the masked systems (all when ``mask`` is None)."""
+        m = torch.ones(self.batch, dtype=torch.bool) if mask is None else mask.reshape(-1).cpu()
+        fresh = self.start_states(m).to(self.device)
+        md = m.to(self.device)
+        self.state = torch.where(md[:, None], fresh, self.state)
+        self.t = torch.where(md, torch.zeros_like(self.t), self.t)
+
+    def step(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Advance every system by one decision: (reward, terminated, truncated, path)."""
+        self.state, reward, terminated, path = self.transition(self.state, action)
+        self.t += 1
+        return reward, terminated, self.truncated(terminated), path
+
+
+class ScalarActionGymEnv(gym.Env):
+    """Gymnasium adapter over one system of a :class:`BatchedTask` (built with batch 1).
+
+    ``observation_space``: Box(-obs_high, obs_high) float32; ``action_space``:
+    Box(-limit, limit, (1,)) float32. ``info`` holds the float64 state and, after a step, the
+    per-control-step path.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, task: BatchedTask, obs_high: np.ndarray) -> None:
+        self.task = task
+        lim = np.float32(task.action_limit)
+        self.action_space = gym.spaces.Box(-lim, lim, shape=(1,), dtype=np.float32)
+        hi = np.asarray(obs_high, dtype=np.float32)
+        self.observation_space = gym.spaces.Box(-hi, hi, dtype=np.float32)
+        task.reset(torch.zeros(1, dtype=torch.bool))  # a provisional state, no episode yet
+
+    def _obs(self) -> np.ndarray:
+        return self.task.state[0].numpy().astype(np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        if seed is not None:
+            self.task.seed(seed)
+        self.task.reset()
+        return self._obs(), {"state": self.task.state[0].numpy().copy()}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        a = torch.as_tensor(np.asarray(action, dtype=np.float64)).reshape(-1)
+        if a.shape != (1,):
+            raise ValueError(
+                f"action must hold one {self.task.action_name}, got shape {tuple(a.shape)}"
+            )
+        reward, term, trunc, path = self.task.step(a)
+        info = {"state": self.task.state[0].numpy().copy(), "path": path[0].numpy()}
+        return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), info
+
+
+class ScalarActionBatchEnv(EnvBase):
+    """Batched TorchRL adapter over a :class:`BatchedTask`: its B systems stepped together.
+
+    Keys: ``observation`` (B, S) float32, ``state`` (B, S) float64 (exact), ``action`` (B, 1)
+    float32 in ±``action_limit``, ``reward`` (B, 1) float32, ``done`` / ``terminated`` /
+    ``truncated`` (B, 1) bool. Partial resets (``_reset`` mask) restart only the masked systems.
+    """
+
+    def __init__(self, task: BatchedTask) -> None:
+        super().__init__(batch_size=torch.Size([task.batch]), device=task.device)
+        self.task = task
+        B, S, lim = task.batch, task.state_dim, task.action_limit
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(B, S), dtype=torch.float32, device=self.device),
+            state=Unbounded(shape=(B, S), dtype=torch.float64, device=self.device),
+            shape=(B,),
+            device=self.device,
+        )
+        self.action_spec = Bounded(
+            low=-lim, high=lim, shape=(B, 1), dtype=torch.float32, device=self.device
+        )
+        self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=self.device)
+        flag = Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(
+            done=flag.clone(),
+            terminated=flag.clone(),
+            truncated=flag.clone(),
+            shape=(B,),
+            device=self.device,
+        )
+        task.reset(torch.zeros(B, dtype=torch.bool))  # a provisional state, no episode yet
+
+    def _td(
+        self,
+        reward: Tensor | None = None,
+        terminated: Tensor | None = None,
+        truncated: Tensor | None = None,
+    ) -> TensorDictBase:
+        false = torch.zeros(self.task.batch, dtype=torch.bool, device=self.device)
+        term = false if terminated is None else terminated
+        trunc = false if truncated is None else truncated
+        state = self.task.state
+        out = {
+            "observation": state.to(torch.float32),
+            "state": state.clone(),
+            "done": (term | trunc)[:, None],
+            "terminated": term[:, None].clone(),
+            "truncated": trunc[:, None].clone(),
+        }
+        if reward is not None:
+            out["reward"] = reward[:, None].to(torch.float32)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
+        self.task.reset(None if tensordict is None else tensordict.get("_reset", None))
+        return self._td()
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").to(torch.float64)  # checked by the task's physics
+        reward, term, trunc, _ = self.task.step(action)
+        return self._td(reward, term, trunc)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.task.seed(seed)

@@ -72,12 +72,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
 
-from environments._common import check_scalar_action
+from environments._common import (
+    BatchedTask,
+    ScalarActionBatchEnv,
+    ScalarActionGymEnv,
+    check_scalar_action,
+)
 
 __all__ = [
     "BallOnBeamBatchEnv",
@@ -224,75 +226,69 @@ def sample_start(
 
 
 # --------------------------------------------------------------------------------------------
-# gymnasium adapter
+# adapters
 
 
-class BallOnBeamEnv(gym.Env):
+class BeamTask(BatchedTask):
+    """B beams for the adapters. Beam ``i``'s k-th episode is the ``(k B + i)``-th overall and
+    starts on the right when that number is even, so episodes alternate sides (a seed restarts
+    the count)."""
+
+    state_dim = 3
+    action_name = "beam angle"
+
+    def __init__(
+        self, batch: int, params: BeamParams, seed: int = 0, device: str | torch.device = "cpu"
+    ) -> None:
+        self.params = params
+        self.action_limit = params.max_angle
+        self.episodes = torch.zeros(batch, dtype=torch.long)
+        super().__init__(batch, seed, device)
+
+    def seed(self, seed: int | None) -> None:
+        super().seed(seed)
+        self.episodes.zero_()
+
+    def start_states(self, mask: Tensor) -> Tensor:
+        index = self.episodes * self.batch + torch.arange(self.batch)
+        sides = torch.where(index % 2 == 0, 1.0, -1.0)
+        self.episodes = self.episodes + mask.long()
+        return sample_start(sides, self.params, self.gen)
+
+    def transition(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return beam_step(state, action, self.params)
+
+    def truncated(self, terminated: Tensor) -> Tensor:
+        return (self.t >= self.params.decisions_per_episode) & ~terminated
+
+
+class BallOnBeamEnv(ScalarActionGymEnv):
     """Gymnasium adapter over :func:`beam_step` (one beam; see the module docstring).
 
-    ``observation_space``: Box([-0.5, -inf, -max_angle], [0.5, inf, max_angle]) float32;
+    ``observation_space``: Box([-0.6, -inf, -max_angle], [0.6, inf, max_angle]) float32;
     ``action_space``: Box(-max_angle, max_angle, (1,)) float32. ``info`` holds the float64
-    state and the per-control-step path.
+    state and the per-control-step path. ``terminated``: the ball fell; ``truncated``: the
+    20 s are over.
     """
-
-    metadata = {"render_modes": []}
 
     def __init__(self, params: BeamParams | None = None):
         self.params = params or BeamParams()
-        lim = np.float32(self.params.max_angle)
-        self.action_space = gym.spaces.Box(-lim, lim, shape=(1,), dtype=np.float32)
-        hi = np.array([self.params.half_length + 0.1, np.inf, lim], dtype=np.float32)
-        self.observation_space = gym.spaces.Box(-hi, hi, dtype=np.float32)
-        self._gen = torch.Generator()
-        self._gen.manual_seed(0)
-        self._episode = 0
-        self._state = sample_start(torch.ones(1), self.params, self._gen)
-        self._t = 0
-
-    def _obs(self) -> np.ndarray:
-        return self._state[0].numpy().astype(np.float32)
-
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
-        super().reset(seed=seed)
-        if seed is not None:
-            self._gen.manual_seed(int(seed))
-            self._episode = 0
-        side = 1.0 if self._episode % 2 == 0 else -1.0
-        self._episode += 1
-        self._state = sample_start(torch.tensor([side]), self.params, self._gen)
-        self._t = 0
-        return self._obs(), {"state": self._state[0].numpy().copy()}
-
-    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        a = torch.as_tensor(np.asarray(action, dtype=np.float64)).reshape(-1)
-        if a.shape != (1,):
-            raise ValueError(f"action must hold one beam angle, got shape {tuple(a.shape)}")
-        self._state, reward, fell, path = beam_step(self._state, a, self.params)
-        self._t += 1
-        capped = self._t >= self.params.decisions_per_episode
-        info = {"state": self._state[0].numpy().copy(), "path": path[0].numpy()}
-        terminated = bool(fell[0])
-        return self._obs(), float(reward[0]), terminated, capped and not terminated, info
+        p = self.params
+        super().__init__(
+            BeamTask(1, p), np.array([p.half_length + 0.1, np.inf, p.max_angle])
+        )
 
 
 gym.register(id=ENV_ID, entry_point=f"{__name__}:BallOnBeamEnv", disable_env_checker=True)
 
 
-# --------------------------------------------------------------------------------------------
-# TorchRL adapter
-
-
-class BallOnBeamBatchEnv(EnvBase):
+class BallOnBeamBatchEnv(ScalarActionBatchEnv):
     """Batched TorchRL adapter over :func:`beam_step`: B beams stepped together.
 
     Keys: ``observation`` (B, 3) float32, ``action`` (B, 1) float32 in +-max_angle,
     ``reward`` (B, 1) float32, ``done``/``terminated`` (the ball fell) /``truncated`` (the 20 s
-    are over) (B, 1) bool, and ``state`` (B, 3) float64. Beam ``i``'s k-th episode is the
-    ``(k B + i)``-th overall and starts on the right when that number is even, so episodes
-    alternate sides as in the paper. Partial resets (``_reset`` mask) restart only the masked
-    beams.
+    are over) (B, 1) bool, and ``state`` (B, 3) float64. Episodes alternate sides as described
+    in :class:`BeamTask`. Partial resets (``_reset`` mask) restart only the masked beams.
 
     Args:
         batch_size: B.
@@ -308,76 +304,8 @@ class BallOnBeamBatchEnv(EnvBase):
         seed: int = 0,
         device: str | torch.device = "cpu",
     ) -> None:
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        super().__init__(batch_size=torch.Size([batch_size]), device=device)
         self.params = params or BeamParams()
-        B = batch_size
-        lim = self.params.max_angle
-        self.observation_spec = Composite(
-            observation=Unbounded(shape=(B, 3), dtype=torch.float32, device=self.device),
-            state=Unbounded(shape=(B, 3), dtype=torch.float64, device=self.device),
-            shape=(B,),
-            device=self.device,
-        )
-        self.action_spec = Bounded(
-            low=-lim, high=lim, shape=(B, 1), dtype=torch.float32, device=self.device
-        )
-        self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=self.device)
-        flag = Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device)
-        self.done_spec = Composite(
-            done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(),
-            shape=(B,), device=self.device,
-        )
-        self._gen = torch.Generator()
-        self._gen.manual_seed(int(seed))
-        self._episodes = torch.zeros(B, dtype=torch.long)
-        self._state = self._fresh(torch.zeros(B, dtype=torch.bool))  # provisional, no episode
-        self._t = torch.zeros(B, dtype=torch.long, device=self.device)
-
-    def _fresh(self, mask: Tensor) -> Tensor:
-        """Start states for all beams (advancing the episode count of the masked ones)."""
-        B = self.batch_size[0]
-        index = self._episodes * B + torch.arange(B)
-        sides = torch.where(index % 2 == 0, 1.0, -1.0)
-        self._episodes = self._episodes + mask.cpu().long()
-        return sample_start(sides, self.params, self._gen).to(self.device)
-
-    def _td(self, reward: Tensor | None = None, fell: Tensor | None = None) -> TensorDictBase:
-        B = self.batch_size[0]
-        false = torch.zeros(B, dtype=torch.bool, device=self.device)
-        term = false if fell is None else fell
-        trunc = (self._t >= self.params.decisions_per_episode) & ~term
-        out = {
-            "observation": self._state.to(torch.float32),
-            "state": self._state.clone(),
-            "done": (term | trunc)[:, None],
-            "terminated": term[:, None].clone(),
-            "truncated": trunc[:, None],
-        }
-        if reward is not None:
-            out["reward"] = reward[:, None].to(torch.float32)
-        return TensorDict(out, batch_size=self.batch_size, device=self.device)
-
-    def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
-        B = self.batch_size[0]
-        mask = None if tensordict is None else tensordict.get("_reset", None)
-        m = torch.ones(B, dtype=torch.bool) if mask is None else mask.reshape(B).cpu()
-        fresh = self._fresh(m)
-        md = m.to(self.device)
-        self._state = torch.where(md[:, None], fresh, self._state)
-        self._t = torch.where(md, torch.zeros_like(self._t), self._t)
-        return self._td()
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").to(torch.float64)  # checked by beam_step
-        self._state, reward, fell, _ = beam_step(self._state, action, self.params)
-        self._t += 1
-        return self._td(reward, fell)
-
-    def _set_seed(self, seed: int | None) -> None:
-        self._gen.manual_seed(0 if seed is None else int(seed))
-        self._episodes.zero_()
+        super().__init__(BeamTask(batch_size, self.params, seed, device))
 
 
 # --------------------------------------------------------------------------------------------

@@ -69,12 +69,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
 
-from environments._common import check_scalar_action
+from environments._common import (
+    BatchedTask,
+    ScalarActionBatchEnv,
+    ScalarActionGymEnv,
+    check_scalar_action,
+)
 
 __all__ = [
     "PendulumParams",
@@ -220,64 +222,62 @@ def _draw_restart(n: int, params: PendulumParams, generator: torch.Generator) ->
 
 
 # --------------------------------------------------------------------------------------------
-# gymnasium adapter
+# adapters
 
 
-class PendulumSwingUpEnv(gym.Env):
+class PendulumTask(BatchedTask):
+    """B pendulums for the adapters: restarts at the restart probability, optional time cap."""
+
+    state_dim = 2
+    action_name = "desired angle"
+
+    def __init__(
+        self,
+        batch: int,
+        params: PendulumParams,
+        max_decisions: int | None = None,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        self.params = params
+        self.action_limit = params.action_limit
+        self.max_decisions = max_decisions
+        super().__init__(batch, seed, device)
+
+    def start_states(self, mask: Tensor) -> Tensor:
+        return sample_start(self.batch, self.params, self.gen)
+
+    def transition(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        nxt, reward, path = pendulum_step(state, action, self.params)
+        return nxt, reward, torch.zeros_like(reward, dtype=torch.bool), path
+
+    def truncated(self, terminated: Tensor) -> Tensor:
+        trunc = _draw_restart(self.batch, self.params, self.gen).to(self.device)
+        if self.max_decisions is not None:
+            trunc = trunc | (self.t >= self.max_decisions)
+        return trunc
+
+
+class PendulumSwingUpEnv(ScalarActionGymEnv):
     """Gymnasium adapter over :func:`pendulum_step` (one pendulum; see the module docstring).
 
     ``observation_space``: Box([-pi, -inf], [pi, inf]) float32; ``action_space``:
     Box(-2 pi, 2 pi, (1,)) float32 (the desired angle). ``info`` holds the float64 state and the
-    per-control-step path.
+    per-control-step path. ``terminated`` is always False; ``truncated`` marks a restart or
+    the time cap.
     """
-
-    metadata = {"render_modes": []}
 
     def __init__(self, params: PendulumParams | None = None, max_decisions: int | None = None):
         self.params = params or PendulumParams()
-        self.max_decisions = max_decisions
-        lim = np.float32(self.params.action_limit)
-        self.action_space = gym.spaces.Box(-lim, lim, shape=(1,), dtype=np.float32)
-        hi = np.array([math.pi, np.inf], dtype=np.float32)
-        self.observation_space = gym.spaces.Box(-hi, hi, dtype=np.float32)
-        self._gen = torch.Generator()
-        self._gen.manual_seed(0)
-        self._state = sample_start(1, self.params, self._gen)
-        self._t = 0
-
-    def _obs(self) -> np.ndarray:
-        return self._state[0].numpy().astype(np.float32)
-
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
-        super().reset(seed=seed)
-        if seed is not None:
-            self._gen.manual_seed(int(seed))
-        self._state = sample_start(1, self.params, self._gen)
-        self._t = 0
-        return self._obs(), {"state": self._state[0].numpy().copy()}
-
-    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        a = torch.as_tensor(np.asarray(action, dtype=np.float64)).reshape(-1)
-        if a.shape != (1,):
-            raise ValueError(f"action must hold one desired angle, got shape {tuple(a.shape)}")
-        self._state, reward, path = pendulum_step(self._state, a, self.params)
-        self._t += 1
-        restart = bool(_draw_restart(1, self.params, self._gen)[0])
-        capped = self.max_decisions is not None and self._t >= self.max_decisions
-        info = {"state": self._state[0].numpy().copy(), "path": path[0].numpy()}
-        return self._obs(), float(reward[0]), False, restart or capped, info
+        super().__init__(
+            PendulumTask(1, self.params, max_decisions), np.array([math.pi, np.inf])
+        )
 
 
 gym.register(id=ENV_ID, entry_point=f"{__name__}:PendulumSwingUpEnv", disable_env_checker=True)
 
 
-# --------------------------------------------------------------------------------------------
-# TorchRL adapter
-
-
-class PendulumSwingUpBatchEnv(EnvBase):
+class PendulumSwingUpBatchEnv(ScalarActionBatchEnv):
     """Batched TorchRL adapter over :func:`pendulum_step`: B pendulums stepped together.
 
     Keys: ``observation`` (B, 2) float32, ``action`` (B, 1) float32 in [-2 pi, 2 pi],
@@ -302,75 +302,8 @@ class PendulumSwingUpBatchEnv(EnvBase):
         seed: int = 0,
         device: str | torch.device = "cpu",
     ) -> None:
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        super().__init__(batch_size=torch.Size([batch_size]), device=device)
         self.params = params or PendulumParams()
-        self.max_decisions = max_decisions
-        B = batch_size
-        lim = self.params.action_limit
-        self.observation_spec = Composite(
-            observation=Unbounded(shape=(B, 2), dtype=torch.float32, device=self.device),
-            state=Unbounded(shape=(B, 2), dtype=torch.float64, device=self.device),
-            shape=(B,),
-            device=self.device,
-        )
-        self.action_spec = Bounded(
-            low=-lim, high=lim, shape=(B, 1), dtype=torch.float32, device=self.device
-        )
-        self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=self.device)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device),
-            terminated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device),
-            truncated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=self.device),
-            shape=(B,),
-            device=self.device,
-        )
-        self._gen = torch.Generator()
-        self._gen.manual_seed(int(seed))
-        self._state = sample_start(B, self.params, self._gen).to(self.device)
-        self._t = torch.zeros(B, dtype=torch.long, device=self.device)
-
-    def _td(self, reward: Tensor | None = None, trunc: Tensor | None = None) -> TensorDictBase:
-        B = self.batch_size[0]
-        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
-        t = false if trunc is None else trunc[:, None]
-        out = {
-            "observation": self._state.to(torch.float32),
-            "state": self._state.clone(),
-            "done": t.clone(),
-            "terminated": false,
-            "truncated": t.clone(),
-        }
-        if reward is not None:
-            out["reward"] = reward[:, None].to(torch.float32)
-        return TensorDict(out, batch_size=self.batch_size, device=self.device)
-
-    def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
-        B = self.batch_size[0]
-        mask = None if tensordict is None else tensordict.get("_reset", None)
-        fresh = sample_start(B, self.params, self._gen).to(self.device)
-        if mask is None:
-            self._state = fresh
-            self._t.zero_()
-        else:
-            m = mask.reshape(B).to(self.device)
-            self._state = torch.where(m[:, None], fresh, self._state)
-            self._t = torch.where(m, torch.zeros_like(self._t), self._t)
-        return self._td()
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        B = self.batch_size[0]
-        action = tensordict.get("action").to(torch.float64)  # checked by pendulum_step
-        self._state, reward, _ = pendulum_step(self._state, action, self.params)
-        self._t += 1
-        trunc = _draw_restart(B, self.params, self._gen).to(self.device)
-        if self.max_decisions is not None:
-            trunc = trunc | (self._t >= self.max_decisions)
-        return self._td(reward, trunc)
-
-    def _set_seed(self, seed: int | None) -> None:
-        self._gen.manual_seed(0 if seed is None else int(seed))
+        super().__init__(PendulumTask(batch_size, self.params, max_decisions, seed, device))
 
 
 # --------------------------------------------------------------------------------------------

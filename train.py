@@ -301,6 +301,55 @@ def _validate_episodic_budget(cfg: Any, positive: tuple[str, ...]) -> None:
         )
 
 
+def _train_from_collector(
+    collector: Any,
+    algo: Any,
+    cfg: Any,
+    experiment: str,
+    label: str,
+    *,
+    iterations: int,
+    episodes_per_iteration: int,
+    row: Any,
+) -> RunWriter:
+    """The infinite-horizon training loop of the pendulum and the beam.
+
+    Opens the run directory, then for every collected batch: one ``algo.update`` (terminal
+    transitions flagged), ``row(rewards, terminated)`` for the task's own columns, one logged
+    row and a progress-bar step. The collector is shut down however the loop ends (also when
+    the run directory cannot be opened). Returns the writer for the summary.
+    """
+    from hireps_torch.rollout import shutdown_collector, transitions
+
+    try:
+        run_dir = cfg.run_dir or default_run_dir(experiment)
+        writer = RunWriter(run_dir, {"experiment": experiment, **dataclasses.asdict(cfg)})
+    except BaseException:
+        shutdown_collector(collector)
+        raise
+    bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
+    try:
+        for it, batch in enumerate(collector):
+            s, a, r, s_next, _ = transitions(batch, "state")
+            terminated = batch["next", "terminated"].reshape(-1)
+            diag = algo.update(s, a, r, s_next, terminated)
+            if getattr(cfg, "workers", 1) > 1:
+                collector.update_policy_weights_()
+            done = (it + 1) * episodes_per_iteration
+            logged = {"iteration": it + 1, "episodes": done, **row(r, terminated), **diag}
+            writer.log(logged)
+            bar.update(1)
+            bar.set_postfix(
+                ret=f"{logged['average_return']:.1f}",
+                kl=f"{diag['kl']:.2f}",
+                opts=diag["n_active_options"],
+            )
+    finally:
+        bar.close()
+        shutdown_collector(collector)
+    return writer
+
+
 def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> HierarchicalPolicy:
     """The policy of one gating kind: options linear in (theta, theta') -> desired angle."""
     from hireps_torch.features import QuadraticFeatures
@@ -340,7 +389,7 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
     )
     from hireps_torch.algorithms import InfiniteHorizonHiREPS
     from hireps_torch.features import FourierFeatures
-    from hireps_torch.rollout import make_collector, policy_module, shutdown_collector, transitions
+    from hireps_torch.rollout import make_collector, policy_module
 
     _validate_episodic_budget(
         cfg, ("n_options", "steps_per_decision", "episodes_per_iteration", "workers")
@@ -386,37 +435,18 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
         reset_at_each_iter=cfg.reset_each_iteration,
         seed=env_seed,
     )
-    run_dir = cfg.run_dir or default_run_dir("pendulum")
-    try:
-        writer = RunWriter(run_dir, {"experiment": "pendulum", **dataclasses.asdict(cfg)})
-    except BaseException:
-        shutdown_collector(collector)
-        raise
     n_opt = cfg.n_options if cfg.gating != "flat" else 1
     label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
-    bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
-    try:
-        for it, batch in enumerate(collector):
-            s, a, r, s_next, _ = transitions(batch, "state")
-            diag = algo.update(s, a, r, s_next)
-            if cfg.workers > 1:
-                collector.update_policy_weights_()
-            row = {
-                "iteration": it + 1,
-                "episodes": (it + 1) * B,
-                "average_return": float(r.mean()) / params.steps_per_decision,
-                **diag,
-            }
-            writer.log(row)
-            bar.update(1)
-            bar.set_postfix(
-                ret=f"{row['average_return']:.0f}",
-                kl=f"{diag['kl']:.2f}",
-                opts=diag["n_active_options"],
-            )
-    finally:
-        bar.close()
-        shutdown_collector(collector)
+    writer = _train_from_collector(
+        collector,
+        algo,
+        cfg,
+        "pendulum",
+        label,
+        iterations=iterations,
+        episodes_per_iteration=B,
+        row=lambda r, terminated: {"average_return": float(r.mean()) / params.steps_per_decision},
+    )
 
     def act(states: torch.Tensor) -> torch.Tensor:
         return policy.mean_action(states)[0]
@@ -491,21 +521,26 @@ def build_ball_on_beam_policy(
     """Options linear in (x, x', alpha) -> desired beam angle, softmax gating on the squared
     expansion of the state (scaled by the beam's half length, ``max_velocity`` and the angle
     limit). Load a run's policy with ``policy.load_state_dict(ckpt["algorithm"]["policy"])``."""
-    from environments.ball_on_beam import BeamParams
     from hireps_torch.features import QuadraticFeatures
     from hireps_torch.policies import HierarchicalPolicy
 
-    p = BeamParams()
-    box = torch.tensor([p.half_length, cfg.max_velocity, p.max_angle])
     return HierarchicalPolicy.create(
         cfg.n_options,
         3,
         1,
         init_std=cfg.init_std,
-        gating_features=QuadraticFeatures(3, scale=box),
+        gating_features=QuadraticFeatures(3, scale=_beam_box(cfg)),
         min_variance=cfg.min_variance,
         generator=generator,
     )
+
+
+def _beam_box(cfg: BallOnBeamConfig) -> torch.Tensor:
+    """(3,) half-widths of the state box the beam's features are scaled to."""
+    from environments.ball_on_beam import BeamParams
+
+    p = BeamParams()
+    return torch.tensor([p.half_length, cfg.max_velocity, p.max_angle])
 
 
 def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
@@ -518,7 +553,7 @@ def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
     )
     from hireps_torch.algorithms import InfiniteHorizonHiREPS
     from hireps_torch.features import FourierFeatures
-    from hireps_torch.rollout import make_collector, policy_module, shutdown_collector, transitions
+    from hireps_torch.rollout import make_collector, policy_module
 
     _validate_episodic_budget(cfg, ("n_options", "episodes_per_iteration", "eval_episodes"))
     params = BeamParams()
@@ -526,7 +561,7 @@ def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     policy = build_ball_on_beam_policy(cfg, gen)
-    box = torch.tensor([params.half_length, cfg.max_velocity, params.max_angle])
+    box = _beam_box(cfg)
     sides = torch.where(torch.arange(1000) % 2 == 0, 1.0, -1.0)
     algo = InfiniteHorizonHiREPS(
         policy,
@@ -551,40 +586,29 @@ def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
     def act(states: torch.Tensor) -> torch.Tensor:
         return policy.mean_action(states)[0]
 
-    run_dir = cfg.run_dir or default_run_dir("ball_on_beam")
-    try:
-        writer = RunWriter(run_dir, {"experiment": "ball_on_beam", **dataclasses.asdict(cfg)})
-    except BaseException:
-        shutdown_collector(collector)
-        raise
-    label = f"ball_on_beam/{cfg.n_options}opt"
-    bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
-    first_success: int | None = None
-    try:
-        for it, batch in enumerate(collector):
-            s, a, r, s_next, _ = transitions(batch, "state")
-            terminated = batch["next", "terminated"].reshape(-1)
-            diag = algo.update(s, a, r, s_next, terminated)
-            ev = evaluate_beam(act, params, n_episodes=cfg.eval_episodes, seed=cfg.seed + 777)
-            episodes = (it + 1) * B
-            if first_success is None and ev.success_rate >= 0.9:
-                first_success = episodes
-            row = {
-                "iteration": it + 1,
-                "episodes": episodes,
-                "average_return": float(r.sum()) / B,
-                "falls": int(terminated.sum()),
-                "eval_return": ev.average_return,
-                "eval_success_rate": ev.success_rate,
-                **diag,
-            }
-            writer.log(row)
-            bar.update(1)
-            bar.set_postfix(ret=f"{row['average_return']:.1f}", success=ev.success_rate)
-    finally:
-        bar.close()
-        shutdown_collector(collector)
+    def row(r: torch.Tensor, terminated: torch.Tensor) -> dict[str, Any]:
+        ev = evaluate_beam(act, params, n_episodes=cfg.eval_episodes, seed=cfg.seed + 777)
+        return {
+            "average_return": float(r.sum()) / B,
+            "falls": int(terminated.sum()),
+            "eval_return": ev.average_return,
+            "eval_success_rate": ev.success_rate,
+        }
 
+    label = f"ball_on_beam/{cfg.n_options}opt"
+    writer = _train_from_collector(
+        collector,
+        algo,
+        cfg,
+        "ball_on_beam",
+        label,
+        iterations=iterations,
+        episodes_per_iteration=B,
+        row=row,
+    )
+    first_success = next(
+        (int(w["episodes"]) for w in writer.rows if w["eval_success_rate"] >= 0.9), None
+    )
     writer.checkpoint({"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)})
     writer.plot_learning_curve("episodes", ["average_return", "eval_return"], title=label)
     last = writer.rows[-1]

@@ -69,6 +69,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from hireps_torch._checks import as_finite_f64
+
 __all__ = ["DMP", "DMPTrajectory"]
 
 _DEFAULT_OUTPUT_DT = 0.01  # s, output sample interval when neither n_steps nor dt is given
@@ -90,19 +92,6 @@ class DMPTrajectory(NamedTuple):
     velocities: Tensor
     accelerations: Tensor
     times: Tensor
-
-
-def _as_finite(name: str, value: Tensor | float, shape: tuple[int, ...] | None = None) -> Tensor:
-    """``value`` as a float64 tensor, checked for ``shape`` (if given) and finiteness."""
-    t = torch.as_tensor(value, dtype=torch.float64)
-    if shape is not None and tuple(t.shape) != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        bad = (~torch.isfinite(t)).nonzero()[0].tolist()
-        raise ValueError(
-            f"{name} contains non-finite values (first at index {bad}: {t[tuple(bad)].item()})"
-        )
-    return t
 
 
 def _finite_positive(name: str, value: float) -> float:
@@ -296,7 +285,7 @@ class DMP(nn.Module):
                 f"positions must have shape (T, {self.n_joints}) with T >= 4, "
                 f"got {tuple(pos.shape)}"
             )
-        pos = _as_finite("positions", pos)
+        pos = as_finite_f64("positions", pos)
         T = pos.shape[0]
         tau = (T - 1) * dt
         vel, acc = _finite_differences(pos, dt)
@@ -353,7 +342,7 @@ class DMP(nn.Module):
             v = v.expand(B, J)
         if tuple(v.shape) != (B, J):
             raise ValueError(f"{name} must have shape ({J},) or ({B}, {J}), got {tuple(v.shape)}")
-        return _as_finite(name, v).clone()
+        return as_finite_f64(name, v).clone()
 
     def _grid(
         self, tau: float, n_steps: int | None, dt: float | None, substeps: int | None
@@ -410,8 +399,8 @@ class DMP(nn.Module):
         if g.dim() != 2 or g.shape[1] != J:
             raise ValueError(f"goal_positions must have shape (B, {J}), got {tuple(g.shape)}")
         B = g.shape[0]
-        g = _as_finite("goal_positions", g)
-        gd = _as_finite("goal_velocities", goal_velocities, (B, J))
+        g = as_finite_f64("goal_positions", g)
+        gd = as_finite_f64("goal_velocities", goal_velocities, (B, J))
         y0 = self._state("start", start, self.start, B)
         yd0 = self._state("start_velocities", start_velocities, self.start_velocity, B)
         tau = self.duration if duration is None else _finite_positive("duration", duration)

@@ -29,6 +29,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from hireps_torch._checks import as_finite_f64
 from hireps_torch.algorithms._options import option_bound, refit_and_report
 from hireps_torch.dual import solve_infinite_horizon_dual
 from hireps_torch.features import FeatureMap
@@ -90,15 +91,6 @@ class InfiniteHorizonHiREPS:
         self.iteration = 0
         self.value_weights = torch.zeros(value_features.out_features, dtype=torch.float64)
 
-    def _check(self, name: str, x: Tensor, shape: tuple[int, ...]) -> Tensor:
-        t = torch.as_tensor(x, dtype=torch.float64)
-        if t.shape != shape:
-            raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
-        if not bool(torch.isfinite(t).all()):
-            i = tuple(int(j) for j in (~torch.isfinite(t)).nonzero()[0])
-            raise ValueError(f"{name} contains a non-finite value at {i}: {t[i].item()}")
-        return t
-
     def value(self, states: Tensor) -> Tensor:
         """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,)."""
         return self.value_features(torch.as_tensor(states, dtype=torch.float64)) @ (
@@ -134,9 +126,9 @@ class InfiniteHorizonHiREPS:
         R = torch.as_tensor(rewards, dtype=torch.float64).reshape(-1)
         N = R.shape[0]
         S = self.value_features.in_features
-        s = self._check("states", states, (N, S))
-        s_next = self._check("next_states", next_states, (N, S))
-        a = self._check("actions", actions, (N, self.policy.action_dim))
+        s = as_finite_f64("states", states, (N, S))
+        s_next = as_finite_f64("next_states", next_states, (N, S))
+        a = as_finite_f64("actions", actions, (N, self.policy.action_dim))
 
         next_features = self.value_features(s_next)
         if terminated is not None:

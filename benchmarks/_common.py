@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import statistics
 from pathlib import Path
 from typing import Any
@@ -31,3 +32,13 @@ def plot_band(ax: Any, x: list[float], curves: list[list[float]], label: str) ->
     s = c.std(0) if c.shape[0] > 1 else torch.zeros_like(m)
     ax.plot(x, m.numpy(), label=label)
     ax.fill_between(x, (m - s).numpy(), (m + s).numpy(), alpha=0.2)
+
+
+def write_results(out: Path, results: Any, total_seconds: float, table: str) -> None:
+    """results.json (every run) and results.md (the printed table), each written atomically."""
+    from hireps_torch.runlog import atomic_write
+
+    payload = json.dumps({"results": results, "total_seconds": total_seconds})
+    atomic_write(out / "results.json", lambda p: p.write_text(payload))
+    atomic_write(out / "results.md", lambda p: p.write_text(table + "\n"))
+    print(f"written to {out}")

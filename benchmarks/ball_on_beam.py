@@ -18,7 +18,6 @@ seeds and
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -30,7 +29,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks._common import mean_std, plot_band, read_curve  # noqa: E402
+from benchmarks._common import mean_std, plot_band, read_curve, write_results  # noqa: E402
 from environments.ball_on_beam import BeamParams, evaluate_beam  # noqa: E402
 from hireps_torch.runlog import atomic_write  # noqa: E402
 from train import BallOnBeamConfig, build_ball_on_beam_policy, run_ball_on_beam  # noqa: E402
@@ -158,12 +157,7 @@ def main() -> None:
     plot_curves(results, out)
     shown = next((r for r in results if r["episodes_to_success"] is not None), results[0])
     plot_episode(shown, out)
-    atomic_write(
-        out / "results.json",
-        lambda p: p.write_text(json.dumps({"results": results, "total_seconds": total})),
-    )
-    atomic_write(out / "results.md", lambda p: p.write_text(table + "\n"))
-    print(f"written to {out}")
+    write_results(out, results, total, table)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ run and of the whole ablation.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -34,7 +33,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks._common import mean_std, plot_band, read_curve  # noqa: E402
+from benchmarks._common import mean_std, plot_band, read_curve, write_results  # noqa: E402
 from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
 from hireps_torch.runlog import atomic_write  # noqa: E402
 from train import PendulumConfig, run_pendulum  # noqa: E402
@@ -181,12 +180,7 @@ def main() -> None:
     for name, fig_lines in FIGURES.items():
         if all(k in results for _, k in fig_lines):
             plot_figure(name, fig_lines, results, out)
-    atomic_write(
-        out / "results.json",
-        lambda p: p.write_text(json.dumps({"results": results, "total_seconds": total})),
-    )
-    atomic_write(out / "results.md", lambda p: p.write_text(table + "\n"))
-    print(f"written to {out}")
+    write_results(out, results, total, table)
 
 
 if __name__ == "__main__":

@@ -171,20 +171,25 @@ def test_pendulum_with_worker_processes_exits_cleanly(tmp_path):
     assert (tmp_path / "r" / "summary.json").is_file()
 
 
-def test_pendulum_same_seed_same_run(tmp_path):
+def run_in_process(tmp_path, name, experiment, **cfg):
+    """Run ``experiment`` ("pendulum" / "ball_on_beam") in this process into tmp_path/name;
+    returns (metrics.csv text, the checkpointed policy state)."""
     import train as train_module
 
-    outs = []
-    for k in range(2):
-        cfg = train_module.PendulumConfig(
-            episodes=40, eval_rollouts=3, progress=False, run_dir=tmp_path / f"r{k}", seed=3
-        )
-        train_module.run_pendulum(cfg)
-        outs.append((tmp_path / f"r{k}" / "metrics.csv").read_text())
-        ck = torch.load(tmp_path / f"r{k}" / "checkpoint.pt", weights_only=False)
-        outs.append(ck["algorithm"]["policy"])
-    assert outs[0] == outs[2]
-    assert all(torch.equal(outs[1][k], outs[3][k]) for k in outs[1])
+    config_cls, run = {
+        "pendulum": (train_module.PendulumConfig, train_module.run_pendulum),
+        "ball_on_beam": (train_module.BallOnBeamConfig, train_module.run_ball_on_beam),
+    }[experiment]
+    run(config_cls(progress=False, run_dir=tmp_path / name, **cfg))
+    ck = torch.load(tmp_path / name / "checkpoint.pt", weights_only=False)
+    return (tmp_path / name / "metrics.csv").read_text(), ck["algorithm"]["policy"]
+
+
+def test_pendulum_same_seed_same_run(tmp_path):
+    a = run_in_process(tmp_path, "r0", "pendulum", episodes=40, eval_rollouts=3, seed=3)
+    b = run_in_process(tmp_path, "r1", "pendulum", episodes=40, eval_rollouts=3, seed=3)
+    assert a[0] == b[0]
+    assert all(torch.equal(a[1][k], b[1][k]) for k in a[1])
 
 
 def test_ball_on_beam_subprocess_writes_the_run_directory(tmp_path):
@@ -202,18 +207,9 @@ def test_ball_on_beam_subprocess_writes_the_run_directory(tmp_path):
 
 
 def test_ball_on_beam_same_seed_same_run(tmp_path):
-    import train as train_module
-
-    outs = []
-    for k in range(2):
-        cfg = train_module.BallOnBeamConfig(
-            episodes=6, eval_episodes=2, progress=False, run_dir=tmp_path / f"r{k}", seed=4
-        )
-        train_module.run_ball_on_beam(cfg)
-        outs.append((tmp_path / f"r{k}" / "metrics.csv").read_text())
-    assert outs[0] == outs[1]
-    cfg = train_module.BallOnBeamConfig(
-        episodes=6, eval_episodes=2, progress=False, run_dir=tmp_path / "other", seed=5
-    )
-    train_module.run_ball_on_beam(cfg)
-    assert (tmp_path / "other" / "metrics.csv").read_text() != outs[0]
+    runs = [
+        run_in_process(tmp_path, name, "ball_on_beam", episodes=6, eval_episodes=2, seed=seed)[0]
+        for name, seed in (("r0", 4), ("r1", 4), ("other", 5))
+    ]
+    assert runs[0] == runs[1]
+    assert runs[2] != runs[0]

@@ -54,8 +54,10 @@ constraints (a KKT solve, all joints at once). The forcing term is not scaled by
 amplitude (eta = 1 in Mülling et al.): amplitude scaling divides by the demo's g - y_0, which is
 ill-conditioned for joints that barely move in the demonstration.
 
-**Integration** (``rollout``): classical RK4 on (y, z) in normalised time, ``substeps`` RK4 steps
-per output interval (by default at least 500 steps per movement), all B goal vectors at once.
+**Integration** (``rollout``): ``y = g_m + e`` with the quintic evaluated exactly and e, which
+is the same for every goal, start and duration, integrated once per output grid (classical RK4
+in normalised time, ``substeps`` steps per output interval, by default at least 500 steps per
+movement; cached until the weights change); all B goal vectors at once.
 Positions, velocities ``ydot = z / tau`` and accelerations ``yddot = z' / tau^2`` (the ODE's
 right-hand side at the output states) come back as (B, T, J) float64, T = n_steps + 1 samples
 at t_k = k tau / n_steps, the first at the start and the last at the goal.
@@ -406,14 +408,36 @@ class DMP(nn.Module):
         tau = self.duration if duration is None else _finite_positive("duration", duration)
         n_steps, substeps = self._grid(tau, n_steps, dt, substeps)
 
+        # y = g_m + e (module docstring): the polynomial exactly, e (the same for every goal,
+        # start and duration) by RK4 once per grid and set of weights.
         m = _quintic_coefficients(y0, tau * yd0, g, tau * gd)  # (B, J, 6)
-        drive = m @ self._drive_matrix()
-        n_half = 2 * n_steps * substeps + 1
-        s_half = torch.arange(n_half, dtype=torch.float64) / (n_half - 1)
-        forcing = self.basis(s_half) @ self.weights.T  # (n_half, J)
-        y, z, zdot = self._integrate(drive, forcing, y0, tau * yd0, n_steps, substeps)
-        times = torch.arange(n_steps + 1, dtype=torch.float64) * (tau / n_steps)
+        s = torch.arange(n_steps + 1, dtype=torch.float64) / n_steps
+        powers = s[:, None] ** torch.arange(6, dtype=torch.float64)  # (T, 6)
+        deriv = torch.diag(torch.arange(1, 6, dtype=torch.float64), diagonal=-1)
+        e, ez, ezdot = self._shape_response(n_steps, substeps)  # (T, J) each
+        y = torch.einsum("tk,bjk->btj", powers, m) + e
+        z = torch.einsum("tk,bjk->btj", powers, m @ deriv) + ez
+        zdot = torch.einsum("tk,bjk->btj", powers, m @ deriv @ deriv) + ezdot
+        times = s * tau
         return DMPTrajectory(y, z / tau, zdot / tau**2, times)
+
+    def _shape_response(self, n_steps: int, substeps: int) -> tuple[Tensor, Tensor, Tensor]:
+        """e, e', e'' (each (n_steps + 1, J)) of ``e'' + alpha_z e' + alpha_z beta_z e = f``
+        from rest, cached per grid and weights (recomputed when the weights change)."""
+        key = (n_steps, substeps) + tuple(
+            (b._version, b.data_ptr()) for b in (self.weights, self.centers, self.sigmas)
+        )
+        cache = self.__dict__.setdefault("_response_cache", {})
+        if key not in cache:
+            cache.clear()
+            n_half = 2 * n_steps * substeps + 1
+            s_half = torch.arange(n_half, dtype=torch.float64) / (n_half - 1)
+            forcing = self.basis(s_half) @ self.weights.T  # (n_half, J)
+            zeros = torch.zeros(1, self.n_joints, dtype=torch.float64)
+            drive = torch.zeros(1, self.n_joints, 6, dtype=torch.float64)
+            e, ez, ezdot = self._integrate(drive, forcing, zeros, zeros, n_steps, substeps)
+            cache[key] = (e[0], ez[0], ezdot[0])
+        return cache[key]
 
 
 def _finite_differences(pos: Tensor, dt: float) -> tuple[Tensor, Tensor]:

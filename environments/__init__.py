@@ -1,7 +1,8 @@
-"""The tasks: toy multimodal objectives, the pendulum swing-up and the ball on a beam (hockey
-next)."""
+"""The tasks: toy multimodal objectives, the pendulum swing-up, the ball on a beam and robot
+hockey (pybullet; needs the ``robot`` extra only when a hockey env is created)."""
 
 from environments.ball_on_beam import BallOnBeamBatchEnv, BallOnBeamEnv, BeamParams
+from environments.hockey import RobotHockeyEnv, RobotHockeyEpisodicEnv
 from environments.pendulum import PendulumParams, PendulumSwingUpBatchEnv, PendulumSwingUpEnv
 from environments.toy import ContextualTwoGaussians, TwoGaussians
 
@@ -11,6 +12,8 @@ __all__ = [
     "BeamParams",
     "ContextualTwoGaussians",
     "PendulumParams",
+    "RobotHockeyEnv",
+    "RobotHockeyEpisodicEnv",
     "PendulumSwingUpBatchEnv",
     "PendulumSwingUpEnv",
     "TwoGaussians",

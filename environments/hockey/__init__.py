@@ -1,0 +1,31 @@
+"""Robot hockey with a KUKA iiwa in pybullet (see :mod:`environments.hockey.env` for the spec).
+
+Importing this package registers the gymnasium ids; pybullet and pytorch-kinematics (the
+``robot`` extra) are only needed when an environment is created.
+"""
+
+from environments.hockey.env import (
+    ENV_ID,
+    EPISODIC_ENV_ID,
+    RobotHockeyEnv,
+    RobotHockeyEpisodicEnv,
+    clip_action,
+    zone_reward,
+)
+from environments.hockey.kinematics import ArmGeometry, ArmKinematics, demonstration
+from environments.hockey.sim import HockeyParams, HockeySim, ShotResult
+
+__all__ = [
+    "ENV_ID",
+    "EPISODIC_ENV_ID",
+    "ArmGeometry",
+    "ArmKinematics",
+    "HockeyParams",
+    "HockeySim",
+    "RobotHockeyEnv",
+    "RobotHockeyEpisodicEnv",
+    "ShotResult",
+    "clip_action",
+    "demonstration",
+    "zone_reward",
+]

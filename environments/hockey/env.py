@@ -1,0 +1,296 @@
+"""Robot hockey (HiREPS paper, Section 5.3, Fig 14), simulated in pybullet.
+
+Spec sheet
+==========
+Scene (:class:`~environments.hockey.sim.HockeySim`)
+    A KUKA LBR iiwa (7 DoF, pybullet_data's ``kuka_iiwa/model.urdf``, base at the origin) holds
+    a hockey stick (0.55 m shaft mounted on the flange at 0.6 rad, a 2 x 14 x 4 cm box blade).
+    On a flat floor lie a blue control puck at (0.55, 0) m, where the demonstrated swing meets
+    it, and a red target puck further out along +x. Ice-hockey pucks (radius 38 mm, height
+    25 mm, 170 g), floor friction 0.05 (ice-like), restitution 0.7. The stick's links do not
+    collide with the floor (a blade that skims the ice is not stopped by it).
+
+Action (one per shot): 14 numbers, float64
+    ``[g_1..g_7, gdot_1..gdot_7]``: the goal positions (rad) and goal velocities (rad/s) of the
+    7 joint DMPs (:class:`hireps_torch.dmp.DMP`, shape learned by imitation of the demo swing,
+    0.5 s long); the goal is the posture at which the blade reaches the puck's spot and gdot the
+    joint velocity there. Goals are clipped to 0.05 rad inside the joint limits and goal
+    velocities to +-10 rad/s (``info["clipped"]`` says when); an action of another shape or
+    with a non-finite entry raises a ValueError naming it. The arm starts every shot from the
+    demo's start posture at rest; its position servos (300 N m) track the DMP at 240 Hz, then
+    brake exponentially (time constant 0.08 s) from the goal velocity (the follow-through).
+    pytorch-kinematics maps the DMP's postures to blade poses: a shot that would take the blade
+    centre below the floor (height < 0 m) is rejected, not played (``info["rejected"]``); the
+    pucks then stay where they are.
+
+Shot
+    One environment step is one shot: it ends after the follow-through once the target puck is
+    slower than 1 mm/s and the control puck rests or slides away from it (it cannot come back
+    on the open floor), or after 6 s. The control puck is then returned to its spot; the target
+    puck stays where it stopped.
+
+Observation
+    The target puck's (x, y) in m (float64, unbounded), observed after each shot.
+
+Reward
+    After every shot ``-(minimum gap between the pucks' rims during the shot)`` in m (0 when the
+    control puck touched the target puck). After the last shot, in addition, the zone reward by
+    the target puck's distance ``d`` from the robot base (:func:`zone_reward`):
+    1 for 1.4 <= d < 1.8, 2 for 1.8 <= d < 2.2, 3 for 2.2 <= d <= 2.6, 0 otherwise. The best
+    episode return is 3.
+
+Start state and episode end
+    The target puck starts at N((1.1, 0), 0.1^2 I) m (std from the paper, mean our choice: the
+    first shot has 0.47 m to cover to reach it, zone 3 is 1.1-1.5 m further). An episode is 3
+    shots (``terminated`` after the third); the target puck is reset only between episodes.
+
+Constants and sources
+    ================================  ==============  ==================================
+    zones 1.4-1.8 / 1.8-2.2 / 2.2-2.6  1 / 2 / 3      paper
+    shots per episode                 3               paper
+    shot reward -min distance         m               paper (rim gap: our reading)
+    action: goal pos + goal vel, 7 J  14              paper
+    target start std                  0.1 m           paper
+    target start mean                 (1.1, 0) m      our choice
+    puck size, mass                   38 x 25 mm, 170 g  our choice (ice-hockey puck)
+    floor friction, restitution       0.05, 0.7       our choice
+    stick, blade, demo swing          see ArmGeometry our choice
+    DMP basis functions               15              our choice
+    sim step, servo gains, torque     1/240 s, 0.5/1, 300 N m  our choice / URDF effort
+    ================================  ==============  ==================================
+
+``RobotHockeyEnv`` (id ``hireps/RobotHockey-v0``) plays one shot per step (the sequential,
+time-indexed view); ``RobotHockeyEpisodicEnv`` (id ``hireps/RobotHockeyEpisodic-v0``) takes the
+42 numbers of all three shots at once, observes only the start position and returns the episode
+return in one step (the episodic view).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import Tensor
+
+from environments.hockey.sim import HockeyParams, HockeySim
+
+__all__ = [
+    "ENV_ID",
+    "EPISODIC_ENV_ID",
+    "RobotHockeyEnv",
+    "RobotHockeyEpisodicEnv",
+    "clip_action",
+    "zone_reward",
+]
+
+ENV_ID = "hireps/RobotHockey-v0"
+EPISODIC_ENV_ID = "hireps/RobotHockeyEpisodic-v0"
+
+
+def zone_reward(distance: Tensor, zones: tuple[float, float, float, float]) -> Tensor:
+    """Zone reward of the target puck's distance from the robot base.
+
+    Args:
+        distance: (...) distances in m.
+        zones: edges (z0, z1, z2, z3): reward 1 on [z0, z1), 2 on [z1, z2), 3 on [z2, z3],
+            0 elsewhere.
+
+    Returns:
+        (...) float64 rewards.
+    """
+    d = torch.as_tensor(distance, dtype=torch.float64)
+    z0, z1, z2, z3 = zones
+    r = torch.zeros_like(d)
+    r = torch.where((d >= z0) & (d < z1), 1.0, r)
+    r = torch.where((d >= z1) & (d < z2), 2.0, r)
+    return torch.where((d >= z2) & (d <= z3), 3.0, r)
+
+
+def clip_action(
+    action: Any, low: Tensor, high: Tensor, max_velocity: float, n: int = 14
+) -> tuple[Tensor, bool]:
+    """Check a (14,) shot action and clip it into the arm's range.
+
+    Args:
+        action: 14 numbers (goal positions, then goal velocities).
+        low, high: (7,) goal-position bounds.
+        max_velocity: bound on |goal velocity|.
+        n: expected length (14, or 42 for three shots at once, checked by the caller).
+
+    Returns:
+        (the clipped (14,) float64 action, whether anything was clipped).
+
+    Raises:
+        ValueError: wrong shape or a non-finite entry (named by index and value).
+    """
+    a = torch.as_tensor(np.asarray(action, dtype=np.float64))
+    if a.shape != (n,):
+        raise ValueError(
+            f"action must have shape ({n},): 7 joint goal positions then 7 goal velocities"
+            f"{' per shot' if n != 14 else ''}, got {tuple(a.shape)}"
+        )
+    bad = ~torch.isfinite(a)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"action has a non-finite entry at index {i}: {a[i].item()}")
+    lo = torch.cat([low, torch.full((7,), -max_velocity, dtype=torch.float64)])
+    hi = torch.cat([high, torch.full((7,), max_velocity, dtype=torch.float64)])
+    lo, hi = lo.repeat(n // 14), hi.repeat(n // 14)
+    clipped = torch.minimum(torch.maximum(a, lo), hi)
+    return clipped, bool((clipped != a).any())
+
+
+def _box(low: Tensor, high: Tensor, max_velocity: float, repeat: int = 1) -> gym.spaces.Box:
+    lo = np.concatenate([low.numpy(), np.full(7, -max_velocity)])
+    hi = np.concatenate([high.numpy(), np.full(7, max_velocity)])
+    return gym.spaces.Box(np.tile(lo, repeat), np.tile(hi, repeat), dtype=np.float64)
+
+
+class RobotHockeyEnv(gym.Env):
+    """One shot per step (see the module spec sheet).
+
+    Args:
+        params: task constants (:class:`HockeyParams`).
+        render_mode: None or ``"rgb_array"`` (``render()`` returns (240, 320, 3) uint8).
+        gui: show pybullet's GUI (needs a display).
+
+    ``info`` after a step: ``shot`` (1..3), ``min_gap`` (m), ``target_distance`` (m from the
+    base), ``zone`` (0-3, of the current target position), ``zone_reward`` (only after the last
+    shot, else 0), ``clipped``, ``rejected``, ``sim_steps``, ``control_end`` (the control puck's
+    position when the shot ended, (2,)).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(
+        self, params: HockeyParams | None = None, render_mode: str | None = None, gui: bool = False
+    ) -> None:
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.params = params or HockeyParams()
+        self.render_mode = render_mode
+        self.sim = HockeySim(self.params, gui=gui)
+        self.action_space = _box(
+            self.sim.goal_low, self.sim.goal_high, self.params.max_goal_velocity
+        )
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float64)
+        self.shot_index = 0
+        self._target = np.array(self.params.target_mean, dtype=np.float64)
+        self.sim.reset(self._target)
+
+    def demo_action(self) -> np.ndarray:
+        """The demonstration's shot as an action: (14,) [goal, goal velocity]."""
+        return np.concatenate([self.sim.dmp.goal.numpy(), self.sim.dmp.goal_velocity.numpy()])
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        p = self.params
+        self._target = np.asarray(p.target_mean) + p.target_std * self.np_random.standard_normal(2)
+        self.sim.reset(self._target)
+        self.shot_index = 0
+        return self._target.copy(), {"target_distance": float(np.linalg.norm(self._target))}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.shot_index >= self.params.n_shots:
+            raise RuntimeError(f"the episode ended after {self.params.n_shots} shots: call reset()")
+        a, clipped = clip_action(
+            action, self.sim.goal_low, self.sim.goal_high, self.params.max_goal_velocity
+        )
+        result = self.sim.shot(a[:7], a[7:])
+        self.shot_index += 1
+        self._target = result.target
+        distance = float(np.linalg.norm(result.target))
+        zone = float(zone_reward(torch.tensor(distance), self.params.zones))
+        terminated = self.shot_index == self.params.n_shots
+        zone_r = zone if terminated else 0.0
+        info = {
+            "shot": self.shot_index,
+            "min_gap": result.min_gap,
+            "target_distance": distance,
+            "zone": int(zone),
+            "zone_reward": zone_r,
+            "clipped": clipped,
+            "rejected": result.rejected,
+            "sim_steps": result.sim_steps,
+            "control_end": result.control,
+        }
+        return result.target.copy(), -result.min_gap + zone_r, terminated, False, info
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array":
+            return None
+        return self.sim.render()
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+class RobotHockeyEpisodicEnv(gym.Env):
+    """All three shots from one 42-number action (the episodic view, one step per episode).
+
+    The observation is the target puck's start position (after the step: where it ended); the
+    reward the episode return (sum
+    of the shot rewards and the zone reward); every step terminates. ``info`` holds the
+    per-shot infos of :class:`RobotHockeyEnv` under ``shots`` and the final ``zone``.
+    """
+
+    metadata = RobotHockeyEnv.metadata
+
+    def __init__(
+        self, params: HockeyParams | None = None, render_mode: str | None = None, gui: bool = False
+    ) -> None:
+        self.inner = RobotHockeyEnv(params, render_mode, gui)
+        self.params = self.inner.params
+        self.render_mode = render_mode
+        n = self.params.n_shots
+        self.action_space = _box(
+            self.inner.sim.goal_low,
+            self.inner.sim.goal_high,
+            self.params.max_goal_velocity,
+            repeat=n,
+        )
+        self.observation_space = self.inner.observation_space
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        return self.inner.reset(seed=seed, options=options)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        n = self.params.n_shots
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (14 * n,):
+            raise ValueError(
+                f"action must have shape ({14 * n},): 14 numbers per shot for {n} shots, got "
+                f"{a.shape}"
+            )
+        if self.inner.shot_index != 0:
+            raise RuntimeError("the episode already ended: call reset()")
+        total, shots = 0.0, []
+        for k in range(n):
+            _, r, _, _, info = self.inner.step(a[14 * k : 14 * (k + 1)])
+            total += r
+            shots.append(info)
+        info = {
+            "shots": shots,
+            "zone": shots[-1]["zone"],
+            "target_distance": shots[-1]["target_distance"],
+        }
+        return self.inner._target.copy(), total, True, False, info
+
+    def render(self) -> np.ndarray | None:
+        return self.inner.render()
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+gym.register(id=ENV_ID, entry_point=f"{__name__}:RobotHockeyEnv", disable_env_checker=True)
+gym.register(
+    id=EPISODIC_ENV_ID, entry_point=f"{__name__}:RobotHockeyEpisodicEnv", disable_env_checker=True
+)

@@ -1,0 +1,192 @@
+"""Robot hockey: kinematics against pybullet, the demo, a scripted shot, the rules, bad input."""
+
+import builtins
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+pytest.importorskip("pybullet")
+pytest.importorskip("pytorch_kinematics")
+
+from environments.hockey import (  # noqa: E402
+    ENV_ID,
+    EPISODIC_ENV_ID,
+    ArmKinematics,
+    HockeyParams,
+    RobotHockeyEnv,
+    demonstration,
+    zone_reward,
+)
+from environments.hockey import kinematics as kin_module  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = RobotHockeyEnv(render_mode="rgb_array")
+    yield e
+    e.close()
+
+
+def test_forward_kinematics_matches_pybullet_link_poses(env):
+    pb, sim = env.sim.pb, env.sim
+    kin = sim.kinematics
+    rng = np.random.default_rng(0)
+    lo, hi = kin.lower.numpy(), kin.upper.numpy()
+    qs = rng.uniform(lo, hi, size=(25, 7))
+    pos, rot = kin.blade_pose(torch.tensor(qs))
+    for q, p_pk, r_pk in zip(qs, pos, rot, strict=True):
+        for j in range(7):
+            pb.resetJointState(sim.arm, j, float(q[j]), physicsClientId=sim.client)
+        state = pb.getLinkState(
+            sim.arm, 8, computeForwardKinematics=True, physicsClientId=sim.client
+        )
+        r_pb = np.array(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
+        assert np.abs(np.array(state[4]) - p_pk.numpy()).max() < 1e-5
+        assert np.abs(r_pb - r_pk.numpy()).max() < 1e-5
+    sim.reset_arm()
+
+
+def test_demonstration_is_a_smooth_swing_that_meets_the_puck():
+    p = HockeyParams()
+    q, dt = demonstration(p.geometry)
+    assert q.shape == (p.geometry.demo_points, 7)
+    assert dt == pytest.approx(p.geometry.swing_duration / (p.geometry.demo_points - 1))
+    assert (q[1:] - q[:-1]).abs().max() < 0.1  # one IK branch all along, no jumps
+    pos, rot = ArmKinematics(p.geometry).blade_pose(q[-1])
+    expected = torch.tensor([p.geometry.puck_x, 0.0, p.geometry.blade_height], dtype=torch.float64)
+    assert (pos - expected).abs().max() < 1e-5
+    square = torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(rot[:, 0], square, atol=1e-6)  # blade face square to the shot
+
+
+def test_dmp_reproduces_the_demonstration(env):
+    q, dt = demonstration(env.params.geometry)
+    dmp = env.sim.dmp
+    traj = dmp.rollout(dmp.goal[None], dmp.goal_velocity[None], n_steps=q.shape[0] - 1)
+    assert (traj.positions[0] - q).abs().max() < 5e-3  # rad, imitation tolerance
+    assert (traj.positions[0, -1] - q[-1]).abs().max() < 1e-7  # goal reached exactly
+
+
+def test_a_scripted_shot_moves_the_control_puck_into_the_target(env):
+    env.reset(seed=0)
+    env.sim.reset(np.array([1.1, 0.0]))  # target straight ahead
+    env._target = np.array([1.1, 0.0])
+    obs, reward, terminated, truncated, info = env.step(env.demo_action())
+    assert info["min_gap"] == 0.0 and reward == 0.0  # contact
+    assert obs[0] > 1.5  # the target puck was driven away from the robot
+    assert info["control_end"][0] > 0.9  # the control puck left its spot
+    assert not info["rejected"] and not info["clipped"]
+    assert not terminated and not truncated
+
+
+def test_zone_rewards_at_the_edges():
+    zones = HockeyParams().zones
+    d = torch.tensor(
+        [0.0, 1.3999, 1.4, 1.7999, 1.8, 2.1999, 2.2, 2.6, 2.6001, 5.0], dtype=torch.float64
+    )
+    expected = torch.tensor([0, 0, 1, 1, 2, 2, 3, 3, 0, 0], dtype=torch.float64)
+    assert torch.equal(zone_reward(d, zones), expected)
+
+
+def test_episode_is_three_shots_with_the_zone_reward_at_the_end(env):
+    start, _ = env.reset(seed=3)
+    soft = env.demo_action()
+    soft[7:] *= 0.05  # too slow to reach the target puck
+    rewards, terms = [], []
+    for _ in range(3):
+        obs, r, term, _, info = env.step(soft)
+        rewards.append(r)
+        terms.append(term)
+        assert info["min_gap"] > 0.1
+        assert np.abs(obs - start).max() < 1e-3  # untouched target puck stays
+    assert terms == [False, False, True]
+    zone = float(zone_reward(torch.tensor(np.linalg.norm(obs)), env.params.zones))
+    assert rewards[-1] == pytest.approx(-info["min_gap"] + zone)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(soft)
+
+
+def test_same_seed_same_episode_in_fresh_envs():
+    runs = []
+    for _ in range(2):
+        e = RobotHockeyEnv()
+        obs, _ = e.reset(seed=7)
+        out = [obs]
+        a = e.demo_action()
+        for _ in range(3):
+            a[7:] *= 0.9
+            o, r, *_ = e.step(a)
+            out += [o, np.array([r])]
+        e.close()
+        runs.append(np.concatenate(out))
+    assert np.array_equal(runs[0], runs[1])
+    e = RobotHockeyEnv()
+    other, _ = e.reset(seed=8)
+    e.close()
+    assert not np.array_equal(other, runs[0][:2])
+
+
+def test_episodic_env_matches_three_sequential_shots(env):
+    actions = [env.demo_action() * np.r_[np.ones(7), np.full(7, s)] for s in (0.7, 0.8, 0.9)]
+    start, _ = env.reset(seed=11)
+    total = sum(env.step(a)[1] for a in actions)
+    episodic = gym.make(EPISODIC_ENV_ID).unwrapped
+    start2, _ = episodic.reset(seed=11)
+    _, total2, terminated, _, info = episodic.step(np.concatenate(actions))
+    episodic.close()
+    assert np.array_equal(start, start2)
+    assert terminated and len(info["shots"]) == 3
+    assert total2 == pytest.approx(total, abs=1e-9)
+
+
+def test_bad_actions_are_named_clipped_or_rejected(env):
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(14,\)"):
+        env.step(np.zeros(13))
+    bad = env.demo_action()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match="index 3: nan"):
+        env.step(bad)
+    far = env.demo_action()
+    far[0] = 10.0  # beyond joint 1's limit
+    _, _, _, _, info = env.step(far)
+    assert info["clipped"]
+    low = env.demo_action()
+    low[1] += 0.6  # shoulder far forward: the blade would dig into the floor
+    before = env.sim.puck_positions()
+    _, r, _, _, info = env.step(low)
+    assert info["rejected"] and info["sim_steps"] == 0
+    assert np.allclose(env.sim.puck_positions()[1], before[1])
+    assert r == pytest.approx(-info["min_gap"])
+
+
+@pytest.mark.filterwarnings("ignore:.*WARN:.*:UserWarning")
+def test_registered_envs_pass_the_gymnasium_checker_and_render():
+    for env_id in (ENV_ID, EPISODIC_ENV_ID):
+        e = gym.make(env_id, render_mode="rgb_array").unwrapped
+        check_env(e, skip_render_check=False)
+        e.reset(seed=0)
+        frame = e.render()
+        assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8
+        assert frame.std() > 10  # a picture, not a blank
+        e.close()
+    with pytest.raises(ValueError, match="render_mode"):
+        RobotHockeyEnv(render_mode="human")
+
+
+def test_missing_pybullet_names_the_robot_extra(monkeypatch):
+    real_import = builtins.__import__
+
+    def fake_import(name, *args, **kwargs):
+        if name == "pybullet":
+            raise ImportError("No module named 'pybullet'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    with pytest.raises(ImportError, match=r"hireps-torch\[robot\]"):
+        kin_module.require_robot_extra()
+    with pytest.raises(ImportError, match="robot extra"):
+        RobotHockeyEnv()

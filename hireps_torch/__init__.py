@@ -2,7 +2,13 @@
 
 from hireps_torch.algorithms import REPS, EpisodicHiREPS, InfiniteHorizonHiREPS
 from hireps_torch.dmp import DMP, DMPTrajectory
-from hireps_torch.dual import DegenerateWeightsWarning, DualSolution, solve_episodic_dual
+from hireps_torch.dual import (
+    DegenerateWeightsWarning,
+    DualSolution,
+    TimeIndexedDualSolution,
+    solve_episodic_dual,
+    solve_time_indexed_dual,
+)
 from hireps_torch.policies import HierarchicalPolicy, LinearGaussian, SoftmaxGating
 
 __version__ = "0.1.0"
@@ -17,5 +23,7 @@ __all__ = [
     "InfiniteHorizonHiREPS",
     "LinearGaussian",
     "SoftmaxGating",
+    "TimeIndexedDualSolution",
     "solve_episodic_dual",
+    "solve_time_indexed_dual",
 ]

@@ -27,8 +27,9 @@ All duals of this package share one shape: K blocks (decision steps), each with 
                                   + eta_k log((1/N) sum_io exp(A_kio / eta_k))],
 
 so the episodic (K = 1, D = -(phi - phi_hat)), infinite-horizon (D = gamma phi' - phi,
-c = (1 - gamma) phi_hat_0) and time-indexed (block-chained D) duals reuse one solver,
-:func:`solve_reps_dual`.
+c = (1 - gamma) phi_hat_0) and time-indexed (one block per decision step, D_k v =
+v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k), c = [phi_hat_1, 0, ..]; see
+:func:`solve_time_indexed_dual`) duals reuse one solver, :func:`solve_reps_dual`.
 
 Numerics: everything in float64 whatever the input dtype; returns are centred per block and
 divided by one common scale and feature columns standardised before solving (the weights are
@@ -57,9 +58,11 @@ __all__ = [
     "DualSolution",
     "InfeasibleConstraintsWarning",
     "RepsDualSolution",
+    "TimeIndexedDualSolution",
     "solve_episodic_dual",
     "solve_infinite_horizon_dual",
     "solve_reps_dual",
+    "solve_time_indexed_dual",
 ]
 
 _LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it is exactly 0
@@ -141,6 +144,51 @@ class DualSolution:
     dual_value: float
     converged: bool
     iterations: int
+
+
+@dataclass(frozen=True)
+class TimeIndexedDualSolution:
+    """Solution of the time-indexed HiREPS dual (:func:`solve_time_indexed_dual`).
+
+    Steps are indexed k = 0..K-1 here (1..K in the equations).
+
+    Attributes:
+        eta: (K,) temperatures of the per-step KL bounds (all inf when the rewards carry no
+            information).
+        xi: (K,) multipliers of the per-step entropy bounds (0 where inactive or absent).
+        v: (K, F) value-function weights: V_k(s) = v[k]^T phi(s).
+        weights: (K, N, O) new distribution over samples and options per step; each step
+            sums to 1.
+        sample_weights: (K, N) weights.sum(-1), the weights of a flat policy per step.
+        kl: (K,) realised KL(P_k || q p~_k); equals epsilon_k at the optimum.
+        cross_entropy: (K,) realised E_P_k[-log p~_k]; <= kappa_k.
+        effective_sample_size: (K,) 1 / sum_i w_ki^2 per step.
+        feature_error: max abs violation of the chained feature constraints.
+        dual_value: dual objective at the optimum.
+        converged: whether the solver met its gradient tolerance.
+        iterations: LBFGS iterations.
+    """
+
+    eta: Tensor
+    xi: Tensor
+    v: Tensor
+    weights: Tensor
+    sample_weights: Tensor
+    kl: Tensor
+    cross_entropy: Tensor
+    effective_sample_size: Tensor
+    feature_error: float
+    dual_value: float
+    converged: bool
+    iterations: int
+
+    def step(self, k: int) -> DualSolution:
+        """Step k as a :class:`DualSolution` (weights (N, O), v = v[k]); ``feature_error``,
+        ``dual_value``, ``converged`` and ``iterations`` are those of the whole problem."""
+        K = self.eta.shape[0]
+        if not 0 <= k < K:
+            raise ValueError(f"step must be in [0, {K}), got {k}")
+        return _block(self, k, self.v[k])
 
 
 # --------------------------------------------------------------------------------------------
@@ -333,7 +381,8 @@ def solve_reps_dual(
         D: (K, N, P) linear map from the stacked value vector v to the advantage offsets, or
             None when there are no features.
         c: (P,) linear term of the dual in v, or None (zero).
-        kappa: (K,) absolute bounds on the option cross-entropy, or None for no bound.
+        kappa: (K,) absolute bounds on the option cross-entropy, or None for no bound; an
+            infinite entry means no bound on that block (its xi is 0).
         max_iter: LBFGS iterations per phase.
         tolerance_grad: LBFGS stops when every standardised gradient entry is below this.
         converged_grad: the solve counts as converged when every standardised gradient entry
@@ -378,7 +427,11 @@ def solve_reps_dual(
         col = torch.where(col > 1e-12, col, torch.ones_like(col))
         Ds = D / col
         cs = None if c is None else c.to(torch.float64) / col
-    kap = torch.zeros(K, dtype=torch.float64) if kappa is None else kappa.to(torch.float64)
+    kap = torch.full((K,), math.inf, dtype=torch.float64)
+    if kappa is not None:
+        kap = kappa.to(torch.float64)
+    bounded = torch.isfinite(kap)  # blocks with an entropy bound
+    kap = torch.where(bounded, kap, 0.0)
     prob = _Problem(Rs, Ds, cs, log_resp, eps, kap)
 
     # Start near the small-epsilon solution: there w ≈ (1 + delta / eta) / N, so the feature
@@ -440,10 +493,10 @@ def solve_reps_dual(
 
     def solve() -> tuple[bool, Tensor, Tensor]:
         nonlocal x
-        if kappa is not None and O > 1:
+        if O > 1 and bool(bounded.any()):
             # KKT for xi >= 0: solve with xi free; where xi ends ~0 with the bound slack,
             # switch it off and re-solve (then xi = 0 exactly and the bound holds as inequality).
-            prob.xi_on[:] = True
+            prob.xi_on[:] = bounded
             converged, g, w = run_phase()
             ce = -(w * log_resp).sum(dim=(1, 2))
             slack = (x[K : 2 * K].exp() < 1e-6) & (ce <= kap + 1e-9)
@@ -543,86 +596,155 @@ def _finish(
 
 
 # --------------------------------------------------------------------------------------------
-# episodic / contextual HiREPS
+# inputs and outputs shared by the episodic, infinite-horizon and time-indexed wrappers
+
+
+def _per_block(name: str, value: float | Tensor, K: int) -> Tensor:
+    """A bound given as one float or one value per block (K,), as a (K,) float64 tensor."""
+    t = _as_f64(name, value)
+    if t.dim() == 0:
+        return t.expand(K).clone()
+    if t.shape != (K,):
+        raise ValueError(
+            f"{name} must be a float or have shape ({K},) (one per decision step), got "
+            f"{tuple(t.shape)}"
+        )
+    return t
+
+
+def _shape_text(lead: tuple[int, ...], last: str) -> str:
+    """'(N, K, F) = (60, 3, F)' for lead (60, 3) and last 'F'."""
+    names = ["N", "K"][: len(lead)] + [last]
+    return f"({', '.join(names)}) = ({', '.join([*map(str, lead), last])})"
 
 
 def _common_inputs(
     returns: Tensor,
-    epsilon: float,
+    epsilon: float | Tensor,
     log_responsibilities: Tensor | None,
-    kappa: float | None,
+    kappa: float | Tensor | None,
     name: str = "returns",
+    *,
+    per_step: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-    """Validate (returns, epsilon, log responsibilities, kappa) of a one-block dual."""
+    """Validate the inputs every wrapper shares and return them block-major for the solver.
+
+    Args:
+        returns: (N,) returns, or (N, K) rewards of K decision steps when ``per_step``.
+        epsilon: KL bound, > 0: a float or (K,).
+        log_responsibilities: (N, O), or (N, K, O) when ``per_step``; None means one option.
+        kappa: entropy bound, >= 0 (inf: no bound on that block): None, a float or (K,).
+        name: what the error messages call ``returns``.
+        per_step: whether the returns are per decision step (the time-indexed dual).
+
+    Returns:
+        R (K, N), epsilon (K,), log p~ (K, N, O) with log 0 floored, kappa (K,) or None.
+    """
     R = _as_f64(name, returns)
-    if R.dim() != 1:
-        raise ValueError(f"{name} must have shape (N,), got {tuple(R.shape)}")
+    if R.dim() != (2 if per_step else 1):
+        raise ValueError(
+            f"{name} must have shape ({'N, K' if per_step else 'N,'}), got {tuple(R.shape)}"
+        )
     N = R.shape[0]
     if N < 2:
         raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
+    if R.numel() == 0:
+        raise ValueError(
+            f"{name} must hold at least one decision step (K >= 1), got shape {tuple(R.shape)}"
+        )
     _check_finite(name, R)
-    eps_t = torch.as_tensor(float(epsilon), dtype=torch.float64)
-    _check_positive("epsilon", eps_t)
-    if float(epsilon) >= math.log(N):
+    R = R.reshape(N, -1).T.contiguous()
+    K = R.shape[0]
+    eps = _per_block("epsilon", epsilon, K)
+    _check_positive("epsilon", eps)
+    big = [(k, float(e)) for k, e in enumerate(eps) if e >= math.log(N)]
+    if big:
+        which = ", ".join(
+            f"epsilon = {e:.4g}" if K == 1 else f"epsilon[{k}] = {e:.4g}" for k, e in big
+        )
         warnings.warn(
-            f"epsilon = {float(epsilon):.4g} >= log N = {math.log(N):.4g} (N = {N}): the KL bound "
-            "cannot bind and the weights collapse onto the best sample(s); use a smaller epsilon "
-            "or more samples",
+            f"{which} >= log N = {math.log(N):.4g} (N = {N}): the KL bound cannot bind and the "
+            "weights collapse onto the best sample(s); use a smaller epsilon or more samples",
             DegenerateWeightsWarning,
             stacklevel=3,
         )
+    lead = (N, K) if per_step else (N,)
     if log_responsibilities is None:
-        lr = torch.zeros(N, 1, dtype=torch.float64)
+        lr = torch.zeros(K, N, 1, dtype=torch.float64)
     else:
         lr = _as_f64("log_responsibilities", log_responsibilities)
-        if lr.dim() != 2 or lr.shape[0] != N:
+        if lr.dim() != len(lead) + 1 or tuple(lr.shape[:-1]) != lead:
             raise ValueError(
-                f"log_responsibilities must have shape (N, O) = ({N}, O), got {tuple(lr.shape)}"
+                f"log_responsibilities must have shape {_shape_text(lead, 'O')}, got "
+                f"{tuple(lr.shape)}"
             )
-        lr = _check_log_resp(lr)
+        lr = _check_log_resp(lr).reshape(N, K, -1).transpose(0, 1).contiguous()
     kap = None
     if kappa is not None:
-        k = float(kappa)
-        if not math.isfinite(k) or k < 0:
-            raise ValueError(f"kappa must be finite and >= 0, got {kappa}")
-        kap = torch.tensor([k], dtype=torch.float64)
-    return R, eps_t, lr, kap
+        kap = _per_block("kappa", kappa, K)
+        if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
+            raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
+    return R, eps, lr, kap
 
 
-def _features(name: str, x: Tensor, N: int) -> Tensor:
+def _features(name: str, x: Tensor, *lead: int) -> Tensor:
+    """Check features of shape (*lead, F): (N, F), or (N, K, F) per decision step."""
     phi = _as_f64(name, x)
-    if phi.dim() != 2 or phi.shape[0] != N:
-        raise ValueError(f"{name} must have shape (N, F) = ({N}, F), got {tuple(phi.shape)}")
+    if phi.dim() != len(lead) + 1 or tuple(phi.shape[:-1]) != lead:
+        raise ValueError(f"{name} must have shape {_shape_text(lead, 'F')}, got {tuple(phi.shape)}")
     _check_finite(name, phi)
     return phi
 
 
-def _one_block(sol: RepsDualSolution, F: int, epsilon: float) -> DualSolution:
-    """The K = 1 solution as a :class:`DualSolution`; warns when the weights collapsed."""
-    w = sol.weights[0]
-    N = w.shape[0]
-    ess = float(sol.effective_sample_size[0])
-    if ess < 1.5 and sol.eta[0].isfinite():
+def _feature_vector(name: str, x: Tensor, F: int) -> Tensor:
+    """Check a mean feature vector (F,) such as phi_hat_0."""
+    phi = _as_f64(name, x).reshape(-1)
+    if phi.shape != (F,):
+        raise ValueError(f"{name} must have shape ({F},), got {tuple(phi.shape)}")
+    _check_finite(name, phi)
+    return phi
+
+
+def _warn_if_collapsed(sol: RepsDualSolution, epsilon: Tensor) -> None:
+    """Warn (at the wrapper's caller) when a block's weights sit on ~one sample."""
+    K, N, _ = sol.weights.shape
+    ess = sol.effective_sample_size
+    bad = ((ess < 1.5) & sol.eta.isfinite()).nonzero().flatten().tolist()
+    if bad:
+        which = ", ".join(
+            ("" if K == 1 else f"step {k}: ")
+            + f"~{float(ess[k]):.2f} effective samples (epsilon = {float(epsilon[k]):.4g})"
+            for k in bad
+        )
         warnings.warn(
-            f"the weights collapsed onto ~{ess:.2f} effective samples (N = {N}, epsilon = "
-            f"{float(epsilon):.4g}); the refit will rely on its variance floor",
+            f"the weights collapsed onto {which} with N = {N}; the refit will rely on its "
+            "variance floor",
             DegenerateWeightsWarning,
             stacklevel=3,
         )
+
+
+def _block(sol: RepsDualSolution | TimeIndexedDualSolution, k: int, v: Tensor) -> DualSolution:
+    """Block k of a K-block solution as a :class:`DualSolution` with value weights ``v``."""
+    w = sol.weights[k]
     return DualSolution(
-        eta=float(sol.eta[0]),
-        xi=float(sol.xi[0]),
-        v=sol.v[:F],
+        eta=float(sol.eta[k]),
+        xi=float(sol.xi[k]),
+        v=v,
         weights=w,
         sample_weights=w.sum(-1),
-        kl=float(sol.kl[0]),
-        cross_entropy=float(sol.cross_entropy[0]),
-        effective_sample_size=ess,
+        kl=float(sol.kl[k]),
+        cross_entropy=float(sol.cross_entropy[k]),
+        effective_sample_size=float(sol.effective_sample_size[k]),
         feature_error=sol.feature_error,
         dual_value=sol.dual_value,
         converged=sol.converged,
         iterations=sol.iterations,
     )
+
+
+# --------------------------------------------------------------------------------------------
+# episodic / contextual HiREPS
 
 
 def solve_episodic_dual(
@@ -645,7 +767,7 @@ def solve_episodic_dual(
         context_features: (N, F) context features phi(s_i) whose mean must be kept; None means
             no context (plain episodic). A constant column is harmless (its multiplier is 0).
         kappa: absolute bound on the expected option cross-entropy E_P[-log p~], >= 0;
-            None means no entropy bound (xi = 0).
+            None (or inf) means no entropy bound (xi = 0).
         max_iter: LBFGS iterations per phase.
 
     Returns:
@@ -655,19 +777,16 @@ def solve_episodic_dual(
         ValueError: on non-finite returns or features, shape mismatches, N < 2, epsilon <= 0 or
             a negative kappa; each message names the offending value.
     """
-    R, eps_t, lr, kap = _common_inputs(returns, epsilon, log_responsibilities, kappa)
-    N = R.shape[0]
+    R, eps, lr, kap = _common_inputs(returns, epsilon, log_responsibilities, kappa)
+    N = R.shape[1]
     D = None
-    F = 0
     if context_features is not None:
         phi = _features("context_features", context_features, N)
-        F = phi.shape[1]
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
         D = -(phi - phi.mean(dim=0, keepdim=True)).unsqueeze(0)
-    sol = solve_reps_dual(
-        R.unsqueeze(0), lr.unsqueeze(0), eps_t.reshape(1), D=D, kappa=kap, max_iter=max_iter
-    )
-    return _one_block(sol, F, epsilon)
+    sol = solve_reps_dual(R, lr, eps, D=D, kappa=kap, max_iter=max_iter)
+    _warn_if_collapsed(sol, eps)
+    return _block(sol, 0, sol.v)
 
 
 # --------------------------------------------------------------------------------------------
@@ -712,26 +831,117 @@ def solve_infinite_horizon_dual(
     Returns:
         :class:`DualSolution`; ``v`` holds the value-function weights (F,).
     """
-    R, eps_t, lr, kap = _common_inputs(rewards, epsilon, log_responsibilities, kappa, "rewards")
-    N = R.shape[0]
+    R, eps, lr, kap = _common_inputs(rewards, epsilon, log_responsibilities, kappa, "rewards")
+    N = R.shape[1]
     g = float(gamma)
     if not (math.isfinite(g) and 0.0 < g < 1.0):
         raise ValueError(f"gamma must be in (0, 1), got {gamma}")
     phi = _features("features", features, N)
     phi_next = _features("next_features", next_features, N)
-    F = phi.shape[1]
     if phi_next.shape != phi.shape:
         raise ValueError(
             f"next_features must have the shape of features {tuple(phi.shape)}, got "
             f"{tuple(phi_next.shape)}"
         )
-    phi0 = _as_f64("initial_features", initial_features).reshape(-1)
-    if phi0.shape != (F,):
-        raise ValueError(f"initial_features must have shape ({F},), got {tuple(phi0.shape)}")
-    _check_finite("initial_features", phi0)
+    phi0 = _feature_vector("initial_features", initial_features, phi.shape[1])
     D = (g * phi_next - phi).unsqueeze(0)
     c = (1.0 - g) * phi0
-    sol = solve_reps_dual(
-        R.unsqueeze(0), lr.unsqueeze(0), eps_t.reshape(1), D=D, c=c, kappa=kap, max_iter=max_iter
+    sol = solve_reps_dual(R, lr, eps, D=D, c=c, kappa=kap, max_iter=max_iter)
+    _warn_if_collapsed(sol, eps)
+    return _block(sol, 0, sol.v)
+
+
+# --------------------------------------------------------------------------------------------
+# time-indexed HiREPS
+
+
+def solve_time_indexed_dual(
+    rewards: Tensor,
+    features: Tensor,
+    *,
+    epsilon: float | Tensor,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | Tensor | None = None,
+    initial_features: Tensor | None = None,
+    max_iter: int = 300,
+) -> TimeIndexedDualSolution:
+    """Solve the time-indexed HiREPS dual: one distribution per decision step k = 1..K.
+
+    Sample i is an episode of K decisions: states s_k,i, parameters theta_k,i, rewards R_k,i.
+    Step k's distribution P_k,io ∝ p~_k,io^(1 + xi_k/eta_k) exp(delta_k,i / eta_k) uses the
+    Bellman error with per-step value functions V_k(s) = v_k^T phi(s),
+
+        delta_k,i = R_k,i + v_{k+1}^T phi(s_{k+1,i}) - v_k^T phi(s_k,i),    V_{K+1} = 0,
+
+    and (eta, xi, v) minimise
+
+        g = v_1^T phi_hat_1 + sum_k [eta_k eps_k + xi_k kappa_k
+                                     + eta_k log((1/N) sum_io exp(A_k,io / eta_k))],
+        A_k,io = delta_k,i + (eta_k + xi_k) log p~_k,io.
+
+    At the optimum KL_k = eps_k, E_P_k[-log p~_k] <= kappa_k and the state distributions are
+    chained (``feature_error`` is the largest violation):
+
+        sum_i w_1i phi(s_1i) = phi_hat_1,
+        sum_i w_ki phi(s_ki) = sum_i w_{k-1,i} phi(s_ki)   (k >= 2; s_ki follows s_{k-1,i}).
+
+    This is :func:`solve_reps_dual` with the stacked v = [v_1 .. v_K], c = [phi_hat_1, 0, ..]
+    and D_k mapping v to v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k). The term v_1^T phi_hat_1 is
+    folded into step 1's log-sum-exp (D_1 = -(phi(s_1) - phi_hat_1) in slot 1, c = 0), as in the
+    episodic dual: the same dual value, weights and residuals.
+
+    Args:
+        rewards: (N, K) reward of each episode at each decision step, N >= 2, K >= 1.
+        features: (N, K, F) value features phi(s_k,i) of the state where step k's decision
+            was taken.
+        epsilon: KL bound per step, > 0: one float or (K,). Values >= log N let that step's
+            weights collapse onto one sample (a :class:`DegenerateWeightsWarning` is issued).
+        log_responsibilities: (N, K, O) log p~_k(o | s_k,i, theta_k,i) of each step's old
+            policy, normalised over options (-inf for options a step does not have); None
+            means one option per step.
+        kappa: absolute bound on each step's option cross-entropy, >= 0: one float or (K,);
+            inf leaves that step unbounded; None means no bound (xi = 0).
+        initial_features: (F,) mean features of the start distribution, phi_hat_1; by default
+            the sample mean of ``features[:, 0]`` (then uniform weights are feasible).
+        max_iter: LBFGS iterations per phase.
+
+    Returns:
+        :class:`TimeIndexedDualSolution`; ``weights`` (K, N, O), each step summing to 1.
+
+    Raises:
+        ValueError: on non-finite rewards or features, shape mismatches, N < 2, K < 1,
+            epsilon <= 0 or a negative kappa; each message names the offending value.
+    """
+    R, eps, lr, kap = _common_inputs(
+        rewards, epsilon, log_responsibilities, kappa, "rewards", per_step=True
     )
-    return _one_block(sol, F, epsilon)
+    K, N = R.shape
+    phi = _features("features", features, N, K).transpose(0, 1)  # (K, N, F)
+    F = phi.shape[-1]
+    phi1 = (
+        phi[0].mean(dim=0)
+        if initial_features is None
+        else _feature_vector("initial_features", initial_features, F)
+    )
+    # D[k, i] holds -phi(s_k,i) in slot k and phi(s_{k+1},i) in slot k + 1.
+    D = torch.zeros(K, N, K, F, dtype=torch.float64)
+    steps = torch.arange(K)
+    D[steps, :, steps] = -phi
+    D[steps[:-1], :, steps[1:]] = phi[1:]
+    D[0, :, 0] += phi1
+    sol = solve_reps_dual(R, lr, eps, D=D.reshape(K, N, K * F), kappa=kap, max_iter=max_iter)
+    _warn_if_collapsed(sol, eps)
+    return TimeIndexedDualSolution(
+        eta=sol.eta,
+        xi=sol.xi,
+        v=sol.v.reshape(K, F),
+        weights=sol.weights,
+        sample_weights=sol.weights.sum(-1),
+        kl=sol.kl,
+        cross_entropy=sol.cross_entropy,
+        effective_sample_size=sol.effective_sample_size,
+        feature_error=sol.feature_error,
+        dual_value=sol.dual_value,
+        converged=sol.converged,
+        iterations=sol.iterations,
+    )

@@ -1,6 +1,6 @@
 """hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch."""
 
-from hireps_torch.algorithms import REPS, EpisodicHiREPS, InfiniteHorizonHiREPS
+from hireps_torch.algorithms import REPS, EpisodicHiREPS, InfiniteHorizonHiREPS, TimeIndexedHiREPS
 from hireps_torch.dmp import DMP, DMPTrajectory
 from hireps_torch.dual import (
     DegenerateWeightsWarning,
@@ -24,6 +24,7 @@ __all__ = [
     "LinearGaussian",
     "SoftmaxGating",
     "TimeIndexedDualSolution",
+    "TimeIndexedHiREPS",
     "solve_episodic_dual",
     "solve_time_indexed_dual",
 ]

@@ -1,12 +1,13 @@
 """Time-indexed HiREPS: the per-step dual's constraints, its reduction to the episodic dual,
-bad input."""
+a two-step sequencing task, determinism and checkpoints, bad input."""
 
 import math
+import warnings
 
 import pytest
 import torch
 
-from hireps_torch import solve_episodic_dual, solve_time_indexed_dual
+from hireps_torch import TimeIndexedHiREPS, solve_episodic_dual, solve_time_indexed_dual
 from hireps_torch.dual import DegenerateWeightsWarning
 from hireps_torch.features import QuadraticFeatures
 
@@ -166,3 +167,143 @@ def test_dual_bad_input_names_the_value(gen):
         solve_time_indexed_dual(R, bad_phi, epsilon=0.5)
     with pytest.raises(ValueError, match=r"step must be in \[0, 3\)"):
         solve_time_indexed_dual(R, phi, epsilon=0.5).step(3)
+
+
+# ---- the algorithm --------------------------------------------------------------------------
+GOAL = 2.0
+
+
+def two_step_episodes(algo, N, gen, greedy=False):
+    """Two decisions on a line: theta_1 moves the state, s_2 = s_1 + theta_1 (cost 0.1
+    theta_1^2); theta_2 then aims at the goal: R_2 = -(s_2 + theta_2 - goal)^2 - theta_2^2.
+    Step 2's best action, (goal - s_2) / 2, depends on the state step 1 reached, and step 1
+    only pays off through step 2: the best theta_1 is (goal - s_1) / 1.2."""
+    s = torch.zeros(N, 2, 1, dtype=torch.float64)
+    theta = torch.zeros(N, 2, 1, dtype=torch.float64)
+    r = torch.zeros(N, 2, dtype=torch.float64)
+    s[:, 0, 0] = 0.3 * torch.randn(N, generator=gen, dtype=torch.float64)
+    policy = algo.act if greedy else algo.ask
+    theta[:, 0] = policy(0, s[:, 0])
+    r[:, 0] = -0.1 * theta[:, 0, 0] ** 2
+    s[:, 1] = s[:, 0] + theta[:, 0]
+    theta[:, 1] = policy(1, s[:, 1])
+    r[:, 1] = -((s[:, 1, 0] + theta[:, 1, 0] - GOAL) ** 2) - theta[:, 1, 0] ** 2
+    return s, theta, r
+
+
+def make_two_step(seed):
+    return TimeIndexedHiREPS.create(
+        2, 1, 1, n_options=3, init_std=1.0, epsilon=0.5, min_variance=1e-3, seed=seed
+    )
+
+
+def run_two_step(seed, iterations, algo=None):
+    algo = algo or make_two_step(seed)
+    gen = torch.Generator().manual_seed(seed + 1000 * algo.iteration)
+    history = []
+    for _ in range(iterations):
+        history.append(algo.tell(*two_step_episodes(algo, 50, gen)))
+    return algo, history
+
+
+def test_tell_reports_per_step_diagnostics_and_meets_the_bounds(gen):
+    algo = TimeIndexedHiREPS.create(3, 2, 2, n_options=3, epsilon=[0.3, 0.5, 0.8], seed=0)
+    N = 60
+    s = torch.zeros(N, 3, 2, dtype=torch.float64)
+    theta = torch.zeros(N, 3, 2, dtype=torch.float64)
+    s[:, 0] = torch.randn(N, 2, generator=gen, dtype=torch.float64)
+    for k in range(3):
+        theta[:, k] = algo.ask(k, s[:, k])
+        if k < 2:
+            s[:, k + 1] = s[:, k] + 0.5 * theta[:, k]
+    r = -(s + theta - 1.0).pow(2).sum(-1)
+    assert theta.dtype == torch.float64
+    entropy = [float(p.option_entropy(s[:, k], theta[:, k])) for k, p in enumerate(algo.policies)]
+    d = algo.tell(s, theta, r)
+    for key in ("eta", "xi", "kappa", "kl", "cross_entropy", "effective_sample_size"):
+        assert len(d[key]) == 3 and all(math.isfinite(x) for x in d[key]), key
+    for key in ("option_entropy", "policy_entropy", "n_active_options", "pruned"):
+        assert len(d[key]) == 3, key
+    assert d["kl"] == pytest.approx([0.3, 0.5, 0.8], abs=1e-3)
+    assert d["option_entropy"] == pytest.approx(entropy)
+    assert d["kappa"] == pytest.approx([0.9 * h for h in entropy])
+    assert all(ce <= kap + 1e-3 for ce, kap in zip(d["cross_entropy"], d["kappa"], strict=True))
+    assert d["feature_error"] < 1e-5 and d["dual_converged"]
+    assert d["mean_return"] == pytest.approx(float(r.sum(1).mean()))
+    assert d["iteration"] == 1 and algo.value_weights.shape == (3, 5)
+    assert algo.value(2, s[:4, 2]).shape == (4,)
+
+
+def test_two_step_sequencing_learns_to_set_up_the_second_step():
+    algo, history = run_two_step(0, 12)
+    first, last = history[0]["mean_return"], history[-1]["mean_return"]
+    assert first < -5.0 and last > -0.45  # the optimum is about -0.34
+    _, _, r = two_step_episodes(algo, 500, torch.Generator().manual_seed(7), greedy=True)
+    assert float(r.sum(1).mean()) > -0.36
+    # step 1 moves towards the goal although its own reward only penalises moving: the chained
+    # value of the state it reaches pays for it (a myopic learner would keep theta_1 = 0)
+    zero = torch.zeros(1, 1, dtype=torch.float64)
+    assert float(algo.act(0, zero)) == pytest.approx(GOAL / 1.2, abs=0.1)
+    assert float(algo.act(1, zero + 1.5)) == pytest.approx((GOAL - 1.5) / 2, abs=0.05)
+
+
+def test_same_seed_same_run_and_state_dict_resume():
+    a, ha = run_two_step(1, 4)
+    _, hb = run_two_step(1, 4)
+    _, hc = run_two_step(2, 4)
+    assert ha == hb and ha != hc
+    # a checkpoint continues bit-for-bit in a fresh instance
+    fresh = make_two_step(99)
+    fresh.load_state_dict(a.state_dict())
+    _, cont_a = run_two_step(1, 2, a)
+    _, cont_f = run_two_step(1, 2, fresh)
+    assert cont_a == cont_f
+    for pa, pf in zip(a.policies, fresh.policies, strict=True):
+        for key, value in pa.state_dict().items():
+            assert torch.equal(value, pf.state_dict()[key])
+
+
+def test_steps_with_different_option_counts_are_stacked():
+    # prune step 1 to a single option: its log p~ is padded and it gets no entropy bound
+    algo = make_two_step(0)
+    algo.policies[1].gating.active[1:] = False
+    gen = torch.Generator().manual_seed(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        d = algo.tell(*two_step_episodes(algo, 50, gen))
+    assert d["n_active_options"] == [3, 1]
+    assert math.isnan(d["kappa"][1]) and d["xi"][1] == 0.0 and d["cross_entropy"][1] == 0.0
+    assert d["kl"] == pytest.approx([0.5, 0.5], abs=1e-3)
+
+
+def test_algorithm_bad_input_names_the_value():
+    algo = make_two_step(0)
+    s, theta, r = two_step_episodes(algo, 10, torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"step must be in \[0, 2\).*got 2"):
+        algo.ask(2, s[:, 0])
+    with pytest.raises(ValueError, match=r"step must be in \[0, 2\).*got -1"):
+        algo.act(-1, s[:, 0])
+    with pytest.raises(ValueError, match="step must be an integer"):
+        algo.ask(0.5, s[:, 0])
+    with pytest.raises(ValueError, match=r"contexts must have shape \(N, 1\)"):
+        algo.ask(0, torch.zeros(5, 2))
+    with pytest.raises(ValueError, match="contexts contains non-finite"):
+        algo.ask(0, torch.full((5, 1), math.nan))
+    with pytest.raises(ValueError, match=r"rewards must have shape \(N, K\) = \(N, 2\)"):
+        algo.tell(s, theta, r[:, :1])
+    with pytest.raises(ValueError, match=r"states must have shape \(10, 2, 1\)"):
+        algo.tell(s[:, :1], theta, r)
+    with pytest.raises(ValueError, match=r"params must have shape \(10, 2, 1\)"):
+        algo.tell(s, theta[:9], r)
+    bad = r.clone()
+    bad[3, 1] = math.nan
+    before = algo.state_dict()["policies"][0]["options.0.bias"].clone()
+    with pytest.raises(ValueError, match="rewards contains 1 non-finite"):
+        algo.tell(s, theta, bad)
+    assert torch.equal(algo.policies[0].options[0].bias, before) and algo.iteration == 0
+    with pytest.raises(ValueError, match="epsilon"):
+        TimeIndexedHiREPS.create(2, 1, 1, epsilon=[0.5, 0.5, 0.5])
+    with pytest.raises(ValueError, match=r"init_mean must have shape \(D,\) = \(1,\)"):
+        TimeIndexedHiREPS.create(2, 1, 1, init_mean=torch.zeros(3, 1))
+    with pytest.raises(ValueError, match="K"):
+        TimeIndexedHiREPS.create(0, 1, 1)

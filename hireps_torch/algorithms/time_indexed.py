@@ -1,0 +1,384 @@
+"""Time-indexed HiREPS: sequencing skills over K decision steps.
+
+An episode is a sequence of K decisions (e.g. K shots at a puck, K primitives of a task). At
+step k = 1..K the state s_k is observed, a skill's parameters theta_k are drawn from step k's
+own hierarchical policy pi_k(theta | s) = sum_o pi_k(o | s) pi_k(theta | s, o), and the reward
+R_k is received; the next state s_{k+1} depends on s_k and theta_k. Each iteration (Daniel,
+Neumann & Peters, "Hierarchical Relative Entropy Policy Search", time-indexed formulation):
+
+1. ``ask(k, states)`` / rollout: the caller runs N episodes, drawing theta_k,i ~ pi_k(. | s_k,i)
+   step after step, and records states (N, K, S), parameters (N, K, D) and rewards (N, K).
+2. ``tell``: per step, the responsibilities p~_k,io = p_k(o | s_k,i, theta_k,i) of the sampling
+   policy and the entropy bound kappa_k = kappa_rel * mean_i H[p~_k,i.]; the time-indexed dual
+   (:func:`hireps_torch.dual.solve_time_indexed_dual`) gives per-step weights
+
+       P_k,io ∝ p~_k,io^(1 + xi_k/eta_k) exp(delta_k,i / eta_k),
+       delta_k,i = R_k,i + v_{k+1}^T phi(s_{k+1,i}) - v_k^T phi(s_k,i),    V_{K+1} = 0,
+
+   with KL(P_k || q p~_k) = epsilon_k, E_P_k[-log p~_k] <= kappa_k and the state
+   distributions chained through the value features phi:
+   sum_i w_1i phi(s_1i) = phi_hat_1 and sum_i w_ki phi(s_ki) = sum_i w_{k-1,i} phi(s_ki).
+   Step k's weights thus credit a decision with the reward it earned plus the value (under
+   the next step's policy) of the state it led to.
+3. weighted maximum-likelihood refit of each step's policy with its block of weights
+   (:meth:`HierarchicalPolicy.weighted_fit`), then pruning, per step;
+4. diagnostics per step: eta, xi, kappa, realised KL and cross-entropy, effective sample size,
+   entropies, active options; and the feature error of the chained constraints.
+
+Steps are indexed k = 0..K-1 in the code (1..K in the equations above).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import operator
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hireps_torch._checks import as_finite_f64
+from hireps_torch.algorithms._options import OptionBound, option_bound, refit_and_report
+from hireps_torch.dual import solve_time_indexed_dual
+from hireps_torch.features import FeatureMap, QuadraticFeatures
+from hireps_torch.policies import HierarchicalPolicy
+
+__all__ = ["TimeIndexedHiREPS"]
+
+# diagnostics that tell() reports as one entry per step
+_PER_STEP = (
+    "eta",
+    "xi",
+    "kappa",
+    "kl",
+    "cross_entropy",
+    "effective_sample_size",
+    "option_entropy",
+    "policy_entropy",
+    "n_active_options",
+    "pruned",
+)
+
+
+class TimeIndexedHiREPS:
+    """Time-indexed HiREPS with one hierarchical policy per decision step (ask/tell).
+
+    Example (K = 3 shots, 2-D state, 14 parameters per shot)::
+
+        algo = TimeIndexedHiREPS.create(3, param_dim=14, context_dim=2, n_options=5, seed=0)
+        for _ in range(iterations):
+            s, theta = torch.zeros(N, 3, 2), torch.zeros(N, 3, 14)  # float64 in practice
+            r = torch.zeros(N, 3)
+            s[:, 0] = start_states(N)
+            for k in range(3):
+                theta[:, k] = algo.ask(k, s[:, k])
+                next_s, r[:, k] = env_step(s[:, k], theta[:, k])
+                if k + 1 < 3:
+                    s[:, k + 1] = next_s
+            diagnostics = algo.tell(s, theta, r)
+
+    Args:
+        policies: K hierarchical policies, policy k acting at step k (updated in place); their
+            context is the state, and all share the parameter dimension D.
+        value_features: features phi(s) of the per-step value functions V_k(s) = v_k^T phi(s);
+            ``in_features`` is the state dimension S.
+        epsilon: KL bound per iteration, > 0: one float for every step or K floats.
+        kappa_rel: entropy bound of each step as a fraction of that step's current mean option
+            entropy of the responsibilities (0.8-0.9 in the paper); None disables the bound.
+        prune_threshold: options whose prior mass falls below this are pruned (0: never).
+        seed: seed of the sampling generator (same seed, same run).
+    """
+
+    def __init__(
+        self,
+        policies: Sequence[HierarchicalPolicy],
+        value_features: FeatureMap,
+        *,
+        epsilon: float | Sequence[float] = 1.0,
+        kappa_rel: float | None = 0.9,
+        prune_threshold: float = 1e-4,
+        seed: int | None = None,
+    ) -> None:
+        K = len(policies)
+        if K < 1:
+            raise ValueError("policies must hold one policy per decision step (K >= 1), got 0")
+        eps = [float(e) for e in ([epsilon] * K if isinstance(epsilon, float | int) else epsilon)]
+        if len(eps) != K or not all(math.isfinite(e) and e > 0 for e in eps):
+            raise ValueError(
+                f"epsilon must be finite and > 0, one float or {K} (one per step), got {epsilon}"
+            )
+        if kappa_rel is not None and not (math.isfinite(kappa_rel) and kappa_rel >= 0):
+            raise ValueError(f"kappa_rel must be finite and >= 0 (or None), got {kappa_rel}")
+        S = value_features.in_features
+        for k, pol in enumerate(policies):
+            dims = (pol.gating_features.in_features, pol.policy_features.in_features)
+            if dims != (S, S):
+                raise ValueError(
+                    f"policy {k} sees states of dimension {dims} (gating, options) but the value "
+                    f"features take S = {S}"
+                )
+        if len({pol.action_dim for pol in policies}) != 1:
+            raise ValueError(
+                f"all policies must share the parameter dimension, got "
+                f"{[pol.action_dim for pol in policies]}"
+            )
+        self.policies = list(policies)
+        self.value_features = value_features
+        self.epsilon = eps
+        self.kappa_rel = None if kappa_rel is None else float(kappa_rel)
+        self.prune_threshold = float(prune_threshold)
+        self.generator = torch.Generator()
+        self.generator.manual_seed(0 if seed is None else int(seed))
+        self.iteration = 0
+        self.value_weights = torch.zeros(K, value_features.out_features, dtype=torch.float64)
+
+    @classmethod
+    def create(
+        cls,
+        K: int,
+        param_dim: int,
+        context_dim: int,
+        *,
+        n_options: int = 5,
+        init_mean: Tensor | None = None,
+        init_std: float | Tensor = 1.0,
+        spread: float = 1.0,
+        epsilon: float | Sequence[float] = 1.0,
+        kappa_rel: float | None = 0.9,
+        gating_features: FeatureMap | None = None,
+        policy_features: FeatureMap | None = None,
+        value_features: FeatureMap | None = None,
+        min_variance: float = 1e-8,
+        seed: int | None = None,
+    ) -> TimeIndexedHiREPS:
+        """Build K fresh softmax-gated mixtures of linear-Gaussian options, one per step.
+
+        Args:
+            K: number of decision steps, >= 1.
+            param_dim: D, parameters per decision.
+            context_dim: S, state dimension, >= 1.
+            n_options: options per step.
+            init_mean: (D,) shared by all steps or (K, D) per step; zeros by default. Option
+                means start at ``init_mean + spread * init_std * randn`` (see
+                :meth:`HierarchicalPolicy.create`).
+            init_std: initial standard deviation, float or (D,).
+            spread: spread of the initial option means in units of ``init_std``.
+            epsilon: KL bound, one float or K floats.
+            kappa_rel: relative entropy bound (None: off).
+            gating_features: gating features (the squared expansion of the state by default).
+            policy_features: option features (the state itself by default: linear options).
+            value_features: value features phi (the squared expansion of the state by default).
+            min_variance: variance floor of the options.
+            seed: seeds the initial option means (and, as seed + 1, the sampling generator).
+        """
+        if K < 1:
+            raise ValueError(f"K (the number of decision steps) must be >= 1, got {K}")
+        if context_dim < 1:
+            raise ValueError(f"context_dim (the state dimension) must be >= 1, got {context_dim}")
+        mean = torch.zeros(K, param_dim, dtype=torch.float64)
+        if init_mean is not None:
+            m = torch.as_tensor(init_mean, dtype=torch.float64)
+            if m.shape not in ((param_dim,), (K, param_dim)):
+                raise ValueError(
+                    f"init_mean must have shape (D,) = ({param_dim},) or (K, D) = "
+                    f"({K}, {param_dim}), got {tuple(m.shape)}"
+                )
+            mean = mean + m
+        gen = torch.Generator()
+        gen.manual_seed(0 if seed is None else int(seed))
+        gating_features = gating_features or QuadraticFeatures(context_dim)
+        policies = [
+            HierarchicalPolicy.create(
+                n_options,
+                context_dim,
+                param_dim,
+                init_mean=mean[k],
+                init_std=init_std,
+                spread=spread,
+                gating_features=gating_features,
+                policy_features=policy_features,
+                min_variance=min_variance,
+                generator=gen,
+            )
+            for k in range(K)
+        ]
+        return cls(
+            policies,
+            value_features or QuadraticFeatures(context_dim),
+            epsilon=epsilon,
+            kappa_rel=kappa_rel,
+            seed=None if seed is None else int(seed) + 1,
+        )
+
+    @property
+    def n_steps(self) -> int:
+        """K, the number of decision steps."""
+        return len(self.policies)
+
+    # ---- input handling ---------------------------------------------------------------------
+    def _step(self, step: int) -> int:
+        K = self.n_steps
+        try:
+            k = operator.index(step)
+        except TypeError:
+            raise ValueError(f"step must be an integer in [0, {K}), got {step!r}") from None
+        if not 0 <= k < K:
+            raise ValueError(f"step must be in [0, {K}) (K = {K} decision steps), got {k}")
+        return k
+
+    def _contexts(self, contexts: Tensor) -> Tensor:
+        S = self.value_features.in_features
+        c = torch.as_tensor(contexts, dtype=torch.float64)
+        if c.dim() == 1 and S == 1:
+            c = c[:, None]
+        if c.dim() != 2 or c.shape[1] != S or c.shape[0] < 1:
+            raise ValueError(f"contexts must have shape (N, {S}), got {tuple(c.shape)}")
+        return as_finite_f64("contexts", c)
+
+    # ---- ask / tell -------------------------------------------------------------------------
+    @torch.no_grad()
+    def ask(self, step: int, contexts: Tensor) -> Tensor:
+        """Sample one parameter vector per state from step ``step``'s policy.
+
+        Args:
+            step: decision step k in [0, K).
+            contexts: (N, S) states at that step.
+
+        Returns:
+            theta: (N, D) float64.
+        """
+        k = self._step(step)
+        theta, _ = self.policies[k].sample(self._contexts(contexts), self.generator)
+        return theta
+
+    @torch.no_grad()
+    def act(self, step: int, contexts: Tensor) -> Tensor:
+        """Noise-free policy of step ``step`` (mean of the most probable option): (N, D)."""
+        k = self._step(step)
+        return self.policies[k].mean_action(self._contexts(contexts))[0]
+
+    def value(self, step: int, contexts: Tensor) -> Tensor:
+        """Value estimate V_k(s) = v_k^T phi(s) from the last update: (N, S) -> (N,).
+
+        V_k is defined up to a constant (phi has no constant column).
+        """
+        k = self._step(step)
+        return self.value_features(self._contexts(contexts)) @ self.value_weights[k]
+
+    @torch.no_grad()
+    def tell(self, states: Tensor, params: Tensor, rewards: Tensor) -> dict[str, Any]:
+        """Update every step's policy from N episodes drawn with the current policies.
+
+        Args:
+            states: (N, K, S) state at each decision step (s_{k+1} is where decision k led).
+            params: (N, K, D) parameters returned by :meth:`ask` at each step.
+            rewards: (N, K) reward of each decision (higher is better).
+
+        Returns:
+            Diagnostics, one entry per step (lists of length K): ``eta, xi, kappa, kl,
+            cross_entropy, effective_sample_size, option_entropy`` (mean responsibility
+            entropy before the update), ``policy_entropy`` (weighted mean option entropy after
+            it), ``n_active_options, pruned``; and ``mean_rewards`` (K floats), scalars
+            ``feature_error, dual_converged, dual_iterations, mean_return`` (mean over
+            episodes of the summed rewards), ``max_return, iteration``.
+        """
+        K = self.n_steps
+        R = torch.as_tensor(rewards, dtype=torch.float64)
+        if R.dim() != 2 or R.shape[1] != K:
+            raise ValueError(f"rewards must have shape (N, K) = (N, {K}), got {tuple(R.shape)}")
+        N = R.shape[0]
+        S, D = self.value_features.in_features, self.policies[0].action_dim
+        s = as_finite_f64("states", states, (N, K, S))
+        theta = as_finite_f64("params", params, (N, K, D))
+
+        bounds = [
+            option_bound(pol, s[:, k], theta[:, k], self.kappa_rel)
+            for k, pol in enumerate(self.policies)
+        ]
+        log_resp, kappa = _stack_bounds(bounds, N)
+        sol = solve_time_indexed_dual(
+            R,
+            self.value_features(s),
+            epsilon=torch.tensor(self.epsilon, dtype=torch.float64),
+            log_responsibilities=log_resp,
+            kappa=kappa,
+        )
+        self.value_weights = sol.v.clone()
+        reports = []
+        for k, (pol, bound) in enumerate(zip(self.policies, bounds, strict=True)):
+            step = sol.step(k)
+            n_active = (
+                1 if bound.log_responsibilities is None else bound.log_responsibilities.shape[1]
+            )
+            step = dataclasses.replace(step, weights=step.weights[:, :n_active])
+            reports.append(
+                refit_and_report(pol, s[:, k], theta[:, k], step, bound, self.prune_threshold)
+            )
+        self.iteration += 1
+        returns = R.sum(1)
+        return {
+            "iteration": self.iteration,
+            **{key: [r[key] for r in reports] for key in _PER_STEP},
+            "feature_error": sol.feature_error,
+            "dual_converged": sol.converged,
+            "dual_iterations": sol.iterations,
+            "mean_rewards": R.mean(0).tolist(),
+            "mean_return": float(returns.mean()),
+            "max_return": float(returns.max()),
+        }
+
+    # ---- checkpointing ----------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the run bit-for-bit."""
+        return {
+            "policies": [pol.state_dict() for pol in self.policies],
+            "value_weights": self.value_weights.clone(),
+            "generator": self.generator.get_state(),
+            "iteration": self.iteration,
+            "epsilon": list(self.epsilon),
+            "kappa_rel": self.kappa_rel,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if len(state["policies"]) != self.n_steps:
+            raise ValueError(
+                f"the state holds {len(state['policies'])} policies, this algorithm has "
+                f"K = {self.n_steps} steps"
+            )
+        for pol, sd in zip(self.policies, state["policies"], strict=True):
+            pol.load_state_dict(sd)
+        self.value_weights = state["value_weights"].clone()
+        self.generator.set_state(state["generator"])
+        self.iteration = int(state["iteration"])
+        self.epsilon = [float(e) for e in state["epsilon"]]
+        self.kappa_rel = state["kappa_rel"]
+
+
+def _stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Tensor | None]:
+    """Per-step responsibilities and entropy bounds as the dual's (N, K, O) and (K,) inputs.
+
+    Steps may have different numbers of active options: the missing columns get log 0, and a
+    step with one active option gets log p~ = 0 on it and no bound (kappa = inf). Returns
+    (None, None) when every step has a single active option.
+    """
+    counts = [
+        1 if b.log_responsibilities is None else b.log_responsibilities.shape[1] for b in bounds
+    ]
+    O = max(counts)
+    if O == 1:
+        return None, None
+    K = len(bounds)
+    log_resp = torch.full((N, K, O), -math.inf, dtype=torch.float64)
+    for k, b in enumerate(bounds):
+        if b.log_responsibilities is None:
+            log_resp[:, k, 0] = 0.0
+        else:
+            log_resp[:, k, : counts[k]] = b.log_responsibilities
+    if all(b.kappa is None for b in bounds):
+        return log_resp, None
+    kappa = torch.tensor(
+        [math.inf if b.kappa is None else b.kappa for b in bounds], dtype=torch.float64
+    )
+    return log_resp, kappa

@@ -629,10 +629,220 @@ def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
     )
 
 
+# --------------------------------------------------------------------------------------------
+# robot hockey (time-indexed vs episodic HiREPS, 3 shots, paper Fig 14)
+
+
+@dataclass(frozen=True)
+class HockeyConfig:
+    """Robot hockey in pybullet (paper Fig 14): 3 shots per episode, 14 DMP numbers per shot."""
+
+    n_options: int = 5
+    """Options per policy (paper: 5)."""
+    episodes: int = 1500
+    """Total episodes (paper: 1500)."""
+    episodes_per_iteration: int = 30
+    """Episodes (samples) per policy update (paper: 30)."""
+    epsilon: float = 1.0
+    """KL bound per iteration (per step for the sequential variant)."""
+    kappa_rel: float | None = 0.9
+    """Entropy bound relative to the mean responsibility entropy; None: off."""
+    init_std_position: float = 0.02
+    """Initial exploration std of the 7 DMP goal positions (rad)."""
+    init_std_velocity: float = 0.3
+    """Initial exploration std of the 7 DMP goal velocities (rad/s)."""
+    min_variance: float = 1e-6
+    """Floor on the option covariance eigenvalues."""
+    workers: int = 1
+    """Collector worker processes (1: in this process; >1: MultiSyncCollector)."""
+    seed: int = 0
+    run_dir: Path | None = None
+    """Where to write the run (default runs/<experiment>/<timestamp>); must not exist or be
+    empty."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+@dataclass(frozen=True)
+class HockeySequentialConfig(HockeyConfig):
+    """Sequential (time-indexed) HiREPS: one 14-dim policy per shot on the target position."""
+
+
+@dataclass(frozen=True)
+class HockeyEpisodicConfig(HockeyConfig):
+    """Episodic HiREPS: one 42-dim vector per episode from the initial target position."""
+
+
+def _hockey_rows(
+    states: torch.Tensor, rewards: torch.Tensor, final: torch.Tensor, zones: tuple
+) -> dict[str, Any]:
+    """Per-iteration hockey metrics of N episodes: returns (N,), final positions (N, 2)."""
+    from environments.hockey import zone_reward
+
+    zone = zone_reward(final.norm(dim=-1), zones)
+    returns = rewards.sum(-1)
+    return {
+        "average_reward": float(returns.mean()),
+        "zone3_share": float((zone == 3).double().mean()),
+        "zone_reward": float(zone.mean()),
+        "final_distance": float(final.norm(dim=-1).mean()),
+    }
+
+
+def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
+    """Sequential or episodic HiREPS on the simulated robot hockey task; returns the summary."""
+    from torchrl.envs import GymEnv, StepCounter, TransformedEnv
+
+    from environments.hockey import ENV_ID, EPISODIC_ENV_ID, HockeyParams, RobotHockeyEnv
+    from hireps_torch.algorithms import EpisodicHiREPS, TimeIndexedHiREPS
+    from hireps_torch.rollout import (
+        episodes,
+        make_collector,
+        policy_module,
+        shutdown_collector,
+        time_indexed_module,
+    )
+
+    sequential = isinstance(cfg, HockeySequentialConfig)
+    experiment = "hockey_sequential" if sequential else "hockey_episodic"
+    _validate_episodic_budget(cfg, ("n_options", "episodes_per_iteration", "workers"))
+    B, W = cfg.episodes_per_iteration, cfg.workers
+    if B < 2:
+        raise ValueError(f"episodes_per_iteration must be >= 2, got {B}")
+    if B % W:
+        raise ValueError(f"episodes_per_iteration ({B}) must be divisible by workers ({W})")
+    params = HockeyParams()
+    K = params.n_shots
+    probe = RobotHockeyEnv(params)  # builds the demo; gives the initial mean
+    demo = torch.as_tensor(probe.demo_action(), dtype=torch.float64)
+    probe.close()
+    std = torch.cat(
+        [
+            torch.full((7,), cfg.init_std_position, dtype=torch.float64),
+            torch.full((7,), cfg.init_std_velocity, dtype=torch.float64),
+        ]
+    )
+    torch.manual_seed(cfg.seed)
+    common = dict(
+        n_options=cfg.n_options,
+        init_std=std if sequential else std.repeat(K),
+        epsilon=cfg.epsilon,
+        kappa_rel=cfg.kappa_rel,
+        min_variance=cfg.min_variance,
+        seed=cfg.seed,
+    )
+    algo: Any
+    if sequential:
+        algo = TimeIndexedHiREPS.create(K, 14, 2, init_mean=demo, **common)  # type: ignore[arg-type]
+        actor = time_indexed_module(algo.policies)
+        policies = list(algo.policies)
+        frames_per_episode = K
+    else:
+        algo = EpisodicHiREPS.create(
+            14 * K,
+            context_dim=2,
+            init_mean=demo.repeat(K),
+            **common,  # type: ignore[arg-type]
+        )
+        actor = policy_module(algo.policy)
+        policies = [algo.policy]
+        frames_per_episode = 1
+    env_id = ENV_ID if sequential else EPISODIC_ENV_ID
+
+    def make_env() -> Any:
+        import environments.hockey  # noqa: F401  (registers the ids in worker processes)
+
+        env = GymEnv(env_id)
+        return TransformedEnv(env, StepCounter()) if sequential else env
+
+    iterations = cfg.episodes // B
+    frames = B * frames_per_episode
+    env_seed = cfg.seed + 1
+    collector = make_collector(
+        make_env,
+        actor,
+        frames_per_batch=frames,
+        total_frames=frames * iterations,
+        num_workers=W,
+        reset_at_each_iter=True,
+        seed=env_seed,
+    )
+    try:
+        run_dir = cfg.run_dir or default_run_dir(experiment)
+        writer = RunWriter(run_dir, {"experiment": experiment, **dataclasses.asdict(cfg)})
+    except BaseException:
+        shutdown_collector(collector)
+        raise
+    label = f"{experiment}/{cfg.n_options}opt"
+    bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
+    last: dict[str, Any] = {}
+    try:
+        for it, batch in enumerate(collector):
+            s, a, r, final = episodes(batch, frames_per_episode)
+            if sequential:
+                diag = algo.tell(s, a, r)
+                rewards = r
+                step_diag = {
+                    f"{key}_{k + 1}": diag[key][k]
+                    for key in (
+                        "eta",
+                        "xi",
+                        "kl",
+                        "cross_entropy",
+                        "effective_sample_size",
+                        "policy_entropy",
+                        "n_active_options",
+                    )
+                    for k in range(K)
+                }
+            else:
+                diag = algo.tell(s[:, 0], a[:, 0], r[:, 0])
+                rewards = r
+                step_diag = {}
+            if W > 1:
+                collector.update_policy_weights_()
+            last = _hockey_rows(s, rewards, final, params.zones)
+            scalars = {k: v for k, v in diag.items() if not isinstance(v, (list, tuple))}
+            writer.log(
+                {"iteration": it + 1, "episodes": (it + 1) * B, **last, **scalars, **step_diag}
+            )
+            bar.update(1)
+            bar.set_postfix(
+                reward=f"{last['average_reward']:.2f}", zone3=f"{last['zone3_share']:.2f}"
+            )
+    finally:
+        bar.close()
+        shutdown_collector(collector)
+    writer.checkpoint({"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)})
+    writer.plot_learning_curve(
+        "episodes", ["average_reward"], title=label, ylabel="average reward per episode"
+    )
+    shots = iterations * B * K
+    summary = writer.finish(
+        {
+            "experiment": experiment,
+            "n_options": cfg.n_options,
+            "seed": cfg.seed,
+            "episodes": iterations * B,
+            "iterations": iterations,
+            "final_average_reward": last["average_reward"],
+            "final_return": last["average_reward"],
+            "zone3_share": last["zone3_share"],
+            "final_zone_reward": last["zone_reward"],
+            "n_active_options": [int(p.active.sum()) for p in policies],
+        }
+    )
+    summary["seconds_per_shot"] = summary["wall_seconds"] / shots
+    writer.write_json("summary.json", summary)
+    return summary
+
+
 EXPERIMENTS: dict[str, tuple[Any, Any]] = {
     "bimodal": (BimodalConfig, run_bimodal),
     "pendulum": (PendulumConfig, run_pendulum),
     "ball-on-beam": (BallOnBeamConfig, run_ball_on_beam),
+    "hockey-sequential": (HockeySequentialConfig, run_hockey),
+    "hockey-episodic": (HockeyEpisodicConfig, run_hockey),
 }
 
 

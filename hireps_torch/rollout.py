@@ -28,9 +28,12 @@ from hireps_torch.policies import HierarchicalPolicy
 
 __all__ = [
     "PolicyActor",
+    "TimeIndexedActor",
+    "episodes",
     "make_collector",
     "policy_module",
     "shutdown_collector",
+    "time_indexed_module",
     "transitions",
 ]
 
@@ -72,6 +75,53 @@ def policy_module(
     return TensorDictModule(
         PolicyActor(policy, deterministic),
         in_keys=[observation_key],
+        out_keys=["action", "option"],
+    )
+
+
+class TimeIndexedActor(nn.Module):
+    """``observation (B, S), step_count (B, 1) -> action (B, A), option (B,)`` with one
+    :class:`HierarchicalPolicy` per decision step: row b acts with ``policies[step_count[b]]``.
+
+    Sampling and ``deterministic`` as in :class:`PolicyActor`; a step count outside
+    ``[0, K)`` raises a ValueError naming it.
+    """
+
+    def __init__(self, policies: list[HierarchicalPolicy], deterministic: bool = False) -> None:
+        super().__init__()
+        self.policies = nn.ModuleList(policies)
+        self.deterministic = deterministic
+
+    @torch.no_grad()
+    def forward(self, observation: Tensor, step_count: Tensor) -> tuple[Tensor, Tensor]:
+        lead = observation.shape[:-1]
+        s = observation.reshape(-1, observation.shape[-1]).to(torch.float64)
+        k = step_count.reshape(-1).long()
+        K = len(self.policies)
+        if bool(((k < 0) | (k >= K)).any()):
+            raise ValueError(f"step_count must be in [0, {K}), got {k.unique().tolist()}")
+        dim = self.policies[0].action_dim  # type: ignore[union-attr]
+        a = torch.zeros(s.shape[0], dim, dtype=torch.float64)
+        o = torch.zeros(s.shape[0], dtype=torch.long)
+        for step in k.unique().tolist():
+            rows = k == step
+            pol = self.policies[step]
+            out = pol.mean_action(s[rows]) if self.deterministic else pol.sample(s[rows])
+            a[rows], o[rows] = out[0], out[1]
+        return a.to(observation.dtype).reshape(*lead, -1), o.reshape(lead)
+
+
+def time_indexed_module(
+    policies: list[HierarchicalPolicy],
+    deterministic: bool = False,
+    observation_key: str = "observation",
+    step_key: str = "step_count",
+) -> TensorDictModule:
+    """Wrap per-step policies for TorchRL: reads the observation and the step counter (e.g.
+    from :class:`torchrl.envs.StepCounter`), writes ``action`` and ``option``."""
+    return TensorDictModule(
+        TimeIndexedActor(policies, deterministic),
+        in_keys=[observation_key, step_key],
         out_keys=["action", "option"],
     )
 
@@ -151,6 +201,34 @@ def shutdown_collector(collector: Any) -> None:
                 except Exception:  # pragma: no cover - best effort at teardown
                     pass
         gc.collect()
+
+
+def episodes(
+    batch: TensorDictBase, K: int, state_key: str = "observation"
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Cut a collected batch of whole K-step episodes into per-episode arrays.
+
+    The batch must hold N complete episodes, each starting where the previous ended (as a
+    collector with ``reset_at_each_iter=True`` and ``frames_per_batch`` a multiple of K
+    gathers them from episodes of exactly K steps); the ``done`` flags are checked.
+
+    Returns:
+        states (N, K, S), actions (N, K, A), rewards (N, K) and final states (N, S), float64.
+    """
+    flat = batch.reshape(-1)
+    T = flat.shape[0]
+    if T % K:
+        raise ValueError(f"the batch holds {T} steps, not a whole number of {K}-step episodes")
+    done = flat.get(("next", "done")).reshape(-1, K)
+    if not bool(done[:, -1].all()) or bool(done[:, :-1].any()):
+        raise ValueError(f"the batch is not made of whole {K}-step episodes (done flags)")
+    s = flat.get(state_key).to(torch.float64)
+    N = T // K
+    states = s.reshape(N, K, -1)
+    actions = flat.get("action").to(torch.float64).reshape(N, K, -1)
+    rewards = flat.get(("next", "reward")).to(torch.float64).reshape(N, K)
+    final = flat.get(("next", state_key)).to(torch.float64).reshape(N, K, -1)[:, -1]
+    return states, actions, rewards, final
 
 
 def transitions(

@@ -213,3 +213,46 @@ def test_ball_on_beam_same_seed_same_run(tmp_path):
     ]
     assert runs[0] == runs[1]
     assert runs[2] != runs[0]
+
+
+def test_hockey_sequential_subprocess_writes_the_run_directory(tmp_path):
+    pytest.importorskip("pybullet")
+    run = tmp_path / "run"
+    p = train(
+        "hockey-sequential",
+        *("--episodes", "20", "--episodes-per-iteration", "10"),
+        *("--run-dir", str(run), "--no-progress"),
+    )
+    assert p.returncode == 0, p.stderr
+    summary = check_run_dir(run, keys=("final_average_reward", "zone3_share"))
+    assert summary["experiment"] == "hockey_sequential" and summary["episodes"] == 20
+    assert 0.0 <= summary["zone3_share"] <= 1.0
+    assert -10.0 < summary["final_average_reward"] <= 3.0
+    rows = list(csv.DictReader((run / "metrics.csv").open()))
+    assert len(rows) == 2
+    for k in (1, 2, 3):  # per-shot dual diagnostics
+        assert abs(float(rows[0][f"kl_{k}"]) - 1.0) < 1e-3
+        for key in ("eta", "xi", "cross_entropy", "effective_sample_size", "policy_entropy"):
+            assert f"{key}_{k}" in rows[0]
+
+
+def test_hockey_same_seed_same_run(tmp_path):
+    pytest.importorskip("pybullet")
+    import train as train_module
+
+    def run(name, cls, seed):
+        cfg = cls(
+            episodes=10,
+            episodes_per_iteration=5,
+            seed=seed,
+            progress=False,
+            run_dir=tmp_path / name,
+        )
+        train_module.run_hockey(cfg)
+        return (tmp_path / name / "metrics.csv").read_text()
+
+    seq = train_module.HockeySequentialConfig
+    a, b, c = run("a", seq, 1), run("b", seq, 1), run("c", seq, 2)
+    assert a == b and a != c
+    epi = run("e", train_module.HockeyEpisodicConfig, 1)
+    assert "average_reward" in epi

@@ -155,6 +155,8 @@ class RobotHockeyEnv(gym.Env):
         params: task constants (:class:`HockeyParams`).
         render_mode: None or ``"rgb_array"`` (``render()`` returns (240, 320, 3) uint8).
         gui: show pybullet's GUI (needs a display).
+        frame_every: with ``render_mode="rgb_array"``, put an RGB frame of every this many
+            simulation steps of a shot into ``info["frames"]`` (0: none).
 
     ``info`` after a step: ``shot`` (1..3), ``min_gap`` (m), ``target_distance`` (m from the
     base), ``zone`` (0-3, of the current target position), ``zone_reward`` (only after the last
@@ -165,8 +167,15 @@ class RobotHockeyEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
     def __init__(
-        self, params: HockeyParams | None = None, render_mode: str | None = None, gui: bool = False
+        self,
+        params: HockeyParams | None = None,
+        render_mode: str | None = None,
+        gui: bool = False,
+        frame_every: int = 0,
     ) -> None:
+        if frame_every < 0:
+            raise ValueError(f"frame_every must be >= 0, got {frame_every}")
+        self.frame_every = frame_every if render_mode == "rgb_array" else 0
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.params = params or HockeyParams()
@@ -200,7 +209,7 @@ class RobotHockeyEnv(gym.Env):
         a, clipped = clip_action(
             action, self.sim.goal_low, self.sim.goal_high, self.params.max_goal_velocity
         )
-        result = self.sim.shot(a[:7], a[7:])
+        result = self.sim.shot(a[:7], a[7:], frame_every=self.frame_every)
         self.shot_index += 1
         self._target = result.target
         distance = float(np.linalg.norm(result.target))
@@ -218,6 +227,8 @@ class RobotHockeyEnv(gym.Env):
             "sim_steps": result.sim_steps,
             "control_end": result.control,
         }
+        if self.frame_every:
+            info["frames"] = result.frames
         return result.target.copy(), -result.min_gap + zone_r, terminated, False, info
 
     def render(self) -> np.ndarray | None:

@@ -1,0 +1,208 @@
+"""Robot hockey (HiREPS paper, Fig 14): sequential vs episodic HiREPS, simulation cost, pictures.
+
+1. Simulation cost: ``--timing-episodes`` episodes of the demo shot with exploration noise,
+   stepped through the gymnasium env in this process: seconds per shot and per episode.
+2. Learning: ``train.py hockey-sequential`` and ``train.py hockey-episodic`` (1500 episodes,
+   30 per iteration, 5 options) for ``--seeds`` seeds each; per run the final average reward
+   (mean episode reward over the last iteration's 30 samples), the share of those episodes
+   ending in zone 3, and the wall time.
+3. Writes to ``--out``: ``learning_curve.png`` (average reward per episode against episodes,
+   mean and ±1 std band over seeds, both variants), ``episode.png`` (a strip of frames of one
+   noise-free episode of the learned sequential policy, seed 0) and ``episode.gif``,
+   ``results.json`` and ``results.md``.
+
+    OMP_NUM_THREADS=1 python benchmarks/hockey_learning.py [--seeds 5] [--episodes 1500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks._common import plot_band, read_curve, write_results  # noqa: E402
+from hireps_torch.runlog import atomic_write  # noqa: E402
+from train import HockeyEpisodicConfig, HockeySequentialConfig, run_hockey  # noqa: E402
+
+
+def mean_std2(xs: list[float]) -> str:
+    """'mean ± std' with two decimals (the value alone for one sample)."""
+    if len(xs) == 1:
+        return f"{xs[0]:.2f}"
+    return f"{statistics.mean(xs):.2f} ± {statistics.stdev(xs):.2f}"
+
+
+def time_simulation(n_episodes: int) -> dict[str, float]:
+    """Seconds per shot and per episode of the gymnasium env (demo shot + noise)."""
+    from environments.hockey import RobotHockeyEnv
+
+    env = RobotHockeyEnv()
+    rng = np.random.default_rng(0)
+    demo = env.demo_action()
+    noise = np.r_[np.full(7, 0.05), np.full(7, 0.3)]
+    steps = 0
+    t0 = time.perf_counter()
+    for ep in range(n_episodes):
+        env.reset(seed=ep)
+        for _ in range(env.params.n_shots):
+            _, _, _, _, info = env.step(demo + noise * rng.standard_normal(14))
+            steps += info["sim_steps"]
+    dt = time.perf_counter() - t0
+    env.close()
+    shots = n_episodes * env.params.n_shots
+    return {
+        "seconds_per_shot": dt / shots,
+        "seconds_per_episode": dt / n_episodes,
+        "sim_steps_per_shot": steps / shots,
+        "sim_steps_per_second": steps / dt,
+    }
+
+
+def plot_curves(results: dict[str, list[dict[str, Any]]], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for name, runs in results.items():
+        plot_band(ax, runs[0]["episodes_axis"], [r["curve"] for r in runs], name)
+    ax.axhline(3.0, color="k", lw=0.8, ls="--", label="optimum (3)")
+    ax.axhline(2.3, color="grey", lw=0.8, ls=":", label="paper, sequential (2.3)")
+    ax.set_xlabel("episodes")
+    ax.set_ylabel("average reward per episode")
+    n = len(next(iter(results.values())))
+    ax.set_title(f"robot hockey, {n} seeds (mean ± std)")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    atomic_write(out / "learning_curve.png", lambda p: fig.savefig(p, format="png", dpi=110))
+    plt.close(fig)
+
+
+def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
+    """Play one noise-free episode of a learned sequential policy; write a strip and a GIF."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from environments.hockey import RobotHockeyEnv
+    from hireps_torch.algorithms import TimeIndexedHiREPS
+
+    ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    cfg = HockeySequentialConfig(**{**ckpt["config"], "run_dir": None})
+    env = RobotHockeyEnv(render_mode="rgb_array", frame_every=12)
+    demo = torch.as_tensor(env.demo_action(), dtype=torch.float64)
+    algo = TimeIndexedHiREPS.create(
+        env.params.n_shots, 14, 2, n_options=cfg.n_options, init_mean=demo, seed=cfg.seed
+    )
+    algo.load_state_dict(ckpt["algorithm"])
+    obs, _ = env.reset(seed=seed)
+    frames, strip, total, zone = [env.render()], [env.render()], 0.0, 0
+    for k in range(env.params.n_shots):
+        action = algo.act(k, torch.as_tensor(obs[None], dtype=torch.float64))[0]
+        obs, r, _, _, info = env.step(action.numpy())
+        total += r
+        zone = info["zone"]
+        frames += info["frames"]
+        strip += [info["frames"][len(info["frames"]) // 5], env.render()]
+    env.close()
+    fig, axes = plt.subplots(1, len(strip), figsize=(2.6 * len(strip), 2.4))
+    titles = ["start"] + [t for k in range(1, 4) for t in (f"shot {k}", f"after shot {k}")]
+    for ax, im, title in zip(axes, strip, titles, strict=True):
+        ax.imshow(im)
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    fig.suptitle(f"learned sequential policy: episode return {total:.2f}, zone {zone}")
+    fig.tight_layout()
+    atomic_write(out / "episode.png", lambda p: fig.savefig(p, format="png", dpi=100))
+    plt.close(fig)
+    from PIL import Image
+
+    images = [Image.fromarray(f) for f in frames[::2]]
+    atomic_write(
+        out / "episode.gif",
+        lambda p: images[0].save(
+            p, format="GIF", save_all=True, append_images=images[1:], duration=80, loop=0
+        ),
+    )
+    return {"episode_return": total, "zone": zone}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--episodes", type=int, default=HockeySequentialConfig.episodes)
+    ap.add_argument("--timing-episodes", type=int, default=20)
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "hockey_benchmark")
+    args = ap.parse_args()
+    if args.seeds < 1:
+        raise SystemExit(f"--seeds must be >= 1, got {args.seeds}")
+    torch.set_num_threads(1)
+    out: Path = args.out / time.strftime("%Y%m%d-%H%M%S")
+    out.mkdir(parents=True, exist_ok=False)
+
+    timing = time_simulation(args.timing_episodes)
+    print(
+        f"simulation: {1000 * timing['seconds_per_shot']:.1f} ms per shot "
+        f"({timing['sim_steps_per_shot']:.0f} pybullet steps, "
+        f"{timing['sim_steps_per_second']:.0f} steps/s), "
+        f"{1000 * timing['seconds_per_episode']:.1f} ms per 3-shot episode",
+        flush=True,
+    )
+    variants = {"sequential": HockeySequentialConfig, "episodic": HockeyEpisodicConfig}
+    results: dict[str, list[dict[str, Any]]] = {name: [] for name in variants}
+    t_all = time.perf_counter()
+    for seed in range(args.seeds):
+        for name, cls in variants.items():
+            run_dir = out / "runs" / f"{name}_seed{seed}"
+            cfg = cls(seed=seed, episodes=args.episodes, progress=False, run_dir=run_dir)
+            summary = run_hockey(cfg)
+            x, y = read_curve(run_dir, "average_reward")
+            results[name].append(
+                {**summary, "run_dir": str(run_dir), "curve": y, "episodes_axis": x}
+            )
+            print(
+                f"  {name:10s} seed {seed}: final average reward "
+                f"{summary['final_average_reward']:5.2f}, zone 3 share "
+                f"{summary['zone3_share']:.2f}, {summary['wall_seconds']:.0f} s",
+                flush=True,
+            )
+    total = time.perf_counter() - t_all
+    lines = [
+        f"| variant | seeds | final average reward ({args.episodes} episodes) | zone 3 share "
+        "| s/run (mean, max) |",
+        "|---|--:|--:|--:|--:|",
+    ]
+    for name, runs in results.items():
+        walls = [r["wall_seconds"] for r in runs]
+        lines.append(
+            f"| {name} | {len(runs)} | "
+            f"{mean_std2([r['final_average_reward'] for r in runs])} | "
+            f"{mean_std2([r['zone3_share'] for r in runs])} | "
+            f"{statistics.mean(walls):.0f}, {max(walls):.0f} |"
+        )
+    table = "\n".join(lines)
+    print(table)
+    for name, runs in results.items():
+        finals = [r["final_average_reward"] for r in runs]
+        print(f"{name}: final average reward per seed " + ", ".join(f"{f:.2f}" for f in finals))
+    print(f"all runs: {total:.0f} s")
+    plot_curves(results, out)
+    shown = record_episode(Path(results["sequential"][0]["run_dir"]), out)
+    print(f"recorded episode (sequential, seed 0): {shown}")
+    write_results(out, {"timing": timing, "runs": results, "episode": shown}, total, table)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,10 +1,19 @@
 """TorchRL glue: the policy as a TensorDictModule, a Collector over the batched pendulum."""
 
+import pytest
 import torch
+from tensordict import TensorDict
 
 from environments.pendulum import PendulumParams, PendulumSwingUpBatchEnv, pendulum_step
 from hireps_torch.policies import HierarchicalPolicy
-from hireps_torch.rollout import make_collector, policy_module, shutdown_collector, transitions
+from hireps_torch.rollout import (
+    episodes,
+    make_collector,
+    policy_module,
+    shutdown_collector,
+    time_indexed_module,
+    transitions,
+)
 
 
 def test_collector_gathers_decisions_with_their_options():
@@ -62,3 +71,50 @@ def test_deterministic_actor_uses_the_mean_of_the_most_probable_option():
     expected, option = pol.mean_action(obs.double())
     assert torch.allclose(td["action"], expected.float())
     assert torch.equal(td["option"], option)
+
+
+def test_time_indexed_actor_acts_with_the_policy_of_each_step():
+    # three one-option policies with far-apart means: the action tells which one acted
+    pols = [
+        HierarchicalPolicy.create(
+            1, 2, 1, init_mean=torch.tensor([10.0 * k]), init_std=1e-3, spread=0.0
+        )
+        for k in range(3)
+    ]
+    actor = time_indexed_module(pols, deterministic=True)
+    td = TensorDict(
+        {
+            "observation": torch.zeros(6, 2),
+            "step_count": torch.tensor([[0], [1], [2], [2], [1], [0]]),
+        },
+        batch_size=[6],
+    )
+    out = actor(td)
+    assert torch.allclose(out["action"][:, 0], torch.tensor([0.0, 10, 20, 20, 10, 0]), atol=1e-6)
+    td["step_count"] = torch.full((6, 1), 3)
+    with pytest.raises(ValueError, match=r"step_count must be in \[0, 3\), got \[3\]"):
+        actor(td)
+
+
+def test_episodes_cuts_whole_episodes_and_rejects_partial_ones():
+    N, K = 4, 3
+    done = torch.zeros(N * K, 1, dtype=torch.bool)
+    done[K - 1 :: K] = True
+    obs = torch.arange(N * K, dtype=torch.float64)[:, None].repeat(1, 2)
+    batch = TensorDict(
+        {
+            "observation": obs,
+            "action": torch.ones(N * K, 5),
+            "next": {"observation": obs + 100, "reward": torch.ones(N * K, 1), "done": done},
+        },
+        batch_size=[N * K],
+    )
+    s, a, r, final = episodes(batch, K)
+    assert s.shape == (N, K, 2) and a.shape == (N, K, 5) and r.shape == (N, K)
+    assert torch.equal(s[1, :, 0], torch.tensor([3.0, 4, 5], dtype=torch.float64))
+    assert torch.equal(final[:, 0], torch.tensor([102.0, 105, 108, 111], dtype=torch.float64))
+    with pytest.raises(ValueError, match="whole number of 3-step episodes"):
+        episodes(batch[:10], K)
+    batch["next", "done"][4] = True  # an episode that ended early
+    with pytest.raises(ValueError, match="done flags"):
+        episodes(batch, K)

@@ -653,6 +653,9 @@ class HockeyConfig:
     """Initial exploration std of the 7 DMP goal velocities (rad/s)."""
     min_variance: float = 1e-6
     """Floor on the option covariance eigenvalues."""
+    covariance_prior: float = 0.0
+    """Pseudo-samples of the prior that shrinks each option's refit covariance toward the
+    previous one (0: plain weighted maximum likelihood)."""
     workers: int = 1
     """Collector worker processes (1: in this process; >1: MultiSyncCollector)."""
     seed: int = 0
@@ -729,6 +732,7 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
         epsilon=cfg.epsilon,
         kappa_rel=cfg.kappa_rel,
         min_variance=cfg.min_variance,
+        covariance_prior=cfg.covariance_prior,
         seed=cfg.seed,
     )
     algo: Any

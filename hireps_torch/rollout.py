@@ -100,7 +100,7 @@ class TimeIndexedActor(nn.Module):
         K = len(self.policies)
         if bool(((k < 0) | (k >= K)).any()):
             raise ValueError(f"step_count must be in [0, {K}), got {k.unique().tolist()}")
-        dim = self.policies[0].action_dim  # type: ignore[union-attr]
+        dim = int(self.policies[0].action_dim)  # type: ignore[arg-type]
         a = torch.zeros(s.shape[0], dim, dtype=torch.float64)
         o = torch.zeros(s.shape[0], dtype=torch.long)
         for step in k.unique().tolist():

@@ -100,13 +100,16 @@ class EpisodicHiREPS:
         gating_features: FeatureMap | None = None,
         policy_features: FeatureMap | None = None,
         min_variance: float = 1e-8,
+        covariance_prior: float = 0.0,
         seed: int | None = None,
     ) -> EpisodicHiREPS:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
 
         The gating sees the squared expansion of the context by default, the options the
         context itself (a linear policy). Option means start at
-        ``init_mean + spread * init_std * randn`` (see :meth:`HierarchicalPolicy.create`).
+        ``init_mean + spread * init_std * randn`` (see :meth:`HierarchicalPolicy.create`);
+        ``covariance_prior`` shrinks every refit covariance toward the previous one (see
+        :class:`~hireps_torch.policies.LinearGaussian`).
         """
         gen = torch.Generator()
         gen.manual_seed(0 if seed is None else int(seed))
@@ -122,6 +125,7 @@ class EpisodicHiREPS:
             gating_features=gating_features,
             policy_features=policy_features,
             min_variance=min_variance,
+            covariance_prior=covariance_prior,
             generator=gen,
         )
         return cls(
@@ -260,6 +264,7 @@ class REPS(EpisodicHiREPS):
         epsilon: float = 1.0,
         policy_features: FeatureMap | None = None,
         min_variance: float = 1e-8,
+        covariance_prior: float = 0.0,
         seed: int | None = None,
     ) -> REPS:
         """Build REPS with a single linear-Gaussian policy (see :meth:`EpisodicHiREPS.create`)."""
@@ -273,6 +278,7 @@ class REPS(EpisodicHiREPS):
             kappa_rel=None,
             policy_features=policy_features,
             min_variance=min_variance,
+            covariance_prior=covariance_prior,
             seed=seed,
         )
         assert isinstance(algo, REPS)

@@ -151,6 +151,7 @@ class TimeIndexedHiREPS:
         policy_features: FeatureMap | None = None,
         value_features: FeatureMap | None = None,
         min_variance: float = 1e-8,
+        covariance_prior: float = 0.0,
         seed: int | None = None,
     ) -> TimeIndexedHiREPS:
         """Build K fresh softmax-gated mixtures of linear-Gaussian options, one per step.
@@ -171,6 +172,8 @@ class TimeIndexedHiREPS:
             policy_features: option features (the state itself by default: linear options).
             value_features: value features phi (the squared expansion of the state by default).
             min_variance: variance floor of the options.
+            covariance_prior: pseudo-samples of the prior that shrinks each refit covariance
+                toward the previous one (see :class:`~hireps_torch.policies.LinearGaussian`).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator).
         """
         if K < 1:
@@ -200,6 +203,7 @@ class TimeIndexedHiREPS:
                 gating_features=gating_features,
                 policy_features=policy_features,
                 min_variance=min_variance,
+                covariance_prior=covariance_prior,
                 generator=gen,
             )
             for k in range(K)

@@ -68,13 +68,15 @@ class HierarchicalPolicy(nn.Module):
         min_variance: float = 1e-8,
         generator: torch.Generator | None = None,
         gating: Gating | None = None,
+        covariance_prior: float = 0.0,
     ) -> HierarchicalPolicy:
         """Build a mixture of linear-Gaussian options.
 
         Option means start at ``init_mean + spread * init_std * randn`` (exactly ``init_mean``
         for one option), covariances at ``init_std^2 I``. The gating is ``gating`` when given
         (e.g. a :class:`ConstantGating` on ``gating_features``), else a uniform
-        :class:`SoftmaxGating`.
+        :class:`SoftmaxGating`. ``covariance_prior`` goes to every option (see
+        :class:`LinearGaussian`).
         """
         gf = gating_features or IdentityFeatures(context_dim)
         pf = policy_features or IdentityFeatures(context_dim)
@@ -92,7 +94,16 @@ class HierarchicalPolicy(nn.Module):
                 else mean
                 + spread * std * torch.randn(action_dim, generator=generator, dtype=torch.float64)
             )
-            opts.append(LinearGaussian(pf.out_features, action_dim, m, std, min_variance))
+            opts.append(
+                LinearGaussian(
+                    pf.out_features,
+                    action_dim,
+                    m,
+                    std,
+                    min_variance,
+                    covariance_prior=covariance_prior,
+                )
+            )
         if gating is None:
             gating = SoftmaxGating(gf.out_features, n_options)
         return cls(gating, opts, gf, pf)

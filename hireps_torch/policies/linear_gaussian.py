@@ -56,6 +56,12 @@ class LinearGaussian(nn.Module):
         init_mean: (D,) initial mean (bias); zeros by default.
         init_std: initial standard deviation (scalar or (D,)).
         min_variance: floor on the covariance eigenvalues after every fit.
+        covariance_prior: k, pseudo-samples of a prior centred on the current covariance: a
+            refit returns ``(n_eff S + k Sigma_old) / (n_eff + k)`` with S the weighted residual
+            covariance and ``n_eff = (sum w)^2 / sum w^2`` the effective number of samples (the
+            MAP estimate under an inverse-Wishart-type prior). It keeps exploration from
+            collapsing when an option has fewer effective samples than dimensions; 0 (default)
+            is plain weighted maximum likelihood.
         dtype: parameter dtype (float64 by default: parameter spaces are small).
     """
 
@@ -67,6 +73,7 @@ class LinearGaussian(nn.Module):
         init_std: float | Tensor = 1.0,
         min_variance: float = 1e-8,
         dtype: torch.dtype = torch.float64,
+        covariance_prior: float = 0.0,
     ) -> None:
         super().__init__()
         if action_dim < 1:
@@ -75,6 +82,9 @@ class LinearGaussian(nn.Module):
             raise ValueError(f"in_features must be >= 0, got {in_features}")
         if min_variance <= 0:
             raise ValueError(f"min_variance must be > 0, got {min_variance}")
+        if not (math.isfinite(covariance_prior) and covariance_prior >= 0):
+            raise ValueError(f"covariance_prior must be finite and >= 0, got {covariance_prior}")
+        self.covariance_prior = float(covariance_prior)
         std = torch.as_tensor(init_std, dtype=dtype).expand(action_dim).clone()
         if not bool(torch.isfinite(std).all()) or bool((std <= 0).any()):
             raise ValueError(f"init_std must be finite and > 0, got {std.tolist()}")
@@ -140,7 +150,8 @@ class LinearGaussian(nn.Module):
 
         The mean is the weighted least-squares fit of ``targets`` on ``[1, inputs]`` (ridge on
         the slopes); the covariance is the weighted covariance of the residuals
-        ``sum_i w_i r_i r_i^T / sum_i w_i`` with its eigenvalues floored at ``min_variance``.
+        ``sum_i w_i r_i r_i^T / sum_i w_i``, shrunk toward the current covariance when
+        ``covariance_prior > 0``, with its eigenvalues floored at ``min_variance``.
 
         Args:
             inputs: (N, F) features.
@@ -164,6 +175,10 @@ class LinearGaussian(nn.Module):
         W, b = weighted_least_squares(x, targets, w, ridge=ridge)
         resid = targets.to(torch.float64) - (x.to(torch.float64) @ W.T + b)
         cov = (w[:, None] * resid).T @ resid / w.sum()
+        if self.covariance_prior > 0:
+            n_eff = w.sum() ** 2 / (w**2).sum()
+            k = self.covariance_prior
+            cov = (n_eff * cov + k * self.covariance.to(torch.float64)) / (n_eff + k)
         self.weight.copy_(W.to(self.weight.dtype))
         self.bias.copy_(b.to(self.bias.dtype))
         self.set_covariance(cov)

@@ -103,3 +103,26 @@ def test_state_dict_round_trip(gen):
     other.load_state_dict(pol.state_dict())
     for k, v in pol.state_dict().items():
         assert torch.equal(v, other.state_dict()[k])
+
+
+def test_covariance_prior_shrinks_the_refit_toward_the_old_covariance():
+    gen = torch.Generator().manual_seed(0)
+    D, N = 5, 40
+    x = torch.randn(N, 0, dtype=torch.float64, generator=gen)
+    theta = torch.randn(N, D, dtype=torch.float64, generator=gen)
+    w = torch.zeros(N, dtype=torch.float64)
+    w[:3] = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64)  # 3 samples for 5 dimensions
+    plain = LinearGaussian(0, D, init_std=0.7, min_variance=1e-8)
+    plain.weighted_fit(x, theta, w)
+    assert torch.linalg.eigvalsh(plain.covariance).min() < 1e-7  # collapsed onto a plane
+
+    k = 5.0
+    shrunk = LinearGaussian(0, D, init_std=0.7, min_variance=1e-8, covariance_prior=k)
+    old = shrunk.covariance.clone()
+    shrunk.weighted_fit(x, theta, w)
+    n_eff = float(w.sum() ** 2 / (w**2).sum())
+    expected = (n_eff * plain.covariance + k * old) / (n_eff + k)
+    assert torch.allclose(shrunk.covariance, expected, atol=1e-10)
+    assert torch.linalg.eigvalsh(shrunk.covariance).min() > k / (n_eff + k) * 0.49 - 1e-9
+    with pytest.raises(ValueError, match="covariance_prior must be finite and >= 0, got -1"):
+        LinearGaussian(0, D, covariance_prior=-1.0)

@@ -653,6 +653,9 @@ class HockeyConfig:
     """Initial exploration std of the 7 DMP goal velocities (rad/s)."""
     min_variance: float = 1e-6
     """Floor on the option covariance eigenvalues."""
+    exploration_floor: float = 0.0
+    """Floor on each option's std as a fraction of the initial std, per parameter (keeps the
+    14-dim options from collapsing onto the few effective samples of an update); 0: off."""
     covariance_prior: float = 0.0
     """Pseudo-samples of the prior that shrinks each option's refit covariance toward the
     previous one (0: plain weighted maximum likelihood)."""
@@ -712,6 +715,8 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
     B, W = cfg.episodes_per_iteration, cfg.workers
     if B < 2:
         raise ValueError(f"episodes_per_iteration must be >= 2, got {B}")
+    if not 0.0 <= cfg.exploration_floor < 1.0:
+        raise ValueError(f"exploration_floor must be in [0, 1), got {cfg.exploration_floor}")
     if B % W:
         raise ValueError(f"episodes_per_iteration ({B}) must be divisible by workers ({W})")
     params = HockeyParams()
@@ -725,13 +730,14 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
             torch.full((7,), cfg.init_std_velocity, dtype=torch.float64),
         ]
     )
+    std_full = std if sequential else std.repeat(K)
     torch.manual_seed(cfg.seed)
     common = dict(
         n_options=cfg.n_options,
-        init_std=std if sequential else std.repeat(K),
+        init_std=std_full,
         epsilon=cfg.epsilon,
         kappa_rel=cfg.kappa_rel,
-        min_variance=cfg.min_variance,
+        min_variance=((cfg.exploration_floor * std_full) ** 2).clamp_min(cfg.min_variance),
         covariance_prior=cfg.covariance_prior,
         seed=cfg.seed,
     )

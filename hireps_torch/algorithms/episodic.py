@@ -99,7 +99,7 @@ class EpisodicHiREPS:
         kappa_rel: float | None = 0.9,
         gating_features: FeatureMap | None = None,
         policy_features: FeatureMap | None = None,
-        min_variance: float = 1e-8,
+        min_variance: float | Tensor = 1e-8,
         covariance_prior: float = 0.0,
         seed: int | None = None,
     ) -> EpisodicHiREPS:
@@ -263,7 +263,7 @@ class REPS(EpisodicHiREPS):
         init_std: float | Tensor = 1.0,
         epsilon: float = 1.0,
         policy_features: FeatureMap | None = None,
-        min_variance: float = 1e-8,
+        min_variance: float | Tensor = 1e-8,
         covariance_prior: float = 0.0,
         seed: int | None = None,
     ) -> REPS:

@@ -150,7 +150,7 @@ class TimeIndexedHiREPS:
         gating_features: FeatureMap | None = None,
         policy_features: FeatureMap | None = None,
         value_features: FeatureMap | None = None,
-        min_variance: float = 1e-8,
+        min_variance: float | Tensor = 1e-8,
         covariance_prior: float = 0.0,
         seed: int | None = None,
     ) -> TimeIndexedHiREPS:

@@ -65,7 +65,7 @@ class HierarchicalPolicy(nn.Module):
         spread: float = 1.0,
         gating_features: FeatureMap | None = None,
         policy_features: FeatureMap | None = None,
-        min_variance: float = 1e-8,
+        min_variance: float | Tensor = 1e-8,
         generator: torch.Generator | None = None,
         gating: Gating | None = None,
         covariance_prior: float = 0.0,

@@ -55,7 +55,9 @@ class LinearGaussian(nn.Module):
         action_dim: D, dimension of theta.
         init_mean: (D,) initial mean (bias); zeros by default.
         init_std: initial standard deviation (scalar or (D,)).
-        min_variance: floor on the covariance eigenvalues after every fit.
+        min_variance: floor on the covariance after every fit: a float floors its eigenvalues;
+            a (D,) tensor m floors the eigenvalues of ``diag(m)^-1/2 Sigma diag(m)^-1/2`` at 1
+            (per-dimension floors for parameters in different units).
         covariance_prior: k, pseudo-samples of a prior centred on the current covariance: a
             refit returns ``(n_eff S + k Sigma_old) / (n_eff + k)`` with S the weighted residual
             covariance and ``n_eff = (sum w)^2 / sum w^2`` the effective number of samples (the
@@ -71,7 +73,7 @@ class LinearGaussian(nn.Module):
         action_dim: int,
         init_mean: Tensor | None = None,
         init_std: float | Tensor = 1.0,
-        min_variance: float = 1e-8,
+        min_variance: float | Tensor = 1e-8,
         dtype: torch.dtype = torch.float64,
         covariance_prior: float = 0.0,
     ) -> None:
@@ -80,8 +82,18 @@ class LinearGaussian(nn.Module):
             raise ValueError(f"action_dim must be >= 1, got {action_dim}")
         if in_features < 0:
             raise ValueError(f"in_features must be >= 0, got {in_features}")
-        if min_variance <= 0:
-            raise ValueError(f"min_variance must be > 0, got {min_variance}")
+        floor = torch.as_tensor(min_variance, dtype=torch.float64).detach().clone()
+        if floor.dim() == 0:
+            floor = floor.expand(action_dim).clone()
+        if (
+            floor.shape != (action_dim,)
+            or not bool(torch.isfinite(floor).all())
+            or bool((floor <= 0).any())
+        ):
+            raise ValueError(
+                f"min_variance must be > 0 (a float or a ({action_dim},) tensor), got "
+                f"{torch.as_tensor(min_variance).tolist()}"
+            )
         if not (math.isfinite(covariance_prior) and covariance_prior >= 0):
             raise ValueError(f"covariance_prior must be finite and >= 0, got {covariance_prior}")
         self.covariance_prior = float(covariance_prior)
@@ -97,7 +109,10 @@ class LinearGaussian(nn.Module):
             raise ValueError(f"init_mean must have shape ({action_dim},), got {tuple(mean.shape)}")
         self.in_features = in_features
         self.action_dim = action_dim
-        self.min_variance = float(min_variance)
+        self.min_variance = (
+            float(min_variance) if isinstance(min_variance, (int, float)) else floor
+        )
+        self._floor_scale = floor.sqrt()  # (D,)
         self.weight = nn.Parameter(torch.zeros(action_dim, in_features, dtype=dtype), False)
         self.bias = nn.Parameter(mean, requires_grad=False)
         self.chol = nn.Parameter(torch.diag(std), requires_grad=False)
@@ -185,11 +200,12 @@ class LinearGaussian(nn.Module):
 
     @torch.no_grad()
     def set_covariance(self, cov: Tensor) -> None:
-        """Set the covariance (D, D), symmetrised and eigenvalue-floored at ``min_variance``."""
+        """Set the covariance (D, D), symmetrised and floored at ``min_variance``."""
         cov = cov.to(torch.float64)
         cov = 0.5 * (cov + cov.T)
-        evals, evecs = torch.linalg.eigh(cov)
-        if bool((evals < self.min_variance).any()):
-            cov = (evecs * evals.clamp_min(self.min_variance)) @ evecs.T
+        scale = self._floor_scale[:, None] * self._floor_scale[None, :]
+        evals, evecs = torch.linalg.eigh(cov / scale)
+        if bool((evals < 1.0).any()):
+            cov = (evecs * evals.clamp_min(1.0)) @ evecs.T * scale
             cov = 0.5 * (cov + cov.T)
         self.chol.copy_(torch.linalg.cholesky(cov).to(self.chol.dtype))

@@ -126,3 +126,17 @@ def test_covariance_prior_shrinks_the_refit_toward_the_old_covariance():
     assert torch.linalg.eigvalsh(shrunk.covariance).min() > k / (n_eff + k) * 0.49 - 1e-9
     with pytest.raises(ValueError, match="covariance_prior must be finite and >= 0, got -1"):
         LinearGaussian(0, D, covariance_prior=-1.0)
+
+
+def test_per_dimension_variance_floor_keeps_each_parameter_exploring():
+    gen = torch.Generator().manual_seed(1)
+    floor = torch.tensor([1e-4, 1e-4, 0.09], dtype=torch.float64)  # rad^2, rad^2, (rad/s)^2
+    pol = LinearGaussian(0, 3, init_std=torch.tensor([0.02, 0.02, 0.3]), min_variance=floor)
+    theta = torch.randn(30, 3, dtype=torch.float64, generator=gen) * 1e-4  # nearly one point
+    pol.weighted_fit(torch.zeros(30, 0, dtype=torch.float64), theta, torch.ones(30))
+    cov = pol.covariance
+    assert torch.all(cov.diagonal() >= floor * (1 - 1e-9))
+    scaled = cov / (floor.sqrt()[:, None] * floor.sqrt()[None, :])
+    assert torch.linalg.eigvalsh(scaled).min() >= 1 - 1e-9
+    with pytest.raises(ValueError, match=r"min_variance must be > 0 \(a float or a \(3,\)"):
+        LinearGaussian(0, 3, min_variance=torch.tensor([1.0, 0.0, 1.0]))

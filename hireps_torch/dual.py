@@ -31,17 +31,21 @@ c = (1 - gamma) phi_hat_0) and time-indexed (one block per decision step, D_k v 
 v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k), c = [phi_hat_1, 0, ..]; see
 :func:`solve_time_indexed_dual`) duals reuse one solver, :func:`solve_reps_dual`.
 
-Numerics: everything in float64 whatever the input dtype; returns are centred per block and
-divided by one common scale and feature columns standardised before solving (the weights are
-invariant to both; eta, xi and v are mapped back to the caller's units); eta and xi live in log
-space; log-sum-exp subtracts the max. The entropy bound is handled by its KKT conditions: the
-dual is first solved with xi = 0, and xi is freed (as exp(b) > 0) only for blocks whose
-cross-entropy then exceeds kappa, which makes the bound hold with equality exactly when it is
-active. When no distribution within the KL bound meets the feature constraints (few samples
-against many features, common in the infinite-horizon dual) the dual is unbounded below; the
-solver detects it, warns (:class:`InfeasibleConstraintsWarning`) and re-solves with a ridge
-on the standardised v, which turns the feature constraints into a quadratic penalty and keeps
-the KL bound (``feature_error`` then reports the remaining violation).
+Numerics: everything in float64 whatever the input dtype. Before solving, v is written as
+v0 + scale * T u: v0 is the small-epsilon solution (a least-squares fit of the returns on the
+features, block-weighted by 1/eta; 0 when the dual has a linear term c), the returns become
+the Bellman errors at v0, centred per block and divided by their common spread ``scale``, and
+T whitens the features (per-block centred, block-weighted). The weights are invariant to all
+of it; eta, xi and v are mapped back to the caller's units. This keeps the problem well
+conditioned when the features explain most of the returns (a converging policy) and when they
+are nearly collinear. eta and xi live in log space; log-sum-exp subtracts the max. The entropy
+bound is handled by its KKT conditions: the dual is solved with xi free, then re-solved with
+xi = 0 exactly for blocks whose xi ended ~0 with the bound slack. When no distribution within
+the KL bound meets the feature constraints (few samples against many features, common in the
+infinite-horizon dual) the dual is unbounded below; the solver detects it, warns
+(:class:`InfeasibleConstraintsWarning`) and re-solves with a ridge on the standardised u, which
+turns the feature constraints into a quadratic penalty and keeps the KL bound
+(``feature_error`` then reports the remaining violation).
 """
 
 from __future__ import annotations
@@ -396,14 +400,43 @@ def solve_reps_dual(
     O = log_resp.shape[-1]
     log_resp = log_resp.to(torch.float64)
 
-    # Standardise: centre returns per block (weights invariant), one common scale over blocks
-    # (the blocks are coupled through v, so they must share it).
-    Rc = R - R.mean(dim=1, keepdim=True)
-    scale = float(Rc.std()) if Rc.numel() > 1 else 1.0
-    informative = scale > 1e-12 * max(1.0, float(R.abs().max()))
+    # Standardise (the weights are invariant to all of it; eta, xi and v are mapped back).
+    # Returns: centred per block and divided by one common spread (the blocks are coupled
+    # through v). Value multipliers: the dual is invariant to writing v = v0 + scale * T u
+    # while the returns become the Bellman errors R + D v0, so solve for u with
+    #   R_s = (R + D v0 - block means) / scale,   D_s = D T.
+    # v0 is the small-epsilon solution (without c; see _value_start) and T whitens the
+    # curvature of the dual in v at the start, sum_k Cov(D_k) / eta_k. Both matter once the
+    # features explain most of the returns (a converging policy): scaled by the returns, eta
+    # is ~1e-5 and the v-curvature ~1/eta, and collinear features (phi = [s, s^2] with s in a
+    # narrow range) or blocks with very different eta make it ill-conditioned besides; LBFGS
+    # then stalls or runs off.
     eps = epsilon.to(torch.float64)
-    if not informative:
-        # No return information: every distribution is optimal; keep the old one.
+    resid = R - R.mean(dim=1, keepdim=True)
+    T = None  # v = v0 + scale * T u (v0 and T in the caller's feature units)
+    Ds = cs = None
+    v0 = torch.zeros(0 if D is None else D.shape[-1], dtype=torch.float64)
+    floor = 1e-12 * max(1.0, float(R.abs().max()))
+    if D is not None and D.shape[-1] > 0:
+        D = D.to(torch.float64)
+        col = D.reshape(K * N, -1).std(dim=0)
+        col = torch.where(col > 1e-12, col, torch.ones_like(col))
+        Dc = (D - D.mean(dim=1, keepdim=True)) / col  # per-block centred, unit columns
+        if c is None:
+            v0 = _value_start(resid, Dc, eps, floor) / col
+            resid = resid + D @ v0
+        # block weights 1 / eta_k at the start (KL ≈ Var(delta_k) / (2 eta_k^2) = eps_k)
+        spread = (resid - resid.mean(dim=1, keepdim=True)).std(dim=1).clamp_min(floor)
+        weight = (2.0 * eps).sqrt() / spread
+        T = _whitening(Dc, weight / weight.max()) / col[:, None]
+        Ds = D @ T
+        cs = None if c is None else T.T @ c.to(torch.float64)
+    offset = resid.mean(dim=1, keepdim=True)
+    resid = resid - offset
+    scale = float(resid.std()) if resid.numel() > 1 else 1.0
+    if not scale > 1e-10 * max(1.0, float(R.abs().max())):
+        # No return information (beyond what the features fix): every distribution that keeps
+        # the features is optimal; keep the old one.
         w = log_resp.exp() / N
         w = w / w.sum(dim=(1, 2), keepdim=True)
         return _finish(
@@ -418,15 +451,7 @@ def solve_reps_dual(
             True,
             0,
         )
-    Rs = Rc / scale
-    col = None
-    Ds = cs = None
-    if D is not None and D.shape[-1] > 0:
-        D = D.to(torch.float64)
-        col = D.reshape(K * N, -1).std(dim=0)
-        col = torch.where(col > 1e-12, col, torch.ones_like(col))
-        Ds = D / col
-        cs = None if c is None else c.to(torch.float64) / col
+    Rs = resid / scale
     kap = torch.full((K,), math.inf, dtype=torch.float64)
     if kappa is not None:
         kap = kappa.to(torch.float64)
@@ -434,17 +459,10 @@ def solve_reps_dual(
     kap = torch.where(bounded, kap, 0.0)
     prob = _Problem(Rs, Ds, cs, log_resp, eps, kap)
 
-    # Start near the small-epsilon solution: there w ≈ (1 + delta / eta) / N, so the feature
-    # constraint makes v the least-squares fit of -R on D (when c = 0), and KL ≈ Var(delta) /
-    # (2 eta^2) gives eta. Good starts save LBFGS iterations, which dominate the cost.
+    # Start at u = 0 with eta from KL ≈ Var(delta) / (2 eta^2) (the small-epsilon solution).
+    # Good starts save LBFGS iterations, which dominate the cost.
     x = torch.zeros(2 * K + prob.P, dtype=torch.float64)
-    resid = Rs
-    if Ds is not None and cs is None:
-        A = Ds.reshape(K * N, -1)
-        v0 = -torch.linalg.lstsq(A, Rs.reshape(-1, 1), driver="gelsd").solution.squeeze(1)
-        x[2 * K :] = v0
-        resid = Rs + Ds @ v0
-    spread = resid.std(dim=1).clamp_min(1e-3)
+    spread = Rs.std(dim=1).clamp_min(1e-6)
     x[:K] = torch.log(spread) - 0.5 * torch.log(2.0 * eps.clamp_min(1e-12))
     x[K : 2 * K] = math.log(0.1)
     total_iter = 0
@@ -529,13 +547,64 @@ def solve_reps_dual(
         _, g, w = solve()
         converged = False
 
-    _, eta_s, xi_s, v_s = prob.unpack(x)
-    v_out = v_s * scale / col if col is not None else v_s.clone()
+    _, eta_s, xi_s, u = prob.unpack(x)
+    v_out = v0 + scale * (T @ u) if T is not None else u.clone()
     # every term scales with the return scale; the centring adds back the block means
-    dual_value = float(g) * scale + float(R.mean(dim=1).sum())
+    dual_value = float(g) * scale + float(R.mean(dim=1).sum() + offset.sum())
     return _finish(
         w, log_resp, eta_s * scale, xi_s * scale, v_out, D, c, dual_value, converged, total_iter
     )
+
+
+def _value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: float, rounds: int = 30) -> Tensor:
+    """Small-epsilon value multipliers (the solver's start when c = 0).
+
+    Args:
+        Rc: (K, N) returns centred per block.
+        Dc: (K, N, P) features centred per block.
+        eps: (K,) KL bounds.
+        floor: smallest residual spread taken seriously.
+
+    For small epsilon w_ki ≈ (1 + (delta_ki - mean_i delta_k) / eta_k) / N, so the feature
+    constraint sum_k w_k^T D_k = 0 (met by uniform weights when c = 0) makes v the weighted
+    least-squares fit of -R on the centred D with block weights 1 / eta_k, and
+    KL_k ≈ Var(delta_k) / (2 eta_k^2) = eps_k ties each eta_k to its block's residual spread.
+    One block: plain least squares. Several: iterate the weights (a block that the features fit
+    closely gets a small eta and dominates its part of v; an unweighted fit spoils it and leaves
+    the optimum far from the start).
+    """
+    K, N, P = Dc.shape
+    weight = torch.ones(K, dtype=torch.float64)
+    v = torch.zeros(P, dtype=torch.float64)
+    for _ in range(rounds if K > 1 else 1):
+        root = weight.sqrt()[:, None]
+        A = (root[:, :, None] * Dc).reshape(K * N, P)
+        b = (root * Rc).reshape(K * N, 1)
+        v = -torch.linalg.lstsq(A, b, driver="gelsd").solution.squeeze(1)
+        spread = (Rc + Dc @ v).std(dim=1).clamp_min(floor)
+        new = (2.0 * eps).sqrt() / spread
+        new = new / new.max()
+        if bool(((new - weight).abs() <= 1e-3 * weight).all()):
+            break
+        weight = new
+    return v
+
+
+def _whitening(Dc: Tensor, weight: Tensor) -> Tensor:
+    """(P, P) map T with T^T (sum_k weight_k Dc_k^T Dc_k / N) T = I on the identified
+    directions, from (K, N, P) centred features and (K,) block weights. Directions without
+    spread (a constant feature, collinear columns) keep the largest direction's scale."""
+    K, N, P = Dc.shape
+    A = (weight.sqrt()[:, None, None] * Dc).reshape(K * N, P) / math.sqrt(N)
+    _, S, Vh = torch.linalg.svd(A, full_matrices=False)
+    top = float(S.max()) if S.numel() else 1.0
+    inv = torch.where(S > 1e-8 * top, 1.0 / S.clamp_min(1e-300), 1.0 / top)
+    T = torch.eye(P, dtype=torch.float64)
+    T[:, : S.shape[0]] = Vh.T * inv
+    if S.shape[0] < P:  # fewer rows than features: complete the basis
+        Q = torch.linalg.qr(torch.cat([Vh.T, torch.eye(P, dtype=torch.float64)], 1)).Q
+        T[:, S.shape[0] :] = Q[:, S.shape[0] : P] / top
+    return T
 
 
 def _conflicting(prob: _Problem, x: Tensor, g: Tensor) -> bool:

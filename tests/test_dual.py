@@ -297,6 +297,32 @@ def test_no_warning_in_regular_use(gen):
         solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_features_that_explain_the_returns_almost_exactly(seed):
+    # A converged policy: theta = (2 - s) / 2 + 0.003 noise, R = -(s + theta - 2)^2 - theta^2,
+    # so phi = [s, s^2] explains all but ~1e-5 of the returns, and s lies in a narrow range
+    # (corr(s, s^2) ≈ 0.9999). Scaled by the returns, eta was ~1e-5 with the v-curvature
+    # ~1/eta and nearly singular; the solver ran off (KL ~3 for epsilon 0.5) in 17 of 20 such
+    # problems before it scaled by the Bellman residual and whitened the features.
+    gen = torch.Generator().manual_seed(seed)
+    s = 1.67 + 0.05 * torch.randn(50, generator=gen, dtype=torch.float64)
+    theta = (2 - s) / 2 + 0.003 * torch.randn(50, generator=gen, dtype=torch.float64)
+    R = -((s + theta - 2) ** 2) - theta**2
+    phi = torch.stack([s, s**2], 1)
+    lr = torch.log_softmax(4.0 * torch.randn(50, 3, generator=gen, dtype=torch.float64), -1)
+    kappa = 0.9 * mean_entropy(lr)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sol = solve_episodic_dual(
+            R, epsilon=0.5, log_responsibilities=lr, context_features=phi, kappa=kappa
+        )
+    assert sol.converged
+    assert sol.kl == pytest.approx(0.5, abs=1e-3)
+    assert sol.cross_entropy <= kappa + 1e-6
+    assert float((sol.sample_weights @ phi - phi.mean(0)).abs().max()) < 1e-5
+    assert sol.effective_sample_size > 10
+
+
 # ---- infinite-horizon dual ------------------------------------------------------------------
 def random_chain(gen, N=400, O=3, F=6):
     """Transitions of a random 1-D chain (s' follows s) with Fourier-like features."""

@@ -40,8 +40,10 @@ of it; eta, xi and v are mapped back to the caller's units. This keeps the probl
 conditioned when the features explain most of the returns (a converging policy) and when they
 are nearly collinear. eta and xi live in log space; log-sum-exp subtracts the max. The entropy
 bound is handled by its KKT conditions: the dual is solved with xi free, then re-solved with
-xi = 0 exactly for blocks whose xi ended ~0 with the bound slack. When no distribution within
-the KL bound meets the feature constraints (few samples against many features, common in the
+xi = 0 exactly for blocks whose xi ended ~0 with the bound slack; a block whose xi collapsed
+with the bound still violated (the log-space gradient vanishes there) restarts from the xi
+that meets it, and ``converged`` checks the bound itself. When no distribution within the KL
+bound meets the feature constraints (few samples against many features, common in the
 infinite-horizon dual) the dual is unbounded below; the solver detects it, warns
 (:class:`InfeasibleConstraintsWarning`) and re-solves with a ridge on the standardised u, which
 turns the feature constraints into a quadratic penalty and keeps the KL bound
@@ -511,18 +513,41 @@ def solve_reps_dual(
 
     def solve() -> tuple[bool, Tensor, Tensor]:
         nonlocal x
-        if O > 1 and bool(bounded.any()):
+        entropy_bound = O > 1 and bool(bounded.any())
+        if entropy_bound:
             # KKT for xi >= 0: solve with xi free; where xi ends ~0 with the bound slack,
             # switch it off and re-solve (then xi = 0 exactly and the bound holds as inequality).
             prob.xi_on[:] = bounded
             converged, g, w = run_phase()
+            for _ in range(3):
+                # In log space the dual is nearly flat in xi below the xi that meets the bound
+                # (the xi-gradient xi (kappa - CE) vanishes with xi): a line search can jump
+                # there and LBFGS stops with xi ~0 and the bound violated. Restart from the
+                # xi that meets the bound with the rest held fixed.
+                ce = -(w * log_resp).sum(dim=(1, 2))
+                stuck = prob.xi_on & (ce > kap + 1e-6)
+                if not bool(stuck.any()):
+                    break
+                x[K : 2 * K] = torch.where(stuck, _xi_meeting_bound(prob, x), x[K : 2 * K])
+                converged, g, w = run_phase()
             ce = -(w * log_resp).sum(dim=(1, 2))
             slack = (x[K : 2 * K].exp() < 1e-6) & (ce <= kap + 1e-9)
             if bool(slack.any()):
                 prob.xi_on &= ~slack
                 converged, g, w = run_phase()
-            return converged, g, w
-        return run_phase()
+        else:
+            converged, g, w = run_phase()
+        for _ in range(2):
+            # a stalled LBFGS (its preconditioner, the curvature at the phase's start, gone
+            # stale) resumes with the curvature where it stopped
+            if converged or not bool(torch.isfinite(x).all()):
+                break
+            converged, g, w = run_phase()
+        if entropy_bound:
+            # the log-space gradient hides a violated bound when xi ~0: check it directly
+            ce = -(w * log_resp).sum(dim=(1, 2))
+            converged = converged and bool((ce[bounded] <= kap[bounded] + 1e-6).all())
+        return converged, g, w
 
     x_start = x.clone()
     converged, g, w = solve()
@@ -554,6 +579,25 @@ def solve_reps_dual(
     return _finish(
         w, log_resp, eta_s * scale, xi_s * scale, v_out, D, c, dual_value, converged, total_iter
     )
+
+
+def _xi_meeting_bound(prob: _Problem, x: Tensor, steps: int = 60) -> Tensor:
+    """(K,) log xi per block at which the cross-entropy meets kappa, eta and v held at x.
+
+    The cross-entropy falls as xi grows (dCE/dxi = -Var_P(log p~) / eta), so bisect log xi
+    between log eta - 30 and log eta + 10; a block whose bound cannot be met gets the top.
+    """
+    K = prob.K
+    lo, hi = x[:K] - 30.0, x[:K] + 10.0
+    y = x.clone()
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        y[K : 2 * K] = mid
+        P, _, _ = prob.weights(y)
+        above = -(P * prob.lr).sum(dim=(1, 2)) > prob.kappa
+        lo = torch.where(above, mid, lo)
+        hi = torch.where(above, hi, mid)
+    return hi
 
 
 def _value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: float, rounds: int = 30) -> Tensor:

@@ -81,6 +81,21 @@ def test_weights_are_the_bellman_error_softmax_and_the_dual_value_is_the_formula
     assert sol.dual_value == pytest.approx(float(g), rel=1e-9, abs=1e-9)
 
 
+def two_step_chain(seed, N, noise, sharpness):
+    """Episodes of the two-step task below with actions optimal up to ``noise``: value
+    features [s, s^2] per step, random responsibilities of the given sharpness."""
+    gen = torch.Generator().manual_seed(seed)
+    f64 = dict(generator=gen, dtype=torch.float64)
+    s1 = 0.3 * torch.randn(N, **f64)
+    t1 = (2 - s1) / 1.2 + noise * torch.randn(N, **f64)
+    s2 = s1 + t1
+    t2 = (2 - s2) / 2 + noise * torch.randn(N, **f64)
+    R = torch.stack([-0.1 * t1**2, -((s2 + t2 - 2) ** 2) - t2**2], 1)
+    phi = QuadraticFeatures(1)(torch.stack([s1, s2], 1)[..., None])
+    lr = torch.log_softmax(sharpness * torch.randn(N, 2, 3, **f64), -1)
+    return R, phi, lr
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_dual_solves_a_converged_chain(seed):
     # Two steps of a converged policy (actions optimal up to 0.003 noise): the value features
@@ -88,15 +103,7 @@ def test_dual_solves_a_converged_chain(seed):
     # the two steps' temperatures differ ~100-fold. Before the solver scaled by the Bellman
     # residual (with a block-weighted start) and whitened the features, every one of 20 such
     # problems failed (no convergence, KL off, bound violated).
-    gen = torch.Generator().manual_seed(seed)
-    f64 = dict(generator=gen, dtype=torch.float64)
-    s1 = 0.3 * torch.randn(60, **f64)
-    t1 = (2 - s1) / 1.2 + 0.003 * torch.randn(60, **f64)
-    s2 = s1 + t1
-    t2 = (2 - s2) / 2 + 0.003 * torch.randn(60, **f64)
-    R = torch.stack([-0.1 * t1**2, -((s2 + t2 - 2) ** 2) - t2**2], 1)
-    phi = QuadraticFeatures(1)(torch.stack([s1, s2], 1)[..., None])
-    lr = torch.log_softmax(4.0 * torch.randn(60, 2, 3, **f64), -1)
+    R, phi, lr = two_step_chain(seed, 60, noise=0.003, sharpness=4.0)
     kappa = 0.9 * mean_entropy(lr)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -105,6 +112,19 @@ def test_dual_solves_a_converged_chain(seed):
     assert torch.allclose(sol.kl, torch.full((2,), 0.5, dtype=torch.float64), atol=1e-3)
     assert bool((sol.cross_entropy <= kappa + 1e-6).all())
     assert chained_violation(sol.sample_weights, phi, phi[:, 0].mean(0)) < 1e-5
+
+
+@pytest.mark.parametrize("seed", [33, 34])
+def test_entropy_bound_holds_with_nearly_separated_options(seed):
+    # Sharp responsibilities (mean entropy ~0.1): the xi that meets the bound is small and the
+    # dual nearly flat in log xi below it; LBFGS used to jump there and stop with xi ~1e-100,
+    # the bound violated by ~1e-3 (these seeds) and the solve reported as converged.
+    R, phi, lr = two_step_chain(seed, 50, noise=0.3, sharpness=12.0)
+    kappa = 0.9 * mean_entropy(lr)
+    sol = solve_time_indexed_dual(R, phi, epsilon=0.5, log_responsibilities=lr, kappa=kappa)
+    assert sol.converged
+    assert bool((sol.cross_entropy <= kappa + 1e-6).all())
+    assert torch.allclose(sol.kl, torch.full((2,), 0.5, dtype=torch.float64), atol=1e-3)
 
 
 def test_one_step_is_the_episodic_dual(gen):

@@ -4,7 +4,8 @@ Spec sheet
 ==========
 Scene (:class:`~environments.hockey.sim.HockeySim`)
     A KUKA LBR iiwa (7 DoF, pybullet_data's ``kuka_iiwa/model.urdf``, base at the origin) holds
-    a hockey stick (0.55 m shaft mounted on the flange at 0.6 rad, a 2 x 14 x 4 cm box blade).
+    a hockey stick (0.55 m shaft mounted on the flange at 0.6 rad, a 2 x 14 x 8 cm box blade, as
+    tall as an ice-hockey blade, centred 4 cm above the floor at the puck).
     On a flat floor lie a blue control puck at (0.55, 0) m, where the demonstrated swing meets
     it, and a red target puck further out along +x. Ice-hockey pucks (radius 38 mm, height
     25 mm, 170 g), floor friction 0.05 (ice-like), restitution 0.7. The stick's links do not

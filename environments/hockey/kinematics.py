@@ -75,8 +75,8 @@ class ArmGeometry:
     stick_length: float = 0.55
     stick_radius: float = 0.015
     stick_pitch: float = 0.6
-    blade_size: tuple[float, float, float] = (0.02, 0.14, 0.04)
-    blade_height: float = 0.025
+    blade_size: tuple[float, float, float] = (0.02, 0.14, 0.08)
+    blade_height: float = 0.04
     puck_x: float = 0.55
     swing_radius: float = 0.6
     backswing: float = math.radians(35.0)

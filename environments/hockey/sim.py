@@ -51,7 +51,7 @@ class HockeyParams:
         joint_margin: goals are clipped this far (rad) inside the joint limits.
         max_goal_velocity: goal velocities are clipped to +- this (rad/s, URDF limit 10).
         min_blade_height: a shot whose DMP takes the blade centre below this height (m; the
-            blade's lower edge is 2 cm below its centre) is rejected (not executed).
+            blade's lower edge is 4 cm below its centre) is rejected (not executed).
         dmp_basis: basis functions of the DMP.
     """
 

@@ -163,7 +163,7 @@ def test_bad_actions_are_named_clipped_or_rejected(env):
     assert r == pytest.approx(-info["min_gap"])
 
 
-@pytest.mark.filterwarnings("ignore:.*WARN:.*:UserWarning")
+@pytest.mark.filterwarnings("ignore::UserWarning")
 def test_registered_envs_pass_the_gymnasium_checker_and_render():
     for env_id in (ENV_ID, EPISODIC_ENV_ID):
         e = gym.make(env_id, render_mode="rgb_array").unwrapped

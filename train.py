@@ -653,7 +653,7 @@ class HockeyConfig:
     """Initial exploration std of the 7 DMP goal velocities (rad/s)."""
     min_variance: float = 1e-6
     """Floor on the option covariance eigenvalues."""
-    exploration_floor: float = 0.0
+    exploration_floor: float = 0.25
     """Floor on each option's std as a fraction of the initial std, per parameter (keeps the
     14-dim options from collapsing onto the few effective samples of an update); 0: off."""
     covariance_prior: float = 0.0

@@ -551,7 +551,9 @@ def solve_reps_dual(
 
     x_start = x.clone()
     converged, g, w = solve()
-    if prob.P and _conflicting(prob, x, g):
+    # An unconverged solve that broke the KL bound ran off the same way, only more slowly.
+    ran_off = not converged and bool((_block_kl(w, log_resp) > 1.01 * eps + 1e-3).any())
+    if prob.P and (ran_off or _conflicting(prob, x, g)):
         # No distribution within the KL bound meets the feature constraints: either none at
         # all does (c lies outside the convex hull of the rows of -D, typical of few samples
         # against many features) or only ones with KL > epsilon do. The dual is then unbounded
@@ -567,9 +569,13 @@ def solve_reps_dual(
             InfeasibleConstraintsWarning,
             stacklevel=2,
         )
-        prob.ridge = _CONFLICT_RIDGE
-        x = x_start
-        _, g, w = solve()
+        for ridge in (1.0, 10.0, 100.0, 1e3, 1e4):
+            # a stronger penalty where the weaker one still let the solve run off
+            prob.ridge = ridge * _CONFLICT_RIDGE
+            x = x_start.clone()
+            _, g, w = solve()
+            if not bool((_block_kl(w, log_resp) > 1.01 * eps + 1e-3).any()):
+                break
         converged = False
 
     _, eta_s, xi_s, u = prob.unpack(x)
@@ -668,6 +674,13 @@ def _conflicting(prob: _Problem, x: Tensor, g: Tensor) -> bool:
     return float(x[2 * K :].abs().max()) >= _V_MAX
 
 
+def _block_kl(w: Tensor, log_resp: Tensor) -> Tensor:
+    """(K,) KL(P_k || q p~_k) of weights (K, N, O) against the old distribution."""
+    logq = log_resp - math.log(w.shape[1])
+    logw = torch.log(w.clamp_min(1e-300))
+    return torch.where(w > 0, w * (logw - logq), torch.zeros_like(w)).sum(dim=(1, 2))
+
+
 def _finish(
     w: Tensor,
     log_resp: Tensor,
@@ -681,9 +694,7 @@ def _finish(
     iterations: int,
 ) -> RepsDualSolution:
     K, N, O = w.shape
-    logq = log_resp - math.log(N)
-    logw = torch.log(w.clamp_min(1e-300))
-    kl = torch.where(w > 0, w * (logw - logq), torch.zeros_like(w)).sum(dim=(1, 2))
+    kl = _block_kl(w, log_resp)
     ce = -(w * log_resp).sum(dim=(1, 2))
     ws = w.sum(-1)  # (K, N)
     ess = 1.0 / (ws**2).sum(dim=1)

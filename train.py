@@ -652,7 +652,8 @@ class HockeyConfig:
     init_std_velocity: float = 0.3
     """Initial exploration std of the 7 DMP goal velocities (rad/s)."""
     min_variance: float = 1e-6
-    """Floor on the option covariance eigenvalues."""
+    """Smallest variance of any parameter (the per-parameter floor is the larger of this and
+    the exploration floor)."""
     exploration_floor: float = 0.25
     """Floor on each option's std as a fraction of the initial std, per parameter (keeps the
     14-dim options from collapsing onto the few effective samples of an update); 0: off."""
@@ -709,6 +710,11 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
         time_indexed_module,
     )
 
+    if not isinstance(cfg, (HockeySequentialConfig, HockeyEpisodicConfig)):
+        raise ValueError(
+            f"run_hockey needs a HockeySequentialConfig or HockeyEpisodicConfig, got "
+            f"{type(cfg).__name__}"
+        )
     sequential = isinstance(cfg, HockeySequentialConfig)
     experiment = "hockey_sequential" if sequential else "hockey_episodic"
     _validate_episodic_budget(cfg, ("n_options", "episodes_per_iteration", "workers"))

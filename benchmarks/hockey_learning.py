@@ -115,7 +115,8 @@ def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
         total += r
         zone = info["zone"]
         frames += info["frames"]
-        strip += [info["frames"][len(info["frames"]) // 5], env.render()]
+        shot_frames = info["frames"] or [env.render()]  # a rejected shot has no frames
+        strip += [shot_frames[len(shot_frames) // 5], env.render()]
     env.close()
     fig, axes = plt.subplots(1, len(strip), figsize=(2.6 * len(strip), 2.4))
     titles = ["start"] + [t for k in range(1, 4) for t in (f"shot {k}", f"after shot {k}")]

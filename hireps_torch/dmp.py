@@ -423,12 +423,15 @@ class DMP(nn.Module):
 
     def _shape_response(self, n_steps: int, substeps: int) -> tuple[Tensor, Tensor, Tensor]:
         """e, e', e'' (each (n_steps + 1, J)) of ``e'' + alpha_z e' + alpha_z beta_z e = f``
-        from rest, cached per grid and weights (recomputed when the weights change)."""
-        key = (n_steps, substeps) + tuple(
-            (b._version, b.data_ptr()) for b in (self.weights, self.centers, self.sigmas)
-        )
+        from rest, cached per grid and constants (recomputed when the weights, centres, widths
+        or gains differ from the cached ones)."""
+        key = (n_steps, substeps, float(self.alpha_z), float(self.beta_z), float(self.alpha_x))
+        shape = (self.weights, self.centers, self.sigmas)
         cache = self.__dict__.setdefault("_response_cache", {})
-        if key not in cache:
+        stale = key not in cache or not all(
+            torch.equal(a, b) for a, b in zip(cache[key][3], shape, strict=True)
+        )
+        if stale:
             cache.clear()
             n_half = 2 * n_steps * substeps + 1
             s_half = torch.arange(n_half, dtype=torch.float64) / (n_half - 1)
@@ -436,8 +439,8 @@ class DMP(nn.Module):
             zeros = torch.zeros(1, self.n_joints, dtype=torch.float64)
             drive = torch.zeros(1, self.n_joints, 6, dtype=torch.float64)
             e, ez, ezdot = self._integrate(drive, forcing, zeros, zeros, n_steps, substeps)
-            cache[key] = (e[0], ez[0], ezdot[0])
-        return cache[key]
+            cache[key] = (e[0], ez[0], ezdot[0], tuple(b.detach().clone() for b in shape))
+        return cache[key][:3]
 
 
 def _finite_differences(pos: Tensor, dt: float) -> tuple[Tensor, Tensor]:

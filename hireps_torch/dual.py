@@ -553,7 +553,8 @@ def solve_reps_dual(
     converged, g, w = solve()
     # An unconverged solve that broke the KL bound ran off the same way, only more slowly.
     ran_off = not converged and bool((_block_kl(w, log_resp) > 1.01 * eps + 1e-3).any())
-    if prob.P and (ran_off or _conflicting(prob, x, g)):
+    conflict = bool(prob.P) and _conflicting(prob, x, g)
+    if prob.P and (ran_off or conflict):
         # No distribution within the KL bound meets the feature constraints: either none at
         # all does (c lies outside the convex hull of the rows of -D, typical of few samples
         # against many features) or only ones with KL > epsilon do. The dual is then unbounded
@@ -561,21 +562,31 @@ def solve_reps_dual(
         # become a quadratic penalty while the KL bound, the point of REPS, still holds (the
         # alternative, the closest distribution that meets them, can collapse onto a single
         # sample and wreck the policy).
+        for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
+            # a stronger penalty where the weaker one still let the solve run off
+            prob.ridge = factor * _CONFLICT_RIDGE
+            x = x_start.clone()
+            _, g, w = solve()
+            kl_kept = not bool((_block_kl(w, log_resp) > 1.01 * eps + 1e-3).any())
+            if kl_kept:
+                break
+        why = (
+            "the feature constraints cannot be met within the KL bound"
+            if conflict
+            else "the solve broke the KL bound before converging"
+        )
+        kept = (
+            "the KL bound is kept"
+            if kl_kept
+            else "the KL bound is STILL broken (far too few samples for the features)"
+        )
         warnings.warn(
-            f"the feature constraints cannot be met within the KL bound epsilon = "
-            f"{eps.tolist()} (too few samples for the {prob.P} features?): they are relaxed "
-            f"to a quadratic penalty (ridge {_CONFLICT_RIDGE} on the standardised value "
-            "weights) and the KL bound is kept; see feature_error",
+            f"{why} epsilon = {eps.tolist()} (too few samples for the {prob.P} features?): "
+            f"they are relaxed to a quadratic penalty (ridge {prob.ridge:g} on the "
+            f"standardised value weights) and {kept}; see feature_error and kl",
             InfeasibleConstraintsWarning,
             stacklevel=2,
         )
-        for ridge in (1.0, 10.0, 100.0, 1e3, 1e4):
-            # a stronger penalty where the weaker one still let the solve run off
-            prob.ridge = ridge * _CONFLICT_RIDGE
-            x = x_start.clone()
-            _, g, w = solve()
-            if not bool((_block_kl(w, log_resp) > 1.01 * eps + 1e-3).any()):
-                break
         converged = False
 
     _, eta_s, xi_s, u = prob.unpack(x)

@@ -89,6 +89,12 @@ class TimeIndexedActor(nn.Module):
 
     def __init__(self, policies: list[HierarchicalPolicy], deterministic: bool = False) -> None:
         super().__init__()
+        dims = {int(p.action_dim) for p in policies}
+        if len(policies) < 1 or len(dims) != 1:
+            raise ValueError(
+                f"need >= 1 policies sharing one action dimension, got dimensions "
+                f"{[int(p.action_dim) for p in policies]}"
+            )
         self.policies = nn.ModuleList(policies)
         self.deterministic = deterministic
 
@@ -96,6 +102,8 @@ class TimeIndexedActor(nn.Module):
     def forward(self, observation: Tensor, step_count: Tensor) -> tuple[Tensor, Tensor]:
         lead = observation.shape[:-1]
         s = observation.reshape(-1, observation.shape[-1]).to(torch.float64)
+        if step_count.is_floating_point() or step_count.is_complex():
+            raise ValueError(f"step_count must be an integer tensor, got {step_count.dtype}")
         k = step_count.reshape(-1).long()
         K = len(self.policies)
         if bool(((k < 0) | (k >= K)).any()):

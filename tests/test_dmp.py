@@ -199,3 +199,24 @@ def test_bad_inputs_raise_clear_errors(dmp):
         DMP.from_demonstration(demo, 0.0)
     with pytest.raises(ValueError, match="n_basis must be >= 2, got 1"):
         DMP(J, n_basis=1)
+
+
+def test_rollout_follows_in_place_changes_of_weights_and_gains():
+    t = torch.linspace(0, 1, 50, dtype=torch.float64)[:, None]
+    demo = torch.cat([torch.sin(3 * t), t**2], dim=1)
+    dmp = DMP.from_demonstration(demo, 1 / 49)
+    g, gd = dmp.goal[None], dmp.goal_velocity[None]
+    before = dmp.rollout(g, gd).positions
+    dmp.weights.data.mul_(0.0)  # .data changes bypass the version counter
+    flat = dmp.rollout(g, gd).positions
+    assert (flat - before).abs().max() > 1e-3
+    # changed gains with the same weights: the cached shape response must be recomputed
+    dmp = DMP.from_demonstration(demo, 1 / 49)
+    weights = dmp.weights.clone()
+    first = dmp.rollout(g, gd).positions
+    dmp.alpha_z, dmp.beta_z = 10.0, 2.5
+    changed = dmp.rollout(g, gd).positions
+    fresh = DMP(2, alpha_z=10.0, beta_z=2.5).imitate(demo, 1 / 49)
+    fresh.weights.data.copy_(weights)
+    assert (changed - first).abs().max() > 1e-4
+    assert torch.allclose(changed, fresh.rollout(g, gd).positions, atol=1e-12)

@@ -118,3 +118,17 @@ def test_episodes_cuts_whole_episodes_and_rejects_partial_ones():
     batch["next", "done"][4] = True  # an episode that ended early
     with pytest.raises(ValueError, match="done flags"):
         episodes(batch, K)
+
+
+def test_time_indexed_actor_rejects_float_steps_and_mixed_dimensions():
+    a = HierarchicalPolicy.create(1, 2, 1)
+    b = HierarchicalPolicy.create(1, 2, 3)
+    with pytest.raises(ValueError, match=r"sharing one action dimension, got dimensions \[1, 3\]"):
+        time_indexed_module([a, b])
+    actor = time_indexed_module([a, a])
+    td = TensorDict(
+        {"observation": torch.zeros(2, 2), "step_count": torch.tensor([[0.0], [1.5]])},
+        batch_size=[2],
+    )
+    with pytest.raises(ValueError, match="step_count must be an integer tensor"):
+        actor(td)

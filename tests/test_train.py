@@ -256,3 +256,10 @@ def test_hockey_same_seed_same_run(tmp_path):
     assert a == b and a != c
     epi = run("e", train_module.HockeyEpisodicConfig, 1)
     assert "average_reward" in epi
+
+
+def test_run_hockey_refuses_the_base_config(tmp_path):
+    import train as train_module
+
+    with pytest.raises(ValueError, match="HockeySequentialConfig or HockeyEpisodicConfig"):
+        train_module.run_hockey(train_module.HockeyConfig(run_dir=tmp_path / "r"))

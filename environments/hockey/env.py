@@ -8,7 +8,9 @@ Scene (:class:`~environments.hockey.sim.HockeySim`)
     tall as an ice-hockey blade, centred 4 cm above the floor at the puck).
     On a flat floor lie a blue control puck at (0.55, 0) m, where the demonstrated swing meets
     it, and a red target puck further out along +x. Ice-hockey pucks (radius 38 mm, height
-    25 mm, 170 g), floor friction 0.05 (ice-like), restitution 0.7. The stick's links do not
+    25 mm, 170 g), floor friction 0.05 (ice-like), restitution coefficient 0.7 on the pucks and
+    the blade (per body: Bullet multiplies the two bodies' coefficients of a contact, 0.49 for
+    two pucks, and its soft contacts lose more). The stick's links do not
     collide with the floor (a blade that skims the ice is not stopped by it).
 
 Action (one per shot): 14 numbers, float64
@@ -21,7 +23,8 @@ Action (one per shot): 14 numbers, float64
     demo's start posture at rest; its position servos (300 N m) track the DMP at 240 Hz, then
     brake exponentially (time constant 0.08 s) from the goal velocity (the follow-through).
     pytorch-kinematics maps the DMP's postures to blade poses: a shot that would take the blade
-    centre below the floor (height < 0 m) is rejected, not played (``info["rejected"]``); the
+    centre below the floor (height < 0 m, checked at every 4th posture of the swing, i.e. every
+    1/60 s) is rejected, not played (``info["rejected"]``); the
     pucks then stay where they are.
 
 Shot
@@ -115,13 +118,13 @@ def clip_action(
     """Check a (14,) shot action and clip it into the arm's range.
 
     Args:
-        action: 14 numbers (goal positions, then goal velocities).
+        action: n numbers: per shot 7 goal positions, then 7 goal velocities.
         low, high: (7,) goal-position bounds.
         max_velocity: bound on |goal velocity|.
         n: expected length (14, or 42 for three shots at once, checked by the caller).
 
     Returns:
-        (the clipped (14,) float64 action, whether anything was clipped).
+        (the clipped (n,) float64 action, whether anything was clipped).
 
     Raises:
         ValueError: wrong shape or a non-finite entry (named by index and value).
@@ -275,17 +278,15 @@ class RobotHockeyEpisodicEnv(gym.Env):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         n = self.params.n_shots
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (14 * n,):
-            raise ValueError(
-                f"action must have shape ({14 * n},): 14 numbers per shot for {n} shots, got "
-                f"{a.shape}"
-            )
         if self.inner.shot_index != 0:
             raise RuntimeError("the episode already ended: call reset()")
+        sim = self.inner.sim
+        # the whole action is checked before the first shot is played
+        clip_action(action, sim.goal_low, sim.goal_high, self.params.max_goal_velocity, 14 * n)
+        raw = np.asarray(action, dtype=np.float64)
         total, shots = 0.0, []
         for k in range(n):
-            _, r, _, _, info = self.inner.step(a[14 * k : 14 * (k + 1)])
+            _, r, _, _, info = self.inner.step(raw[14 * k : 14 * (k + 1)])
             total += r
             shots.append(info)
         info = {

@@ -37,10 +37,12 @@ class HockeyParams:
         geometry: the stick, the control puck's spot and the demonstration swing.
         puck_radius, puck_height, puck_mass: an ice-hockey puck (76 mm x 25 mm, 170 g).
         floor_friction: puck-floor Coulomb friction (ice-like).
-        puck_restitution: restitution of puck-puck and blade-puck impacts.
+        puck_restitution: restitution coefficient of the pucks and the blade (per body; Bullet
+            multiplies the coefficients of the two bodies in contact).
         target_mean: mean (x, y) of the target puck at an episode's start (m).
         target_std: std of the target puck's start in x and in y (m).
-        zones: zone edges by distance from the robot base (m): zone k is [zones[k-1], zones[k]).
+        zones: zone edges by distance from the robot base (m): zones 1 and 2 are
+            [zones[k-1], zones[k]), zone 3 is [zones[2], zones[3]] (see ``zone_reward``).
         n_shots: shots per episode.
         sim_dt: pybullet time step (s).
         follow_through: time constant (s) of the exponential joint braking after the DMP ends.
@@ -50,7 +52,8 @@ class HockeyParams:
         position_gain, velocity_gain: pybullet position-servo gains.
         joint_margin: goals are clipped this far (rad) inside the joint limits.
         max_goal_velocity: goal velocities are clipped to +- this (rad/s, URDF limit 10).
-        min_blade_height: a shot whose DMP takes the blade centre below this height (m; the
+        min_blade_height: a shot whose DMP takes the blade centre below this height at any
+            4th posture of the swing (m; the
             blade's lower edge is 4 cm below its centre) is rejected (not executed).
         dmp_basis: basis functions of the DMP.
     """
@@ -100,6 +103,24 @@ class HockeyParams:
             raise ValueError(
                 f"HockeyParams.puck_restitution must be in [0, 1], got {self.puck_restitution}"
             )
+        for name in ("position_gain", "velocity_gain"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 < v <= 1):
+                raise ValueError(f"HockeyParams.{name} must be in (0, 1], got {v}")
+        if not (math.isfinite(self.joint_margin) and 0 <= self.joint_margin < 1.0):
+            raise ValueError(
+                f"HockeyParams.joint_margin must be in [0, 1) rad, got {self.joint_margin}"
+            )
+        if not math.isfinite(self.min_blade_height):
+            raise ValueError(
+                f"HockeyParams.min_blade_height must be finite, got {self.min_blade_height}"
+            )
+        if not all(math.isfinite(v) for v in self.target_mean) or len(self.target_mean) != 2:
+            raise ValueError(
+                f"HockeyParams.target_mean must be 2 finite numbers, got {self.target_mean}"
+            )
+        if self.dmp_basis < 2:
+            raise ValueError(f"HockeyParams.dmp_basis must be >= 2, got {self.dmp_basis}")
         if self.n_shots < 1:
             raise ValueError(f"HockeyParams.n_shots must be >= 1, got {self.n_shots}")
         if list(self.zones) != sorted(self.zones) or len(self.zones) != 4:

@@ -166,7 +166,7 @@ class LinearGaussian(nn.Module):
         The mean is the weighted least-squares fit of ``targets`` on ``[1, inputs]`` (ridge on
         the slopes); the covariance is the weighted covariance of the residuals
         ``sum_i w_i r_i r_i^T / sum_i w_i``, shrunk toward the current covariance when
-        ``covariance_prior > 0``, with its eigenvalues floored at ``min_variance``.
+        ``covariance_prior > 0``, then floored by ``min_variance`` (see the class docstring).
 
         Args:
             inputs: (N, F) features.

@@ -190,3 +190,31 @@ def test_missing_pybullet_names_the_robot_extra(monkeypatch):
         kin_module.require_robot_extra()
     with pytest.raises(ImportError, match="robot extra"):
         RobotHockeyEnv()
+
+
+def test_episodic_env_checks_all_three_shots_before_playing(env):
+    episodic = gym.make(EPISODIC_ENV_ID).unwrapped
+    episodic.reset(seed=0)
+    a = np.tile(episodic.inner.demo_action(), 3)
+    a[20] = np.nan  # second shot, goal velocity of joint 7
+    with pytest.raises(ValueError, match="index 20: nan"):
+        episodic.step(a)
+    assert episodic.inner.shot_index == 0  # nothing was played
+    a[20] = 0.0
+    _, _, terminated, _, info = episodic.step(a)
+    episodic.close()
+    assert terminated and len(info["shots"]) == 3
+
+
+@pytest.mark.parametrize(
+    "field,value,message",
+    [
+        ("joint_margin", 2.0, "joint_margin must be in"),
+        ("min_blade_height", float("nan"), "min_blade_height must be finite"),
+        ("position_gain", 0.0, "position_gain must be in"),
+        ("dmp_basis", 1, "dmp_basis must be >= 2"),
+    ],
+)
+def test_bad_params_are_named(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        HockeyParams(**{field: value})

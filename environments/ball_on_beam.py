@@ -115,8 +115,15 @@ class BeamParams:
     fall_penalty: float = 100.0
 
     def __post_init__(self) -> None:
-        for name in ("half_length", "decision_seconds", "episode_seconds", "dt", "servo_tau",
-                     "max_angle", "gravity"):
+        for name in (
+            "half_length",
+            "decision_seconds",
+            "episode_seconds",
+            "dt",
+            "servo_tau",
+            "max_angle",
+            "gravity",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("goal", "rolling_resistance", "start_noise", "fall_penalty"):
@@ -213,9 +220,7 @@ def beam_step(
     return s, reward, fell, torch.stack(path, dim=1)
 
 
-def sample_start(
-    sides: Tensor, params: BeamParams, generator: torch.Generator | None
-) -> Tensor:
+def sample_start(sides: Tensor, params: BeamParams, generator: torch.Generator | None) -> Tensor:
     """Start states at the given ends (+1 right, -1 left): (n,) -> (n, 3) float64."""
     side = torch.as_tensor(sides, dtype=torch.float64)
     noise = torch.randn(side.shape[0], generator=generator, dtype=torch.float64)
@@ -275,9 +280,7 @@ class BallOnBeamEnv(ScalarActionGymEnv):
     def __init__(self, params: BeamParams | None = None):
         self.params = params or BeamParams()
         p = self.params
-        super().__init__(
-            BeamTask(1, p), np.array([p.half_length + 0.1, np.inf, p.max_angle])
-        )
+        super().__init__(BeamTask(1, p), np.array([p.half_length + 0.1, np.inf, p.max_angle]))
 
 
 gym.register(id=ENV_ID, entry_point=f"{__name__}:BallOnBeamEnv", disable_env_checker=True)

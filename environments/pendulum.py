@@ -269,9 +269,7 @@ class PendulumSwingUpEnv(ScalarActionGymEnv):
 
     def __init__(self, params: PendulumParams | None = None, max_decisions: int | None = None):
         self.params = params or PendulumParams()
-        super().__init__(
-            PendulumTask(1, self.params, max_decisions), np.array([math.pi, np.inf])
-        )
+        super().__init__(PendulumTask(1, self.params, max_decisions), np.array([math.pi, np.inf]))
 
 
 gym.register(id=ENV_ID, entry_point=f"{__name__}:PendulumSwingUpEnv", disable_env_checker=True)

@@ -13,7 +13,7 @@ from environments.hockey.env import (
     zone_reward,
 )
 from environments.hockey.kinematics import ArmGeometry, ArmKinematics, demonstration
-from environments.hockey.sim import HockeyParams, HockeySim, ShotResult
+from environments.hockey.sim import HockeyParams, HockeySim, ShotResult, demo_action, shot_dmp
 
 __all__ = [
     "ENV_ID",
@@ -26,6 +26,8 @@ __all__ = [
     "RobotHockeyEpisodicEnv",
     "ShotResult",
     "clip_action",
+    "demo_action",
     "demonstration",
+    "shot_dmp",
     "zone_reward",
 ]

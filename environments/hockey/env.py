@@ -78,7 +78,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from environments.hockey.sim import HockeyParams, HockeySim
+from environments.hockey.sim import HockeyParams, HockeySim, demo_action
+from hireps_torch._checks import as_finite_f64
 
 __all__ = [
     "ENV_ID",
@@ -112,16 +113,12 @@ def zone_reward(distance: Tensor, zones: tuple[float, float, float, float]) -> T
     return torch.where((d >= z2) & (d <= z3), 3.0, r)
 
 
-def clip_action(
-    action: Any, low: Tensor, high: Tensor, max_velocity: float, n: int = 14
-) -> tuple[Tensor, bool]:
-    """Check a (14,) shot action and clip it into the arm's range.
+def clip_action(action: Any, low: Tensor, high: Tensor) -> tuple[Tensor, bool]:
+    """Check a shot action (or all of an episode's shots) and clip it into the arm's range.
 
     Args:
-        action: n numbers: per shot 7 goal positions, then 7 goal velocities.
-        low, high: (7,) goal-position bounds.
-        max_velocity: bound on |goal velocity|.
-        n: expected length (14, or 42 for three shots at once, checked by the caller).
+        action: n numbers, n = 14 per shot: 7 goal positions, then 7 goal velocities.
+        low, high: (n,) bounds (the action space's).
 
     Returns:
         (the clipped (n,) float64 action, whether anything was clipped).
@@ -129,27 +126,24 @@ def clip_action(
     Raises:
         ValueError: wrong shape or a non-finite entry (named by index and value).
     """
+    n = low.shape[0]
     a = torch.as_tensor(np.asarray(action, dtype=np.float64))
     if a.shape != (n,):
         raise ValueError(
             f"action must have shape ({n},): 7 joint goal positions then 7 goal velocities"
             f"{' per shot' if n != 14 else ''}, got {tuple(a.shape)}"
         )
-    bad = ~torch.isfinite(a)
-    if bool(bad.any()):
-        i = int(bad.nonzero()[0, 0])
-        raise ValueError(f"action has a non-finite entry at index {i}: {a[i].item()}")
-    lo = torch.cat([low, torch.full((7,), -max_velocity, dtype=torch.float64)])
-    hi = torch.cat([high, torch.full((7,), max_velocity, dtype=torch.float64)])
-    lo, hi = lo.repeat(n // 14), hi.repeat(n // 14)
-    clipped = torch.minimum(torch.maximum(a, lo), hi)
+    a = as_finite_f64("action", a)
+    clipped = torch.minimum(torch.maximum(a, low), high)
     return clipped, bool((clipped != a).any())
 
 
-def _box(low: Tensor, high: Tensor, max_velocity: float, repeat: int = 1) -> gym.spaces.Box:
-    lo = np.concatenate([low.numpy(), np.full(7, -max_velocity)])
-    hi = np.concatenate([high.numpy(), np.full(7, max_velocity)])
-    return gym.spaces.Box(np.tile(lo, repeat), np.tile(hi, repeat), dtype=np.float64)
+def _bounds(sim: HockeySim, params: HockeyParams, repeat: int = 1) -> tuple[Tensor, Tensor]:
+    """(14 repeat,) lower and upper action bounds: goal positions, then goal velocities."""
+    v = torch.full((7,), params.max_goal_velocity, dtype=torch.float64)
+    low = torch.cat([sim.goal_low, -v]).repeat(repeat)
+    high = torch.cat([sim.goal_high, v]).repeat(repeat)
+    return low, high
 
 
 class RobotHockeyEnv(gym.Env):
@@ -185,9 +179,8 @@ class RobotHockeyEnv(gym.Env):
         self.params = params or HockeyParams()
         self.render_mode = render_mode
         self.sim = HockeySim(self.params, gui=gui)
-        self.action_space = _box(
-            self.sim.goal_low, self.sim.goal_high, self.params.max_goal_velocity
-        )
+        self._low, self._high = _bounds(self.sim, self.params)
+        self.action_space = gym.spaces.Box(self._low.numpy(), self._high.numpy(), dtype=np.float64)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float64)
         self.shot_index = 0
         self._target = np.array(self.params.target_mean, dtype=np.float64)
@@ -195,7 +188,7 @@ class RobotHockeyEnv(gym.Env):
 
     def demo_action(self) -> np.ndarray:
         """The demonstration's shot as an action: (14,) [goal, goal velocity]."""
-        return np.concatenate([self.sim.dmp.goal.numpy(), self.sim.dmp.goal_velocity.numpy()])
+        return demo_action(self.sim.dmp)
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -208,12 +201,14 @@ class RobotHockeyEnv(gym.Env):
         return self._target.copy(), {"target_distance": float(np.linalg.norm(self._target))}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        return self.play(*clip_action(action, self._low, self._high))
+
+    def play(self, action: Tensor, clipped: bool) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One shot of an already checked and clipped (14,) action (what :meth:`step` does
+        after :func:`clip_action`); ``clipped`` is reported in ``info``."""
         if self.shot_index >= self.params.n_shots:
             raise RuntimeError(f"the episode ended after {self.params.n_shots} shots: call reset()")
-        a, clipped = clip_action(
-            action, self.sim.goal_low, self.sim.goal_high, self.params.max_goal_velocity
-        )
-        result = self.sim.shot(a[:7], a[7:], frame_every=self.frame_every)
+        result = self.sim.shot(action[:7], action[7:], frame_every=self.frame_every)
         self.shot_index += 1
         self._target = result.target
         distance = float(np.linalg.norm(result.target))
@@ -262,12 +257,8 @@ class RobotHockeyEpisodicEnv(gym.Env):
         self.params = self.inner.params
         self.render_mode = render_mode
         n = self.params.n_shots
-        self.action_space = _box(
-            self.inner.sim.goal_low,
-            self.inner.sim.goal_high,
-            self.params.max_goal_velocity,
-            repeat=n,
-        )
+        self._low, self._high = _bounds(self.inner.sim, self.params, repeat=n)
+        self.action_space = gym.spaces.Box(self._low.numpy(), self._high.numpy(), dtype=np.float64)
         self.observation_space = self.inner.observation_space
 
     def reset(
@@ -280,13 +271,14 @@ class RobotHockeyEpisodicEnv(gym.Env):
         n = self.params.n_shots
         if self.inner.shot_index != 0:
             raise RuntimeError("the episode already ended: call reset()")
-        sim = self.inner.sim
         # the whole action is checked before the first shot is played
-        clip_action(action, sim.goal_low, sim.goal_high, self.params.max_goal_velocity, 14 * n)
-        raw = np.asarray(action, dtype=np.float64)
+        a, _ = clip_action(action, self._low, self._high)
+        raw = torch.as_tensor(np.asarray(action, dtype=np.float64))
         total, shots = 0.0, []
         for k in range(n):
-            _, r, _, _, info = self.inner.step(raw[14 * k : 14 * (k + 1)])
+            shot = slice(14 * k, 14 * (k + 1))
+            clipped = bool((a[shot] != raw[shot]).any())
+            _, r, _, _, info = self.inner.play(a[shot], clipped)
             total += r
             shots.append(info)
         info = {

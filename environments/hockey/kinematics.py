@@ -31,7 +31,14 @@ from torch import Tensor
 
 from hireps_torch._checks import as_finite_f64
 
-__all__ = ["ArmKinematics", "ArmGeometry", "arm_urdf", "demonstration", "require_robot_extra"]
+__all__ = [
+    "ArmGeometry",
+    "ArmKinematics",
+    "arm_kinematics",
+    "arm_urdf",
+    "demonstration",
+    "require_robot_extra",
+]
 
 JOINT_NAMES = tuple(f"lbr_iiwa_joint_{i}" for i in range(1, 8))
 # Planar posture (joints 2, 4, 6 only) with the blade at the control puck's start spot; found by
@@ -225,6 +232,12 @@ class ArmKinematics:
 
 
 @functools.lru_cache(maxsize=8)
+def arm_kinematics(geometry: ArmGeometry = ArmGeometry()) -> ArmKinematics:
+    """One :class:`ArmKinematics` per geometry and process (parsing the chain is not free)."""
+    return ArmKinematics(geometry)
+
+
+@functools.lru_cache(maxsize=8)
 def demonstration(geometry: ArmGeometry = ArmGeometry()) -> tuple[Tensor, float]:
     """The demonstrated swing as joint positions: ((T, 7) rad, sample interval dt in s).
 
@@ -242,6 +255,6 @@ def demonstration(geometry: ArmGeometry = ArmGeometry()) -> tuple[Tensor, float]
         [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]], dtype=torch.float64
     )
     rotations = _rot_y(phi) @ square
-    kin = ArmKinematics(g)
+    kin = arm_kinematics(g)
     q = kin.inverse(positions, rotations, torch.tensor(_IK_SEED, dtype=torch.float64))
     return q, g.swing_duration / (T - 1)

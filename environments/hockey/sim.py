@@ -19,14 +19,14 @@ from torch import Tensor
 
 from environments.hockey.kinematics import (
     ArmGeometry,
-    ArmKinematics,
+    arm_kinematics,
     arm_urdf,
     demonstration,
     require_robot_extra,
 )
 from hireps_torch.dmp import DMP
 
-__all__ = ["HockeyParams", "HockeySim", "ShotResult"]
+__all__ = ["HockeyParams", "HockeySim", "ShotResult", "demo_action", "shot_dmp"]
 
 
 @dataclass(frozen=True)
@@ -132,6 +132,20 @@ class HockeyParams:
         return (self.geometry.puck_x, 0.0)
 
 
+def shot_dmp(params: HockeyParams) -> DMP:
+    """A DMP imitating the demonstrated swing (a fresh instance; the IK behind it is cached)."""
+    demo, dt = demonstration(params.geometry)
+    return DMP.from_demonstration(demo, dt, n_basis=params.dmp_basis)
+
+
+def demo_action(dmp: DMP | HockeyParams | None = None) -> np.ndarray:
+    """The demonstration's shot as an action, (14,) [goal, goal velocity], of a shot DMP (or of
+    the one :func:`shot_dmp` builds for these params; default params when None)."""
+    if not isinstance(dmp, DMP):
+        dmp = shot_dmp(dmp or HockeyParams())
+    return np.concatenate([dmp.goal.numpy(), dmp.goal_velocity.numpy()])
+
+
 @dataclass
 class ShotResult:
     """What one shot did.
@@ -195,9 +209,8 @@ class HockeySim:
         self.target = self._puck([0.9, 0.2, 0.1, 1.0])
         self._zone_marks()
 
-        self.kinematics = ArmKinematics(p.geometry)
-        demo, dt = demonstration(p.geometry)
-        self.dmp = DMP.from_demonstration(demo, dt, n_basis=p.dmp_basis)
+        self.kinematics = arm_kinematics(p.geometry)
+        self.dmp = shot_dmp(p)
         self.home = self.dmp.start.clone()  # the arm's pose at the start of every shot
         n = round(p.geometry.swing_duration / p.sim_dt)
         if abs(n * p.sim_dt - p.geometry.swing_duration) > 1e-9:

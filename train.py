@@ -12,6 +12,8 @@ import dataclasses
 import json
 import math
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -303,23 +305,24 @@ def _validate_episodic_budget(cfg: Any, positive: tuple[str, ...]) -> None:
 
 def _train_from_collector(
     collector: Any,
-    algo: Any,
     cfg: Any,
     experiment: str,
     label: str,
     *,
     iterations: int,
     episodes_per_iteration: int,
-    row: Any,
+    update: Callable[[Any], dict[str, Any]],
+    postfix: Callable[[dict[str, Any]], dict[str, Any]],
 ) -> RunWriter:
-    """The infinite-horizon training loop of the pendulum and the beam.
+    """The training loop of every experiment that collects with TorchRL.
 
-    Opens the run directory, then for every collected batch: one ``algo.update`` (terminal
-    transitions flagged), ``row(rewards, terminated)`` for the task's own columns, one logged
-    row and a progress-bar step. The collector is shut down however the loop ends (also when
-    the run directory cannot be opened). Returns the writer for the summary.
+    Opens the run directory, then for every collected batch: ``update(batch)`` (the policy
+    update; returns the iteration's logged fields), a weight sync when there are worker
+    processes, one logged row and a progress-bar step showing ``postfix(row)``. The collector
+    is shut down however the loop ends (also when the run directory cannot be opened). Returns
+    the writer for the summary.
     """
-    from hireps_torch.rollout import shutdown_collector, transitions
+    from hireps_torch.rollout import shutdown_collector
 
     try:
         run_dir = cfg.run_dir or default_run_dir(experiment)
@@ -330,24 +333,43 @@ def _train_from_collector(
     bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
     try:
         for it, batch in enumerate(collector):
-            s, a, r, s_next, _ = transitions(batch, "state")
-            terminated = batch["next", "terminated"].reshape(-1)
-            diag = algo.update(s, a, r, s_next, terminated)
+            fields = update(batch)
             if getattr(cfg, "workers", 1) > 1:
                 collector.update_policy_weights_()
             done = (it + 1) * episodes_per_iteration
-            logged = {"iteration": it + 1, "episodes": done, **row(r, terminated), **diag}
+            logged = {"iteration": it + 1, "episodes": done, **fields}
             writer.log(logged)
             bar.update(1)
-            bar.set_postfix(
-                ret=f"{logged['average_return']:.1f}",
-                kl=f"{diag['kl']:.2f}",
-                opts=diag["n_active_options"],
-            )
+            bar.set_postfix(**postfix(logged))
     finally:
         bar.close()
         shutdown_collector(collector)
     return writer
+
+
+def _infinite_horizon_update(
+    algo: Any, row: Callable[[torch.Tensor, torch.Tensor], dict[str, Any]]
+) -> Callable[[Any], dict[str, Any]]:
+    """The per-batch step of the pendulum and the beam: one ``algo.update`` on the batch's
+    decisions (terminal ones flagged), then ``row(rewards, terminated)`` for the task's own
+    columns (after the update) followed by the update's diagnostics."""
+    from hireps_torch.rollout import transitions
+
+    def update(batch: Any) -> dict[str, Any]:
+        s, a, r, s_next, _ = transitions(batch, "state")
+        terminated = batch["next", "terminated"].reshape(-1)
+        diag = algo.update(s, a, r, s_next, terminated)
+        return {**row(r, terminated), **diag}
+
+    return update
+
+
+def _infinite_horizon_postfix(logged: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "ret": f"{logged['average_return']:.1f}",
+        "kl": f"{logged['kl']:.2f}",
+        "opts": logged["n_active_options"],
+    }
 
 
 def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> HierarchicalPolicy:
@@ -439,13 +461,15 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
     label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
     writer = _train_from_collector(
         collector,
-        algo,
         cfg,
         "pendulum",
         label,
         iterations=iterations,
         episodes_per_iteration=B,
-        row=lambda r, terminated: {"average_return": float(r.mean()) / params.steps_per_decision},
+        update=_infinite_horizon_update(
+            algo, lambda r, _: {"average_return": float(r.mean()) / params.steps_per_decision}
+        ),
+        postfix=_infinite_horizon_postfix,
     )
 
     def act(states: torch.Tensor) -> torch.Tensor:
@@ -598,13 +622,13 @@ def run_ball_on_beam(cfg: BallOnBeamConfig) -> dict[str, Any]:
     label = f"ball_on_beam/{cfg.n_options}opt"
     writer = _train_from_collector(
         collector,
-        algo,
         cfg,
         "ball_on_beam",
         label,
         iterations=iterations,
         episodes_per_iteration=B,
-        row=row,
+        update=_infinite_horizon_update(algo, row),
+        postfix=_infinite_horizon_postfix,
     )
     first_success = next(
         (int(w["episodes"]) for w in writer.rows if w["eval_success_rate"] >= 0.9), None
@@ -700,15 +724,9 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
     """Sequential or episodic HiREPS on the simulated robot hockey task; returns the summary."""
     from torchrl.envs import GymEnv, StepCounter, TransformedEnv
 
-    from environments.hockey import ENV_ID, EPISODIC_ENV_ID, HockeyParams, RobotHockeyEnv
+    from environments.hockey import ENV_ID, EPISODIC_ENV_ID, HockeyParams, demo_action
     from hireps_torch.algorithms import EpisodicHiREPS, TimeIndexedHiREPS
-    from hireps_torch.rollout import (
-        episodes,
-        make_collector,
-        policy_module,
-        shutdown_collector,
-        time_indexed_module,
-    )
+    from hireps_torch.rollout import episodes, make_collector, policy_module, time_indexed_module
 
     if not isinstance(cfg, (HockeySequentialConfig, HockeyEpisodicConfig)):
         raise ValueError(
@@ -727,9 +745,7 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
         raise ValueError(f"episodes_per_iteration ({B}) must be divisible by workers ({W})")
     params = HockeyParams()
     K = params.n_shots
-    probe = RobotHockeyEnv(params)  # builds the demo; gives the initial mean
-    demo = torch.as_tensor(probe.demo_action(), dtype=torch.float64)
-    probe.close()
+    demo = torch.as_tensor(demo_action(params), dtype=torch.float64)  # the initial mean
     std = torch.cat(
         [
             torch.full((7,), cfg.init_std_position, dtype=torch.float64),
@@ -783,58 +799,48 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
         reset_at_each_iter=True,
         seed=env_seed,
     )
-    try:
-        run_dir = cfg.run_dir or default_run_dir(experiment)
-        writer = RunWriter(run_dir, {"experiment": experiment, **dataclasses.asdict(cfg)})
-    except BaseException:
-        shutdown_collector(collector)
-        raise
+    per_step = (
+        "eta",
+        "xi",
+        "kl",
+        "cross_entropy",
+        "effective_sample_size",
+        "policy_entropy",
+        "n_active_options",
+    )
+
+    def update(batch: Any) -> dict[str, Any]:
+        s, a, r, final = episodes(batch, frames_per_episode)
+        if sequential:
+            diag = algo.tell(s, a, r)
+            steps = {f"{key}_{k + 1}": diag[key][k] for key in per_step for k in range(K)}
+        else:
+            diag = algo.tell(s[:, 0], a[:, 0], r[:, 0])
+            steps = {}
+        scalars = {k: v for k, v in diag.items() if not isinstance(v, (list, tuple))}
+        return {**_hockey_rows(s, r, final, params.zones), **scalars, **steps}
+
     label = f"{experiment}/{cfg.n_options}opt"
-    bar = tqdm(total=iterations, desc=label, disable=not cfg.progress)
-    last: dict[str, Any] = {}
-    try:
-        for it, batch in enumerate(collector):
-            s, a, r, final = episodes(batch, frames_per_episode)
-            if sequential:
-                diag = algo.tell(s, a, r)
-                rewards = r
-                step_diag = {
-                    f"{key}_{k + 1}": diag[key][k]
-                    for key in (
-                        "eta",
-                        "xi",
-                        "kl",
-                        "cross_entropy",
-                        "effective_sample_size",
-                        "policy_entropy",
-                        "n_active_options",
-                    )
-                    for k in range(K)
-                }
-            else:
-                diag = algo.tell(s[:, 0], a[:, 0], r[:, 0])
-                rewards = r
-                step_diag = {}
-            if W > 1:
-                collector.update_policy_weights_()
-            last = _hockey_rows(s, rewards, final, params.zones)
-            scalars = {k: v for k, v in diag.items() if not isinstance(v, (list, tuple))}
-            writer.log(
-                {"iteration": it + 1, "episodes": (it + 1) * B, **last, **scalars, **step_diag}
-            )
-            bar.update(1)
-            bar.set_postfix(
-                reward=f"{last['average_reward']:.2f}", zone3=f"{last['zone3_share']:.2f}"
-            )
-    finally:
-        bar.close()
-        shutdown_collector(collector)
+    writer = _train_from_collector(
+        collector,
+        cfg,
+        experiment,
+        label,
+        iterations=iterations,
+        episodes_per_iteration=B,
+        update=update,
+        postfix=lambda row: {
+            "reward": f"{row['average_reward']:.2f}",
+            "zone3": f"{row['zone3_share']:.2f}",
+        },
+    )
+    last = writer.rows[-1]
     writer.checkpoint({"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)})
     writer.plot_learning_curve(
         "episodes", ["average_reward"], title=label, ylabel="average reward per episode"
     )
     shots = iterations * B * K
-    summary = writer.finish(
+    return writer.finish(
         {
             "experiment": experiment,
             "n_options": cfg.n_options,
@@ -846,11 +852,9 @@ def run_hockey(cfg: HockeyConfig) -> dict[str, Any]:
             "zone3_share": last["zone3_share"],
             "final_zone_reward": last["zone_reward"],
             "n_active_options": [int(p.active.sum()) for p in policies],
+            "seconds_per_shot": (time.perf_counter() - writer.start) / shots,
         }
     )
-    summary["seconds_per_shot"] = summary["wall_seconds"] / shots
-    writer.write_json("summary.json", summary)
-    return summary
 
 
 EXPERIMENTS: dict[str, tuple[Any, Any]] = {

@@ -18,11 +18,11 @@ def read_curve(run_dir: Path, key: str = "average_return") -> tuple[list[float],
     return [float(r["episodes"]) for r in rows], [float(r[key]) for r in rows]
 
 
-def mean_std(xs: list[float]) -> str:
-    """'mean ± std' (one decimal), or the value alone for one sample."""
+def mean_std(xs: list[float], digits: int = 1) -> str:
+    """'mean ± std' (``digits`` decimals), or the value alone for one sample."""
     if len(xs) == 1:
-        return f"{xs[0]:.1f}"
-    return f"{statistics.mean(xs):.1f} ± {statistics.stdev(xs):.1f}"
+        return f"{xs[0]:.{digits}f}"
+    return f"{statistics.mean(xs):.{digits}f} ± {statistics.stdev(xs):.{digits}f}"
 
 
 def plot_band(ax: Any, x: list[float], curves: list[list[float]], label: str) -> None:

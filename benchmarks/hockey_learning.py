@@ -29,16 +29,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks._common import plot_band, read_curve, write_results  # noqa: E402
+from benchmarks._common import mean_std, plot_band, read_curve, write_results  # noqa: E402
 from hireps_torch.runlog import atomic_write  # noqa: E402
 from train import HockeyEpisodicConfig, HockeySequentialConfig, run_hockey  # noqa: E402
-
-
-def mean_std2(xs: list[float]) -> str:
-    """'mean ± std' with two decimals (the value alone for one sample)."""
-    if len(xs) == 1:
-        return f"{xs[0]:.2f}"
-    return f"{statistics.mean(xs):.2f} ± {statistics.stdev(xs):.2f}"
 
 
 def time_simulation(n_episodes: int) -> dict[str, float]:
@@ -189,8 +182,8 @@ def main() -> None:
         walls = [r["wall_seconds"] for r in runs]
         lines.append(
             f"| {name} | {len(runs)} | "
-            f"{mean_std2([r['final_average_reward'] for r in runs])} | "
-            f"{mean_std2([r['zone3_share'] for r in runs])} | "
+            f"{mean_std([r['final_average_reward'] for r in runs], 2)} | "
+            f"{mean_std([r['zone3_share'] for r in runs], 2)} | "
             f"{statistics.mean(walls):.0f}, {max(walls):.0f} |"
         )
     table = "\n".join(lines)

@@ -11,6 +11,7 @@ both pucks rest, and reports the minimum gap between the pucks. Every physical c
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -81,40 +82,38 @@ class HockeyParams:
     dmp_basis: int = 15
 
     def __post_init__(self) -> None:
-        positive = (
-            "puck_radius",
-            "puck_height",
-            "puck_mass",
-            "target_std",
-            "sim_dt",
-            "follow_through",
-            "shot_time_cap",
-            "rest_speed",
-            "motor_force",
-            "max_goal_velocity",
-        )
-        for name in positive:
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"HockeyParams.{name} must be finite and > 0, got {v}")
-        if not (math.isfinite(self.floor_friction) and self.floor_friction >= 0):
-            raise ValueError(f"HockeyParams.floor_friction must be >= 0, got {self.floor_friction}")
-        if not 0 <= self.puck_restitution <= 1:
-            raise ValueError(
-                f"HockeyParams.puck_restitution must be in [0, 1], got {self.puck_restitution}"
-            )
-        for name in ("position_gain", "velocity_gain"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0 < v <= 1):
-                raise ValueError(f"HockeyParams.{name} must be in (0, 1], got {v}")
-        if not (math.isfinite(self.joint_margin) and 0 <= self.joint_margin < 1.0):
-            raise ValueError(
-                f"HockeyParams.joint_margin must be in [0, 1) rad, got {self.joint_margin}"
-            )
-        if not math.isfinite(self.min_blade_height):
-            raise ValueError(
-                f"HockeyParams.min_blade_height must be finite, got {self.min_blade_height}"
-            )
+        finite = math.isfinite
+        rules: list[tuple[tuple[str, ...], Callable[[float], bool], str]] = [
+            (
+                (
+                    "puck_radius",
+                    "puck_height",
+                    "puck_mass",
+                    "target_std",
+                    "sim_dt",
+                    "follow_through",
+                    "shot_time_cap",
+                    "rest_speed",
+                    "motor_force",
+                    "max_goal_velocity",
+                ),
+                lambda v: finite(v) and v > 0,
+                "must be finite and > 0",
+            ),
+            (("floor_friction",), lambda v: finite(v) and v >= 0, "must be >= 0"),
+            (("puck_restitution",), lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+            (
+                ("position_gain", "velocity_gain"),
+                lambda v: finite(v) and 0 < v <= 1,
+                "must be in (0, 1]",
+            ),
+            (("joint_margin",), lambda v: finite(v) and 0 <= v < 1.0, "must be in [0, 1) rad"),
+            (("min_blade_height",), finite, "must be finite"),
+        ]
+        for names, ok, rule in rules:
+            for name in names:
+                if not ok(getattr(self, name)):
+                    raise ValueError(f"HockeyParams.{name} {rule}, got {getattr(self, name)}")
         if not all(math.isfinite(v) for v in self.target_mean) or len(self.target_mean) != 2:
             raise ValueError(
                 f"HockeyParams.target_mean must be 2 finite numbers, got {self.target_mean}"

@@ -188,6 +188,7 @@ class HockeySim:
         pb.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
         pb.setGravity(0, 0, -9.81, physicsClientId=cid)
         pb.setTimeStep(p.sim_dt, physicsClientId=cid)
+        # contact pairs in a fixed order (the results depend on it)
         pb.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=cid)
         self.plane = pb.loadURDF("plane.urdf", physicsClientId=cid)
         pb.changeDynamics(self.plane, -1, lateralFriction=1.0, restitution=0.0, physicsClientId=cid)

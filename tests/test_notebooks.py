@@ -9,24 +9,23 @@ from nbclient import NotebookClient
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.slow
-def test_pendulum_ablations_notebook_executes():
-    nb = nbformat.read(ROOT / "notebooks" / "pendulum_ablations.ipynb", as_version=4)
+def executed_outputs(name: str, timeout: int) -> list[dict]:
+    """Run notebooks/<name> from the repository root; return every code cell's outputs."""
+    nb = nbformat.read(ROOT / "notebooks" / name, as_version=4)
     NotebookClient(
-        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}
+        nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}
     ).execute()
-    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
-    assert not [o for o in outputs if o.get("output_type") == "error"]
-    assert any("image/png" in o.get("data", {}) for o in outputs)
+    return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
 
 
 @pytest.mark.slow
-def test_hockey_notebook_executes():
-    pytest.importorskip("pybullet")
-    nb = nbformat.read(ROOT / "notebooks" / "hockey.ipynb", as_version=4)
-    NotebookClient(
-        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}
-    ).execute()
-    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+@pytest.mark.parametrize(
+    "name,timeout,needs",
+    [("pendulum_ablations.ipynb", 300, None), ("hockey.ipynb", 600, "pybullet")],
+)
+def test_notebook_executes_and_shows_figures(name, timeout, needs):
+    if needs:
+        pytest.importorskip(needs)
+    outputs = executed_outputs(name, timeout)
     assert not [o for o in outputs if o.get("output_type") == "error"]
     assert any("image/png" in o.get("data", {}) for o in outputs)

@@ -27,6 +27,7 @@ from hireps_torch.algorithms import REPS, EpisodicHiREPS
 from hireps_torch.runlog import RunWriter, default_run_dir
 
 if TYPE_CHECKING:
+    from hireps_torch.features import FeatureMap, QuadraticFeatures
     from hireps_torch.policies import HierarchicalPolicy
 
 
@@ -265,21 +266,30 @@ class PendulumConfig:
     """PD controller damping (N m s / rad)."""
     start_noise: float = 0.1
     """Std of the start perturbation around hanging down (rad and rad/s)."""
-    reset_each_iteration: bool = True
-    """Start every iteration's episodes from the start distribution (else the pendulums run on
-    across iterations, restarting only at the restart probability)."""
+    reset_each_iteration: bool = False
+    """Start every iteration's episodes from the start distribution. Off by default: the
+    pendulums run on across iterations, restarting only at the restart probability, so the
+    samples follow the restart process's stationary distribution, as the dual assumes."""
     epsilon: float = 0.5
     """KL bound per iteration."""
     kappa_rel: float = 0.9
     """Entropy bound relative to the mean responsibility entropy (learned gating only)."""
     init_std: float = 1.5
     """Initial exploration std of the desired angle (rad)."""
+    init_means: Literal["spaced", "random"] = "spaced"
+    """Initial option means (desired angles, no feedback yet): spaced evenly over
+    [-2 pi, 2 pi] (one option per cell centre, so there are options that push either way at
+    full torque), or random around 0 with std ``init_std``."""
     min_variance: float = 1e-4
     """Floor on the option variance (rad^2)."""
     fourier_bases: int = 5
     """Fourier bases per state dimension of the value features."""
-    max_velocity: float = 20.0
-    """Velocity range (rad/s) the Fourier and gating features are scaled to."""
+    value_features: Literal["fourier", "fourier+quadratic"] = "fourier+quadratic"
+    """Value features: the Fourier basis alone, or next to the gating's squared expansion
+    (which adds a quadratic bowl around upright and, with the basis's cos(theta), the energy)."""
+    max_velocity: float = 10.0
+    """Velocity range (rad/s) the Fourier and gating features are scaled to (a pendulum with
+    the energy of upright at rest passes the bottom at sqrt(4 g / l) = 8.9 rad/s)."""
     workers: int = 1
     """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
     eval_rollouts: int = 50
@@ -372,12 +382,32 @@ def _infinite_horizon_postfix(logged: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def pendulum_quadratic_features(cfg: PendulumConfig) -> QuadraticFeatures:
+    """The squared expansion of (theta / pi, theta' / max_velocity): (N, 2) -> (N, 5)."""
+    from hireps_torch.features import QuadraticFeatures
+
+    return QuadraticFeatures(2, scale=torch.tensor([math.pi, cfg.max_velocity]))
+
+
+def pendulum_value_features(cfg: PendulumConfig) -> FeatureMap:
+    """Periodic Fourier basis of (theta, theta') on [-pi, pi] x [-max_velocity, max_velocity],
+    plus the squared expansion when ``cfg.value_features == "fourier+quadratic"``."""
+    from hireps_torch.features import ConcatFeatures, FourierFeatures
+
+    vmax = cfg.max_velocity
+    fourier = FourierFeatures(
+        [-math.pi, -vmax], [math.pi, vmax], cfg.fourier_bases, periodic=[True, False]
+    )
+    if cfg.value_features == "fourier":
+        return fourier
+    return ConcatFeatures(fourier, pendulum_quadratic_features(cfg))
+
+
 def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> HierarchicalPolicy:
     """The policy of one gating kind: options linear in (theta, theta') -> desired angle."""
-    from hireps_torch.features import QuadraticFeatures
     from hireps_torch.policies import ConstantGating, HierarchicalPolicy
 
-    quad = QuadraticFeatures(2, scale=torch.tensor([math.pi, cfg.max_velocity]))
+    quad = pendulum_quadratic_features(cfg)
     std = torch.tensor([cfg.init_std], dtype=torch.float64)
     if cfg.gating == "flat":
         return HierarchicalPolicy.create(
@@ -389,10 +419,15 @@ def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> Hi
         points = (2 * torch.rand(1000, 2, generator=generator, dtype=torch.float64) - 1) * box
         seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
         gating = ConstantGating.from_kmeans(points, cfg.n_options, seed=seed)
+    init_mean = None
+    if cfg.init_means == "spaced":  # cell centres of [-2 pi, 2 pi]
+        cells = (torch.arange(cfg.n_options, dtype=torch.float64) + 0.5) / cfg.n_options
+        init_mean = (4.0 * cells - 2.0)[:, None] * math.pi
     return HierarchicalPolicy.create(
         cfg.n_options,
         2,
         1,
+        init_mean=init_mean,
         init_std=std,
         gating_features=quad if gating is None else None,
         min_variance=cfg.min_variance,
@@ -410,7 +445,6 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
         sample_start,
     )
     from hireps_torch.algorithms import InfiniteHorizonHiREPS
-    from hireps_torch.features import FourierFeatures
     from hireps_torch.rollout import make_collector, policy_module
 
     _validate_episodic_budget(
@@ -428,12 +462,9 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     policy = build_pendulum_policy(cfg, gen)
-    vmax = cfg.max_velocity
     algo = InfiniteHorizonHiREPS(
         policy,
-        FourierFeatures(
-            [-math.pi, -vmax], [math.pi, vmax], cfg.fourier_bases, periodic=[True, False]
-        ),
+        pendulum_value_features(cfg),
         sample_start(1000, params, gen),
         gamma=params.gamma,
         epsilon=cfg.epsilon,

@@ -13,7 +13,13 @@ import math
 import torch
 from torch import Tensor, nn
 
-__all__ = ["FeatureMap", "FourierFeatures", "IdentityFeatures", "QuadraticFeatures"]
+__all__ = [
+    "ConcatFeatures",
+    "FeatureMap",
+    "FourierFeatures",
+    "IdentityFeatures",
+    "QuadraticFeatures",
+]
 
 
 class FeatureMap(nn.Module):
@@ -144,3 +150,30 @@ class FourierFeatures(FeatureMap):
         phase = math.pi * u @ self.coefficients.T
         out = torch.cat([phase.cos(), phase.sin()], -1) if self.with_sin else phase.cos()
         return out.to(x.dtype)
+
+
+class ConcatFeatures(FeatureMap):
+    """Side-by-side concatenation of feature maps on the same input.
+
+    ``(..., S) -> (..., sum_k F_k)``, the maps' outputs in order. E.g. the pendulum's value
+    features: a Fourier basis (global shape) next to the squared expansion (a quadratic bowl
+    around upright, and with cos(theta) of the Fourier basis the pendulum's energy).
+
+    Args:
+        maps: one or more feature maps, all with the same ``in_features``.
+    """
+
+    def __init__(self, *maps: FeatureMap) -> None:
+        super().__init__()
+        if not maps:
+            raise ValueError("ConcatFeatures needs at least one feature map")
+        dims = sorted({m.in_features for m in maps})
+        if len(dims) != 1:
+            raise ValueError(f"all maps must share in_features, got {dims}")
+        self.maps = nn.ModuleList(maps)
+        self.in_features = dims[0]
+        self.out_features = sum(m.out_features for m in maps)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x: (..., S) -> (..., sum of the maps' out_features)."""
+        return torch.cat([m(x) for m in self.maps], dim=-1)

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from hireps_torch.features import FourierFeatures, QuadraticFeatures
+from hireps_torch.features import ConcatFeatures, FourierFeatures, QuadraticFeatures
 
 
 def test_fourier_basis_matches_its_formula():
@@ -56,3 +56,17 @@ def test_feature_maps_reject_bad_arguments():
     with pytest.raises(ValueError, match="expected"):
         FourierFeatures([0.0], [1.0])(torch.zeros(3, 2))
     assert QuadraticFeatures(2)(torch.ones(4, 2)).shape == (4, 5)
+
+
+def test_concat_features_stack_the_maps_in_order():
+    four = FourierFeatures([-math.pi, -10.0], [math.pi, 10.0], n_bases=5, periodic=[True, False])
+    quad = QuadraticFeatures(2, scale=torch.tensor([math.pi, 10.0]))
+    both = ConcatFeatures(four, quad)
+    assert both.in_features == 2 and both.out_features == 48 + 5
+    x = torch.randn(6, 2, dtype=torch.float64)
+    out = both(x)
+    assert torch.equal(out[:, :48], four(x)) and torch.equal(out[:, 48:], quad(x))
+    with pytest.raises(ValueError, match="in_features"):
+        ConcatFeatures(four, QuadraticFeatures(3))
+    with pytest.raises(ValueError, match="at least one"):
+        ConcatFeatures()

@@ -1,6 +1,7 @@
 """train.py as a user runs it: a subprocess that writes a run directory."""
 
 import csv
+import dataclasses
 import json
 import subprocess
 import sys
@@ -263,3 +264,27 @@ def test_run_hockey_refuses_the_base_config(tmp_path):
 
     with pytest.raises(ValueError, match="HockeySequentialConfig or HockeyEpisodicConfig"):
         train_module.run_hockey(train_module.HockeyConfig(run_dir=tmp_path / "r"))
+
+
+def test_pendulum_policy_and_value_features_follow_the_config():
+    import math
+
+    import train as train_module
+
+    cfg = train_module.PendulumConfig(n_options=4)
+    pol = train_module.build_pendulum_policy(cfg, torch.Generator().manual_seed(0))
+    means = [float(o.bias) for o in pol.sub_policies]
+    assert means == pytest.approx([-1.5 * math.pi, -0.5 * math.pi, 0.5 * math.pi, 1.5 * math.pi])
+    assert all(float(o.weight.abs().max()) == 0.0 for o in pol.sub_policies)
+    x = torch.tensor([[0.3, -4.0]], dtype=torch.float64)
+    both = train_module.pendulum_value_features(cfg)
+    assert both.out_features == 48 + 5
+    assert torch.allclose(
+        both(x)[0, 48:],
+        torch.tensor([0.3 / math.pi, -0.4, 0.0091189, -0.0381972, 0.16], dtype=torch.float64),
+        atol=1e-6,
+    )
+    plain = dataclasses.replace(cfg, value_features="fourier", init_means="random")
+    assert train_module.pendulum_value_features(plain).out_features == 48
+    rand = train_module.build_pendulum_policy(plain, torch.Generator().manual_seed(0))
+    assert len({float(o.bias) for o in rand.sub_policies}) == 4

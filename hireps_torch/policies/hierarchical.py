@@ -73,8 +73,10 @@ class HierarchicalPolicy(nn.Module):
         """Build a mixture of linear-Gaussian options.
 
         Option means start at ``init_mean + spread * init_std * randn`` (exactly ``init_mean``
-        for one option), covariances at ``init_std^2 I``. The gating is ``gating`` when given
-        (e.g. a :class:`ConstantGating` on ``gating_features``), else a uniform
+        for one option) when ``init_mean`` is (D,) or None (zeros), and exactly at the rows of
+        ``init_mean`` when it is (O, D), one mean per option (no random spread); covariances
+        at ``init_std^2 I``. The gating is ``gating`` when given (e.g. a
+        :class:`ConstantGating` on ``gating_features``), else a uniform
         :class:`SoftmaxGating`. ``covariance_prior`` goes to every option (see
         :class:`LinearGaussian`).
         """
@@ -85,11 +87,18 @@ class HierarchicalPolicy(nn.Module):
             if init_mean is None
             else (torch.as_tensor(init_mean, dtype=torch.float64))
         )
+        if mean.shape not in ((action_dim,), (n_options, action_dim)):
+            raise ValueError(
+                f"init_mean must have shape (D,) = ({action_dim},) or (O, D) = "
+                f"({n_options}, {action_dim}), got {tuple(mean.shape)}"
+            )
         std = torch.as_tensor(init_std, dtype=torch.float64).expand(action_dim)
         opts = []
-        for _ in range(n_options):
+        for o in range(n_options):
             m = (
-                mean
+                mean[o]
+                if mean.dim() == 2
+                else mean
                 if n_options == 1
                 else mean
                 + spread * std * torch.randn(action_dim, generator=generator, dtype=torch.float64)

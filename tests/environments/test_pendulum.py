@@ -118,7 +118,8 @@ def test_hanging_at_rest_stays_and_upright_is_unstable():
 
 def test_reward_formula_at_hand_computed_states():
     s = torch.tensor([[0.0, 0.0], [math.pi / 2, 0.0], [-math.pi / 2, 3.0], [-math.pi, 0.0]])
-    assert step_reward(s).tolist() == pytest.approx([500.0, 375.0, 345.0, 0.0])
+    half = 500.0 * math.sqrt(0.5)  # tip at l sqrt(2) from upright, over 2 l
+    assert step_reward(s).tolist() == pytest.approx([500.0, 500 - half, 470 - half, 0.0])
     # a decision sums d per-step rewards
     p = PendulumParams(steps_per_decision=3)
     state = torch.tensor([[0.2, 0.1]], dtype=torch.float64)

@@ -87,3 +87,11 @@ def test_bad_input_raises(gen):
         pol.sample(torch.tensor([[float("nan")]]), gen)
     with pytest.raises(ValueError, match=r"weights must have shape \(2, 3\)"):
         pol.weighted_fit(torch.zeros(2, 1), torch.zeros(2, 2), torch.ones(2, 2))
+
+
+def test_per_option_initial_means_are_used_exactly(gen):
+    means = torch.tensor([[-1.0, 0.5], [2.0, 3.0], [0.0, -4.0]], dtype=torch.float64)
+    pol = HierarchicalPolicy.create(3, 1, 2, init_mean=means, init_std=0.3, generator=gen)
+    assert torch.equal(torch.stack([o.bias for o in pol.sub_policies]), means)
+    with pytest.raises(ValueError, match=r"init_mean must have shape \(D,\) = \(2,\) or \(O, D\)"):
+        HierarchicalPolicy.create(3, 1, 2, init_mean=torch.zeros(2, 2))

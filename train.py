@@ -276,6 +276,10 @@ class PendulumConfig:
     """Entropy bound relative to the mean responsibility entropy (learned gating only)."""
     init_std: float = 1.5
     """Initial exploration std of the desired angle (rad)."""
+    mirror_samples: bool = True
+    """Also update on the mirror image (-theta, -theta', -desired angle) of every decision:
+    the task is symmetric under it, and without it the policy often commits to pushing one
+    way and never swings up (see benchmarks/README.md)."""
     init_means: Literal["spaced", "random"] = "spaced"
     """Initial option means (desired angles, no feedback yet): spaced evenly over
     [-2 pi, 2 pi] (one option per cell centre, so there are options that push either way at
@@ -358,17 +362,21 @@ def _train_from_collector(
 
 
 def _infinite_horizon_update(
-    algo: Any, row: Callable[[torch.Tensor, torch.Tensor], dict[str, Any]]
+    algo: Any,
+    row: Callable[[torch.Tensor, torch.Tensor], dict[str, Any]],
+    augment: Callable[..., tuple[torch.Tensor, ...]] | None = None,
 ) -> Callable[[Any], dict[str, Any]]:
     """The per-batch step of the pendulum and the beam: one ``algo.update`` on the batch's
-    decisions (terminal ones flagged), then ``row(rewards, terminated)`` for the task's own
-    columns (after the update) followed by the update's diagnostics."""
+    decisions (terminal ones flagged; passed through ``augment(s, a, r, s', terminated)``
+    first when given), then ``row(rewards, terminated)`` on the collected decisions for the
+    task's own columns (after the update) followed by the update's diagnostics."""
     from hireps_torch.rollout import transitions
 
     def update(batch: Any) -> dict[str, Any]:
         s, a, r, s_next, _ = transitions(batch, "state")
         terminated = batch["next", "terminated"].reshape(-1)
-        diag = algo.update(s, a, r, s_next, terminated)
+        data = (s, a, r, s_next, terminated)
+        diag = algo.update(*(augment(*data) if augment is not None else data))
         return {**row(r, terminated), **diag}
 
     return update
@@ -442,6 +450,7 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
         PendulumParams,
         PendulumSwingUpBatchEnv,
         evaluate_swing_up,
+        mirror_decisions,
         sample_start,
     )
     from hireps_torch.algorithms import InfiniteHorizonHiREPS
@@ -498,7 +507,9 @@ def run_pendulum(cfg: PendulumConfig) -> dict[str, Any]:
         iterations=iterations,
         episodes_per_iteration=B,
         update=_infinite_horizon_update(
-            algo, lambda r, _: {"average_return": float(r.mean()) / params.steps_per_decision}
+            algo,
+            lambda r, _: {"average_return": float(r.mean()) / params.steps_per_decision},
+            mirror_decisions if cfg.mirror_samples else None,
         ),
         postfix=_infinite_horizon_postfix,
     )

@@ -91,6 +91,8 @@ __all__ = [
     "SwingUpEvaluation",
     "energy",
     "evaluate_swing_up",
+    "mirror_decisions",
+    "mirror_states",
     "pd_torque",
     "pendulum_step",
     "sample_start",
@@ -216,6 +218,40 @@ def pendulum_step(
         path.append(s)
     p = torch.stack(path, dim=1)
     return s, step_reward(p).sum(dim=1), p
+
+
+def mirror_states(state: Tensor) -> Tensor:
+    """The mirror image (wrap(-theta), -theta') of states: (..., 2) -> (..., 2).
+
+    The task is symmetric under it: the physics, the PD controller and the reward are unchanged
+    when the state and the desired angle change sign (tested), and so is the start distribution.
+    """
+    return torch.stack([wrap_angle(-state[..., 0]), -state[..., 1]], dim=-1)
+
+
+def mirror_decisions(
+    states: Tensor, actions: Tensor, rewards: Tensor, next_states: Tensor, terminated: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The decisions followed by their mirror images (twice as many, same rewards).
+
+    By the symmetry of :func:`mirror_states`, ``(mirror(s), -a, r, mirror(s'))`` is a decision
+    the task could have produced as well; ``train.py pendulum`` adds them to each update
+    (``mirror_samples``) so that the policy learns both swing directions.
+
+    Args:
+        states: (N, 2); actions: (N, 1) desired angles; rewards: (N,); next_states: (N, 2);
+            terminated: (N,) bool.
+
+    Returns:
+        The same five arrays with 2N rows: the originals, then the mirrored ones.
+    """
+    return (
+        torch.cat([states, mirror_states(states)]),
+        torch.cat([actions, -actions]),
+        torch.cat([rewards, rewards]),
+        torch.cat([next_states, mirror_states(next_states)]),
+        torch.cat([terminated, terminated]),
+    )
 
 
 def sample_start(n: int, params: PendulumParams, generator: torch.Generator | None) -> Tensor:

@@ -288,3 +288,27 @@ def test_pendulum_policy_and_value_features_follow_the_config():
     assert train_module.pendulum_value_features(plain).out_features == 48
     rand = train_module.build_pendulum_policy(plain, torch.Generator().manual_seed(0))
     assert len({float(o.bias) for o in rand.sub_policies}) == 4
+
+
+def test_pendulum_update_can_add_the_mirrored_decisions():
+    import train as train_module
+    from environments.pendulum import PendulumSwingUpBatchEnv, mirror_decisions, mirror_states
+
+    seen = {}
+
+    class Recorder:
+        def update(self, *data):
+            seen["data"] = data
+            return {"eta": 1.0}
+
+    env = PendulumSwingUpBatchEnv(4, seed=0)
+    batch = env.rollout(3, break_when_any_done=False)
+    batch["option"] = torch.zeros(4, 3, dtype=torch.int64)
+    row = train_module._infinite_horizon_update(
+        Recorder(), lambda r, _: {"n": r.numel()}, mirror_decisions
+    )(batch)
+    assert row == {"n": 12, "eta": 1.0}  # the row sees the collected decisions only
+    s, a, r, s_next, term = seen["data"]
+    assert s.shape == (24, 2) and a.shape == (24, 1) and term.shape == (24,)
+    assert torch.equal(s[12:], mirror_states(s[:12])) and torch.equal(a[12:], -a[:12])
+    assert torch.equal(r[12:], r[:12]) and torch.equal(s_next[12:], mirror_states(s_next[:12]))

@@ -17,6 +17,8 @@ from environments.pendulum import (
     control_step,
     energy,
     evaluate_swing_up,
+    mirror_decisions,
+    mirror_states,
     pd_torque,
     pendulum_step,
     sample_start,
@@ -161,3 +163,24 @@ def test_evaluation_of_an_energy_pumping_controller_succeeds():
     assert 0.5 < ev.time_to_upright < 3.0
     idle = evaluate_swing_up(lambda s: torch.full((s.shape[0],), math.pi), p, n_rollouts=10)
     assert idle.success_rate == 0.0 and idle.reached_share == 0.0
+
+
+def test_the_task_is_mirror_symmetric_and_mirror_decisions_use_it():
+    p = PendulumParams()
+    g = torch.Generator().manual_seed(3)
+    s = torch.randn(200, 2, generator=g, dtype=torch.float64) * torch.tensor([2.0, 6.0])
+    s = torch.stack([wrap_angle(s[:, 0]), s[:, 1]], -1)
+    a = torch.randn(200, generator=g, dtype=torch.float64) * 4  # some beyond the clip
+    nxt, r, path = pendulum_step(s, a, p)
+    m_nxt, m_r, m_path = pendulum_step(mirror_states(s), -a, p)
+    gap = m_path - mirror_states(path)
+    assert float(wrap_angle(gap[..., 0]).abs().max()) < 1e-9
+    assert float(gap[..., 1].abs().max()) < 1e-9
+    assert torch.allclose(m_r, r, atol=1e-9)
+    down = torch.tensor([[-math.pi, 0.0]], dtype=torch.float64)
+    assert float(mirror_states(down)[0, 0]) == -math.pi  # stays in [-pi, pi)
+    term = torch.zeros(200, dtype=torch.bool)
+    ms, ma, mr, mn, mt = mirror_decisions(s, a[:, None], r, nxt, term)
+    assert ms.shape == (400, 2) and ma.shape == (400, 1) and mt.shape == (400,)
+    assert torch.equal(ms[:200], s) and torch.equal(ma[200:, 0], -a) and torch.equal(mr[200:], r)
+    assert torch.equal(mn[200:], mirror_states(nxt))

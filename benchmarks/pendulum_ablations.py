@@ -4,7 +4,8 @@
    control steps per call) at 20, 200 and 2000 parallel pendulums, next to gymnasium's own
    ``Pendulum-v1`` stepped in a Python loop, measured in the same run (control steps/s).
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
-   (each unique configuration runs once per seed and is shared between figures):
+   (each unique configuration runs once per seed and is shared between figures; ``--jobs``
+   runs in parallel, 2 by default, one per core of the 2-core reference machine):
 
    - 16a: options 1 / 2 / 5 / 10 (d = 5)
    - 16b: d = 1 / 2 / 5 / 10 (5 options)
@@ -16,15 +17,17 @@ final average return and the success rate per configuration) and one PNG per fig
 curve with a +-1 std band) to ``--out``; prints the table, the wall time of each standard
 run and of the whole ablation.
 
-    OMP_NUM_THREADS=1 python benchmarks/pendulum_ablations.py [--seeds 5] [--out DIR]
+    OMP_NUM_THREADS=1 python benchmarks/pendulum_ablations.py [--seeds 5] [--jobs 2] [--out DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import statistics
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -121,6 +124,24 @@ def plot_figure(name: str, lines: list[tuple[str, str]], results: dict, out: Pat
     plt.close(fig)
 
 
+# rough run time relative to the standard configuration, to start the slow runs first
+SLOWNESS = {"d1": 4.0, "constant-100": 4.0, "d2": 2.0, "constant-20": 1.5}
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def run_one(key: str, seed: int, episodes: int, run_dir: Path) -> dict[str, Any]:
+    """One ``train.py pendulum`` run of configuration ``key`` (in a worker process)."""
+    cfg = PendulumConfig(
+        seed=seed, episodes=episodes, progress=False, run_dir=run_dir, **CONFIGS[key]
+    )
+    summary = run_pendulum(cfg)
+    x, y = read_curve(run_dir)
+    return {**summary, "curve": y, "episodes_axis": x}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seeds", type=int, default=5)
@@ -128,6 +149,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "pendulum_ablations")
     ap.add_argument("--configs", nargs="*", default=list(CONFIGS), help="subset to run")
     ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument(
+        "--jobs", type=int, default=2, help="runs in parallel, one process (one thread) each"
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     out: Path = args.out / time.strftime("%Y%m%d-%H%M%S")
@@ -135,28 +159,32 @@ def main() -> None:
     if not args.skip_speed:
         env_speed()
 
-    results: dict[str, list[dict[str, Any]]] = {}
+    tasks = [(key, seed) for key in args.configs for seed in range(args.seeds)]
+    done: dict[tuple[str, int], dict[str, Any]] = {}
     t_all = time.perf_counter()
-    for key in args.configs:
-        results[key] = []
-        for seed in range(args.seeds):
-            cfg = PendulumConfig(
-                seed=seed,
-                episodes=args.episodes,
-                progress=False,
-                run_dir=out / "runs" / key / f"seed{seed}",
-                **CONFIGS[key],
+    # the slow configurations first, so that the last jobs to finish are short ones
+    tasks.sort(key=lambda ks: -SLOWNESS.get(ks[0], 1.0))
+    with ProcessPoolExecutor(
+        args.jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_one_thread
+    ) as pool:
+        futures = {
+            pool.submit(run_one, key, seed, args.episodes, out / "runs" / key / f"seed{seed}"): (
+                key,
+                seed,
             )
-            summary = run_pendulum(cfg)
-            x, y = read_curve(cfg.run_dir)  # type: ignore[arg-type]
-            results[key].append({**summary, "curve": y, "episodes_axis": x})
+            for key, seed in tasks
+        }
+        for fut in as_completed(futures):
+            key, seed = futures[fut]
+            run = done[(key, seed)] = fut.result()
             print(
                 f"  {key:<13} seed {seed}: final average return "
-                f"{summary['final_average_return']:7.1f}, success {summary['success_rate']:.2f}, "
-                f"{summary['wall_seconds']:.1f} s",
+                f"{run['final_average_return']:7.1f}, success {run['success_rate']:.2f}, "
+                f"{run['wall_seconds']:.1f} s",
                 flush=True,
             )
     total = time.perf_counter() - t_all
+    results = {k: [done[(k, s)] for s in range(args.seeds)] for k in args.configs}
 
     lines = [
         "| configuration | final average return | success rate | seeds with success >= 0.9 "

@@ -401,6 +401,34 @@ def solve_reps_dual(
     K, N = R.shape
     O = log_resp.shape[-1]
     log_resp = log_resp.to(torch.float64)
+    if O > 1 and (kappa is None or not bool(torch.isfinite(kappa).any())):
+        # Without an entropy bound (xi = 0) the options enter the dual only through
+        # sum_o p~_io: P_io = w_i p~_io, with w the one-option solution. Solving that is exact
+        # and O times cheaper (e.g. 100 hard-gated options).
+        row = torch.logsumexp(log_resp, dim=-1, keepdim=True)
+        one = solve_reps_dual(
+            R,
+            row,
+            epsilon,
+            D=D,
+            c=c,
+            max_iter=max_iter,
+            tolerance_grad=tolerance_grad,
+            converged_grad=converged_grad,
+        )
+        w = one.weights * torch.exp(log_resp - row)
+        return _finish(
+            w / w.sum(dim=(1, 2), keepdim=True),
+            log_resp,
+            one.eta,
+            one.xi,
+            one.v,
+            D,
+            c,
+            one.dual_value,
+            one.converged,
+            one.iterations,
+        )
 
     # Standardise (the weights are invariant to all of it; eta, xi and v are mapped back).
     # Returns: centred per block and divided by one common spread (the blocks are coupled

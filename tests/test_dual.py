@@ -403,7 +403,13 @@ def test_conflicting_constraints_give_finite_weights_within_the_kl_bound(O):
         kappa = 0.8 * mean_entropy(lr)
     with pytest.warns(InfeasibleConstraintsWarning, match="cannot be met"):
         sol = solve_infinite_horizon_dual(
-            r, phi, phi_next, phi0, gamma=gamma, epsilon=0.5, log_responsibilities=lr,
+            r,
+            phi,
+            phi_next,
+            phi0,
+            gamma=gamma,
+            epsilon=0.5,
+            log_responsibilities=lr,
             kappa=kappa,
         )
     assert not sol.converged
@@ -426,3 +432,23 @@ def test_infinite_horizon_dual_bad_input(gen):
     bad[3] = math.nan
     with pytest.raises(ValueError, match="rewards"):
         solve_infinite_horizon_dual(bad, phi, phi_next, phi0, gamma=0.9, epsilon=0.5)
+
+
+def test_without_an_entropy_bound_the_options_factor_out_of_the_dual():
+    # xi = 0: P_io = w_i p~_io with w the one-option solution, for soft and for hard gating
+    g = torch.Generator().manual_seed(11)
+    N, O = 400, 6
+    R = torch.randn(N, generator=g, dtype=torch.float64) * 3
+    phi = torch.randn(N, 2, generator=g, dtype=torch.float64)
+    soft = torch.log_softmax(torch.randn(N, O, generator=g, dtype=torch.float64) * 2, dim=-1)
+    hard = torch.full((N, O), float("-inf"), dtype=torch.float64)
+    hard[torch.arange(N), torch.arange(N) % O] = 0.0
+    one = solve_infinite_horizon_dual(R, phi, phi.roll(1, 0), phi.mean(0), gamma=0.9, epsilon=0.5)
+    for lr in (soft, hard):
+        sol = solve_infinite_horizon_dual(
+            R, phi, phi.roll(1, 0), phi.mean(0), gamma=0.9, epsilon=0.5, log_responsibilities=lr
+        )
+        assert sol.kl == pytest.approx(0.5, abs=1e-6)
+        assert torch.allclose(sol.sample_weights, one.sample_weights, atol=1e-12)
+        expect = sol.sample_weights[:, None] * lr.exp()
+        assert torch.allclose(sol.weights, expect, atol=1e-12)

@@ -174,8 +174,17 @@ class HierarchicalPolicy(nn.Module):
         gf, pf = self._features(context)
         probs = self.gating.probs(gf)
         option = torch.multinomial(probs, 1, generator=generator).squeeze(-1)
-        all_samples = torch.stack([opt.sample(pf, generator) for opt in self.sub_policies], dim=1)
-        theta = all_samples[torch.arange(context.shape[0]), option]
+        N = context.shape[0]
+        used = torch.bincount(option, minlength=self.n_options).tolist()
+        theta = pf.new_empty((N, self.action_dim), dtype=self.sub_policies[0].bias.dtype)
+        for o, opt in enumerate(self.sub_policies):
+            if used[o]:
+                rows = option == o
+                theta[rows] = opt.sample(pf, generator)[rows]
+            else:  # unchosen option: only advance the generator as its sample would have
+                torch.randn(
+                    (N, self.action_dim), generator=generator, dtype=theta.dtype, device=theta.device
+                )
         return theta, option
 
     def mean_action(self, context: Tensor) -> tuple[Tensor, Tensor]:

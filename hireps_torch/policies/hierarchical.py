@@ -183,7 +183,10 @@ class HierarchicalPolicy(nn.Module):
                 theta[rows] = opt.sample(pf, generator)[rows]
             else:  # unchosen option: only advance the generator as its sample would have
                 torch.randn(
-                    (N, self.action_dim), generator=generator, dtype=theta.dtype, device=theta.device
+                    (N, self.action_dim),
+                    generator=generator,
+                    dtype=theta.dtype,
+                    device=theta.device,
                 )
         return theta, option
 

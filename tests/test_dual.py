@@ -452,3 +452,18 @@ def test_without_an_entropy_bound_the_options_factor_out_of_the_dual():
         assert torch.allclose(sol.sample_weights, one.sample_weights, atol=1e-12)
         expect = sol.sample_weights[:, None] * lr.exp()
         assert torch.allclose(sol.weights, expect, atol=1e-12)
+        # the general multi-option solve, forced by a bound that never binds, agrees
+        slack = solve_infinite_horizon_dual(
+            R,
+            phi,
+            phi.roll(1, 0),
+            phi.mean(0),
+            gamma=0.9,
+            epsilon=0.5,
+            log_responsibilities=lr,
+            kappa=50.0,
+        )
+        assert slack.xi == 0.0
+        assert torch.allclose(slack.weights, sol.weights, atol=1e-7)
+        assert slack.eta == pytest.approx(sol.eta, rel=1e-5)
+        assert slack.dual_value == pytest.approx(sol.dual_value, rel=1e-6)

@@ -182,11 +182,9 @@ class HierarchicalPolicy(nn.Module):
                 rows = option == o
                 theta[rows] = opt.sample(pf, generator)[rows]
             else:  # unchosen option: only advance the generator as its sample would have
+                b = opt.bias
                 torch.randn(
-                    (N, self.action_dim),
-                    generator=generator,
-                    dtype=theta.dtype,
-                    device=theta.device,
+                    (N, self.action_dim), generator=generator, dtype=b.dtype, device=b.device
                 )
         return theta, option
 

@@ -95,3 +95,27 @@ def test_per_option_initial_means_are_used_exactly(gen):
     assert torch.equal(torch.stack([o.bias for o in pol.sub_policies]), means)
     with pytest.raises(ValueError, match=r"init_mean must have shape \(D,\) = \(2,\) or \(O, D\)"):
         HierarchicalPolicy.create(3, 1, 2, init_mean=torch.zeros(2, 2))
+
+
+@pytest.mark.parametrize("O,D,N", [(3, 1, 5), (5, 2, 40), (100, 1, 20)])
+def test_sample_draws_the_same_stream_as_sampling_every_option(O, D, N):
+    # sample() computes only the chosen options but must advance the generator as if it had
+    # sampled all of them (runs stay reproducible across versions)
+    pol = HierarchicalPolicy.create(
+        O,
+        2,
+        D,
+        init_std=0.5,
+        gating_features=QuadraticFeatures(2),
+        generator=torch.Generator().manual_seed(1),
+    )
+    pol.gating.weight.data = torch.randn_like(pol.gating.weight)
+    ctx = torch.randn(N, 2, dtype=torch.float64)
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    theta, option = pol.sample(ctx, g1)
+    gf, pf = pol.gating_features(ctx), pol.policy_features(ctx)
+    ref_opt = torch.multinomial(pol.gating.probs(gf), 1, generator=g2).squeeze(-1)
+    every = torch.stack([o.sample(pf, g2) for o in pol.sub_policies], dim=1)
+    assert torch.equal(option, ref_opt)
+    assert torch.equal(theta, every[torch.arange(N), ref_opt])
+    assert torch.equal(g1.get_state(), g2.get_state())

@@ -5,10 +5,22 @@ from __future__ import annotations
 import csv
 import json
 import statistics
+import time
 from pathlib import Path
 from typing import Any
 
 import torch
+
+
+def start_benchmark(out_base: Path, seeds: int) -> Path:
+    """Check ``--seeds``, run torch on one thread and create ``out_base/<timestamp>``
+    (a fresh folder: an existing one is never written into)."""
+    if seeds < 1:
+        raise SystemExit(f"--seeds must be >= 1, got {seeds}")
+    torch.set_num_threads(1)
+    out = out_base / time.strftime("%Y%m%d-%H%M%S")
+    out.mkdir(parents=True, exist_ok=False)
+    return out
 
 
 def read_curve(run_dir: Path, key: str = "average_return") -> tuple[list[float], list[float]]:

@@ -29,7 +29,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks._common import mean_std, plot_band, read_curve, write_results  # noqa: E402
+from benchmarks._common import (  # noqa: E402
+    mean_std,
+    plot_band,
+    read_curve,
+    start_benchmark,
+    write_results,
+)
 from environments.ball_on_beam import BeamParams, evaluate_beam  # noqa: E402
 from hireps_torch.runlog import atomic_write  # noqa: E402
 from train import BallOnBeamConfig, build_ball_on_beam_policy, run_ball_on_beam  # noqa: E402
@@ -99,11 +105,7 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=BallOnBeamConfig.episodes)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "ball_on_beam_benchmark")
     args = ap.parse_args()
-    if args.seeds < 1:
-        raise SystemExit(f"--seeds must be >= 1, got {args.seeds}")
-    torch.set_num_threads(1)
-    out: Path = args.out / time.strftime("%Y%m%d-%H%M%S")
-    out.mkdir(parents=True, exist_ok=False)
+    out = start_benchmark(args.out, args.seeds)
 
     results: list[dict[str, Any]] = []
     t_all = time.perf_counter()

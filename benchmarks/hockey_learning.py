@@ -29,7 +29,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks._common import mean_std, plot_band, read_curve, write_results  # noqa: E402
+from benchmarks._common import (  # noqa: E402
+    mean_std,
+    plot_band,
+    read_curve,
+    start_benchmark,
+    write_results,
+)
 from hireps_torch.runlog import atomic_write  # noqa: E402
 from train import HockeyEpisodicConfig, HockeySequentialConfig, run_hockey  # noqa: E402
 
@@ -140,11 +146,7 @@ def main() -> None:
     ap.add_argument("--timing-episodes", type=int, default=20)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "hockey_benchmark")
     args = ap.parse_args()
-    if args.seeds < 1:
-        raise SystemExit(f"--seeds must be >= 1, got {args.seeds}")
-    torch.set_num_threads(1)
-    out: Path = args.out / time.strftime("%Y%m%d-%H%M%S")
-    out.mkdir(parents=True, exist_ok=False)
+    out = start_benchmark(args.out, args.seeds)
 
     timing = time_simulation(args.timing_episodes)
     print(

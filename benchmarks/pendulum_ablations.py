@@ -36,7 +36,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks._common import mean_std, plot_band, read_curve, write_results  # noqa: E402
+from benchmarks._common import (  # noqa: E402
+    mean_std,
+    plot_band,
+    read_curve,
+    start_benchmark,
+    write_results,
+)
 from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
 from hireps_torch.runlog import atomic_write  # noqa: E402
 from train import PendulumConfig, run_pendulum  # noqa: E402
@@ -153,9 +159,7 @@ def main() -> None:
         "--jobs", type=int, default=2, help="runs in parallel, one process (one thread) each"
     )
     args = ap.parse_args()
-    torch.set_num_threads(1)
-    out: Path = args.out / time.strftime("%Y%m%d-%H%M%S")
-    out.mkdir(parents=True, exist_ok=False)
+    out = start_benchmark(args.out, args.seeds)
     if not args.skip_speed:
         env_speed()
 

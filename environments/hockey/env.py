@@ -113,7 +113,7 @@ def zone_reward(distance: Tensor, zones: tuple[float, float, float, float]) -> T
     return torch.where((d >= z2) & (d <= z3), 3.0, r)
 
 
-def clip_action(action: Any, low: Tensor, high: Tensor) -> tuple[Tensor, bool]:
+def clip_action(action: Any, low: Tensor, high: Tensor) -> tuple[Tensor, Tensor]:
     """Check a shot action (or all of an episode's shots) and clip it into the arm's range.
 
     Args:
@@ -121,7 +121,7 @@ def clip_action(action: Any, low: Tensor, high: Tensor) -> tuple[Tensor, bool]:
         low, high: (n,) bounds (the action space's).
 
     Returns:
-        (the clipped (n,) float64 action, whether anything was clipped).
+        the clipped (n,) float64 action and an (n,) bool mask of the entries that were clipped.
 
     Raises:
         ValueError: wrong shape or a non-finite entry (named by index and value).
@@ -135,7 +135,7 @@ def clip_action(action: Any, low: Tensor, high: Tensor) -> tuple[Tensor, bool]:
         )
     a = as_finite_f64("action", a)
     clipped = torch.minimum(torch.maximum(a, low), high)
-    return clipped, bool((clipped != a).any())
+    return clipped, clipped != a
 
 
 def _bounds(sim: HockeySim, params: HockeyParams, repeat: int = 1) -> tuple[Tensor, Tensor]:
@@ -201,7 +201,8 @@ class RobotHockeyEnv(gym.Env):
         return self._target.copy(), {"target_distance": float(np.linalg.norm(self._target))}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        return self.play(*clip_action(action, self._low, self._high))
+        a, clipped = clip_action(action, self._low, self._high)
+        return self.play(a, bool(clipped.any()))
 
     def play(self, action: Tensor, clipped: bool) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One shot of an already checked and clipped (14,) action (what :meth:`step` does
@@ -272,13 +273,11 @@ class RobotHockeyEpisodicEnv(gym.Env):
         if self.inner.shot_index != 0:
             raise RuntimeError("the episode already ended: call reset()")
         # the whole action is checked before the first shot is played
-        a, _ = clip_action(action, self._low, self._high)
-        raw = torch.as_tensor(np.asarray(action, dtype=np.float64))
+        a, clipped = clip_action(action, self._low, self._high)
         total, shots = 0.0, []
         for k in range(n):
             shot = slice(14 * k, 14 * (k + 1))
-            clipped = bool((a[shot] != raw[shot]).any())
-            _, r, _, _, info = self.inner.play(a[shot], clipped)
+            _, r, _, _, info = self.inner.play(a[shot], bool(clipped[shot].any()))
             total += r
             shots.append(info)
         info = {

@@ -34,6 +34,12 @@ class OptionBound:
     option_entropy: float
     kappa: float | None
 
+    @property
+    def n_columns(self) -> int:
+        """Option columns of the dual's weights: O_active, or 1 with one active option."""
+        lr = self.log_responsibilities
+        return 1 if lr is None else lr.shape[1]
+
 
 def option_bound(
     policy: HierarchicalPolicy, context: Tensor, theta: Tensor, kappa_rel: float | None

@@ -313,10 +313,7 @@ class TimeIndexedHiREPS:
         reports = []
         for k, (pol, bound) in enumerate(zip(self.policies, bounds, strict=True)):
             step = sol.step(k)
-            n_active = (
-                1 if bound.log_responsibilities is None else bound.log_responsibilities.shape[1]
-            )
-            step = dataclasses.replace(step, weights=step.weights[:, :n_active])
+            step = dataclasses.replace(step, weights=step.weights[:, : bound.n_columns])
             reports.append(
                 refit_and_report(pol, s[:, k], theta[:, k], step, bound, self.prune_threshold)
             )
@@ -367,9 +364,7 @@ def _stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Ten
     step with one active option gets log p~ = 0 on it and no bound (kappa = inf). Returns
     (None, None) when every step has a single active option.
     """
-    counts = [
-        1 if b.log_responsibilities is None else b.log_responsibilities.shape[1] for b in bounds
-    ]
+    counts = [b.n_columns for b in bounds]
     O = max(counts)
     if O == 1:
         return None, None

@@ -109,10 +109,7 @@ class LinearGaussian(nn.Module):
             raise ValueError(f"init_mean must have shape ({action_dim},), got {tuple(mean.shape)}")
         self.in_features = in_features
         self.action_dim = action_dim
-        self.min_variance = (
-            float(min_variance) if isinstance(min_variance, (int, float)) else floor
-        )
-        self._floor_scale = floor.sqrt()  # (D,)
+        self.min_variance = floor  # (D,) float64, a float given is broadcast
         self.weight = nn.Parameter(torch.zeros(action_dim, in_features, dtype=dtype), False)
         self.bias = nn.Parameter(mean, requires_grad=False)
         self.chol = nn.Parameter(torch.diag(std), requires_grad=False)
@@ -203,7 +200,8 @@ class LinearGaussian(nn.Module):
         """Set the covariance (D, D), symmetrised and floored at ``min_variance``."""
         cov = cov.to(torch.float64)
         cov = 0.5 * (cov + cov.T)
-        scale = self._floor_scale[:, None] * self._floor_scale[None, :]
+        root = self.min_variance.sqrt()
+        scale = root[:, None] * root[None, :]
         evals, evecs = torch.linalg.eigh(cov / scale)
         if bool((evals < 1.0).any()):
             cov = (evecs * evals.clamp_min(1.0)) @ evecs.T * scale

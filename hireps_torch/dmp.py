@@ -71,7 +71,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from hireps_torch._checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64
 
 __all__ = ["DMP", "DMPTrajectory"]
 

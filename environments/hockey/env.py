@@ -79,7 +79,7 @@ import torch
 from torch import Tensor
 
 from environments.hockey.sim import HockeyParams, HockeySim, demo_action
-from hireps_torch._checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64
 
 __all__ = [
     "ENV_ID",

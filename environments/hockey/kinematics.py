@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hireps_torch._checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64
 
 __all__ = [
     "ArmGeometry",

@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hireps_torch._checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64
 from hireps_torch.algorithms._options import option_bound, refit_and_report
 from hireps_torch.dual import solve_infinite_horizon_dual
 from hireps_torch.features import FeatureMap

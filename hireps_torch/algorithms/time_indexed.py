@@ -39,7 +39,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hireps_torch._checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64
 from hireps_torch.algorithms._options import OptionBound, option_bound, refit_and_report
 from hireps_torch.dual import solve_time_indexed_dual
 from hireps_torch.features import FeatureMap, QuadraticFeatures

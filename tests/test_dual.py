@@ -9,11 +9,11 @@ import torch
 from hireps_torch.dual import (
     DegenerateWeightsWarning,
     InfeasibleConstraintsWarning,
-    _Problem,
     solve_episodic_dual,
     solve_infinite_horizon_dual,
     solve_reps_dual,
 )
+from hireps_torch.dual.problem import DualProblem
 
 
 def random_problem(gen, N=200, O=1, F=0, scale=3.0):
@@ -51,7 +51,7 @@ def make_problem(gen, K=2, N=40, O=3, P=4, xi_on=True):
     c = torch.randn(P, generator=gen, dtype=torch.float64) if P else None
     eps = torch.linspace(0.3, 0.7, K, dtype=torch.float64)
     kap = torch.linspace(0.5, 0.6, K, dtype=torch.float64)
-    prob = _Problem(R, D, c, lr, eps, kap)
+    prob = DualProblem(R, D, c, lr, eps, kap)
     prob.xi_on[:] = xi_on
     return prob
 
@@ -79,7 +79,7 @@ def test_curvature_matches_finite_difference_hessian_at_optimum(gen):
     )
     Rs = (R - R.mean()) / (R - R.mean()).std()
     D = -(phi - phi.mean(0))[None]
-    prob = _Problem(
+    prob = DualProblem(
         Rs[None],
         D,
         None,

@@ -1,0 +1,54 @@
+"""Episodic / contextual HiREPS: :func:`solve_episodic_dual` (the dual in
+:mod:`hireps_torch.dual`'s docstring, one block)."""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+from hireps_torch.dual.inputs import check_features, common_inputs
+from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
+from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
+
+__all__ = ["solve_episodic_dual"]
+
+
+def solve_episodic_dual(
+    returns: Tensor,
+    *,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    context_features: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+) -> DualSolution:
+    """Solve the episodic / contextual HiREPS dual and return the new sample weights.
+
+    Args:
+        returns: (N,) return of each sample, N >= 2.
+        epsilon: KL bound, > 0. Values >= log N let the weights collapse onto one sample
+            (a :class:`~hireps_torch.dual.DegenerateWeightsWarning` is issued).
+        log_responsibilities: (N, O) log p~(o | s_i, theta_i) of the old policy, rows
+            normalised over options; None means one option (REPS).
+        context_features: (N, F) context features phi(s_i) whose mean must be kept; None means
+            no context (plain episodic). A constant column is harmless (its multiplier is 0).
+        kappa: absolute bound on the expected option cross-entropy E_P[-log p~], >= 0;
+            None (or inf) means no entropy bound (xi = 0).
+        max_iter: LBFGS iterations per phase.
+
+    Returns:
+        :class:`~hireps_torch.dual.DualSolution` with weights (N, O) summing to 1.
+
+    Raises:
+        ValueError: on non-finite returns or features, shape mismatches, N < 2, epsilon <= 0 or
+            a negative kappa; each message names the offending value.
+    """
+    R, eps, lr, kap = common_inputs(returns, epsilon, log_responsibilities, kappa)
+    N = R.shape[1]
+    D = None
+    if context_features is not None:
+        phi = check_features("context_features", context_features, N)
+        # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
+        D = -(phi - phi.mean(dim=0, keepdim=True)).unsqueeze(0)
+    sol = solve_blocks(R, lr, eps, D, None, kap, LbfgsSettings(max_iter))
+    warn_if_collapsed(sol, eps)
+    return block_solution(sol, 0, sol.v)

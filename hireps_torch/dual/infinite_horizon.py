@@ -1,0 +1,72 @@
+"""Infinite-horizon HiREPS: :func:`solve_infinite_horizon_dual`, the stationary dual with
+restart probability 1 - gamma."""
+
+from __future__ import annotations
+
+import math
+
+from torch import Tensor
+
+from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
+from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
+from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
+
+__all__ = ["solve_infinite_horizon_dual"]
+
+
+def solve_infinite_horizon_dual(
+    rewards: Tensor,
+    features: Tensor,
+    next_features: Tensor,
+    initial_features: Tensor,
+    *,
+    gamma: float,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+) -> DualSolution:
+    """Solve the stationary (infinite-horizon) HiREPS dual with restart probability 1 - gamma.
+
+    Samples are transitions (s_i, a_i, r_i, s'_i) of the restart process. The new
+    distribution P_io ∝ p~_io^(1 + xi/eta) exp(delta_i / eta) uses the Bellman error
+
+        delta_i = r_i + gamma v^T phi(s'_i) - v^T phi(s_i),
+
+    and the dual is ``eta eps + xi kappa + (1 - gamma) v^T phi_hat_0 + eta log mean exp``.
+    At the optimum the state distribution is stationary under restarts:
+
+        sum_i w_i (phi(s_i) - gamma phi(s'_i)) = (1 - gamma) phi_hat_0   (``feature_error``).
+
+    Args:
+        rewards: (N,) reward of each transition (one decision).
+        features: (N, F) value features phi(s_i).
+        next_features: (N, F) value features phi(s'_i) of the state reached.
+        initial_features: (F,) mean value features of the start distribution, phi_hat_0.
+        gamma: 1 - restart probability, in (0, 1).
+        epsilon: KL bound, > 0.
+        log_responsibilities: (N, O) log p~(o | s_i, a_i) or None (one option).
+        kappa: absolute bound on the option cross-entropy or None.
+        max_iter: LBFGS iterations per phase.
+
+    Returns:
+        :class:`~hireps_torch.dual.DualSolution`; ``v`` holds the value-function weights (F,).
+    """
+    R, eps, lr, kap = common_inputs(rewards, epsilon, log_responsibilities, kappa, "rewards")
+    N = R.shape[1]
+    g = float(gamma)
+    if not (math.isfinite(g) and 0.0 < g < 1.0):
+        raise ValueError(f"gamma must be in (0, 1), got {gamma}")
+    phi = check_features("features", features, N)
+    phi_next = check_features("next_features", next_features, N)
+    if phi_next.shape != phi.shape:
+        raise ValueError(
+            f"next_features must have the shape of features {tuple(phi.shape)}, got "
+            f"{tuple(phi_next.shape)}"
+        )
+    phi0 = check_feature_vector("initial_features", initial_features, phi.shape[1])
+    D = (g * phi_next - phi).unsqueeze(0)
+    c = (1.0 - g) * phi0
+    sol = solve_blocks(R, lr, eps, D, c, kap, LbfgsSettings(max_iter))
+    warn_if_collapsed(sol, eps)
+    return block_solution(sol, 0, sol.v)

@@ -1,0 +1,155 @@
+"""Input checks of the dual wrappers (episodic, infinite-horizon, time-indexed).
+
+The generic checks (float64 conversion, finiteness, positivity) come from
+:mod:`hireps_torch.checks`; the dual-specific ones (normalised log-responsibilities, per-block
+bounds, feature shapes) live here. Each input is checked once, here; the solver trusts them.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import Tensor
+
+from hireps_torch.checks import as_f64, check_finite, check_positive
+from hireps_torch.dual.solutions import DegenerateWeightsWarning
+
+__all__ = [
+    "check_feature_vector",
+    "check_features",
+    "check_log_resp",
+    "common_inputs",
+    "per_block",
+]
+
+_LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it is exactly 0
+
+
+def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tensor:
+    """Check log-probabilities normalised over the last dim; return them with log 0 floored."""
+    if bool(torch.isnan(log_resp).any()) or bool((log_resp == math.inf).any()):
+        raise ValueError(f"{name} contains NaN or +inf")
+    if bool((log_resp > 1e-6).any()):
+        raise ValueError(f"{name} must be log-probabilities (<= 0), max is {log_resp.max().item()}")
+    norm = torch.logsumexp(log_resp, dim=-1)
+    worst = (norm.abs()).max().item()
+    if worst > 1e-4:
+        raise ValueError(
+            f"{name} must be normalised over options (logsumexp over the last dim = 0); "
+            f"worst row is off by {worst:.3g}"
+        )
+    return log_resp.clamp_min(_LOG_RESP_FLOOR)
+
+
+def per_block(name: str, value: float | Tensor, K: int) -> Tensor:
+    """A bound given as one float or one value per block (K,), as a (K,) float64 tensor."""
+    t = as_f64(name, value)
+    if t.dim() == 0:
+        return t.expand(K).clone()
+    if t.shape != (K,):
+        raise ValueError(
+            f"{name} must be a float or have shape ({K},) (one per decision step), got "
+            f"{tuple(t.shape)}"
+        )
+    return t
+
+
+def _shape_text(lead: tuple[int, ...], last: str) -> str:
+    """'(N, K, F) = (60, 3, F)' for lead (60, 3) and last 'F'."""
+    names = ["N", "K"][: len(lead)] + [last]
+    return f"({', '.join(names)}) = ({', '.join([*map(str, lead), last])})"
+
+
+def common_inputs(
+    returns: Tensor,
+    epsilon: float | Tensor,
+    log_responsibilities: Tensor | None,
+    kappa: float | Tensor | None,
+    name: str = "returns",
+    *,
+    per_step: bool = False,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """Validate the inputs every wrapper shares and return them block-major for the solver.
+
+    Warns (at the wrapper's caller) with a
+    :class:`~hireps_torch.dual.DegenerateWeightsWarning` where epsilon >= log N.
+
+    Args:
+        returns: (N,) returns, or (N, K) rewards of K decision steps when ``per_step``.
+        epsilon: KL bound, > 0: a float or (K,).
+        log_responsibilities: (N, O), or (N, K, O) when ``per_step``; None means one option.
+        kappa: entropy bound, >= 0 (inf: no bound on that block): None, a float or (K,).
+        name: what the error messages call ``returns``.
+        per_step: whether the returns are per decision step (the time-indexed dual).
+
+    Returns:
+        R (K, N), epsilon (K,), log p~ (K, N, O) with log 0 floored, kappa (K,) or None.
+    """
+    R = as_f64(name, returns)
+    if R.dim() != (2 if per_step else 1):
+        raise ValueError(
+            f"{name} must have shape ({'N, K' if per_step else 'N,'}), got {tuple(R.shape)}"
+        )
+    N = R.shape[0]
+    if N < 2:
+        raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
+    if R.numel() == 0:
+        raise ValueError(
+            f"{name} must hold at least one decision step (K >= 1), got shape {tuple(R.shape)}"
+        )
+    check_finite(name, R)
+    R = R.reshape(N, -1).T.contiguous()
+    K = R.shape[0]
+    eps = per_block("epsilon", epsilon, K)
+    check_positive("epsilon", eps)
+    big = [(k, float(e)) for k, e in enumerate(eps) if e >= math.log(N)]
+    if big:
+        which = ", ".join(
+            f"epsilon = {e:.4g}" if K == 1 else f"epsilon[{k}] = {e:.4g}" for k, e in big
+        )
+        warnings.warn(
+            f"{which} >= log N = {math.log(N):.4g} (N = {N}): the KL bound cannot bind and the "
+            "weights collapse onto the best sample(s); use a smaller epsilon or more samples",
+            DegenerateWeightsWarning,
+            stacklevel=3,
+        )
+    lr = _log_responsibilities(log_responsibilities, (N, K) if per_step else (N,), K)
+    kap = None
+    if kappa is not None:
+        kap = per_block("kappa", kappa, K)
+        if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
+            raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
+    return R, eps, lr, kap
+
+
+def _log_responsibilities(x: Tensor | None, lead: tuple[int, ...], K: int) -> Tensor:
+    """Checked (*lead, O) log-responsibilities as (K, N, O); zeros (K, N, 1) for None."""
+    N = lead[0]
+    if x is None:
+        return torch.zeros(K, N, 1, dtype=torch.float64)
+    lr = as_f64("log_responsibilities", x)
+    if lr.dim() != len(lead) + 1 or tuple(lr.shape[:-1]) != lead:
+        raise ValueError(
+            f"log_responsibilities must have shape {_shape_text(lead, 'O')}, got {tuple(lr.shape)}"
+        )
+    return check_log_resp(lr).reshape(N, K, -1).transpose(0, 1).contiguous()
+
+
+def check_features(name: str, x: Tensor, *lead: int) -> Tensor:
+    """Check features of shape (*lead, F): (N, F), or (N, K, F) per decision step."""
+    phi = as_f64(name, x)
+    if phi.dim() != len(lead) + 1 or tuple(phi.shape[:-1]) != lead:
+        raise ValueError(f"{name} must have shape {_shape_text(lead, 'F')}, got {tuple(phi.shape)}")
+    check_finite(name, phi)
+    return phi
+
+
+def check_feature_vector(name: str, x: Tensor, F: int) -> Tensor:
+    """Check a mean feature vector (F,) such as phi_hat_0."""
+    phi = as_f64(name, x).reshape(-1)
+    if phi.shape != (F,):
+        raise ValueError(f"{name} must have shape ({F},), got {tuple(phi.shape)}")
+    check_finite(name, phi)
+    return phi

@@ -1,0 +1,231 @@
+"""What the duals return: the solution types, their diagnostics and the dual's warnings."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "DegenerateWeightsWarning",
+    "DualSolution",
+    "InfeasibleConstraintsWarning",
+    "RepsDualSolution",
+    "TimeIndexedDualSolution",
+    "block_cross_entropy",
+    "block_kl",
+    "block_solution",
+    "finish",
+    "warn_if_collapsed",
+]
+
+
+class DegenerateWeightsWarning(RuntimeWarning):
+    """The weights collapsed (or will collapse) onto very few samples."""
+
+
+class InfeasibleConstraintsWarning(RuntimeWarning):
+    """No distribution within the KL bound satisfies the feature constraints."""
+
+
+@dataclass(frozen=True)
+class RepsDualSolution:
+    """Solution of the generic K-block dual (:func:`~hireps_torch.dual.solve_reps_dual`).
+
+    Attributes:
+        eta: (K,) temperatures, in the caller's return units.
+        xi: (K,) entropy-bound multipliers (0 where the bound is inactive or absent).
+        v: (P,) value-function / feature multipliers in the caller's feature units.
+        weights: (K, N, O) new sample-option distribution per block, each block sums to 1.
+        kl: (K,) realised KL(P_k || q p~_k).
+        cross_entropy: (K,) realised E_P[-log p~].
+        effective_sample_size: (K,) 1 / sum_i w_ki^2 with w_ki = sum_o P_kio.
+        feature_error: max abs violation of the feature constraints, caller's units.
+        dual_value: value of the dual at the optimum, caller's units.
+        converged: whether LBFGS met its gradient tolerance (False, with an
+            :class:`InfeasibleConstraintsWarning`, when the feature constraints cannot be met
+            within the KL bound and were relaxed to a penalty).
+        iterations: LBFGS iterations over all phases.
+    """
+
+    eta: Tensor
+    xi: Tensor
+    v: Tensor
+    weights: Tensor
+    kl: Tensor
+    cross_entropy: Tensor
+    effective_sample_size: Tensor
+    feature_error: float
+    dual_value: float
+    converged: bool
+    iterations: int
+
+
+@dataclass(frozen=True)
+class DualSolution:
+    """Solution of the episodic HiREPS dual (:func:`~hireps_torch.dual.solve_episodic_dual`).
+
+    Attributes:
+        eta: temperature of the KL bound (inf when the returns carry no information).
+        xi: multiplier of the entropy bound; 0 when inactive or when no bound was given.
+        v: (F,) context-feature multipliers (empty without context features).
+        weights: (N, O) new distribution over samples and options; sums to 1.
+        sample_weights: (N,) weights.sum(-1), the weights for a flat policy.
+        kl: realised KL(P || q p~); equals epsilon when the bound is active.
+        cross_entropy: realised E_P[-log p~(o|s,theta)]; equals kappa when that bound is active.
+        effective_sample_size: 1 / sum_i sample_weights_i^2, between 1 and N.
+        feature_error: max |sum_i w_i phi_i - phi_hat| (0 without context features).
+        dual_value: dual objective at the optimum.
+        converged: whether the solver met its gradient tolerance.
+        iterations: LBFGS iterations.
+    """
+
+    eta: float
+    xi: float
+    v: Tensor
+    weights: Tensor
+    sample_weights: Tensor
+    kl: float
+    cross_entropy: float
+    effective_sample_size: float
+    feature_error: float
+    dual_value: float
+    converged: bool
+    iterations: int
+
+
+@dataclass(frozen=True)
+class TimeIndexedDualSolution:
+    """Solution of the time-indexed HiREPS dual
+    (:func:`~hireps_torch.dual.solve_time_indexed_dual`).
+
+    Steps are indexed k = 0..K-1 here (1..K in the equations).
+
+    Attributes:
+        eta: (K,) temperatures of the per-step KL bounds (all inf when the rewards carry no
+            information).
+        xi: (K,) multipliers of the per-step entropy bounds (0 where inactive or absent).
+        v: (K, F) value-function weights: V_k(s) = v[k]^T phi(s).
+        weights: (K, N, O) new distribution over samples and options per step; each step
+            sums to 1.
+        sample_weights: (K, N) weights.sum(-1), the weights of a flat policy per step.
+        kl: (K,) realised KL(P_k || q p~_k); equals epsilon_k at the optimum.
+        cross_entropy: (K,) realised E_P_k[-log p~_k]; <= kappa_k.
+        effective_sample_size: (K,) 1 / sum_i w_ki^2 per step.
+        feature_error: max abs violation of the chained feature constraints.
+        dual_value: dual objective at the optimum.
+        converged: whether the solver met its gradient tolerance.
+        iterations: LBFGS iterations.
+    """
+
+    eta: Tensor
+    xi: Tensor
+    v: Tensor
+    weights: Tensor
+    sample_weights: Tensor
+    kl: Tensor
+    cross_entropy: Tensor
+    effective_sample_size: Tensor
+    feature_error: float
+    dual_value: float
+    converged: bool
+    iterations: int
+
+    def step(self, k: int) -> DualSolution:
+        """Step k as a :class:`DualSolution` (weights (N, O), v = v[k]); ``feature_error``,
+        ``dual_value``, ``converged`` and ``iterations`` are those of the whole problem."""
+        K = self.eta.shape[0]
+        if not 0 <= k < K:
+            raise ValueError(f"step must be in [0, {K}), got {k}")
+        return block_solution(self, k, self.v[k])
+
+
+def block_solution(
+    sol: RepsDualSolution | TimeIndexedDualSolution, k: int, v: Tensor
+) -> DualSolution:
+    """Block k of a K-block solution as a :class:`DualSolution` with value weights ``v``."""
+    w = sol.weights[k]
+    return DualSolution(
+        eta=float(sol.eta[k]),
+        xi=float(sol.xi[k]),
+        v=v,
+        weights=w,
+        sample_weights=w.sum(-1),
+        kl=float(sol.kl[k]),
+        cross_entropy=float(sol.cross_entropy[k]),
+        effective_sample_size=float(sol.effective_sample_size[k]),
+        feature_error=sol.feature_error,
+        dual_value=sol.dual_value,
+        converged=sol.converged,
+        iterations=sol.iterations,
+    )
+
+
+def block_kl(w: Tensor, log_resp: Tensor) -> Tensor:
+    """(K,) KL(P_k || q p~_k) of weights (K, N, O) against the old distribution."""
+    logq = log_resp - math.log(w.shape[1])
+    logw = torch.log(w.clamp_min(1e-300))
+    return torch.where(w > 0, w * (logw - logq), torch.zeros_like(w)).sum(dim=(1, 2))
+
+
+def block_cross_entropy(w: Tensor, log_resp: Tensor) -> Tensor:
+    """(K,) E_P_k[-log p~_k] of weights (K, N, O)."""
+    return -(w * log_resp).sum(dim=(1, 2))
+
+
+def finish(
+    w: Tensor,
+    log_resp: Tensor,
+    eta: Tensor,
+    xi: Tensor,
+    v: Tensor,
+    D: Tensor | None,
+    c: Tensor | None,
+    dual_value: float,
+    converged: bool,
+    iterations: int,
+) -> RepsDualSolution:
+    """The :class:`RepsDualSolution` of weights w (K, N, O) with its diagnostics (KL,
+    cross-entropy, effective sample size, feature error); all inputs float64."""
+    ws = w.sum(-1)  # (K, N)
+    feat_err = 0.0
+    if D is not None and D.shape[-1] > 0:
+        grad_v = torch.einsum("kn,knp->p", ws, D)
+        if c is not None:
+            grad_v = grad_v + c
+        feat_err = float(grad_v.abs().max())
+    return RepsDualSolution(
+        eta=eta,
+        xi=xi,
+        v=v,
+        weights=w,
+        kl=block_kl(w, log_resp),
+        cross_entropy=block_cross_entropy(w, log_resp),
+        effective_sample_size=1.0 / (ws**2).sum(dim=1),
+        feature_error=feat_err,
+        dual_value=dual_value,
+        converged=converged,
+        iterations=iterations,
+    )
+
+
+def warn_if_collapsed(sol: RepsDualSolution, epsilon: Tensor) -> None:
+    """Warn (at the wrapper's caller) when a block's weights sit on ~one sample."""
+    K, N, _ = sol.weights.shape
+    ess = sol.effective_sample_size
+    bad = ((ess < 1.5) & sol.eta.isfinite()).nonzero().flatten().tolist()
+    if bad:
+        which = ", ".join(
+            ("" if K == 1 else f"step {k}: ")
+            + f"~{float(ess[k]):.2f} effective samples (epsilon = {float(epsilon[k]):.4g})"
+            for k in bad
+        )
+        warnings.warn(
+            f"the weights collapsed onto {which} with N = {N}; the refit will rely on its "
+            "variance floor",
+            DegenerateWeightsWarning,
+            stacklevel=3,
+        )

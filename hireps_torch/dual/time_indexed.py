@@ -1,0 +1,109 @@
+"""Time-indexed HiREPS: :func:`solve_time_indexed_dual`, one distribution per decision step
+k = 1..K, the steps chained by feature consistency.
+
+Sample i is an episode of K decisions: states s_k,i, parameters theta_k,i, rewards R_k,i.
+Step k's distribution P_k,io ∝ p~_k,io^(1 + xi_k/eta_k) exp(delta_k,i / eta_k) uses the
+Bellman error with per-step value functions V_k(s) = v_k^T phi(s),
+
+    delta_k,i = R_k,i + v_{k+1}^T phi(s_{k+1,i}) - v_k^T phi(s_k,i),    V_{K+1} = 0,
+
+and (eta, xi, v) minimise
+
+    g = v_1^T phi_hat_1 + sum_k [eta_k eps_k + xi_k kappa_k
+                                 + eta_k log((1/N) sum_io exp(A_k,io / eta_k))],
+    A_k,io = delta_k,i + (eta_k + xi_k) log p~_k,io.
+
+At the optimum KL_k = eps_k, E_P_k[-log p~_k] <= kappa_k and the state distributions are
+chained (``feature_error`` is the largest violation):
+
+    sum_i w_1i phi(s_1i) = phi_hat_1,
+    sum_i w_ki phi(s_ki) = sum_i w_{k-1,i} phi(s_ki)   (k >= 2; s_ki follows s_{k-1,i}).
+
+This is :func:`~hireps_torch.dual.solve_reps_dual` with the stacked v = [v_1 .. v_K],
+c = [phi_hat_1, 0, ..] and D_k mapping v to v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k). The term
+v_1^T phi_hat_1 is folded into step 1's log-sum-exp (D_1 = -(phi(s_1) - phi_hat_1) in slot 1,
+c = 0), as in the episodic dual: the same dual value, weights and residuals.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
+from hireps_torch.dual.solutions import TimeIndexedDualSolution, warn_if_collapsed
+from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
+
+__all__ = ["solve_time_indexed_dual"]
+
+
+def solve_time_indexed_dual(
+    rewards: Tensor,
+    features: Tensor,
+    *,
+    epsilon: float | Tensor,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | Tensor | None = None,
+    initial_features: Tensor | None = None,
+    max_iter: int = 300,
+) -> TimeIndexedDualSolution:
+    """Solve the time-indexed HiREPS dual (the module docstring): one distribution per
+    decision step k = 1..K.
+
+    Args:
+        rewards: (N, K) reward of each episode at each decision step, N >= 2, K >= 1.
+        features: (N, K, F) value features phi(s_k,i) of the state where step k's decision
+            was taken.
+        epsilon: KL bound per step, > 0: one float or (K,). Values >= log N let that step's
+            weights collapse onto one sample (a
+            :class:`~hireps_torch.dual.DegenerateWeightsWarning` is issued).
+        log_responsibilities: (N, K, O) log p~_k(o | s_k,i, theta_k,i) of each step's old
+            policy, normalised over options (-inf for options a step does not have); None
+            means one option per step.
+        kappa: absolute bound on each step's option cross-entropy, >= 0: one float or (K,);
+            inf leaves that step unbounded; None means no bound (xi = 0).
+        initial_features: (F,) mean features of the start distribution, phi_hat_1; by default
+            the sample mean of ``features[:, 0]`` (then uniform weights are feasible).
+        max_iter: LBFGS iterations per phase.
+
+    Returns:
+        :class:`~hireps_torch.dual.TimeIndexedDualSolution`; ``weights`` (K, N, O), each step
+        summing to 1.
+
+    Raises:
+        ValueError: on non-finite rewards or features, shape mismatches, N < 2, K < 1,
+            epsilon <= 0 or a negative kappa; each message names the offending value.
+    """
+    R, eps, lr, kap = common_inputs(
+        rewards, epsilon, log_responsibilities, kappa, "rewards", per_step=True
+    )
+    K, N = R.shape
+    phi = check_features("features", features, N, K).transpose(0, 1)  # (K, N, F)
+    F = phi.shape[-1]
+    phi1 = (
+        phi[0].mean(dim=0)
+        if initial_features is None
+        else check_feature_vector("initial_features", initial_features, F)
+    )
+    # D[k, i] holds -phi(s_k,i) in slot k and phi(s_{k+1},i) in slot k + 1.
+    D = torch.zeros(K, N, K, F, dtype=torch.float64)
+    steps = torch.arange(K)
+    D[steps, :, steps] = -phi
+    D[steps[:-1], :, steps[1:]] = phi[1:]
+    D[0, :, 0] += phi1
+    sol = solve_blocks(R, lr, eps, D.reshape(K, N, K * F), None, kap, LbfgsSettings(max_iter))
+    warn_if_collapsed(sol, eps)
+    return TimeIndexedDualSolution(
+        eta=sol.eta,
+        xi=sol.xi,
+        v=sol.v.reshape(K, F),
+        weights=sol.weights,
+        sample_weights=sol.weights.sum(-1),
+        kl=sol.kl,
+        cross_entropy=sol.cross_entropy,
+        effective_sample_size=sol.effective_sample_size,
+        feature_error=sol.feature_error,
+        dual_value=sol.dual_value,
+        converged=sol.converged,
+        iterations=sol.iterations,
+    )

@@ -21,6 +21,17 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 
+def check_fields(obj: object, positive: tuple[str, ...], nonnegative: tuple[str, ...]) -> None:
+    """Raise naming the first field of ``obj`` (e.g. a params dataclass) in ``positive`` that
+    is not > 0, then in ``nonnegative`` that is not >= 0 (NaN fails both, inf passes)."""
+    for name in positive:
+        if not getattr(obj, name) > 0:
+            raise ValueError(f"{name} must be > 0, got {getattr(obj, name)}")
+    for name in nonnegative:
+        if not getattr(obj, name) >= 0:
+            raise ValueError(f"{name} must be >= 0, got {getattr(obj, name)}")
+
+
 def check_scalar_action(action: Tensor, batch: int, what: str) -> Tensor:
     """Validate a (B,) or (B, 1) action holding one number per system; returns (B,).
 

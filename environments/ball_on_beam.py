@@ -70,7 +70,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 from torch import Tensor
@@ -79,6 +78,7 @@ from environments._common import (
     BatchedTask,
     ScalarActionBatchEnv,
     ScalarActionGymEnv,
+    check_fields,
     check_scalar_action,
 )
 
@@ -94,7 +94,7 @@ __all__ = [
     "step_reward",
 ]
 
-ENV_ID = "hireps/BallOnBeam-v0"
+ENV_ID = "hireps/BallOnBeam-v0"  # registered by ``import environments``
 
 
 @dataclass(frozen=True)
@@ -115,20 +115,19 @@ class BeamParams:
     fall_penalty: float = 100.0
 
     def __post_init__(self) -> None:
-        for name in (
-            "half_length",
-            "decision_seconds",
-            "episode_seconds",
-            "dt",
-            "servo_tau",
-            "max_angle",
-            "gravity",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("goal", "rolling_resistance", "start_noise", "fall_penalty"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        check_fields(
+            self,
+            positive=(
+                "half_length",
+                "decision_seconds",
+                "episode_seconds",
+                "dt",
+                "servo_tau",
+                "max_angle",
+                "gravity",
+            ),
+            nonnegative=("goal", "rolling_resistance", "start_noise", "fall_penalty"),
+        )
         if not 0 <= self.start_position < self.half_length:
             raise ValueError(
                 f"start_position must be in [0, half_length), got {self.start_position}"
@@ -281,9 +280,6 @@ class BallOnBeamEnv(ScalarActionGymEnv):
         self.params = params or BeamParams()
         p = self.params
         super().__init__(BeamTask(1, p), np.array([p.half_length + 0.1, np.inf, p.max_angle]))
-
-
-gym.register(id=ENV_ID, entry_point=f"{__name__}:BallOnBeamEnv", disable_env_checker=True)
 
 
 class BallOnBeamBatchEnv(ScalarActionBatchEnv):

@@ -72,7 +72,6 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 from torch import Tensor
@@ -81,6 +80,7 @@ from environments._common import (
     BatchedTask,
     ScalarActionBatchEnv,
     ScalarActionGymEnv,
+    check_fields,
     check_scalar_action,
 )
 
@@ -100,7 +100,7 @@ __all__ = [
     "wrap_angle",
 ]
 
-ENV_ID = "hireps/PendulumSwingUp-v0"
+ENV_ID = "hireps/PendulumSwingUp-v0"  # registered by ``import environments``
 
 
 @dataclass(frozen=True)
@@ -123,12 +123,11 @@ class PendulumParams:
     def __post_init__(self) -> None:
         if self.steps_per_decision < 1:
             raise ValueError(f"steps_per_decision must be >= 1, got {self.steps_per_decision}")
-        for name in ("mass", "length", "dt", "action_limit"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("friction", "max_torque", "kp", "kd", "start_noise"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        check_fields(
+            self,
+            positive=("mass", "length", "dt", "action_limit"),
+            nonnegative=("friction", "max_torque", "kp", "kd", "start_noise"),
+        )
         p = self.restart_probability
         if p is not None and not 0.0 <= p < 1.0:
             raise ValueError(f"restart_probability must be in [0, 1), got {p}")
@@ -260,12 +259,6 @@ def sample_start(n: int, params: PendulumParams, generator: torch.Generator | No
     return torch.stack([wrap_angle(math.pi + noise[:, 0]), noise[:, 1]], dim=-1)
 
 
-def _draw_restart(n: int, params: PendulumParams, generator: torch.Generator) -> Tensor:
-    """(n,) bool: which systems restart after this decision (one uniform draw each)."""
-    u = torch.rand(n, generator=generator, dtype=torch.float64)
-    return u < params.restart
-
-
 # --------------------------------------------------------------------------------------------
 # adapters
 
@@ -297,7 +290,8 @@ class PendulumTask(BatchedTask):
         return nxt, reward, torch.zeros_like(reward, dtype=torch.bool), path
 
     def truncated(self, terminated: Tensor) -> Tensor:
-        trunc = _draw_restart(self.batch, self.params, self.gen).to(self.device)
+        u = torch.rand(self.batch, generator=self.gen, dtype=torch.float64)  # one draw each
+        trunc = (u < self.params.restart).to(self.device)  # restarts with probability 1 - gamma
         if self.max_decisions is not None:
             trunc = trunc | (self.t >= self.max_decisions)
         return trunc
@@ -315,9 +309,6 @@ class PendulumSwingUpEnv(ScalarActionGymEnv):
     def __init__(self, params: PendulumParams | None = None, max_decisions: int | None = None):
         self.params = params or PendulumParams()
         super().__init__(PendulumTask(1, self.params, max_decisions), np.array([math.pi, np.inf]))
-
-
-gym.register(id=ENV_ID, entry_point=f"{__name__}:PendulumSwingUpEnv", disable_env_checker=True)
 
 
 class PendulumSwingUpBatchEnv(ScalarActionBatchEnv):

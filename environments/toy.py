@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from hireps_torch.checks import as_finite_f64
+
 __all__ = ["ContextualTwoGaussians", "TwoGaussians", "two_gaussians_reward"]
 
 
@@ -45,8 +47,7 @@ def two_gaussians_reward(theta: Tensor, modes: Tensor, heights: Tensor, width: f
     """
     if theta.dim() != 2 or theta.shape[1] != modes.shape[-1]:
         raise ValueError(f"theta must have shape (N, {modes.shape[-1]}), got {tuple(theta.shape)}")
-    if not bool(torch.isfinite(theta).all()):
-        raise ValueError("theta contains non-finite values")
+    as_finite_f64("theta", theta)
     d2 = ((theta.unsqueeze(-2) - modes) ** 2).sum(-1)  # (N, M)
     return (heights * torch.exp(-0.5 * d2 / width**2)).sum(-1)
 
@@ -100,8 +101,7 @@ class ContextualTwoGaussians:
     def __call__(self, context: Tensor, theta: Tensor) -> Tensor:
         t = torch.as_tensor(theta)
         s = torch.as_tensor(context, dtype=t.dtype)
-        if not bool(torch.isfinite(s).all()):
-            raise ValueError("context contains non-finite values")
+        as_finite_f64("context", s)
         if s.shape[0] != t.shape[0]:
             raise ValueError(f"got {s.shape[0]} contexts for {t.shape[0]} parameter vectors")
         return two_gaussians_reward(t, self.modes(s), self.heights.to(t.dtype), self.width)

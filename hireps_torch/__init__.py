@@ -1,6 +1,13 @@
 """hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch."""
 
-from hireps_torch.algorithms import REPS, EpisodicHiREPS, InfiniteHorizonHiREPS, TimeIndexedHiREPS
+from hireps_torch.algorithms import (
+    REPS,
+    Algorithm,
+    EpisodicHiREPS,
+    Experience,
+    InfiniteHorizonHiREPS,
+    TimeIndexedHiREPS,
+)
 from hireps_torch.dmp import DMP, DMPTrajectory
 from hireps_torch.dual import (
     DegenerateWeightsWarning,
@@ -15,10 +22,12 @@ __version__ = "0.1.0"
 __all__ = [
     "DMP",
     "REPS",
+    "Algorithm",
     "DMPTrajectory",
     "DegenerateWeightsWarning",
     "DualSolution",
     "EpisodicHiREPS",
+    "Experience",
     "HierarchicalPolicy",
     "InfiniteHorizonHiREPS",
     "LinearGaussian",

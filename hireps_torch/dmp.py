@@ -71,13 +71,18 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import as_finite_f64
+from hireps_torch._dmp_math import finite_differences, quintic_coefficients, response_from_rest
+from hireps_torch.checks import as_finite_f64, check_positive_float
 
 __all__ = ["DMP", "DMPTrajectory"]
 
 _DEFAULT_OUTPUT_DT = 0.01  # s, output sample interval when neither n_steps nor dt is given
 _MIN_RK4_STEPS = 500  # default: at least this many RK4 steps per movement
 _CONSTRAINT_RK4_STEPS = 2000  # RK4 steps for the basis responses E_i(1), E_i'(1)
+
+
+# e, e', e'' and the (weights, centers, sigmas) they were computed with
+_CachedResponse = tuple[Tensor, Tensor, Tensor, tuple[Tensor, ...]]
 
 
 class DMPTrajectory(NamedTuple):
@@ -94,29 +99,6 @@ class DMPTrajectory(NamedTuple):
     velocities: Tensor
     accelerations: Tensor
     times: Tensor
-
-
-def _finite_positive(name: str, value: float) -> float:
-    v = float(value)
-    if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be finite and > 0, got {value}")
-    return v
-
-
-def _quintic_coefficients(y0: Tensor, z0: Tensor, g: Tensor, gz: Tensor) -> Tensor:
-    """Coefficients of the moving target in normalised time.
-
-    Args:
-        y0, z0: (..., J) start position and start velocity times tau.
-        g, gz: (..., J) goal position and goal velocity times tau.
-
-    Returns:
-        (..., J, 6) coefficients m with g_m(s) = sum_k m_k s^k, zero acceleration at both ends.
-    """
-    D = g - y0 - z0
-    V = gz - z0
-    zero = torch.zeros_like(y0)
-    return torch.stack([y0, z0, zero, 10 * D - 4 * V, -15 * D + 7 * V, 6 * D - 3 * V], dim=-1)
 
 
 class DMP(nn.Module):
@@ -165,15 +147,17 @@ class DMP(nn.Module):
             raise ValueError(f"n_basis must be >= 2, got {n_basis}")
         self.n_joints = int(n_joints)
         self.n_basis = int(n_basis)
-        self.alpha_z = _finite_positive("alpha_z", alpha_z)
-        self.beta_z = _finite_positive("beta_z", alpha_z / 4.0 if beta_z is None else beta_z)
-        self.alpha_x = _finite_positive("alpha_x", alpha_x)
-        self.width = _finite_positive("width", width)
+        self.alpha_z = check_positive_float("alpha_z", alpha_z)
+        self.beta_z = check_positive_float("beta_z", alpha_z / 4.0 if beta_z is None else beta_z)
+        self.alpha_x = check_positive_float("alpha_x", alpha_x)
+        self.width = check_positive_float("width", width)
         f64 = torch.float64
         centers = torch.exp(-self.alpha_x * torch.linspace(0.0, 1.0, n_basis, dtype=f64))
         spacing = centers[:-1] - centers[1:]
         spacing = torch.cat([spacing, spacing[-1:]])
-        self.register_buffer("tau", torch.tensor(_finite_positive("duration", duration), dtype=f64))
+        self.register_buffer(
+            "tau", torch.tensor(check_positive_float("duration", duration), dtype=f64)
+        )
         self.register_buffer("centers", centers)
         self.register_buffer("sigmas", self.width * spacing)
         self.register_buffer("weights", torch.zeros(n_joints, n_basis, dtype=f64))
@@ -202,65 +186,14 @@ class DMP(nn.Module):
         eye = torch.eye(6, dtype=torch.float64)
         return self.alpha_z * self.beta_z * eye + self.alpha_z * deriv + deriv @ deriv
 
-    # ---- integrator ---------------------------------------------------------------------------
-    def _integrate(
-        self, drive: Tensor, forcing: Tensor, y0: Tensor, z0: Tensor, n_steps: int, substeps: int
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """RK4 for ``y' = z, z' = P(s) + F(s) - alpha_z beta_z y - alpha_z z`` on s in [0, 1].
-
-        Args:
-            drive: (B, J, 6) coefficients of the polynomial P.
-            forcing: (2 n_steps substeps + 1, J) F on the half-step grid s = k h / 2.
-            y0, z0: (B, J) initial state.
-            n_steps: output intervals; substeps: RK4 steps per interval (h = 1 / (n_steps
-                substeps)).
-
-        Returns:
-            y, z, z' at the n_steps + 1 output points, each (B, n_steps + 1, J).
-        """
-        n_total = n_steps * substeps
-        h = 1.0 / n_total
-        s_half = torch.arange(2 * n_total + 1, dtype=torch.float64) * (0.5 * h)
-        powers = s_half[:, None] ** torch.arange(6, dtype=torch.float64)  # (2N+1, 6)
-        k, d = self.alpha_z * self.beta_z, self.alpha_z
-
-        B, J = y0.shape
-        drive_flat = drive.reshape(B * J, 6)
-
-        def acc(y: Tensor, z: Tensor, j: int) -> Tensor:
-            u = (drive_flat @ powers[j]).view(B, J) + forcing[j]
-            return u.sub_(y, alpha=k).sub_(z, alpha=d)
-
-        ys = torch.empty(B, n_steps + 1, J, dtype=torch.float64)
-        zs = torch.empty_like(ys)
-        accs = torch.empty_like(ys)
-        y, z = y0.clone(), z0.clone()
-        ys[:, 0], zs[:, 0], accs[:, 0] = y, z, acc(y, z, 0)
-        for i in range(n_total):
-            j = 2 * i
-            a1 = acc(y, z, j)
-            z2 = z + 0.5 * h * a1
-            a2 = acc(y + 0.5 * h * z, z2, j + 1)
-            z3 = z + 0.5 * h * a2
-            a3 = acc(y + 0.5 * h * z2, z3, j + 1)
-            z4 = z + h * a3
-            a4 = acc(y + h * z3, z4, j + 2)
-            y = y + (h / 6.0) * (z + 2.0 * z2 + 2.0 * z3 + z4)
-            z = z + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            if (i + 1) % substeps == 0:
-                o = (i + 1) // substeps
-                ys[:, o], zs[:, o], accs[:, o] = y, z, acc(y, z, j + 2)
-        return ys, zs, accs
-
     def _end_constraint(self) -> Tensor:
         """(2, n_basis): rows E_i(1) and E_i'(1), the end state of e'' + alpha_z e' +
         alpha_z beta_z e = psi_i / sum psi from rest (one basis function at a time)."""
         n = _CONSTRAINT_RK4_STEPS
         s_half = torch.arange(2 * n + 1, dtype=torch.float64) / (2 * n)
-        zeros = torch.zeros(1, self.n_basis, dtype=torch.float64)
-        drive = torch.zeros(1, self.n_basis, 6, dtype=torch.float64)
-        y, z, _ = self._integrate(drive, self.basis(s_half), zeros, zeros, 1, n)
-        return torch.stack([y[0, -1], z[0, -1]])
+        k, d = self.alpha_z * self.beta_z, self.alpha_z
+        y, z, _ = response_from_rest(self.basis(s_half), 1, n, k, d)
+        return torch.stack([y[-1], z[-1]])
 
     # ---- imitation ----------------------------------------------------------------------------
     @torch.no_grad()
@@ -278,7 +211,7 @@ class DMP(nn.Module):
             ``start_velocity``/``goal_velocity`` the finite-difference velocities there, and
             ``weights (J, n_basis)`` the constrained ridge fit (module docstring).
         """
-        dt = _finite_positive("dt", dt)
+        dt = check_positive_float("dt", dt)
         if not math.isfinite(ridge) or ridge < 0:
             raise ValueError(f"ridge must be finite and >= 0, got {ridge}")
         pos = torch.as_tensor(positions, dtype=torch.float64)
@@ -290,10 +223,10 @@ class DMP(nn.Module):
         pos = as_finite_f64("positions", pos)
         T = pos.shape[0]
         tau = (T - 1) * dt
-        vel, acc = _finite_differences(pos, dt)
+        vel, acc = finite_differences(pos, dt)
         z, zdot = tau * vel, tau**2 * acc  # derivatives in normalised time s
         s = torch.arange(T, dtype=torch.float64) / (T - 1)
-        m = _quintic_coefficients(pos[0], z[0], pos[-1], z[-1])  # (J, 6)
+        m = quintic_coefficients(pos[0], z[0], pos[-1], z[-1])  # (J, 6)
         powers = s[:, None] ** torch.arange(6, dtype=torch.float64)  # (T, 6)
         drive = powers @ (m @ self._drive_matrix()).T  # (T, J)
         k, d = self.alpha_z * self.beta_z, self.alpha_z
@@ -352,7 +285,7 @@ class DMP(nn.Module):
         if n_steps is not None and dt is not None:
             raise ValueError(f"give n_steps or dt, not both (got n_steps={n_steps}, dt={dt})")
         if dt is not None:
-            dt = _finite_positive("dt", dt)
+            dt = check_positive_float("dt", dt)
             n_steps = round(tau / dt)
             if n_steps < 1 or abs(n_steps * dt - tau) > 1e-9 * tau:
                 raise ValueError(f"dt={dt} must divide the duration {tau} into whole steps")
@@ -405,12 +338,12 @@ class DMP(nn.Module):
         gd = as_finite_f64("goal_velocities", goal_velocities, (B, J))
         y0 = self._state("start", start, self.start, B)
         yd0 = self._state("start_velocities", start_velocities, self.start_velocity, B)
-        tau = self.duration if duration is None else _finite_positive("duration", duration)
+        tau = self.duration if duration is None else check_positive_float("duration", duration)
         n_steps, substeps = self._grid(tau, n_steps, dt, substeps)
 
         # y = g_m + e (module docstring): the polynomial exactly, e (the same for every goal,
         # start and duration) by RK4 once per grid and set of weights.
-        m = _quintic_coefficients(y0, tau * yd0, g, tau * gd)  # (B, J, 6)
+        m = quintic_coefficients(y0, tau * yd0, g, tau * gd)  # (B, J, 6)
         s = torch.arange(n_steps + 1, dtype=torch.float64) / n_steps
         powers = s[:, None] ** torch.arange(6, dtype=torch.float64)  # (T, 6)
         deriv = torch.diag(torch.arange(1, 6, dtype=torch.float64), diagonal=-1)
@@ -427,7 +360,9 @@ class DMP(nn.Module):
         or gains differ from the cached ones)."""
         key = (n_steps, substeps, float(self.alpha_z), float(self.beta_z), float(self.alpha_x))
         shape = (self.weights, self.centers, self.sigmas)
-        cache = self.__dict__.setdefault("_response_cache", {})
+        cache: dict[tuple[float, ...], _CachedResponse] = self.__dict__.setdefault(
+            "_response_cache", {}
+        )
         stale = key not in cache or not all(
             torch.equal(a, b) for a, b in zip(cache[key][3], shape, strict=True)
         )
@@ -436,21 +371,7 @@ class DMP(nn.Module):
             n_half = 2 * n_steps * substeps + 1
             s_half = torch.arange(n_half, dtype=torch.float64) / (n_half - 1)
             forcing = self.basis(s_half) @ self.weights.T  # (n_half, J)
-            zeros = torch.zeros(1, self.n_joints, dtype=torch.float64)
-            drive = torch.zeros(1, self.n_joints, 6, dtype=torch.float64)
-            e, ez, ezdot = self._integrate(drive, forcing, zeros, zeros, n_steps, substeps)
-            cache[key] = (e[0], ez[0], ezdot[0], tuple(b.detach().clone() for b in shape))
+            k, d = self.alpha_z * self.beta_z, self.alpha_z
+            e, ez, ezdot = response_from_rest(forcing, n_steps, substeps, k, d)
+            cache[key] = (e, ez, ezdot, tuple(b.detach().clone() for b in shape))
         return cache[key][:3]
-
-
-def _finite_differences(pos: Tensor, dt: float) -> tuple[Tensor, Tensor]:
-    """Second-order accurate velocity and acceleration: (T, J) -> ((T, J), (T, J)), T >= 4."""
-    vel = torch.empty_like(pos)
-    acc = torch.empty_like(pos)
-    vel[1:-1] = (pos[2:] - pos[:-2]) / (2 * dt)
-    vel[0] = (-3 * pos[0] + 4 * pos[1] - pos[2]) / (2 * dt)
-    vel[-1] = (3 * pos[-1] - 4 * pos[-2] + pos[-3]) / (2 * dt)
-    acc[1:-1] = (pos[2:] - 2 * pos[1:-1] + pos[:-2]) / dt**2
-    acc[0] = (2 * pos[0] - 5 * pos[1] + 4 * pos[2] - pos[3]) / dt**2
-    acc[-1] = (2 * pos[-1] - 5 * pos[-2] + 4 * pos[-3] - pos[-4]) / dt**2
-    return vel, acc

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -27,6 +28,10 @@ class FeatureMap(nn.Module):
 
     in_features: int
     out_features: int
+
+    if TYPE_CHECKING:  # nn.Module.__call__ returns Any; a feature map returns a tensor
+
+        def __call__(self, x: Tensor) -> Tensor: ...
 
 
 class IdentityFeatures(FeatureMap):

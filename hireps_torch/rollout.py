@@ -107,11 +107,11 @@ class TimeIndexedActor(nn.Module):
         k = step_count.reshape(-1).long()
         K = len(self.policies)
         if bool(((k < 0) | (k >= K)).any()):
-            raise ValueError(f"step_count must be in [0, {K}), got {k.unique().tolist()}")
+            raise ValueError(f"step_count must be in [0, {K}), got {torch.unique(k).tolist()}")
         dim = int(self.policies[0].action_dim)  # type: ignore[arg-type]
         a = torch.zeros(s.shape[0], dim, dtype=torch.float64)
         o = torch.zeros(s.shape[0], dtype=torch.long)
-        for step in k.unique().tolist():
+        for step in torch.unique(k).tolist():
             rows = k == step
             pol = self.policies[step]
             out = pol.mean_action(s[rows]) if self.deterministic else pol.sample(s[rows])

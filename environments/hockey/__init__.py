@@ -1,6 +1,6 @@
 """Robot hockey with a KUKA iiwa in pybullet (see :mod:`environments.hockey.env` for the spec).
 
-Importing this package registers the gymnasium ids; pybullet and pytorch-kinematics (the
+``import environments`` registers the gymnasium ids; pybullet and pytorch-kinematics (the
 ``robot`` extra) are only needed when an environment is created.
 """
 
@@ -13,7 +13,8 @@ from environments.hockey.env import (
     zone_reward,
 )
 from environments.hockey.kinematics import ArmGeometry, ArmKinematics, demonstration
-from environments.hockey.sim import HockeyParams, HockeySim, ShotResult, demo_action, shot_dmp
+from environments.hockey.params import HockeyParams
+from environments.hockey.sim import HockeySim, ShotResult, demo_action, shot_dmp
 
 __all__ = [
     "ENV_ID",

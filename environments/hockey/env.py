@@ -78,7 +78,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from environments.hockey.sim import HockeyParams, HockeySim, demo_action
+from environments.hockey.params import HockeyParams
+from environments.hockey.sim import HockeySim, demo_action
 from hireps_torch.checks import as_finite_f64
 
 __all__ = [
@@ -90,6 +91,7 @@ __all__ = [
     "zone_reward",
 ]
 
+# gymnasium ids, registered by ``import environments``
 ENV_ID = "hireps/RobotHockey-v0"
 EPISODIC_ENV_ID = "hireps/RobotHockeyEpisodic-v0"
 
@@ -292,9 +294,3 @@ class RobotHockeyEpisodicEnv(gym.Env):
 
     def close(self) -> None:
         self.inner.close()
-
-
-gym.register(id=ENV_ID, entry_point=f"{__name__}:RobotHockeyEnv", disable_env_checker=True)
-gym.register(
-    id=EPISODIC_ENV_ID, entry_point=f"{__name__}:RobotHockeyEpisodicEnv", disable_env_checker=True
-)

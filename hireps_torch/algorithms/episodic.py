@@ -21,22 +21,35 @@ REPS (Peters et al. 2010) is the same loop with one option and no entropy bound:
 
 from __future__ import annotations
 
-import math
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from hireps_torch.algorithms._options import option_bound, refit_and_report
+from hireps_torch.algorithms.base import (
+    Experience,
+    HiREPSBase,
+    PolicyKwargs,
+    check_experience,
+    check_step,
+    fresh_policies,
+)
+from hireps_torch.checks import as_finite_f64, check_positive_float
 from hireps_torch.dual import solve_episodic_dual
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
 __all__ = ["REPS", "EpisodicHiREPS"]
 
 
-class EpisodicHiREPS:
-    """Episodic (contextual) HiREPS with an ask/tell interface.
+class EpisodicHiREPS(HiREPSBase):
+    """Episodic (contextual) HiREPS with an ask/tell interface (and the shared
+    :class:`~hireps_torch.algorithms.Algorithm` interface: one decision step, K = 1).
 
     Example (no context)::
 
@@ -67,23 +80,15 @@ class EpisodicHiREPS:
         prune_threshold: float = 1e-4,
         seed: int | None = None,
     ) -> None:
-        if not (math.isfinite(epsilon) and epsilon > 0):
-            raise ValueError(f"epsilon must be finite and > 0, got {epsilon}")
-        if kappa_rel is not None and not (math.isfinite(kappa_rel) and kappa_rel >= 0):
-            raise ValueError(f"kappa_rel must be finite and >= 0 (or None), got {kappa_rel}")
+        self.epsilon = check_positive_float("epsilon", epsilon)
+        super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         if context_dim < 0:
             raise ValueError(f"context_dim must be >= 0, got {context_dim}")
         self.policy = policy
-        self.epsilon = float(epsilon)
-        self.kappa_rel = None if kappa_rel is None else float(kappa_rel)
         self.context_dim = context_dim
         self.context_features = context_features or (
             QuadraticFeatures(context_dim) if context_dim > 0 else None
         )
-        self.prune_threshold = float(prune_threshold)
-        self.generator = torch.Generator()
-        self.generator.manual_seed(0 if seed is None else int(seed))
-        self.iteration = 0
 
     @classmethod
     def create(
@@ -93,40 +98,31 @@ class EpisodicHiREPS:
         context_dim: int = 0,
         n_options: int = 5,
         init_mean: Tensor | None = None,
-        init_std: float | Tensor = 1.0,
-        spread: float = 1.0,
         epsilon: float = 1.0,
         kappa_rel: float | None = 0.9,
-        gating_features: FeatureMap | None = None,
-        policy_features: FeatureMap | None = None,
-        min_variance: float | Tensor = 1e-8,
-        covariance_prior: float = 0.0,
         seed: int | None = None,
+        **policy_kwargs: Unpack[PolicyKwargs],
     ) -> EpisodicHiREPS:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
 
         The gating sees the squared expansion of the context by default, the options the
         context itself (a linear policy). Option means start at
-        ``init_mean + spread * init_std * randn`` (see :meth:`HierarchicalPolicy.create`);
-        ``covariance_prior`` shrinks every refit covariance toward the previous one (see
-        :class:`~hireps_torch.policies.LinearGaussian`).
+        ``init_mean + spread * init_std * randn`` (see :meth:`HierarchicalPolicy.create`).
+
+        Args:
+            param_dim: D.
+            context_dim: S (0: no context).
+            n_options: O.
+            init_mean: (D,) or (O, D) initial option means; zeros by default.
+            epsilon: KL bound.
+            kappa_rel: relative entropy bound (None: off).
+            seed: seeds the initial option means (and, as seed + 1, the sampling generator).
+            **policy_kwargs: ``init_std, spread, gating_features, policy_features,
+                min_variance, covariance_prior`` (see
+                :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
-        gen = torch.Generator()
-        gen.manual_seed(0 if seed is None else int(seed))
-        if gating_features is None and context_dim > 0:
-            gating_features = QuadraticFeatures(context_dim)
-        policy = HierarchicalPolicy.create(
-            n_options,
-            context_dim,
-            param_dim,
-            init_mean=init_mean,
-            init_std=init_std,
-            spread=spread,
-            gating_features=gating_features,
-            policy_features=policy_features,
-            min_variance=min_variance,
-            covariance_prior=covariance_prior,
-            generator=gen,
+        (policy,) = fresh_policies(
+            [init_mean], n_options, context_dim, param_dim, seed, **policy_kwargs
         )
         return cls(
             policy,
@@ -155,9 +151,7 @@ class EpisodicHiREPS:
             raise ValueError(
                 f"contexts must have shape (N, {self.context_dim}), got {tuple(c.shape)}"
             )
-        if not bool(torch.isfinite(c).all()):
-            raise ValueError("contexts contain non-finite values")
-        return c
+        return as_finite_f64("contexts", c)
 
     # ---- ask / tell -------------------------------------------------------------------------
     @torch.no_grad()
@@ -207,8 +201,7 @@ class EpisodicHiREPS:
                 f"params must have shape ({N}, {self.policy.action_dim}) to match returns "
                 f"{tuple(R.shape)}, got {tuple(theta.shape)}"
             )
-        if not bool(torch.isfinite(theta).all()):
-            raise ValueError("params contain non-finite values")
+        as_finite_f64("params", theta)
         c = self._contexts(contexts, n=N)
         if c.shape[0] != N:
             raise ValueError(f"got {c.shape[0]} contexts for {N} returns")
@@ -231,23 +224,39 @@ class EpisodicHiREPS:
             "max_return": float(R.max()),
         }
 
+    # ---- the shared interface (Algorithm) ---------------------------------------------------
+    @property
+    def policies(self) -> tuple[HierarchicalPolicy]:
+        """The one policy, as the interface's one-entry sequence."""
+        return (self.policy,)
+
+    def sample(self, states: Tensor, step: int = 0) -> Tensor:
+        """:meth:`ask` for contexts (N, S) (S = 0 without context); ``step`` must be 0."""
+        check_step(step, 1)
+        return self.ask(states)
+
+    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
+        """:meth:`act` for contexts (N, S); ``step`` must be 0."""
+        check_step(step, 1)
+        return self.act(states)
+
+    def learn(self, experience: Experience) -> dict[str, Any]:
+        """:meth:`tell` from contexts (N, 1, S), parameters (N, 1, D) and returns (N, 1)."""
+        name = type(self).__name__
+        D = self.policy.action_dim
+        check_experience(experience, 1, self.context_dim, D, transitions=False, algorithm=name)
+        e = experience
+        return self.tell(e.states[:, 0], e.actions[:, 0], e.rewards[:, 0])
+
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue the run bit-for-bit."""
-        return {
-            "policy": self.policy.state_dict(),
-            "generator": self.generator.get_state(),
-            "iteration": self.iteration,
-            "epsilon": self.epsilon,
-            "kappa_rel": self.kappa_rel,
-        }
+        return self._state(policy=self.policy.state_dict(), epsilon=self.epsilon)
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.policy.load_state_dict(state["policy"])
-        self.generator.set_state(state["generator"])
-        self.iteration = int(state["iteration"])
+        self._load_state(state)
         self.epsilon = float(state["epsilon"])
-        self.kappa_rel = state["kappa_rel"]
 
 
 class REPS(EpisodicHiREPS):
@@ -273,13 +282,13 @@ class REPS(EpisodicHiREPS):
             context_dim=context_dim,
             n_options=1,
             init_mean=init_mean,
-            init_std=init_std,
             epsilon=epsilon,
             kappa_rel=None,
+            seed=seed,
+            init_std=init_std,
             policy_features=policy_features,
             min_variance=min_variance,
             covariance_prior=covariance_prior,
-            seed=seed,
         )
         assert isinstance(algo, REPS)
         return algo

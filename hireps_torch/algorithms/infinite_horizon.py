@@ -24,22 +24,35 @@ One option and ``kappa_rel=None`` give infinite-horizon REPS (Peters et al. 2010
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
-from hireps_torch.checks import as_finite_f64
 from hireps_torch.algorithms._options import option_bound, refit_and_report
+from hireps_torch.algorithms.base import (
+    Experience,
+    HiREPSBase,
+    PolicyKwargs,
+    check_experience,
+    check_step,
+    fresh_policies,
+)
+from hireps_torch.checks import as_finite_f64, check_positive_float
 from hireps_torch.dual import solve_infinite_horizon_dual
 from hireps_torch.features import FeatureMap
 from hireps_torch.policies import HierarchicalPolicy
 
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
 __all__ = ["InfiniteHorizonHiREPS"]
 
 
-class InfiniteHorizonHiREPS:
-    """Infinite-horizon HiREPS over transitions of a restart process.
+class InfiniteHorizonHiREPS(HiREPSBase):
+    """Infinite-horizon HiREPS over transitions of a restart process (and the shared
+    :class:`~hireps_torch.algorithms.Algorithm` interface: one decision step, K = 1).
 
     Example::
 
@@ -56,6 +69,7 @@ class InfiniteHorizonHiREPS:
         epsilon: KL bound per iteration, > 0.
         kappa_rel: entropy bound as a fraction of the current mean option entropy; None: off.
         prune_threshold: options whose prior mass falls below this are pruned (0: never).
+        seed: seed of the generator of :meth:`sample` (None: 0). The update draws nothing.
     """
 
     def __init__(
@@ -68,13 +82,12 @@ class InfiniteHorizonHiREPS:
         epsilon: float = 0.5,
         kappa_rel: float | None = 0.9,
         prune_threshold: float = 1e-4,
+        seed: int | None = None,
     ) -> None:
-        if not (math.isfinite(epsilon) and epsilon > 0):
-            raise ValueError(f"epsilon must be finite and > 0, got {epsilon}")
+        self.epsilon = check_positive_float("epsilon", epsilon)
         if not (math.isfinite(gamma) and 0.0 < gamma < 1.0):
             raise ValueError(f"gamma must be in (0, 1), got {gamma}")
-        if kappa_rel is not None and not (math.isfinite(kappa_rel) and kappa_rel >= 0):
-            raise ValueError(f"kappa_rel must be finite and >= 0 (or None), got {kappa_rel}")
+        super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         s0 = torch.as_tensor(initial_states, dtype=torch.float64)
         if s0.dim() != 2 or s0.shape[1] != value_features.in_features or s0.shape[0] < 1:
             raise ValueError(
@@ -85,11 +98,67 @@ class InfiniteHorizonHiREPS:
         self.value_features = value_features
         self.initial_features = value_features(s0).mean(0)
         self.gamma = float(gamma)
-        self.epsilon = float(epsilon)
-        self.kappa_rel = None if kappa_rel is None else float(kappa_rel)
-        self.prune_threshold = float(prune_threshold)
-        self.iteration = 0
         self.value_weights = torch.zeros(value_features.out_features, dtype=torch.float64)
+
+    @classmethod
+    def create(
+        cls,
+        state_dim: int,
+        action_dim: int,
+        *,
+        value_features: FeatureMap,
+        initial_states: Tensor,
+        gamma: float,
+        n_options: int = 5,
+        init_mean: Tensor | None = None,
+        epsilon: float = 0.5,
+        kappa_rel: float | None = 0.9,
+        prune_threshold: float = 1e-4,
+        seed: int | None = None,
+        **policy_kwargs: Unpack[PolicyKwargs],
+    ) -> InfiniteHorizonHiREPS:
+        """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
+
+        The gating sees the squared expansion of the state by default, the options the state
+        itself (linear options). Option means start at ``init_mean + spread * init_std *
+        randn`` (see :meth:`HierarchicalPolicy.create`).
+
+        Args:
+            state_dim: S, >= 1.
+            action_dim: A.
+            value_features: features phi(s) of the value function, ``in_features = S``.
+            initial_states: (M, S) draws from the start distribution.
+            gamma: 1 - restart probability per decision, in (0, 1).
+            n_options: O.
+            init_mean: (A,) or (O, A) initial option means; zeros by default.
+            epsilon: KL bound.
+            kappa_rel: relative entropy bound (None: off).
+            prune_threshold: prior mass below which options are pruned (0: never).
+            seed: seeds the initial option means (and, as seed + 1, the sampling generator).
+            **policy_kwargs: ``init_std, spread, gating_features, policy_features,
+                min_variance, covariance_prior`` (see
+                :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
+        """
+        if state_dim < 1:
+            raise ValueError(f"state_dim must be >= 1, got {state_dim}")
+        if value_features.in_features != state_dim:
+            raise ValueError(
+                f"value_features take states of dimension {value_features.in_features}, "
+                f"not state_dim = {state_dim}"
+            )
+        (policy,) = fresh_policies(
+            [init_mean], n_options, state_dim, action_dim, seed, **policy_kwargs
+        )
+        return cls(
+            policy,
+            value_features,
+            initial_states,
+            gamma=gamma,
+            epsilon=epsilon,
+            kappa_rel=kappa_rel,
+            prune_threshold=prune_threshold,
+            seed=None if seed is None else int(seed) + 1,
+        )
 
     def value(self, states: Tensor) -> Tensor:
         """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,)."""
@@ -155,21 +224,58 @@ class InfiniteHorizonHiREPS:
         self.iteration += 1
         return {"iteration": self.iteration, **report, "mean_reward": float(R.mean())}
 
+    # ---- the shared interface (Algorithm) ---------------------------------------------------
+    @property
+    def policies(self) -> tuple[HierarchicalPolicy]:
+        """The one policy, as the interface's one-entry sequence."""
+        return (self.policy,)
+
+    def _states(self, states: Tensor) -> Tensor:
+        S = self.value_features.in_features
+        s = torch.as_tensor(states, dtype=torch.float64)
+        if s.dim() != 2 or s.shape[1] != S:
+            raise ValueError(f"states must have shape (N, {S}), got {tuple(s.shape)}")
+        return as_finite_f64("states", s)
+
+    @torch.no_grad()
+    def sample(self, states: Tensor, step: int = 0) -> Tensor:
+        """Exploring actions (N, A) for states (N, S), drawn with the algorithm's generator;
+        ``step`` must be 0."""
+        check_step(step, 1)
+        return self.policy.sample(self._states(states), self.generator)[0]
+
+    @torch.no_grad()
+    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
+        """Noise-free actions (N, A) (mean of the most probable option); ``step`` must be 0."""
+        check_step(step, 1)
+        return self.policy.mean_action(self._states(states))[0]
+
+    def learn(self, experience: Experience) -> dict[str, Any]:
+        """:meth:`update` from decisions: states, next_states (N, 1, S), actions (N, 1, A),
+        rewards (N, 1) and optionally terminated (N, 1)."""
+        S, A = self.value_features.in_features, self.policy.action_dim
+        name = type(self).__name__
+        check_experience(experience, 1, S, A, transitions=True, algorithm=name)
+        e = experience
+        assert e.next_states is not None  # checked above
+        term = None if e.terminated is None else e.terminated[:, 0]
+        return self.update(
+            e.states[:, 0], e.actions[:, 0], e.rewards[:, 0], e.next_states[:, 0], term
+        )
+
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        return {
-            "policy": self.policy.state_dict(),
-            "value_weights": self.value_weights.clone(),
-            "iteration": self.iteration,
-            "gamma": self.gamma,
-            "epsilon": self.epsilon,
-            "kappa_rel": self.kappa_rel,
-        }
+        """Everything needed to continue the run bit-for-bit."""
+        return self._state(
+            policy=self.policy.state_dict(),
+            value_weights=self.value_weights.clone(),
+            gamma=self.gamma,
+            epsilon=self.epsilon,
+        )
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.policy.load_state_dict(state["policy"])
         self.value_weights = state["value_weights"].clone()
-        self.iteration = int(state["iteration"])
+        self._load_state(state)
         self.gamma = float(state["gamma"])
         self.epsilon = float(state["epsilon"])
-        self.kappa_rel = state["kappa_rel"]

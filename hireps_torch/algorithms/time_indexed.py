@@ -32,18 +32,28 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import operator
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
-from hireps_torch.checks import as_finite_f64
 from hireps_torch.algorithms._options import OptionBound, option_bound, refit_and_report
+from hireps_torch.algorithms.base import (
+    Experience,
+    HiREPSBase,
+    PolicyKwargs,
+    check_experience,
+    check_step,
+    fresh_policies,
+)
+from hireps_torch.checks import as_finite_f64
 from hireps_torch.dual import solve_time_indexed_dual
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = ["TimeIndexedHiREPS"]
 
@@ -62,8 +72,9 @@ _PER_STEP = (
 )
 
 
-class TimeIndexedHiREPS:
-    """Time-indexed HiREPS with one hierarchical policy per decision step (ask/tell).
+class TimeIndexedHiREPS(HiREPSBase):
+    """Time-indexed HiREPS with one hierarchical policy per decision step (ask/tell, and the
+    shared :class:`~hireps_torch.algorithms.Algorithm` interface with K steps).
 
     Example (K = 3 shots, 2-D state, 14 parameters per shot)::
 
@@ -109,8 +120,7 @@ class TimeIndexedHiREPS:
             raise ValueError(
                 f"epsilon must be finite and > 0, one float or {K} (one per step), got {epsilon}"
             )
-        if kappa_rel is not None and not (math.isfinite(kappa_rel) and kappa_rel >= 0):
-            raise ValueError(f"kappa_rel must be finite and >= 0 (or None), got {kappa_rel}")
+        super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         S = value_features.in_features
         for k, pol in enumerate(policies):
             dims = (pol.gating_features.in_features, pol.policy_features.in_features)
@@ -127,11 +137,6 @@ class TimeIndexedHiREPS:
         self.policies = list(policies)
         self.value_features = value_features
         self.epsilon = eps
-        self.kappa_rel = None if kappa_rel is None else float(kappa_rel)
-        self.prune_threshold = float(prune_threshold)
-        self.generator = torch.Generator()
-        self.generator.manual_seed(0 if seed is None else int(seed))
-        self.iteration = 0
         self.value_weights = torch.zeros(K, value_features.out_features, dtype=torch.float64)
 
     @classmethod
@@ -143,16 +148,11 @@ class TimeIndexedHiREPS:
         *,
         n_options: int = 5,
         init_mean: Tensor | None = None,
-        init_std: float | Tensor = 1.0,
-        spread: float = 1.0,
         epsilon: float | Sequence[float] = 1.0,
         kappa_rel: float | None = 0.9,
-        gating_features: FeatureMap | None = None,
-        policy_features: FeatureMap | None = None,
         value_features: FeatureMap | None = None,
-        min_variance: float | Tensor = 1e-8,
-        covariance_prior: float = 0.0,
         seed: int | None = None,
+        **policy_kwargs: Unpack[PolicyKwargs],
     ) -> TimeIndexedHiREPS:
         """Build K fresh softmax-gated mixtures of linear-Gaussian options, one per step.
 
@@ -164,17 +164,13 @@ class TimeIndexedHiREPS:
             init_mean: (D,) shared by all steps or (K, D) per step; zeros by default. Option
                 means start at ``init_mean + spread * init_std * randn`` (see
                 :meth:`HierarchicalPolicy.create`).
-            init_std: initial standard deviation, float or (D,).
-            spread: spread of the initial option means in units of ``init_std``.
             epsilon: KL bound, one float or K floats.
             kappa_rel: relative entropy bound (None: off).
-            gating_features: gating features (the squared expansion of the state by default).
-            policy_features: option features (the state itself by default: linear options).
             value_features: value features phi (the squared expansion of the state by default).
-            min_variance: variance floor of the options.
-            covariance_prior: pseudo-samples of the prior that shrinks each refit covariance
-                toward the previous one (see :class:`~hireps_torch.policies.LinearGaussian`).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator).
+            **policy_kwargs: ``init_std, spread, gating_features`` (the squared expansion of
+                the state by default), ``policy_features, min_variance, covariance_prior``
+                (see :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
         if K < 1:
             raise ValueError(f"K (the number of decision steps) must be >= 1, got {K}")
@@ -189,25 +185,9 @@ class TimeIndexedHiREPS:
                     f"({K}, {param_dim}), got {tuple(m.shape)}"
                 )
             mean = mean + m
-        gen = torch.Generator()
-        gen.manual_seed(0 if seed is None else int(seed))
-        gating_features = gating_features or QuadraticFeatures(context_dim)
-        policies = [
-            HierarchicalPolicy.create(
-                n_options,
-                context_dim,
-                param_dim,
-                init_mean=mean[k],
-                init_std=init_std,
-                spread=spread,
-                gating_features=gating_features,
-                policy_features=policy_features,
-                min_variance=min_variance,
-                covariance_prior=covariance_prior,
-                generator=gen,
-            )
-            for k in range(K)
-        ]
+        policies = fresh_policies(
+            list(mean), n_options, context_dim, param_dim, seed, **policy_kwargs
+        )
         return cls(
             policies,
             value_features or QuadraticFeatures(context_dim),
@@ -223,14 +203,7 @@ class TimeIndexedHiREPS:
 
     # ---- input handling ---------------------------------------------------------------------
     def _step(self, step: int) -> int:
-        K = self.n_steps
-        try:
-            k = operator.index(step)
-        except TypeError:
-            raise ValueError(f"step must be an integer in [0, {K}), got {step!r}") from None
-        if not 0 <= k < K:
-            raise ValueError(f"step must be in [0, {K}) (K = {K} decision steps), got {k}")
-        return k
+        return check_step(step, self.n_steps)
 
     def _contexts(self, contexts: Tensor) -> Tensor:
         S = self.value_features.in_features
@@ -330,19 +303,32 @@ class TimeIndexedHiREPS:
             "max_return": float(returns.max()),
         }
 
+    # ---- the shared interface (Algorithm) ---------------------------------------------------
+    def sample(self, states: Tensor, step: int = 0) -> Tensor:
+        """:meth:`ask` with the arguments in the interface's order: states (N, S) at ``step``."""
+        return self.ask(step, states)
+
+    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
+        """:meth:`act` with the arguments in the interface's order."""
+        return self.act(step, states)
+
+    def learn(self, experience: Experience) -> dict[str, Any]:
+        """:meth:`tell` from states (N, K, S), parameters (N, K, D) and rewards (N, K)."""
+        S, D = self.value_features.in_features, self.policies[0].action_dim
+        name = type(self).__name__
+        check_experience(experience, self.n_steps, S, D, transitions=False, algorithm=name)
+        return self.tell(experience.states, experience.actions, experience.rewards)
+
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue the run bit-for-bit."""
-        return {
-            "policies": [pol.state_dict() for pol in self.policies],
-            "value_weights": self.value_weights.clone(),
-            "generator": self.generator.get_state(),
-            "iteration": self.iteration,
-            "epsilon": list(self.epsilon),
-            "kappa_rel": self.kappa_rel,
-        }
+        return self._state(
+            policies=[pol.state_dict() for pol in self.policies],
+            value_weights=self.value_weights.clone(),
+            epsilon=list(self.epsilon),
+        )
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
         if len(state["policies"]) != self.n_steps:
             raise ValueError(
                 f"the state holds {len(state['policies'])} policies, this algorithm has "
@@ -351,10 +337,8 @@ class TimeIndexedHiREPS:
         for pol, sd in zip(self.policies, state["policies"], strict=True):
             pol.load_state_dict(sd)
         self.value_weights = state["value_weights"].clone()
-        self.generator.set_state(state["generator"])
-        self.iteration = int(state["iteration"])
+        self._load_state(state)
         self.epsilon = [float(e) for e in state["epsilon"]]
-        self.kappa_rel = state["kappa_rel"]
 
 
 def _stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Tensor | None]:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import cast
+
 import torch
 from torch import Tensor, nn
 
@@ -134,11 +137,13 @@ class SoftmaxGating(Gating):
             opt.zero_grad()
             logp = torch.log_softmax(x @ Wp.T + bp, dim=-1)
             loss = -(w[:, None] * t * logp).sum() + 0.5 * self.l2 * (Wp**2).sum()
-            loss.backward()
+            torch.autograd.backward(loss)  # loss.backward(), typed
             return loss
 
+        # LBFGS.step is unannotated in torch; it takes and returns the closure's loss
+        step = cast(Callable[[Callable[[], Tensor]], Tensor], opt.step)
         with torch.enable_grad():
-            opt.step(closure)
+            step(closure)
         self.weight[act] = Wp.detach().to(self.weight.dtype)
         self.bias[act] = (bp.detach() - bp.detach().mean()).to(self.bias.dtype)
 

@@ -8,6 +8,7 @@ from typing import cast
 import torch
 from torch import Tensor, nn
 
+from hireps_torch.checks import as_finite_f64
 from hireps_torch.features import FeatureMap, IdentityFeatures
 from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import LinearGaussian
@@ -135,8 +136,7 @@ class HierarchicalPolicy(nn.Module):
     def _features(self, context: Tensor) -> tuple[Tensor, Tensor]:
         if context.dim() != 2:
             raise ValueError(f"context must have shape (N, S), got {tuple(context.shape)}")
-        if not bool(torch.isfinite(context).all()):
-            raise ValueError("context contains non-finite values")
+        as_finite_f64("context", context)
         return self.gating_features(context), self.policy_features(context)
 
     # ---- distribution -----------------------------------------------------------------------

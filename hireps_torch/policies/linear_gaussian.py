@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from hireps_torch.checks import as_finite_f64, check_positive
+
 __all__ = ["LinearGaussian", "weighted_least_squares"]
 
 
@@ -98,8 +100,7 @@ class LinearGaussian(nn.Module):
             raise ValueError(f"covariance_prior must be finite and >= 0, got {covariance_prior}")
         self.covariance_prior = float(covariance_prior)
         std = torch.as_tensor(init_std, dtype=dtype).expand(action_dim).clone()
-        if not bool(torch.isfinite(std).all()) or bool((std <= 0).any()):
-            raise ValueError(f"init_std must be finite and > 0, got {std.tolist()}")
+        check_positive("init_std", std)
         mean = (
             torch.zeros(action_dim, dtype=dtype)
             if init_mean is None
@@ -144,7 +145,7 @@ class LinearGaussian(nn.Module):
         if theta.shape != mu.shape:
             raise ValueError(f"theta must have shape {tuple(mu.shape)}, got {tuple(theta.shape)}")
         diff = (theta.to(mu.dtype) - mu).T  # (D, N)
-        z = torch.linalg.solve_triangular(self.chol, diff, upper=False)
+        z: Tensor = torch.linalg.solve_triangular(self.chol, diff, upper=False)
         half_logdet = torch.log(torch.diagonal(self.chol)).sum()
         return -0.5 * (z**2).sum(0) - half_logdet - 0.5 * self.action_dim * math.log(2 * math.pi)
 
@@ -182,8 +183,7 @@ class LinearGaussian(nn.Module):
             raise ValueError(f"weights must have shape ({x.shape[0]},), got {tuple(w.shape)}")
         if not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
             raise ValueError("weights must be finite, non-negative and not all zero")
-        if not bool(torch.isfinite(targets).all()):
-            raise ValueError("targets contain non-finite values")
+        as_finite_f64("targets", targets)
         W, b = weighted_least_squares(x, targets, w, ridge=ridge)
         resid = targets.to(torch.float64) - (x.to(torch.float64) @ W.T + b)
         cov = (w[:, None] * resid).T @ resid / w.sum()

@@ -1,0 +1,110 @@
+"""The numerical pieces of :mod:`hireps_torch.dmp`: the quintic moving target, finite
+differences of a demonstration, and the RK4 integrator of the transformation system (see that
+module's docstring for the equations)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["finite_differences", "integrate", "quintic_coefficients", "response_from_rest"]
+
+
+def quintic_coefficients(y0: Tensor, z0: Tensor, g: Tensor, gz: Tensor) -> Tensor:
+    """Coefficients of the moving target in normalised time.
+
+    Args:
+        y0, z0: (..., J) start position and start velocity times tau.
+        g, gz: (..., J) goal position and goal velocity times tau.
+
+    Returns:
+        (..., J, 6) coefficients m with g_m(s) = sum_k m_k s^k, zero acceleration at both ends.
+    """
+    D = g - y0 - z0
+    V = gz - z0
+    zero = torch.zeros_like(y0)
+    return torch.stack([y0, z0, zero, 10 * D - 4 * V, -15 * D + 7 * V, 6 * D - 3 * V], dim=-1)
+
+
+def integrate(
+    drive: Tensor,
+    forcing: Tensor,
+    y0: Tensor,
+    z0: Tensor,
+    n_steps: int,
+    substeps: int,
+    stiffness: float,
+    damping: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """RK4 for ``y' = z, z' = P(s) + F(s) - stiffness y - damping z`` on s in [0, 1] (the DMP's
+    stiffness is alpha_z beta_z, its damping alpha_z).
+
+    Args:
+        drive: (B, J, 6) coefficients of the polynomial P.
+        forcing: (2 n_steps substeps + 1, J) F on the half-step grid s = k h / 2.
+        y0, z0: (B, J) initial state.
+        n_steps: output intervals; substeps: RK4 steps per interval (h = 1 / (n_steps
+            substeps)).
+        stiffness, damping: the gains of the system.
+
+    Returns:
+        y, z, z' at the n_steps + 1 output points, each (B, n_steps + 1, J).
+    """
+    n_total = n_steps * substeps
+    h = 1.0 / n_total
+    s_half = torch.arange(2 * n_total + 1, dtype=torch.float64) * (0.5 * h)
+    powers = s_half[:, None] ** torch.arange(6, dtype=torch.float64)  # (2N+1, 6)
+    k, d = stiffness, damping
+
+    B, J = y0.shape
+    drive_flat = drive.reshape(B * J, 6)
+
+    def acc(y: Tensor, z: Tensor, j: int) -> Tensor:
+        u = (drive_flat @ powers[j]).view(B, J) + forcing[j]
+        return u.sub_(y, alpha=k).sub_(z, alpha=d)
+
+    ys = torch.empty(B, n_steps + 1, J, dtype=torch.float64)
+    zs = torch.empty_like(ys)
+    accs = torch.empty_like(ys)
+    y, z = y0.clone(), z0.clone()
+    ys[:, 0], zs[:, 0], accs[:, 0] = y, z, acc(y, z, 0)
+    for i in range(n_total):
+        j = 2 * i
+        a1 = acc(y, z, j)
+        z2 = z + 0.5 * h * a1
+        a2 = acc(y + 0.5 * h * z, z2, j + 1)
+        z3 = z + 0.5 * h * a2
+        a3 = acc(y + 0.5 * h * z2, z3, j + 1)
+        z4 = z + h * a3
+        a4 = acc(y + h * z3, z4, j + 2)
+        y = y + (h / 6.0) * (z + 2.0 * z2 + 2.0 * z3 + z4)
+        z = z + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+        if (i + 1) % substeps == 0:
+            o = (i + 1) // substeps
+            ys[:, o], zs[:, o], accs[:, o] = y, z, acc(y, z, j + 2)
+    return ys, zs, accs
+
+
+def response_from_rest(
+    forcing: Tensor, n_steps: int, substeps: int, stiffness: float, damping: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """e, e', e'' (each (n_steps + 1, W)) of ``e'' + damping e' + stiffness e = F(s)`` from
+    rest, for W forcing columns ``forcing (2 n_steps substeps + 1, W)`` (see :func:`integrate`).
+    """
+    zeros = torch.zeros(1, forcing.shape[1], dtype=torch.float64)
+    drive = torch.zeros(1, forcing.shape[1], 6, dtype=torch.float64)
+    e, ez, ezdot = integrate(drive, forcing, zeros, zeros, n_steps, substeps, stiffness, damping)
+    return e[0], ez[0], ezdot[0]
+
+
+def finite_differences(pos: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+    """Second-order accurate velocity and acceleration: (T, J) -> ((T, J), (T, J)), T >= 4."""
+    vel = torch.empty_like(pos)
+    acc = torch.empty_like(pos)
+    vel[1:-1] = (pos[2:] - pos[:-2]) / (2 * dt)
+    vel[0] = (-3 * pos[0] + 4 * pos[1] - pos[2]) / (2 * dt)
+    vel[-1] = (3 * pos[-1] - 4 * pos[-2] + pos[-3]) / (2 * dt)
+    acc[1:-1] = (pos[2:] - 2 * pos[1:-1] + pos[:-2]) / dt**2
+    acc[0] = (2 * pos[0] - 5 * pos[1] + 4 * pos[2] - pos[3]) / dt**2
+    acc[-1] = (2 * pos[-1] - 5 * pos[-2] + 4 * pos[-3] - pos[-4]) / dt**2
+    return vel, acc

@@ -1,0 +1,271 @@
+"""What every HiREPS variant shares: the interface, the samples, and the common bookkeeping.
+
+:class:`Algorithm` is the interface a training loop, a checkpoint or a robot driver programs
+against: ``sample`` / ``mean_action`` for one decision step, ``learn`` from one iteration's
+:class:`Experience`, ``state_dict`` / ``load_state_dict``. :class:`EpisodicHiREPS`,
+:class:`TimeIndexedHiREPS` and :class:`InfiniteHorizonHiREPS` implement it; their ``ask`` /
+``tell`` / ``update`` remain as the variant-specific conveniences.
+
+:class:`HiREPSBase` holds the bookkeeping the variants share (the entropy bound, pruning, the
+seeded sampling generator, the iteration count and their checkpoint entries);
+:func:`fresh_policies` builds the softmax-gated mixtures their ``create`` methods start from.
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from hireps_torch.checks import check_nonnegative_float
+from hireps_torch.features import FeatureMap, QuadraticFeatures
+from hireps_torch.policies import HierarchicalPolicy
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
+__all__ = [
+    "Algorithm",
+    "Experience",
+    "HiREPSBase",
+    "PolicyKwargs",
+    "check_experience",
+    "check_step",
+    "fresh_policies",
+    "seeded_generator",
+]
+
+
+@dataclass(frozen=True)
+class Experience:
+    """One iteration's samples, the shape every variant reads.
+
+    N samples (episodes, or decisions for the infinite horizon) of K decision steps each.
+
+    Attributes:
+        states: (N, K, S): contexts (episodic, K = 1; S = 0 without context), the state at
+            each decision step (time-indexed), decision states (infinite horizon, K = 1).
+        actions: (N, K, D) the parameters / actions drawn with :meth:`Algorithm.sample`.
+        rewards: (N, K) returns (episodic), per-step rewards (time-indexed), the reward of each
+            decision (infinite horizon). Higher is better.
+        next_states: (N, K, S) the states the decisions led to: infinite horizon only.
+        terminated: (N, K) bool, the decision ended in a terminal state: infinite horizon
+            only, optional.
+    """
+
+    states: Tensor
+    actions: Tensor
+    rewards: Tensor
+    next_states: Tensor | None = None
+    terminated: Tensor | None = None
+
+
+@runtime_checkable
+class Algorithm(Protocol):
+    """The interface every HiREPS variant implements.
+
+    A loop that handles any variant::
+
+        for _ in range(iterations):
+            experience = run_episodes(algo.sample)      # states, actions, rewards (, next ...)
+            diagnostics = algo.learn(experience)
+        torch.save(algo.state_dict(), path)
+
+    Attributes:
+        iteration: number of updates so far.
+    """
+
+    iteration: int
+
+    @property
+    def policies(self) -> Sequence[HierarchicalPolicy]:
+        """One policy per decision step (one, except for the time-indexed variant)."""
+        ...
+
+    def sample(self, states: Tensor, step: int = 0) -> Tensor:
+        """Exploring actions (N, D) for states (N, S) at decision step ``step``, drawn with the
+        algorithm's own seeded generator."""
+        ...
+
+    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
+        """Noise-free actions (N, D): the mean of the most probable option."""
+        ...
+
+    def learn(self, experience: Experience) -> dict[str, Any]:
+        """One policy update from samples drawn with the current policies; diagnostics."""
+        ...
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the run bit-for-bit."""
+        ...
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore what :meth:`state_dict` returned."""
+        ...
+
+
+class PolicyKwargs(TypedDict, total=False):
+    """Keyword options of the fresh policies that the ``create`` methods build (forwarded to
+    :meth:`HierarchicalPolicy.create`, whose defaults apply).
+
+    Attributes:
+        init_std: initial standard deviation of the options, float or (D,) (1.0).
+        spread: spread of the initial option means in units of ``init_std`` (1.0).
+        gating_features: features of the gating (the squared expansion of the state or
+            context by default; none without context).
+        policy_features: features of the options (the state itself: linear options).
+        min_variance: variance floor of the options, float or (D,) (1e-8).
+        covariance_prior: pseudo-samples of the prior that shrinks each refit covariance
+            toward the previous one (0.0; see :class:`~hireps_torch.policies.LinearGaussian`).
+    """
+
+    init_std: float | Tensor
+    spread: float
+    gating_features: FeatureMap | None
+    policy_features: FeatureMap | None
+    min_variance: float | Tensor
+    covariance_prior: float
+
+
+def seeded_generator(seed: int | None) -> torch.Generator:
+    """A CPU generator seeded with ``seed`` (0 when None)."""
+    gen = torch.Generator()
+    gen.manual_seed(0 if seed is None else int(seed))
+    return gen
+
+
+def fresh_policies(
+    means: Sequence[Tensor | None],
+    n_options: int,
+    state_dim: int,
+    action_dim: int,
+    seed: int | None,
+    **policy_kwargs: Unpack[PolicyKwargs],
+) -> list[HierarchicalPolicy]:
+    """One fresh softmax-gated mixture of linear-Gaussian options per entry of ``means``.
+
+    The initial option means of all policies are drawn, policy after policy, from one
+    generator seeded with ``seed`` (see :meth:`HierarchicalPolicy.create`); the gating sees
+    the squared expansion of the state unless ``gating_features`` is given (one instance shared
+    by all policies).
+
+    Args:
+        means: each policy's ``init_mean``: (D,), (O, D) or None (zeros).
+        n_options: options per policy.
+        state_dim: S (0: no context).
+        action_dim: D.
+        seed: seed of the initial option means.
+        **policy_kwargs: see :class:`PolicyKwargs`.
+    """
+    gen = seeded_generator(seed)
+    kwargs = policy_kwargs.copy()
+    if kwargs.get("gating_features") is None and state_dim > 0:
+        kwargs["gating_features"] = QuadraticFeatures(state_dim)
+    return [
+        HierarchicalPolicy.create(
+            n_options, state_dim, action_dim, init_mean=m, generator=gen, **kwargs
+        )
+        for m in means
+    ]
+
+
+def check_step(step: int, n_steps: int) -> int:
+    """``step`` as an int in [0, n_steps); a ValueError naming the range otherwise."""
+    try:
+        k = operator.index(step)
+    except TypeError:
+        raise ValueError(f"step must be an integer in [0, {n_steps}), got {step!r}") from None
+    if not 0 <= k < n_steps:
+        raise ValueError(f"step must be in [0, {n_steps}) (K = {n_steps} decision steps), got {k}")
+    return k
+
+
+def _check_shape(name: str, value: object, expected: tuple[int | str, ...]) -> Tensor:
+    """``value`` as a tensor of the ``expected`` shape (a str entry: any size)."""
+    if not isinstance(value, Tensor):
+        raise TypeError(f"experience.{name} must be a tensor, got {type(value).__name__}")
+    shape = tuple(value.shape)
+    fits = len(shape) == len(expected) and all(
+        isinstance(e, str) or s == e for s, e in zip(shape, expected, strict=True)
+    )
+    if not fits:
+        want = ", ".join(str(e) for e in expected)
+        raise ValueError(f"experience.{name} must have shape ({want}), got {shape}")
+    return value
+
+
+def check_experience(
+    experience: Experience,
+    n_steps: int,
+    state_dim: int,
+    action_dim: int,
+    *,
+    transitions: bool,
+    algorithm: str,
+) -> int:
+    """Check the shapes of ``experience`` for an algorithm with K = ``n_steps`` steps.
+
+    States (N, K, S), actions (N, K, D), rewards (N, K); with ``transitions`` next_states
+    (N, K, S) and optionally terminated (N, K) bool, which must be None otherwise. The values
+    are checked by the update itself. Returns N.
+    """
+    if not isinstance(experience, Experience):
+        raise TypeError(f"learn takes an Experience, got {type(experience).__name__}")
+    rewards = _check_shape("rewards", experience.rewards, ("N", n_steps))
+    N = rewards.shape[0]
+    _check_shape("states", experience.states, (N, n_steps, state_dim))
+    _check_shape("actions", experience.actions, (N, n_steps, action_dim))
+    if not transitions:
+        for name in ("next_states", "terminated"):
+            if getattr(experience, name) is not None:
+                raise ValueError(
+                    f"experience.{name} is read by InfiniteHorizonHiREPS only; {algorithm} "
+                    f"learns from states, actions and rewards (leave {name} None)"
+                )
+        return N
+    if experience.next_states is None:
+        raise ValueError(f"{algorithm} needs experience.next_states ({N}, {n_steps}, {state_dim})")
+    _check_shape("next_states", experience.next_states, (N, n_steps, state_dim))
+    if experience.terminated is not None:
+        term = _check_shape("terminated", experience.terminated, (N, n_steps))
+        if term.dtype != torch.bool:
+            raise ValueError(f"experience.terminated must be a bool tensor, got {term.dtype}")
+    return N
+
+
+class HiREPSBase:
+    """Bookkeeping shared by the variants.
+
+    Holds ``kappa_rel`` (checked), ``prune_threshold``, the sampling ``generator`` (seeded with
+    ``seed``, 0 when None) and the ``iteration`` count, and writes / restores them in the
+    checkpoint next to what each variant learns (:meth:`_state`, :meth:`_load_state`).
+    """
+
+    def __init__(
+        self, *, kappa_rel: float | None, prune_threshold: float, seed: int | None
+    ) -> None:
+        self.kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
+        self.prune_threshold = float(prune_threshold)
+        self.generator = seeded_generator(seed)
+        self.iteration = 0
+
+    def _state(self, **learned: Any) -> dict[str, Any]:
+        """A checkpoint: ``learned`` (the variant's entries) and the shared entries."""
+        return {
+            **learned,
+            "generator": self.generator.get_state(),
+            "iteration": self.iteration,
+            "kappa_rel": self.kappa_rel,
+        }
+
+    def _load_state(self, state: Mapping[str, Any]) -> None:
+        """Restore the shared entries of :meth:`_state` (a checkpoint without a generator, as
+        the infinite-horizon variant wrote before it had one, keeps the current one)."""
+        if "generator" in state:
+            self.generator.set_state(state["generator"])
+        self.iteration = int(state["iteration"])
+        self.kappa_rel = state["kappa_rel"]

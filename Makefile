@@ -26,6 +26,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m mypy
+	$(PY) -m mypy --strict hireps_torch
 
 bench: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) benchmarks/dual_speed.py

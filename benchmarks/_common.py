@@ -48,7 +48,7 @@ def plot_band(ax: Any, x: list[float], curves: list[list[float]], label: str) ->
 
 def write_results(out: Path, results: Any, total_seconds: float, table: str) -> None:
     """results.json (every run) and results.md (the printed table), each written atomically."""
-    from hireps_torch.runlog import atomic_write
+    from experiments.rundir import atomic_write
 
     payload = json.dumps({"results": results, "total_seconds": total_seconds})
     atomic_write(out / "results.json", lambda p: p.write_text(payload))

@@ -37,8 +37,9 @@ from benchmarks._common import (  # noqa: E402
     write_results,
 )
 from environments.ball_on_beam import BeamParams, evaluate_beam  # noqa: E402
-from hireps_torch.runlog import atomic_write  # noqa: E402
-from train import BallOnBeamConfig, build_ball_on_beam_policy, run_ball_on_beam  # noqa: E402
+from experiments.ball_on_beam import BallOnBeamConfig, build_ball_on_beam_policy  # noqa: E402
+from experiments.ball_on_beam import run as run_ball_on_beam  # noqa: E402
+from experiments.rundir import atomic_write  # noqa: E402
 
 
 def plot_curves(results: list[dict[str, Any]], out: Path) -> None:
@@ -154,8 +155,10 @@ def main() -> None:
     )
     print(table)
     print(f"seeds that reached success within {args.episodes} episodes: {n_ok}/{len(results)}")
-    print(f"wall time per {args.episodes}-episode run: mean {statistics.mean(walls):.1f} s, "
-          f"max {max(walls):.1f} s; all seeds {total:.1f} s")
+    print(
+        f"wall time per {args.episodes}-episode run: mean {statistics.mean(walls):.1f} s, "
+        f"max {max(walls):.1f} s; all seeds {total:.1f} s"
+    )
     plot_curves(results, out)
     shown = next((r for r in results if r["episodes_to_success"] is not None), results[0])
     plot_episode(shown, out)

@@ -18,7 +18,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from train import BimodalConfig, run_bimodal  # noqa: E402
+from experiments.bimodal import BimodalConfig  # noqa: E402
+from experiments.bimodal import run as run_bimodal  # noqa: E402
 
 
 def main() -> None:

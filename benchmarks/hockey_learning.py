@@ -36,8 +36,9 @@ from benchmarks._common import (  # noqa: E402
     start_benchmark,
     write_results,
 )
-from hireps_torch.runlog import atomic_write  # noqa: E402
-from train import HockeyEpisodicConfig, HockeySequentialConfig, run_hockey  # noqa: E402
+from experiments.hockey import HockeyEpisodicConfig, HockeySequentialConfig  # noqa: E402
+from experiments.hockey import run as run_hockey  # noqa: E402
+from experiments.rundir import atomic_write  # noqa: E402
 
 
 def time_simulation(n_episodes: int) -> dict[str, float]:

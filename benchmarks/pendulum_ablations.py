@@ -44,8 +44,9 @@ from benchmarks._common import (  # noqa: E402
     write_results,
 )
 from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
-from hireps_torch.runlog import atomic_write  # noqa: E402
-from train import PendulumConfig, run_pendulum  # noqa: E402
+from experiments.pendulum import PendulumConfig  # noqa: E402
+from experiments.pendulum import run as run_pendulum  # noqa: E402
+from experiments.rundir import atomic_write  # noqa: E402
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "learned-1": {"n_options": 1},

@@ -5,6 +5,11 @@ goes), ``checkpoint.pt``, ``learning_curve.png`` and, last, ``summary.json``: a 
 without ``summary.json`` is an unfinished run. Files are written to a temporary name and moved
 into place, so an interrupted run never leaves a half-written JSON or checkpoint, and an
 existing non-empty directory is never reused (nothing a user wrote is overwritten).
+
+``metrics.csv`` is the run's own record (summaries, plots and benchmarks read it). Every row
+is also sent to a TorchRL logger when one is chosen (``--logger tensorboard`` or ``wandb``:
+:func:`torchrl.record.loggers.get_logger`, writing under the run directory); ``csv`` (the
+default) is ``metrics.csv`` alone.
 """
 
 from __future__ import annotations
@@ -17,11 +22,15 @@ import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
-__all__ = ["RunWriter", "atomic_write", "default_run_dir"]
+__all__ = ["LOGGERS", "LoggerName", "RunWriter", "atomic_write", "default_run_dir", "make_logger"]
+
+LoggerName = Literal["csv", "tensorboard", "wandb"]
+LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb")
+_EXTRA_PACKAGE = {"tensorboard": "tensorboard", "wandb": "wandb"}
 
 
 def default_run_dir(experiment: str, root: str | Path = "runs") -> Path:
@@ -68,15 +77,21 @@ class RunWriter:
     Args:
         run_dir: the directory; created, and refused if it exists and is not empty.
         config: the run's configuration (written to ``config.json`` at once).
+        logger: ``csv`` (``metrics.csv`` only), or ``tensorboard`` / ``wandb`` to also send
+            every row to that TorchRL logger (event files under ``<run_dir>/tensorboard``,
+            an offline W&B run under ``<run_dir>/wandb`` unless ``WANDB_MODE`` says otherwise).
     """
 
-    def __init__(self, run_dir: str | Path, config: Mapping[str, Any]) -> None:
+    def __init__(
+        self, run_dir: str | Path, config: Mapping[str, Any], logger: LoggerName = "csv"
+    ) -> None:
         self.dir = Path(run_dir)
         if self.dir.exists() and (not self.dir.is_dir() or any(self.dir.iterdir())):
             raise FileExistsError(
                 f"run directory {self.dir} already exists and is not empty; pass a new "
                 "--run-dir (nothing was overwritten)"
             )
+        self.logger = make_logger(logger, self.dir, config.get("experiment", "run"))
         self.dir.mkdir(parents=True, exist_ok=True)
         self.start = time.perf_counter()
         self._fields: list[str] | None = None
@@ -102,6 +117,11 @@ class RunWriter:
         with path.open("a", newline="") as f:
             csv.DictWriter(f, self._fields, extrasaction="ignore").writerow(clean)
         self.rows.append(dict(clean))
+        if self.logger is not None:
+            step = int(clean.get("iteration", len(self.rows)))
+            for key, value in clean.items():
+                if isinstance(value, (bool, int, float)) and key != "iteration":
+                    self.logger.log_scalar(key, float(value), step=step)
 
     def checkpoint(self, state: Mapping[str, Any], name: str = "checkpoint.pt") -> None:
         atomic_write(self.dir / name, lambda p: torch.save(dict(state), p))
@@ -138,4 +158,48 @@ class RunWriter:
         out = dict(summary)
         out["wall_seconds"] = round(time.perf_counter() - self.start, 3)
         self.write_json("summary.json", out)
+        self.close()
         return out
+
+    def close(self) -> None:
+        """Flush and close the TorchRL logger (if any); ``metrics.csv`` is always flushed."""
+        if self.logger is None:
+            return
+        experiment = getattr(self.logger, "experiment", None)
+        for name in ("flush", "close", "finish"):
+            fn = getattr(experiment, name, None)
+            if callable(fn):
+                fn()
+        self.logger = None
+
+
+def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
+    """The TorchRL logger that mirrors ``metrics.csv``: None for ``csv``.
+
+    Raises a ``ValueError`` naming an unknown kind, and an ``ImportError`` naming the package
+    (and the extra that installs it) when the backend is missing, before anything is written.
+    """
+    if kind not in LOGGERS:
+        raise ValueError(f"logger must be one of {', '.join(LOGGERS)}, got {kind!r}")
+    if kind == "csv":
+        return None
+    package = _EXTRA_PACKAGE[kind]
+    import importlib.util
+
+    if importlib.util.find_spec(package) is None:
+        raise ImportError(
+            f"--logger {kind} needs the {package} package: pip install '{package}' "
+            f"(or the project's '{kind}' extra: pip install -e '.[{kind}]')"
+        )
+    from torchrl.record.loggers import get_logger
+
+    if kind == "wandb":
+        os.environ.setdefault("WANDB_MODE", "offline")  # no account needed
+        os.environ.setdefault("WANDB_SILENT", "true")
+        return get_logger(
+            "wandb",
+            str(run_dir),
+            experiment,
+            wandb_kwargs={"project": "hireps-torch", "dir": str(run_dir)},
+        )
+    return get_logger(kind, str(run_dir), kind)

@@ -1,4 +1,5 @@
-"""train.py as a user runs it: a subprocess that writes a run directory."""
+"""train.py as a user runs it (a subprocess that writes a run directory), and the experiments
+package behind it."""
 
 import csv
 import dataclasses
@@ -175,11 +176,11 @@ def test_pendulum_with_worker_processes_exits_cleanly(tmp_path):
 def run_in_process(tmp_path, name, experiment, **cfg):
     """Run ``experiment`` ("pendulum" / "ball_on_beam") in this process into tmp_path/name;
     returns (metrics.csv text, the checkpointed policy state)."""
-    import train as train_module
+    from experiments import ball_on_beam, pendulum
 
     config_cls, run = {
-        "pendulum": (train_module.PendulumConfig, train_module.run_pendulum),
-        "ball_on_beam": (train_module.BallOnBeamConfig, train_module.run_ball_on_beam),
+        "pendulum": (pendulum.PendulumConfig, pendulum.run),
+        "ball_on_beam": (ball_on_beam.BallOnBeamConfig, ball_on_beam.run),
     }[experiment]
     run(config_cls(progress=False, run_dir=tmp_path / name, **cfg))
     ck = torch.load(tmp_path / name / "checkpoint.pt", weights_only=False)
@@ -239,7 +240,7 @@ def test_hockey_sequential_subprocess_writes_the_run_directory(tmp_path):
 
 def test_hockey_same_seed_same_run(tmp_path):
     pytest.importorskip("pybullet")
-    import train as train_module
+    from experiments import hockey
 
     def run(name, cls, seed):
         cfg = cls(
@@ -249,35 +250,36 @@ def test_hockey_same_seed_same_run(tmp_path):
             progress=False,
             run_dir=tmp_path / name,
         )
-        train_module.run_hockey(cfg)
+        hockey.run(cfg)
         return (tmp_path / name / "metrics.csv").read_text()
 
-    seq = train_module.HockeySequentialConfig
+    seq = hockey.HockeySequentialConfig
     a, b, c = run("a", seq, 1), run("b", seq, 1), run("c", seq, 2)
     assert a == b and a != c
-    epi = run("e", train_module.HockeyEpisodicConfig, 1)
+    epi = run("e", hockey.HockeyEpisodicConfig, 1)
     assert "average_reward" in epi
 
 
 def test_run_hockey_refuses_the_base_config(tmp_path):
-    import train as train_module
+    from experiments import hockey
 
     with pytest.raises(ValueError, match="HockeySequentialConfig or HockeyEpisodicConfig"):
-        train_module.run_hockey(train_module.HockeyConfig(run_dir=tmp_path / "r"))
+        hockey.run(hockey.HockeyConfig(run_dir=tmp_path / "r"))
+    assert not (tmp_path / "r").exists()
 
 
 def test_pendulum_policy_and_value_features_follow_the_config():
     import math
 
-    import train as train_module
+    from experiments import pendulum
 
-    cfg = train_module.PendulumConfig(n_options=4)
-    pol = train_module.build_pendulum_policy(cfg, torch.Generator().manual_seed(0))
+    cfg = pendulum.PendulumConfig(n_options=4)
+    pol = pendulum.build_pendulum_policy(cfg, torch.Generator().manual_seed(0))
     means = [float(o.bias) for o in pol.sub_policies]
     assert means == pytest.approx([-1.5 * math.pi, -0.5 * math.pi, 0.5 * math.pi, 1.5 * math.pi])
     assert all(float(o.weight.abs().max()) == 0.0 for o in pol.sub_policies)
     x = torch.tensor([[0.3, -4.0]], dtype=torch.float64)
-    both = train_module.pendulum_value_features(cfg)
+    both = pendulum.pendulum_value_features(cfg)
     assert both.out_features == 48 + 5
     assert torch.allclose(
         both(x)[0, 48:],
@@ -285,14 +287,14 @@ def test_pendulum_policy_and_value_features_follow_the_config():
         atol=1e-6,
     )
     plain = dataclasses.replace(cfg, value_features="fourier", init_means="random")
-    assert train_module.pendulum_value_features(plain).out_features == 48
-    rand = train_module.build_pendulum_policy(plain, torch.Generator().manual_seed(0))
+    assert pendulum.pendulum_value_features(plain).out_features == 48
+    rand = pendulum.build_pendulum_policy(plain, torch.Generator().manual_seed(0))
     assert len({float(o.bias) for o in rand.sub_policies}) == 4
 
 
 def test_pendulum_update_can_add_the_mirrored_decisions():
-    import train as train_module
     from environments.pendulum import PendulumSwingUpBatchEnv, mirror_decisions, mirror_states
+    from experiments.loop import infinite_horizon_update
 
     seen = {}
 
@@ -304,11 +306,90 @@ def test_pendulum_update_can_add_the_mirrored_decisions():
     env = PendulumSwingUpBatchEnv(4, seed=0)
     batch = env.rollout(3, break_when_any_done=False)
     batch["option"] = torch.zeros(4, 3, dtype=torch.int64)
-    row = train_module._infinite_horizon_update(
-        Recorder(), lambda r, _: {"n": r.numel()}, mirror_decisions
-    )(batch)
+    row = infinite_horizon_update(Recorder(), lambda r, _: {"n": r.numel()}, mirror_decisions)(
+        batch
+    )
     assert row == {"n": 12, "eta": 1.0}  # the row sees the collected decisions only
     s, a, r, s_next, term = seen["data"]
     assert s.shape == (24, 2) and a.shape == (24, 1) and term.shape == (24,)
     assert torch.equal(s[12:], mirror_states(s[:12])) and torch.equal(a[12:], -a[:12])
     assert torch.equal(r[12:], r[:12]) and torch.equal(s_next[12:], mirror_states(s_next[:12]))
+
+
+def test_every_experiment_is_registered_with_its_config_and_run():
+    import typing
+
+    from experiments import EXPERIMENTS, run_experiment
+
+    assert set(EXPERIMENTS) == {
+        "bimodal",
+        "pendulum",
+        "ball-on-beam",
+        "hockey-sequential",
+        "hockey-episodic",
+    }
+    for name, (config_cls, run) in EXPERIMENTS.items():
+        cfg = config_cls()
+        assert dataclasses.is_dataclass(cfg), name
+        hints = typing.get_type_hints(config_cls)
+        for field in ("seed", "run_dir", "progress", "logger"):
+            assert field in hints, (name, field)
+        assert callable(run)
+    with pytest.raises(TypeError, match="no experiment takes a dict"):
+        run_experiment({})
+    # train.py is the command line only
+    assert len((ROOT / "train.py").read_text().splitlines()) < 100
+
+
+def test_unknown_or_missing_logger_is_refused_before_anything_is_written(tmp_path, monkeypatch):
+    from experiments.rundir import RunWriter, make_logger
+
+    with pytest.raises(ValueError, match="logger must be one of csv, tensorboard, wandb, got 'tb'"):
+        make_logger("tb", tmp_path / "r", "x")
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "wandb" else real(name, *a)
+    )
+    with pytest.raises(ImportError, match=r"wandb package.*\.\[wandb\]"):
+        RunWriter(tmp_path / "r", {"experiment": "x"}, logger="wandb")
+    assert not (tmp_path / "r").exists()
+
+
+def test_tensorboard_logger_writes_event_files_that_read_back(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = tmp_path / "run"
+    p = train(
+        "bimodal",
+        *("--episodes", "600", "--logger", "tensorboard"),
+        *("--run-dir", str(run), "--no-progress"),
+    )
+    assert p.returncode == 0, p.stderr
+    rows = list(csv.DictReader((run / "metrics.csv").open()))
+    events = list(run.rglob("events.out.tfevents.*"))
+    assert events, sorted(str(x) for x in run.rglob("*"))
+    acc = EventAccumulator(str(events[0].parent))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    for key in ("kl", "eta", "mean_return", "eval_return", "effective_sample_size"):
+        assert key in tags
+    kl = acc.Scalars("kl")
+    assert [e.step for e in kl] == [1, 2, 3]
+    assert [e.value for e in kl] == pytest.approx([float(r["kl"]) for r in rows], rel=1e-6)
+
+
+def test_wandb_logger_runs_offline_without_an_account(tmp_path, monkeypatch):
+    pytest.importorskip("wandb")
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.setenv("WANDB_API_KEY", "")
+    run = tmp_path / "run"
+    p = train(
+        "bimodal", "--episodes", "400", "--logger", "wandb", "--run-dir", str(run), "--no-progress"
+    )
+    assert p.returncode == 0, p.stderr
+    offline = list((run / "wandb").glob("offline-run-*/run-*.wandb"))
+    assert len(offline) == 1 and offline[0].stat().st_size > 0
+    assert (run / "summary.json").is_file()

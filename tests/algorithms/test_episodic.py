@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from environments.toy import ContextualTwoGaussians, TwoGaussians
+from experiments.bimodal import modes_covered, option_summary
 from hireps_torch import REPS, DegenerateWeightsWarning, EpisodicHiREPS
-from train import modes_covered, option_summary
 
 
 def quadratic(theta):

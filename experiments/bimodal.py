@@ -1,0 +1,240 @@
+"""Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per reward mode, REPS picks one.
+
+``python train.py bimodal [--contextual] [--algorithm reps]``: an ask/tell loop (no
+environment process), the option table and a picture of the options over the reward.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+
+from environments.toy import ContextualTwoGaussians, TwoGaussians
+from experiments.loop import ask_tell_loop, finish_run, open_run
+from experiments.rundir import LoggerName, atomic_write
+from hireps_torch.algorithms import REPS, EpisodicHiREPS
+
+__all__ = ["BimodalConfig", "modes_covered", "option_summary", "plot_bimodal_options", "run"]
+
+
+@dataclass(frozen=True)
+class BimodalConfig:
+    """Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one."""
+
+    algorithm: Literal["hireps", "reps"] = "hireps"
+    """hireps: mixture of linear-Gaussian options with the entropy bound; reps: one Gaussian."""
+    contextual: bool = False
+    """Use the contextual variant (1-D context, two linear solution families)."""
+    n_options: int = 10
+    """Initial number of options (hireps only); low-mass options are pruned."""
+    epsilon: float = 1.0
+    """KL bound per iteration."""
+    kappa_rel: float = 0.8
+    """Entropy bound as a fraction of the current mean responsibility entropy (hireps)."""
+    samples_per_iteration: int = 200
+    """Episodes (parameter samples) per policy update."""
+    episodes: int = 1600
+    """Total number of episodes."""
+    init_std: float = 2.0
+    """Initial exploration standard deviation of every option."""
+    bump_width: float = 1.0
+    """Standard deviation of each reward bump."""
+    min_variance: float = 1e-6
+    """Floor on the option covariance eigenvalues."""
+    seed: int = 0
+    run_dir: Path | None = None
+    """Where to write the run (default runs/bimodal/<timestamp>); must not exist or be empty."""
+    progress: bool = True
+    """Show a progress bar."""
+    logger: LoggerName = "csv"
+    """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
+
+
+def _validate(cfg: BimodalConfig) -> None:
+    if cfg.samples_per_iteration < 2:
+        raise ValueError(f"samples_per_iteration must be >= 2, got {cfg.samples_per_iteration}")
+    if cfg.episodes < cfg.samples_per_iteration:
+        raise ValueError(
+            f"episodes ({cfg.episodes}) must be at least samples_per_iteration "
+            f"({cfg.samples_per_iteration})"
+        )
+
+
+def _make_algorithm(
+    cfg: BimodalConfig, task: TwoGaussians | ContextualTwoGaussians
+) -> EpisodicHiREPS:
+    common: dict[str, Any] = dict(
+        context_dim=task.context_dim,
+        init_std=cfg.init_std,
+        epsilon=cfg.epsilon,
+        min_variance=cfg.min_variance,
+        seed=cfg.seed,
+    )
+    if cfg.algorithm == "reps":
+        return REPS.create(task.param_dim, **common)
+    return EpisodicHiREPS.create(
+        task.param_dim, n_options=cfg.n_options, kappa_rel=cfg.kappa_rel, **common
+    )
+
+
+def run(cfg: BimodalConfig) -> dict[str, Any]:
+    """HiREPS or REPS on the (contextual) two-Gaussians task; returns the summary."""
+    _validate(cfg)
+    task: TwoGaussians | ContextualTwoGaussians
+    if cfg.contextual:
+        task = ContextualTwoGaussians(width=cfg.bump_width)
+    else:
+        task = TwoGaussians(width=cfg.bump_width)
+    algo = _make_algorithm(cfg, task)
+    ctx_gen = torch.Generator().manual_seed(cfg.seed + 10_000)
+    eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
+
+    def evaluate() -> float:
+        """Mean return of the noise-free policy (over a context grid when contextual)."""
+        if isinstance(task, ContextualTwoGaussians):
+            assert eval_ctx is not None
+            return float(task(eval_ctx, algo.act(eval_ctx)).mean())
+        return float(task(algo.act(1)).mean())
+
+    n = cfg.samples_per_iteration
+
+    def step(it: int) -> dict[str, Any]:
+        if isinstance(task, ContextualTwoGaussians):
+            ctx = task.sample_contexts(n, ctx_gen)
+            theta = algo.ask(ctx)
+            diag = algo.tell(ctx, theta, task(ctx, theta))
+        else:
+            theta = algo.ask(n)
+            diag = algo.tell(None, theta, task(theta))
+        return {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evaluate(), **diag}
+
+    writer = open_run(
+        "bimodal", cfg.run_dir, {"experiment": "bimodal", **dataclasses.asdict(cfg)}, cfg.logger
+    )
+    iterations = cfg.episodes // n
+    ask_tell_loop(
+        writer,
+        step,
+        iterations=iterations,
+        label=f"bimodal/{cfg.algorithm}",
+        postfix=lambda row: {
+            "ret": f"{row['mean_return']:.3f}",
+            "kl": f"{row['kl']:.2f}",
+            "opts": row["n_active_options"],
+        },
+        progress=cfg.progress,
+    )
+    options = option_summary(algo, task)
+    plots = []
+    if isinstance(task, TwoGaussians):
+        plain = task
+        plots.append(lambda d: plot_bimodal_options(algo, plain, d / "options.png"))
+    return finish_run(
+        writer,
+        checkpoint={"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)},
+        curve=("episodes", ["mean_return", "eval_return"]),
+        title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
+        extra_plots=plots,
+        summary={
+            "experiment": "bimodal",
+            "algorithm": cfg.algorithm,
+            "seed": cfg.seed,
+            "episodes": iterations * n,
+            "iterations": iterations,
+            "final_return": writer.rows[-1]["eval_return"],
+            "final_mean_return": writer.rows[-1]["mean_return"],
+            "n_active_options": int(algo.policy.active.sum()),
+            "modes_covered": modes_covered(options, task),
+            "options": options,
+        },
+    )
+
+
+def option_summary(
+    algo: EpisodicHiREPS, task: TwoGaussians | ContextualTwoGaussians
+) -> list[dict[str, Any]]:
+    """Active options: prior mass (over the task's contexts) and mean at context 0."""
+    pol = algo.policy
+    ctx = torch.zeros(1, task.context_dim, dtype=torch.float64)
+    if isinstance(task, ContextualTwoGaussians):
+        ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None]
+    prior = pol.gating.probs(pol.gating_features(ctx)).mean(0)
+    zero = torch.zeros(1, task.context_dim, dtype=torch.float64)
+    out = []
+    for o, opt in enumerate(pol.sub_policies):
+        if bool(pol.active[o]):
+            out.append(
+                {
+                    "option": o,
+                    "prior": float(prior[o]),
+                    "mean": [float(v) for v in opt.mean(pol.policy_features(zero))[0]],
+                    "std": [float(v) for v in opt.covariance.diagonal().sqrt()],
+                }
+            )
+    return out
+
+
+def modes_covered(
+    options: list[dict[str, Any]],
+    task: TwoGaussians | ContextualTwoGaussians,
+    min_prior: float = 0.05,
+    radius: float = 0.25,
+) -> int:
+    """Number of reward modes (at context 0) with an option of prior >= min_prior within radius."""
+    if isinstance(task, ContextualTwoGaussians):
+        modes = task.modes(torch.zeros(1, 1, dtype=torch.float64))[0]
+    else:
+        modes = task.modes.to(torch.float64)
+    covered = 0
+    for m in modes:
+        if any(
+            o["prior"] >= min_prior
+            and float((torch.tensor(o["mean"], dtype=torch.float64) - m).norm()) <= radius
+            for o in options
+        ):
+            covered += 1
+    return covered
+
+
+def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -> None:
+    """Reward landscape with each active option's mean and 2-sigma ellipse."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    g = torch.linspace(-5, 5, 201, dtype=torch.float64)
+    X, Y = torch.meshgrid(g, g, indexing="xy")
+    Z = task(torch.stack([X.reshape(-1), Y.reshape(-1)], 1)).reshape(X.shape)
+    fig, ax = plt.subplots(figsize=(5, 5))
+    ax.contourf(X.numpy(), Y.numpy(), Z.numpy(), levels=20, cmap="Greys")
+    pol = algo.policy
+    prior = pol.gating.probs(torch.zeros(1, 0, dtype=torch.float64))[0]
+    t = torch.linspace(0, 2 * math.pi, 100, dtype=torch.float64)
+    circle = torch.stack([t.cos(), t.sin()], 0)
+    for o, opt in enumerate(pol.sub_policies):
+        if not bool(pol.active[o]):
+            continue
+        mu = opt.bias.detach()
+        ell = mu[:, None] + 2.0 * opt.chol.detach() @ circle
+        ax.plot(ell[0].numpy(), ell[1].numpy(), lw=1.5)
+        ax.plot(
+            [float(mu[0])],
+            [float(mu[1])],
+            "x",
+            ms=8,
+            label=f"option {o}: prior {float(prior[o]):.2f}",
+        )
+    ax.set_xlim(-5, 5)
+    ax.set_ylim(-5, 5)
+    ax.set_aspect("equal")
+    ax.set_title("reward and options (mean, 2-sigma)")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=110))
+    plt.close(fig)

@@ -1,0 +1,274 @@
+"""Pendulum swing-up with infinite-horizon HiREPS (paper Figs 16-18).
+
+``python train.py pendulum [--gating learned|constant|flat] [--n-options O]
+[--steps-per-decision d]``: batched pendulums collected with TorchRL, one infinite-horizon
+update per batch of decisions (plus their mirror images), a noise-free swing-up evaluation
+at the end.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+
+from environments.pendulum import (
+    PendulumParams,
+    PendulumSwingUpBatchEnv,
+    evaluate_swing_up,
+    mirror_decisions,
+    sample_start,
+)
+from experiments.loop import (
+    check_budget,
+    collector_loop,
+    finish_run,
+    infinite_horizon_postfix,
+    infinite_horizon_update,
+    open_run,
+)
+from experiments.rundir import LoggerName
+from hireps_torch.algorithms import InfiniteHorizonHiREPS
+from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
+from hireps_torch.policies import ConstantGating, HierarchicalPolicy
+
+__all__ = [
+    "PendulumConfig",
+    "build_pendulum_policy",
+    "pendulum_quadratic_features",
+    "pendulum_value_features",
+    "run",
+]
+
+
+@dataclass(frozen=True)
+class PendulumConfig:
+    """Pendulum swing-up with infinite-horizon HiREPS (paper Figs 16-18)."""
+
+    gating: Literal["learned", "constant", "flat"] = "learned"
+    """learned: softmax gating on the squared state expansion; constant: k-means over 1000
+    states uniform in +-[pi, 50], frozen; flat: one linear-Gaussian policy on the gating's
+    features."""
+    n_options: int = 5
+    """Number of options (ignored for flat)."""
+    steps_per_decision: int = 5
+    """d: control steps (at 100 Hz) per decision; restart probability 0.02 / d."""
+    episodes: int = 1000
+    """Total episodes (``episode_seconds`` of experience per parallel pendulum each)."""
+    episodes_per_iteration: int = 20
+    """Episodes per policy update = parallel pendulums."""
+    episode_seconds: float = 10.0
+    """Simulated time per episode: one pendulum's experience between two updates (the mean
+    time between restarts is 12.5 s at d = 5). 10 s learned in 19 of 20 seeds, 5 s in 15 of
+    20 (benchmarks/README.md)."""
+    kp: float = 60.0
+    """PD controller stiffness (N m / rad)."""
+    kd: float = 10.0
+    """PD controller damping (N m s / rad)."""
+    start_noise: float = 0.1
+    """Std of the start perturbation around hanging down (rad and rad/s)."""
+    reset_each_iteration: bool = False
+    """Start every iteration's episodes from the start distribution. Off by default: the
+    pendulums run on across iterations, restarting only at the restart probability, so the
+    samples follow the restart process's stationary distribution, as the dual assumes."""
+    epsilon: float = 0.5
+    """KL bound per iteration."""
+    kappa_rel: float = 0.9
+    """Entropy bound relative to the mean responsibility entropy (learned gating only)."""
+    init_std: float = 1.5
+    """Initial exploration std of the desired angle (rad)."""
+    mirror_samples: bool = True
+    """Also update on the mirror image (-theta, -theta', -desired angle) of every decision:
+    the task is symmetric under it, and without it the policy often commits to pushing one
+    way and never swings up (see benchmarks/README.md)."""
+    init_means: Literal["spaced", "random"] = "spaced"
+    """Initial option means (desired angles, no feedback yet): spaced evenly over
+    [-2 pi, 2 pi] (one option per cell centre, so there are options that push either way at
+    full torque), or random around 0 with std ``init_std``."""
+    min_variance: float = 1e-4
+    """Floor on the option variance (rad^2)."""
+    fourier_bases: int = 5
+    """Fourier bases per state dimension of the value features."""
+    value_features: Literal["fourier", "fourier+quadratic"] = "fourier+quadratic"
+    """Value features: the Fourier basis alone, or next to the gating's squared expansion
+    (which adds a quadratic bowl around upright and, with the basis's cos(theta), the energy)."""
+    max_velocity: float = 10.0
+    """Velocity range (rad/s) the Fourier and gating features are scaled to (a pendulum with
+    the energy of upright at rest passes the bottom at sqrt(4 g / l) = 8.9 rad/s)."""
+    workers: int = 1
+    """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
+    eval_rollouts: int = 50
+    """Noise-free evaluation rollouts (5 s each) at the end."""
+    seed: int = 0
+    run_dir: Path | None = None
+    """Where to write the run (default runs/pendulum/<timestamp>); must not exist or be empty."""
+    progress: bool = True
+    """Show a progress bar."""
+    logger: LoggerName = "csv"
+    """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
+
+
+def pendulum_quadratic_features(cfg: PendulumConfig) -> QuadraticFeatures:
+    """The squared expansion of (theta / pi, theta' / max_velocity): (N, 2) -> (N, 5)."""
+    return QuadraticFeatures(2, scale=torch.tensor([math.pi, cfg.max_velocity]))
+
+
+def pendulum_value_features(cfg: PendulumConfig) -> FeatureMap:
+    """Periodic Fourier basis of (theta, theta') on [-pi, pi] x [-max_velocity, max_velocity],
+    plus the squared expansion when ``cfg.value_features == "fourier+quadratic"``."""
+    vmax = cfg.max_velocity
+    fourier = FourierFeatures(
+        [-math.pi, -vmax], [math.pi, vmax], cfg.fourier_bases, periodic=[True, False]
+    )
+    if cfg.value_features == "fourier":
+        return fourier
+    return ConcatFeatures(fourier, pendulum_quadratic_features(cfg))
+
+
+def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> HierarchicalPolicy:
+    """The policy of one gating kind: options linear in (theta, theta') -> desired angle."""
+    quad = pendulum_quadratic_features(cfg)
+    std = torch.tensor([cfg.init_std], dtype=torch.float64)
+    if cfg.gating == "flat":
+        return HierarchicalPolicy.create(
+            1, 2, 1, init_std=std, policy_features=quad, min_variance=cfg.min_variance
+        )
+    gating = None
+    if cfg.gating == "constant":  # k-means on the raw state, as in the paper
+        box = torch.tensor([math.pi, 50.0], dtype=torch.float64)
+        points = (2 * torch.rand(1000, 2, generator=generator, dtype=torch.float64) - 1) * box
+        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
+        gating = ConstantGating.from_kmeans(points, cfg.n_options, seed=seed)
+    init_mean = None
+    if cfg.init_means == "spaced":  # cell centres of [-2 pi, 2 pi]
+        cells = (torch.arange(cfg.n_options, dtype=torch.float64) + 0.5) / cfg.n_options
+        init_mean = (4.0 * cells - 2.0)[:, None] * math.pi
+    return HierarchicalPolicy.create(
+        cfg.n_options,
+        2,
+        1,
+        init_mean=init_mean,
+        init_std=std,
+        gating_features=quad if gating is None else None,
+        min_variance=cfg.min_variance,
+        generator=generator,
+        gating=gating,
+    )
+
+
+def _make_algorithm(cfg: PendulumConfig, params: PendulumParams) -> InfiniteHorizonHiREPS:
+    """Seed everything from ``cfg.seed`` and build the policy and the algorithm (value
+    features, 1000 start states for phi_hat_0)."""
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    policy = build_pendulum_policy(cfg, gen)
+    return InfiniteHorizonHiREPS(
+        policy,
+        pendulum_value_features(cfg),
+        sample_start(1000, params, gen),
+        gamma=params.gamma,
+        epsilon=cfg.epsilon,
+        kappa_rel=cfg.kappa_rel if cfg.gating == "learned" else None,
+        prune_threshold=1e-4 if cfg.gating == "learned" else 0.0,
+    )
+
+
+def _make_collector(
+    cfg: PendulumConfig, policy: HierarchicalPolicy, params: PendulumParams, iterations: int
+) -> Any:
+    """``episodes_per_iteration`` pendulums (split over the workers), ``episode_seconds`` of
+    decisions each per batch."""
+    from hireps_torch.rollout import make_collector, policy_module
+
+    B = cfg.episodes_per_iteration
+    decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
+    per_worker = B // cfg.workers
+    env_seed = cfg.seed + 1
+
+    def make_env() -> PendulumSwingUpBatchEnv:
+        return PendulumSwingUpBatchEnv(per_worker, params, seed=env_seed)
+
+    frames = B * decisions
+    return make_collector(
+        make_env,
+        policy_module(policy),
+        frames_per_batch=frames,
+        total_frames=frames * iterations,
+        num_workers=cfg.workers,
+        reset_at_each_iter=cfg.reset_each_iteration,
+        seed=env_seed,
+    )
+
+
+def run(cfg: PendulumConfig) -> dict[str, Any]:
+    """Infinite-horizon HiREPS on the swing-up; returns the summary."""
+    B = cfg.episodes_per_iteration
+    iterations = check_budget(
+        cfg.episodes,
+        B,
+        n_options=cfg.n_options,
+        steps_per_decision=cfg.steps_per_decision,
+        workers=cfg.workers,
+    )
+    params = PendulumParams(
+        steps_per_decision=cfg.steps_per_decision, kp=cfg.kp, kd=cfg.kd, start_noise=cfg.start_noise
+    )
+    if cfg.workers > 1 and B % cfg.workers:
+        raise ValueError(
+            f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})"
+        )
+    algo = _make_algorithm(cfg, params)
+    policy = algo.policy
+    collector = _make_collector(cfg, policy, params, iterations)
+    n_opt = cfg.n_options if cfg.gating != "flat" else 1
+    label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
+    writer = collector_loop(
+        collector,
+        lambda: open_run(
+            "pendulum",
+            cfg.run_dir,
+            {"experiment": "pendulum", **dataclasses.asdict(cfg)},
+            cfg.logger,
+        ),
+        infinite_horizon_update(
+            algo,
+            lambda r, _: {"average_return": float(r.mean()) / params.steps_per_decision},
+            mirror_decisions if cfg.mirror_samples else None,
+        ),
+        iterations=iterations,
+        episodes_per_iteration=B,
+        label=label,
+        postfix=infinite_horizon_postfix,
+        sync_weights=cfg.workers > 1,
+        progress=cfg.progress,
+    )
+
+    def act(states: torch.Tensor) -> torch.Tensor:
+        return policy.mean_action(states)[0]
+
+    ev = evaluate_swing_up(act, params, n_rollouts=cfg.eval_rollouts, seed=cfg.seed + 777)
+    return finish_run(
+        writer,
+        checkpoint={"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)},
+        curve=("episodes", ["average_return"]),
+        title=label,
+        summary={
+            "experiment": "pendulum",
+            "gating": cfg.gating,
+            "n_options": n_opt,
+            "steps_per_decision": cfg.steps_per_decision,
+            "seed": cfg.seed,
+            "episodes": iterations * B,
+            "iterations": iterations,
+            "final_average_return": writer.rows[-1]["average_return"],
+            "final_return": ev.average_return,
+            "success_rate": ev.success_rate,
+            "time_to_upright": ev.time_to_upright,
+            "reached_upright_share": ev.reached_share,
+            "n_active_options": int(policy.active.sum()),
+        },
+    )

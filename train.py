@@ -3,9 +3,9 @@
 The experiments live in :mod:`experiments` (one module each); this file is the command line
 only. ``python train.py <experiment> --help`` lists an experiment's options. Every run writes
 a run directory (default ``runs/<experiment>/<timestamp>``, ``--run-dir`` overrides) with
-``config.json``, ``metrics.csv`` (one row per iteration), ``checkpoint.pt``,
-``learning_curve.png`` and, when it finished, ``summary.json``. ``--logger tensorboard`` or
-``--logger wandb`` also sends every row to that TorchRL logger.
+``config.json``, ``metrics.csv`` (one row per iteration), ``checkpoint.pt`` (after every
+iteration and on Ctrl-C), ``learning_curve.png`` and, when it finished, ``summary.json``.
+``python train.py <experiment> --resume RUN_DIR`` continues an interrupted run exactly.
 """
 
 from __future__ import annotations
@@ -13,19 +13,39 @@ from __future__ import annotations
 import json
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import tyro
 
 from experiments import EXPERIMENTS, run_experiment
+from experiments.checkpoint import RunFinished, saved_config
+
+
+def _resume_dir(argv: list[str]) -> Path | None:
+    for i, arg in enumerate(argv):
+        if arg.startswith("--resume="):
+            return Path(arg.split("=", 1)[1])
+        if arg == "--resume" and i + 1 < len(argv):
+            return Path(argv[i + 1])
+    return None
+
+
+def parse(argv: list[str]) -> Any:
+    """The config of the chosen experiment; with ``--resume RUN_DIR`` the run's saved
+    options are the defaults (options given again must agree with them)."""
+    resume = _resume_dir(argv)
+    if argv and argv[0] in EXPERIMENTS and resume is not None:
+        config_cls = EXPERIMENTS[argv[0]][0]
+        default = saved_config(config_cls, argv[0], resume)
+        return tyro.cli(config_cls, default=default, args=argv[1:], description=__doc__)
+    commands: dict[str, Callable[..., Any]] = {name: c for name, (c, _) in EXPERIMENTS.items()}
+    return tyro.extras.subcommand_cli_from_dict(commands, args=argv, description=__doc__)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Parse the command line, run the chosen experiment, print its summary."""
-    argv = sys.argv[1:] if argv is None else argv
-    defaults: dict[str, Callable[..., Any]] = {name: cls for name, (cls, _) in EXPERIMENTS.items()}
-    cfg = tyro.extras.subcommand_cli_from_dict(defaults, args=argv, description=__doc__)
-    summary = run_experiment(cfg)
+    summary = run_experiment(parse(sys.argv[1:] if argv is None else argv))
     print(json.dumps({k: v for k, v in summary.items() if k != "options"}, indent=2))
     return summary
 
@@ -33,6 +53,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 if __name__ == "__main__":
     try:
         main()
+    except RunFinished as done:
+        print(done, file=sys.stderr)
+    except KeyboardInterrupt as stop:  # RunInterrupted: the checkpoint is written
+        print(f"\ninterrupted: {stop}", file=sys.stderr)
+        raise SystemExit(130) from None
     except (ValueError, FileExistsError, ImportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None

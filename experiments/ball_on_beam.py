@@ -6,23 +6,24 @@ one infinite-horizon update per batch, a noise-free evaluation after every itera
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
 
 from environments.ball_on_beam import BallOnBeamBatchEnv, BeamParams, evaluate_beam, sample_start
+from experiments.checkpoint import RunState
+from experiments.envstate import BatchedTaskState
 from experiments.loop import (
+    Run,
     check_budget,
     collector_loop,
     finish_run,
     infinite_horizon_postfix,
     infinite_horizon_update,
-    open_run,
+    resume_point,
 )
-from experiments.rundir import LoggerName
+from experiments.options import RunOptions, check_options
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
@@ -31,7 +32,7 @@ __all__ = ["BallOnBeamConfig", "build_ball_on_beam_policy", "run"]
 
 
 @dataclass(frozen=True)
-class BallOnBeamConfig:
+class BallOnBeamConfig(RunOptions):
     """Ball on a beam with infinite-horizon HiREPS (paper Fig 19): 3 episodes per iteration."""
 
     n_options: int = 5
@@ -60,14 +61,6 @@ class BallOnBeamConfig:
     """Ball speed (m/s) the value and gating features are scaled to."""
     eval_episodes: int = 10
     """Noise-free evaluation episodes after every iteration (alternating sides)."""
-    seed: int = 0
-    run_dir: Path | None = None
-    """Where to write the run (default runs/ball_on_beam/<timestamp>); must not exist or be
-    empty."""
-    progress: bool = True
-    """Show a progress bar."""
-    logger: LoggerName = "csv"
-    """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
 
 
 def build_ball_on_beam_policy(
@@ -115,10 +108,17 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the simulated ball on a beam; returns the summary."""
     from hireps_torch.rollout import make_collector, policy_module
 
+    check_options(
+        cfg,
+        counts=("fourier_bases", "fourier_coupling"),
+        positive=("init_std", "max_velocity"),
+        nonnegative=("min_variance",),
+    )
     B = cfg.episodes_per_iteration
     iterations = check_budget(
         cfg.episodes, B, n_options=cfg.n_options, eval_episodes=cfg.eval_episodes
     )
+    resume = resume_point("ball_on_beam", cfg)
     params = BeamParams()
     algo = _make_algorithm(cfg, params)
     policy = algo.policy
@@ -146,10 +146,10 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
         }
 
     label = f"ball_on_beam/{cfg.n_options}opt"
-    config = {"experiment": "ball_on_beam", **dataclasses.asdict(cfg)}
-    writer = collector_loop(
+    state = RunState(algo, env=BatchedTaskState(collector, carry=False))
+    session = collector_loop(
         collector,
-        lambda: open_run("ball_on_beam", cfg.run_dir, config, cfg.logger),
+        lambda: Run("ball_on_beam", cfg, state, resume),
         infinite_horizon_update(algo, row),
         iterations=iterations,
         episodes_per_iteration=B,
@@ -158,12 +158,11 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
         progress=cfg.progress,
     )
     first_success = next(
-        (int(w["episodes"]) for w in writer.rows if w["eval_success_rate"] >= 0.9), None
+        (int(w["episodes"]) for w in session.rows if w["eval_success_rate"] >= 0.9), None
     )
-    last = writer.rows[-1]
+    last = session.rows[-1]
     return finish_run(
-        writer,
-        checkpoint={"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)},
+        session,
         curve=("episodes", ["average_return", "eval_return"]),
         title=label,
         summary={

@@ -6,7 +6,6 @@ environment process), the option table and a picture of the options over the rew
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,15 +14,17 @@ from typing import Any, Literal
 import torch
 
 from environments.toy import ContextualTwoGaussians, TwoGaussians
-from experiments.loop import ask_tell_loop, finish_run, open_run
-from experiments.rundir import LoggerName, atomic_write
+from experiments.checkpoint import RunState
+from experiments.loop import Run, ask_tell_loop, finish_run, resume_point
+from experiments.options import RunOptions, check_options
+from experiments.rundir import atomic_write
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 
 __all__ = ["BimodalConfig", "modes_covered", "option_summary", "plot_bimodal_options", "run"]
 
 
 @dataclass(frozen=True)
-class BimodalConfig:
+class BimodalConfig(RunOptions):
     """Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one."""
 
     algorithm: Literal["hireps", "reps"] = "hireps"
@@ -46,16 +47,15 @@ class BimodalConfig:
     """Standard deviation of each reward bump."""
     min_variance: float = 1e-6
     """Floor on the option covariance eigenvalues."""
-    seed: int = 0
-    run_dir: Path | None = None
-    """Where to write the run (default runs/bimodal/<timestamp>); must not exist or be empty."""
-    progress: bool = True
-    """Show a progress bar."""
-    logger: LoggerName = "csv"
-    """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
 
 
 def _validate(cfg: BimodalConfig) -> None:
+    check_options(
+        cfg,
+        counts=("n_options",),
+        positive=("bump_width", "init_std"),
+        nonnegative=("min_variance",),
+    )
     if cfg.samples_per_iteration < 2:
         raise ValueError(f"samples_per_iteration must be >= 2, got {cfg.samples_per_iteration}")
     if cfg.episodes < cfg.samples_per_iteration:
@@ -85,6 +85,7 @@ def _make_algorithm(
 def run(cfg: BimodalConfig) -> dict[str, Any]:
     """HiREPS or REPS on the (contextual) two-Gaussians task; returns the summary."""
     _validate(cfg)
+    resume = resume_point("bimodal", cfg)
     task: TwoGaussians | ContextualTwoGaussians
     if cfg.contextual:
         task = ContextualTwoGaussians(width=cfg.bump_width)
@@ -113,12 +114,10 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
             diag = algo.tell(None, theta, task(theta))
         return {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evaluate(), **diag}
 
-    writer = open_run(
-        "bimodal", cfg.run_dir, {"experiment": "bimodal", **dataclasses.asdict(cfg)}, cfg.logger
-    )
+    session = Run("bimodal", cfg, RunState(algo, generators={"contexts": ctx_gen}), resume)
     iterations = cfg.episodes // n
     ask_tell_loop(
-        writer,
+        session,
         step,
         iterations=iterations,
         label=f"bimodal/{cfg.algorithm}",
@@ -135,8 +134,7 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
         plain = task
         plots.append(lambda d: plot_bimodal_options(algo, plain, d / "options.png"))
     return finish_run(
-        writer,
-        checkpoint={"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)},
+        session,
         curve=("episodes", ["mean_return", "eval_return"]),
         title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
         extra_plots=plots,
@@ -146,8 +144,8 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
             "seed": cfg.seed,
             "episodes": iterations * n,
             "iterations": iterations,
-            "final_return": writer.rows[-1]["eval_return"],
-            "final_mean_return": writer.rows[-1]["mean_return"],
+            "final_return": session.rows[-1]["eval_return"],
+            "final_mean_return": session.rows[-1]["mean_return"],
             "n_active_options": int(algo.policy.active.sum()),
             "modes_covered": modes_covered(options, task),
             "options": options,

@@ -9,16 +9,15 @@ loop below does not branch on the variant; only the construction does.
 
 from __future__ import annotations
 
-import dataclasses
-import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from experiments.loop import check_budget, collector_loop, finish_run, open_run
-from experiments.rundir import LoggerName
+from experiments.checkpoint import RunState
+from experiments.envstate import GymRngState
+from experiments.loop import Run, check_budget, collector_loop, finish_run, resume_point
+from experiments.options import RunOptions, check_options
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
 
 __all__ = ["HockeyConfig", "HockeyEpisodicConfig", "HockeySequentialConfig", "run"]
@@ -36,7 +35,7 @@ PER_STEP = (
 
 
 @dataclass(frozen=True)
-class HockeyConfig:
+class HockeyConfig(RunOptions):
     """Robot hockey in pybullet (paper Fig 14): 3 shots per episode, 14 DMP numbers per shot."""
 
     n_options: int = 5
@@ -64,14 +63,6 @@ class HockeyConfig:
     previous one (0: plain weighted maximum likelihood)."""
     workers: int = 1
     """Collector worker processes (1: in this process; >1: MultiSyncCollector)."""
-    seed: int = 0
-    run_dir: Path | None = None
-    """Where to write the run (default runs/<experiment>/<timestamp>); must not exist or be
-    empty."""
-    progress: bool = True
-    """Show a progress bar."""
-    logger: LoggerName = "csv"
-    """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
 
 
 @dataclass(frozen=True)
@@ -139,6 +130,11 @@ def _check(cfg: HockeyConfig) -> int:
             f"run_hockey needs a HockeySequentialConfig or HockeyEpisodicConfig, got "
             f"{type(cfg).__name__}"
         )
+    check_options(
+        cfg,
+        positive=("init_std_position", "init_std_velocity"),
+        nonnegative=("min_variance", "covariance_prior"),
+    )
     B, W = cfg.episodes_per_iteration, cfg.workers
     iterations = check_budget(cfg.episodes, B, n_options=cfg.n_options, workers=W)
     if B < 2:
@@ -188,6 +184,7 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     iterations = _check(cfg)
     sequential = isinstance(cfg, HockeySequentialConfig)
     experiment = "hockey_sequential" if sequential else "hockey_episodic"
+    resume = resume_point(experiment, cfg)
     params = HockeyParams()
     demo = torch.as_tensor(demo_action(params), dtype=torch.float64)  # the initial mean
     torch.manual_seed(cfg.seed)
@@ -206,10 +203,10 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
         seed=cfg.seed + 1,
     )
     label = f"{experiment}/{cfg.n_options}opt"
-    config = {"experiment": experiment, **dataclasses.asdict(cfg)}
-    writer = collector_loop(
+    state = RunState(algo, env=GymRngState(collector))
+    session = collector_loop(
         collector,
-        lambda: open_run(experiment, cfg.run_dir, config, cfg.logger),
+        lambda: Run(experiment, cfg, state, resume),
         _update(algo, K, params.zones),
         iterations=iterations,
         episodes_per_iteration=B,
@@ -221,11 +218,10 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
         sync_weights=cfg.workers > 1,
         progress=cfg.progress,
     )
-    last = writer.rows[-1]
+    last = session.rows[-1]
     shots = iterations * B * params.n_shots
     return finish_run(
-        writer,
-        checkpoint={"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)},
+        session,
         curve=("episodes", ["average_reward"]),
         title=label,
         ylabel="average reward per episode",
@@ -240,6 +236,6 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
             "zone3_share": last["zone3_share"],
             "final_zone_reward": last["zone_reward"],
             "n_active_options": [int(p.active.sum()) for p in policies],
-            "seconds_per_shot": (time.perf_counter() - writer.start) / shots,
+            "seconds_per_shot": session.writer.elapsed() / shots,
         },
     )

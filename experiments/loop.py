@@ -1,62 +1,193 @@
 """The training loops every experiment shares, and the one ending of every run.
 
+- :class:`Run`: the run directory of a new or resumed run, with what it must checkpoint.
 - :func:`collector_loop`: a TorchRL collector hands over one batch per iteration; ``update``
   turns it into the iteration's logged fields (the policy update happens there).
 - :func:`ask_tell_loop`: no environment process at all; ``step`` asks the algorithm, scores
   the samples and tells it back (the toy objectives, a real robot driven from Python).
-- :func:`finish_run`: checkpoint, learning-curve plot and ``summary.json``, in that order, so a
-  directory holding ``summary.json`` is a finished run.
+- :func:`finish_run`: final checkpoint, learning-curve plot and ``summary.json``, in that
+  order, so a directory holding ``summary.json`` is a finished run.
 
-Every loop writes one row per iteration to the run directory (:class:`RunWriter`) and shows a
-tqdm progress bar. Nothing here reads a config object: the arguments are explicit.
+Every loop writes one row per iteration to the run directory, a checkpoint after every
+``checkpoint_every`` iterations, and shows a tqdm progress bar. SIGINT/SIGTERM stop the loop
+at the next iteration boundary with a checkpoint written (:func:`stop_on_signals`); ``--resume``
+continues from it and ends exactly as the uninterrupted run would. Nothing here reads a config
+object beyond the shared :class:`RunOptions`.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from itertools import repeat
 from pathlib import Path
 from typing import Any
 
 import torch
 from tqdm.auto import tqdm
 
-from experiments.rundir import LoggerName, RunWriter, default_run_dir
+from experiments.checkpoint import (
+    FORMAT,
+    CheckpointState,
+    RunFinished,
+    RunInterrupted,
+    RunState,
+    changed_options,
+    load_checkpoint,
+    stop_on_signals,
+)
+from experiments.options import RunOptions, config_dict
+from experiments.rundir import RunWriter, default_run_dir
 
 __all__ = [
     "Postfix",
+    "Resume",
+    "Run",
     "ask_tell_loop",
     "check_budget",
     "collector_loop",
     "finish_run",
     "infinite_horizon_postfix",
     "infinite_horizon_update",
-    "open_run",
+    "resume_point",
 ]
 
 Postfix = Callable[[dict[str, Any]], dict[str, Any]]
 """Maps a logged row to the progress bar's postfix fields."""
 
 
-def open_run(
-    experiment: str,
-    run_dir: Path | None,
-    config: Mapping[str, Any],
-    logger: LoggerName = "csv",
-) -> RunWriter:
-    """The run directory (``runs/<experiment>/<timestamp>`` unless ``run_dir`` is given) with
-    ``config.json`` written; refuses a directory that exists and is not empty."""
-    return RunWriter(run_dir or default_run_dir(experiment), config, logger)
+@dataclass(frozen=True)
+class Resume:
+    """A run to continue: its directory and its checkpoint (None: it stopped before its
+    first iteration ended, so it starts over in the same directory)."""
+
+    run_dir: Path
+    checkpoint: CheckpointState | None
 
 
-def _log(writer: RunWriter, bar: Any, row: dict[str, Any], postfix: Postfix) -> None:
-    writer.log(row)
-    bar.update(1)
-    bar.set_postfix(**postfix(row))
+def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
+    """Check the run options and, for ``cfg.resume``, that the run can be continued: it
+    exists, has not finished (:class:`RunFinished`), and was started with the same options
+    (a ``ValueError`` naming every option that differs). Call it before building anything."""
+    cfg.check_run_options()
+    if cfg.resume is None:
+        return None
+    run_dir = Path(cfg.resume)
+    if not (run_dir / "config.json").is_file():
+        raise ValueError(f"cannot resume {run_dir}: it holds no config.json (not a run directory)")
+    if (run_dir / "summary.json").is_file():
+        raise RunFinished(f"{run_dir} already finished (summary.json is there); nothing to resume")
+    saved = json.loads((run_dir / "config.json").read_text())
+    diff = changed_options(saved, config_dict(experiment, cfg))
+    if diff:
+        raise ValueError(
+            f"cannot resume {run_dir} with other options than it was started with: "
+            + "; ".join(diff)
+            + " (pass no options, or the same ones, with --resume)"
+        )
+    return Resume(run_dir, load_checkpoint(run_dir))
+
+
+class Run:
+    """An open run directory (new, or reopened from a checkpoint) and the state it saves.
+
+    Args:
+        experiment: the experiment's name (``config.json``'s ``experiment``).
+        cfg: the experiment's config (its :class:`RunOptions` part places the run).
+        state: what the checkpoints hold; restored here from the checkpoint when resuming.
+        resume: from :func:`resume_point`.
+    """
+
+    def __init__(
+        self, experiment: str, cfg: RunOptions, state: RunState, resume: Resume | None
+    ) -> None:
+        self.experiment = experiment
+        self.config = config_dict(experiment, cfg)
+        self.state = state
+        self.every = cfg.checkpoint_every
+        ckpt = None if resume is None else resume.checkpoint
+        self.start_iteration = 0
+        if ckpt is not None:  # first: a checkpoint that does not fit changes no file
+            state.load_state_dict(ckpt)
+            self.start_iteration = int(ckpt["iteration"])
+        if resume is None:
+            run_dir = cfg.run_dir or default_run_dir(experiment)
+            self.writer = RunWriter(run_dir, self.config, cfg.logger)
+        else:
+            rows = [] if ckpt is None else ckpt["rows"]
+            elapsed = 0.0 if ckpt is None else float(ckpt["elapsed"])
+            self.writer = RunWriter(
+                resume.run_dir, self.config, cfg.logger, rows=rows, elapsed=elapsed
+            )
+        self._unsaved: CheckpointState | None = None
+
+    @property
+    def rows(self) -> list[dict[str, Any]]:
+        return self.writer.rows
+
+    def snapshot(self, iteration: int, finished: bool = False) -> CheckpointState:
+        """The checkpoint of this iteration boundary."""
+        return {
+            "format": FORMAT,
+            "experiment": self.experiment,
+            "config": self.config,
+            "iteration": iteration,
+            "finished": finished,
+            **self.state.state_dict(),
+            "rows": [dict(r) for r in self.writer.rows],
+            "elapsed": self.writer.elapsed(),
+        }
+
+    def end_iteration(self, iteration: int, force: bool = False) -> None:
+        """Checkpoint now if due (or ``force``); otherwise keep the snapshot in memory so an
+        error or a second interrupt before the next checkpoint can still write it."""
+        snap = self.snapshot(iteration)
+        if force or iteration % self.every == 0:
+            self.writer.checkpoint(snap)
+            self._unsaved = None
+        else:
+            self._unsaved = snap
+
+    def save_unsaved(self) -> None:
+        if self._unsaved is not None:
+            self.writer.checkpoint(self._unsaved)
+            self._unsaved = None
+
+
+def _iterate(
+    run: Run,
+    items: Iterable[Any],
+    step: Callable[[int, Any], dict[str, Any]],
+    *,
+    iterations: int,
+    label: str,
+    postfix: Postfix,
+    progress: bool,
+) -> None:
+    """Iterations ``run.start_iteration .. iterations - 1``: ``step(it, item)`` gives the
+    row; log it, checkpoint, and stop cleanly at a boundary after SIGINT/SIGTERM."""
+    bar = tqdm(total=iterations, initial=run.start_iteration, desc=label, disable=not progress)
+    try:
+        with stop_on_signals() as stop:
+            for it, item in zip(range(run.start_iteration, iterations), items, strict=False):
+                row = step(it, item)
+                run.writer.log(row)
+                bar.update(1)
+                bar.set_postfix(**postfix(row))
+                run.end_iteration(it + 1, force=stop.signame is not None)
+                if stop.signame is not None and it + 1 < iterations:
+                    raise RunInterrupted(run.writer.dir, it + 1, stop.signame)
+    except BaseException:
+        run.save_unsaved()
+        raise
+    finally:
+        bar.close()
 
 
 def collector_loop(
     collector: Any,
-    open_writer: Callable[[], RunWriter],
+    open_run: Callable[[], Run],
     update: Callable[[Any], dict[str, Any]],
     *,
     iterations: int,
@@ -65,57 +196,63 @@ def collector_loop(
     postfix: Postfix,
     sync_weights: bool = False,
     progress: bool = True,
-) -> RunWriter:
+) -> Run:
     """The training loop of every experiment that collects with TorchRL.
 
-    Opens the run directory (``open_writer()``), then for every collected batch:
-    ``update(batch)`` (the policy update; returns the iteration's logged fields), a weight
-    sync to the worker processes when ``sync_weights``, one logged row (``iteration``,
-    ``episodes`` and the fields) and a progress-bar step showing ``postfix(row)``. The
-    collector is shut down however the loop ends (also when the run directory cannot be
-    opened). Returns the writer for :func:`finish_run`.
+    Opens the run (``open_run()``; a resumed run restores its state there), then for every
+    collected batch: ``update(batch)`` (the policy update; returns the iteration's logged
+    fields), a weight sync to the worker processes when ``sync_weights``, one logged row
+    (``iteration``, ``episodes`` and the fields), a checkpoint when due and a progress-bar
+    step showing ``postfix(row)``. The collector is shut down however the loop ends (also
+    when the run cannot be opened). Returns the run for :func:`finish_run`.
     """
     from hireps_torch.rollout import shutdown_collector
 
     try:
-        writer = open_writer()
-    except BaseException:
-        shutdown_collector(collector)
-        raise
-    bar = tqdm(total=iterations, desc=label, disable=not progress)
-    try:
-        for it, batch in enumerate(collector):
+        run = open_run()
+
+        def step(it: int, batch: Any) -> dict[str, Any]:
             fields = update(batch)
             if sync_weights:
                 collector.update_policy_weights_()
-            row = {"iteration": it + 1, "episodes": (it + 1) * episodes_per_iteration, **fields}
-            _log(writer, bar, row, postfix)
+            return {"iteration": it + 1, "episodes": (it + 1) * episodes_per_iteration, **fields}
+
+        _iterate(
+            run,
+            collector,
+            step,
+            iterations=iterations,
+            label=label,
+            postfix=postfix,
+            progress=progress,
+        )
     finally:
-        bar.close()
         shutdown_collector(collector)
-    return writer
+    return run
 
 
 def ask_tell_loop(
-    writer: RunWriter,
+    run: Run,
     step: Callable[[int], dict[str, Any]],
     *,
     iterations: int,
     label: str,
     postfix: Postfix,
     progress: bool = True,
-) -> RunWriter:
-    """``iterations`` rounds of ``step(it)`` (ask, evaluate, tell; returns the logged row),
-    one row and one progress-bar step each. Returns the writer for :func:`finish_run`."""
-    bar = tqdm(range(iterations), desc=label, disable=not progress)
-    try:
-        for it in bar:
-            row = step(it)
-            writer.log(row)
-            bar.set_postfix(**postfix(row))
-    finally:
-        bar.close()
-    return writer
+) -> Run:
+    """Rounds ``run.start_iteration .. iterations - 1`` of ``step(it)`` (ask, evaluate, tell;
+    returns the logged row), one row, a checkpoint when due and one progress-bar step each.
+    Returns the run for :func:`finish_run`."""
+    _iterate(
+        run,
+        repeat(None),
+        lambda it, _: step(it),
+        iterations=iterations,
+        label=label,
+        postfix=postfix,
+        progress=progress,
+    )
+    return run
 
 
 def infinite_horizon_update(
@@ -140,20 +277,21 @@ def infinite_horizon_update(
 
 
 def finish_run(
-    writer: RunWriter,
+    run: Run,
     *,
-    checkpoint: Mapping[str, Any],
     curve: tuple[str, Sequence[str]],
     title: str,
     summary: Mapping[str, Any],
     ylabel: str = "return",
     extra_plots: Iterable[Callable[[Path], None]] = (),
 ) -> dict[str, Any]:
-    """The ending of every run: ``checkpoint.pt``, ``learning_curve.png`` (columns
-    ``curve[1]`` of ``metrics.csv`` against ``curve[0]``), any ``extra_plots`` (each called
-    with the run directory), then ``summary.json`` (plus ``wall_seconds``), which marks the
-    run finished. Returns the summary."""
-    writer.checkpoint(checkpoint)
+    """The ending of every run: the final ``checkpoint.pt`` (``finished``), the learning
+    curve ``learning_curve.png`` (columns ``curve[1]`` of ``metrics.csv`` against
+    ``curve[0]``), any ``extra_plots`` (each called with the run directory), then
+    ``summary.json`` (plus ``wall_seconds``), which marks the run finished. Returns the
+    summary."""
+    writer = run.writer
+    writer.checkpoint(run.snapshot(len(writer.rows), finished=True))
     writer.plot_learning_curve(curve[0], list(curve[1]), title=title, ylabel=ylabel)
     for plot in extra_plots:
         plot(writer.dir)

@@ -8,10 +8,8 @@ at the end.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Literal
 
 import torch
@@ -23,15 +21,18 @@ from environments.pendulum import (
     mirror_decisions,
     sample_start,
 )
+from experiments.checkpoint import RunState
+from experiments.envstate import BatchedTaskState
 from experiments.loop import (
+    Run,
     check_budget,
     collector_loop,
     finish_run,
     infinite_horizon_postfix,
     infinite_horizon_update,
-    open_run,
+    resume_point,
 )
-from experiments.rundir import LoggerName
+from experiments.options import RunOptions, check_options
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy
@@ -46,7 +47,7 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class PendulumConfig:
+class PendulumConfig(RunOptions):
     """Pendulum swing-up with infinite-horizon HiREPS (paper Figs 16-18)."""
 
     gating: Literal["learned", "constant", "flat"] = "learned"
@@ -103,13 +104,6 @@ class PendulumConfig:
     """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
     eval_rollouts: int = 50
     """Noise-free evaluation rollouts (5 s each) at the end."""
-    seed: int = 0
-    run_dir: Path | None = None
-    """Where to write the run (default runs/pendulum/<timestamp>); must not exist or be empty."""
-    progress: bool = True
-    """Show a progress bar."""
-    logger: LoggerName = "csv"
-    """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
 
 
 def pendulum_quadratic_features(cfg: PendulumConfig) -> QuadraticFeatures:
@@ -206,6 +200,12 @@ def _make_collector(
 
 def run(cfg: PendulumConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the swing-up; returns the summary."""
+    check_options(
+        cfg,
+        counts=("eval_rollouts", "fourier_bases"),
+        positive=("episode_seconds", "init_std", "max_velocity", "kp"),
+        nonnegative=("kd", "start_noise", "min_variance"),
+    )
     B = cfg.episodes_per_iteration
     iterations = check_budget(
         cfg.episodes,
@@ -221,19 +221,16 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         raise ValueError(
             f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})"
         )
+    resume = resume_point("pendulum", cfg)
     algo = _make_algorithm(cfg, params)
     policy = algo.policy
     collector = _make_collector(cfg, policy, params, iterations)
     n_opt = cfg.n_options if cfg.gating != "flat" else 1
     label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
-    writer = collector_loop(
+    state = RunState(algo, env=BatchedTaskState(collector, carry=not cfg.reset_each_iteration))
+    session = collector_loop(
         collector,
-        lambda: open_run(
-            "pendulum",
-            cfg.run_dir,
-            {"experiment": "pendulum", **dataclasses.asdict(cfg)},
-            cfg.logger,
-        ),
+        lambda: Run("pendulum", cfg, state, resume),
         infinite_horizon_update(
             algo,
             lambda r, _: {"average_return": float(r.mean()) / params.steps_per_decision},
@@ -252,8 +249,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
 
     ev = evaluate_swing_up(act, params, n_rollouts=cfg.eval_rollouts, seed=cfg.seed + 777)
     return finish_run(
-        writer,
-        checkpoint={"algorithm": algo.state_dict(), "config": dataclasses.asdict(cfg)},
+        session,
         curve=("episodes", ["average_return"]),
         title=label,
         summary={
@@ -264,7 +260,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
             "seed": cfg.seed,
             "episodes": iterations * B,
             "iterations": iterations,
-            "final_average_return": writer.rows[-1]["average_return"],
+            "final_average_return": session.rows[-1]["average_return"],
             "final_return": ev.average_return,
             "success_rate": ev.success_rate,
             "time_to_upright": ev.time_to_upright,

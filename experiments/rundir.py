@@ -26,7 +26,15 @@ from typing import Any, Literal
 
 import torch
 
-__all__ = ["LOGGERS", "LoggerName", "RunWriter", "atomic_write", "default_run_dir", "make_logger"]
+__all__ = [
+    "LOGGERS",
+    "LoggerName",
+    "RunWriter",
+    "atomic_write",
+    "default_run_dir",
+    "jsonable",
+    "make_logger",
+]
 
 LoggerName = Literal["csv", "tensorboard", "wandb"]
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb")
@@ -44,6 +52,12 @@ def default_run_dir(experiment: str, root: str | Path = "runs") -> Path:
     return path
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -51,17 +65,19 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     os.close(fd)
     try:
         write(Path(tmp))
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would hide results from a group
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
-def _jsonable(x: Any) -> Any:
+def jsonable(x: Any) -> Any:
+    """``x`` with paths as strings, tensors as lists and non-finite floats as strings."""
     if isinstance(x, Mapping):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, Path):
         return str(x)
     if isinstance(x, torch.Tensor):
@@ -75,31 +91,71 @@ class RunWriter:
     """Writes one run directory.
 
     Args:
-        run_dir: the directory; created, and refused if it exists and is not empty.
-        config: the run's configuration (written to ``config.json`` at once).
+        run_dir: the directory; created, and refused if it exists and is not empty (unless
+            ``rows`` is given: a run being resumed).
+        config: the run's configuration (written to ``config.json`` at once; kept as it is
+            when resuming).
         logger: ``csv`` (``metrics.csv`` only), or ``tensorboard`` / ``wandb`` to also send
             every row to that TorchRL logger (event files under ``<run_dir>/tensorboard``,
             an offline W&B run under ``<run_dir>/wandb`` unless ``WANDB_MODE`` says otherwise).
+        rows: when resuming, the ``metrics.csv`` rows of the checkpoint: ``metrics.csv`` is
+            rewritten to hold exactly them (rows logged after the checkpoint are dropped).
+        elapsed: when resuming, the seconds the run had taken so far.
     """
 
     def __init__(
-        self, run_dir: str | Path, config: Mapping[str, Any], logger: LoggerName = "csv"
+        self,
+        run_dir: str | Path,
+        config: Mapping[str, Any],
+        logger: LoggerName = "csv",
+        *,
+        rows: Sequence[Mapping[str, Any]] | None = None,
+        elapsed: float = 0.0,
     ) -> None:
         self.dir = Path(run_dir)
-        if self.dir.exists() and (not self.dir.is_dir() or any(self.dir.iterdir())):
+        resuming = rows is not None
+        if (
+            not resuming
+            and self.dir.exists()
+            and (not self.dir.is_dir() or any(self.dir.iterdir()))
+        ):
             raise FileExistsError(
                 f"run directory {self.dir} already exists and is not empty; pass a new "
-                "--run-dir (nothing was overwritten)"
+                "--run-dir, or --resume it (nothing was overwritten)"
             )
         self.logger = make_logger(logger, self.dir, config.get("experiment", "run"))
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.start = time.perf_counter()
+        self.start = time.perf_counter() - elapsed
         self._fields: list[str] | None = None
         self.rows: list[dict[str, Any]] = []
-        self.write_json("config.json", config)
+        if resuming:
+            self._rewrite_metrics(rows or [])
+        else:
+            self.write_json("config.json", config)
+
+    def elapsed(self) -> float:
+        """Seconds the run has taken (over all its sessions)."""
+        return time.perf_counter() - self.start
+
+    def _rewrite_metrics(self, rows: Sequence[Mapping[str, Any]]) -> None:
+        self.rows = [dict(r) for r in rows]
+        path = self.dir / "metrics.csv"
+        if not self.rows:
+            path.unlink(missing_ok=True)
+            return
+        self._fields = list(self.rows[0])
+        fields = self._fields
+
+        def write(p: Path) -> None:
+            with p.open("w", newline="") as f:
+                out = csv.DictWriter(f, fields, extrasaction="ignore")
+                out.writeheader()
+                out.writerows(self.rows)
+
+        atomic_write(path, write)
 
     def write_json(self, name: str, data: Mapping[str, Any]) -> None:
-        text = json.dumps(_jsonable(data), indent=2, sort_keys=False) + "\n"
+        text = json.dumps(jsonable(data), indent=2, sort_keys=False) + "\n"
 
         def write(p: Path) -> None:
             p.write_text(text)
@@ -156,7 +212,7 @@ class RunWriter:
     def finish(self, summary: Mapping[str, Any]) -> dict[str, Any]:
         """Write ``summary.json`` (adds ``wall_seconds``) and return it."""
         out = dict(summary)
-        out["wall_seconds"] = round(time.perf_counter() - self.start, 3)
+        out["wall_seconds"] = round(self.elapsed(), 3)
         self.write_json("summary.json", out)
         self.close()
         return out

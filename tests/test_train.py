@@ -393,3 +393,26 @@ def test_wandb_logger_runs_offline_without_an_account(tmp_path, monkeypatch):
     offline = list((run / "wandb").glob("offline-run-*/run-*.wandb"))
     assert len(offline) == 1 and offline[0].stat().st_size > 0
     assert (run / "summary.json").is_file()
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (
+            ["pendulum", "--eval-rollouts", "0"],
+            "eval_rollouts (--eval-rollouts) must be an integer",
+        ),
+        (["pendulum", "--episode-seconds", "-1"], "episode_seconds (--episode-seconds) must be"),
+        (["pendulum", "--episode-seconds", "nan"], "got nan"),
+        (["bimodal", "--bump-width", "0"], "bump_width (--bump-width) must be finite and > 0"),
+        (["bimodal", "--n-options", "0"], "n_options (--n-options) must be an integer >= 1"),
+        (["ball-on-beam", "--fourier-bases", "0"], "fourier_bases (--fourier-bases)"),
+        (["hockey-sequential", "--init-std-velocity", "inf"], "init_std_velocity"),
+        (["hockey-episodic", "--covariance-prior", "-1"], "covariance_prior"),
+    ],
+)
+def test_bad_option_values_are_named_before_anything_is_written(tmp_path, args, message):
+    p = train(*args, "--run-dir", str(tmp_path / "r"), "--no-progress")
+    assert p.returncode == 2, p.stderr
+    assert message in p.stderr
+    assert not (tmp_path / "r").exists()

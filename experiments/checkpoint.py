@@ -1,0 +1,211 @@
+"""Checkpoints that continue a run exactly, and the interruption that writes one.
+
+A run's ``checkpoint.pt`` (written atomically after every ``checkpoint_every`` iterations, on
+SIGINT/SIGTERM, and at the end) holds everything its next iteration depends on:
+
+- ``algorithm``: the algorithm's ``state_dict`` (policies, value weights, its generator,
+  iteration);
+- ``rng``: the global torch generator (the TorchRL actors sample with it) and every other
+  named generator of the experiment (e.g. the contexts of the bimodal task);
+- ``env``: the running state of the environments that carry over between iterations (the
+  pendulums run on; every task's start-state generator);
+- ``rows``: the ``metrics.csv`` rows so far; ``iteration``, ``elapsed`` (seconds so far),
+  ``config``, ``experiment``, ``finished``.
+
+Only tensors, numbers, strings, lists and dicts: ``torch.load(path)`` with its default
+``weights_only=True`` reads it.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import signal
+import sys
+import types
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Protocol
+
+import torch
+
+__all__ = [
+    "RUN_ONLY_OPTIONS",
+    "CheckpointState",
+    "RunFinished",
+    "RunInterrupted",
+    "RunState",
+    "StopRequest",
+    "changed_options",
+    "load_checkpoint",
+    "saved_config",
+    "stop_on_signals",
+]
+
+FORMAT = 1
+RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every")
+"""Options that may differ between a run and its resumption (they do not change results)."""
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """The run stopped at an iteration boundary after a signal; its checkpoint is written."""
+
+    def __init__(self, run_dir: Path, iteration: int, signame: str) -> None:
+        super().__init__(
+            f"{signame}: stopped after iteration {iteration}; checkpoint written to "
+            f"{run_dir / 'checkpoint.pt'}. Continue with: --resume {run_dir}"
+        )
+        self.run_dir = run_dir
+        self.iteration = iteration
+
+
+class RunFinished(Exception):
+    """``--resume`` of a run that already wrote ``summary.json``."""
+
+
+class Stateful(Protocol):
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: Mapping[str, Any]) -> None: ...
+
+
+class EnvState(Protocol):
+    """The running state of a run's environments (see :mod:`experiments.envstate`)."""
+
+    def state_dict(self) -> dict[str, Any] | None: ...
+    def load_state_dict(self, state: Mapping[str, Any] | None) -> None: ...
+
+
+def _detached(x: Any) -> Any:
+    """A deep copy with tensors cloned, so a snapshot does not follow later in-place updates."""
+    if isinstance(x, torch.Tensor):
+        return x.detach().clone()
+    if isinstance(x, Mapping):
+        return {k: _detached(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_detached(v) for v in x]
+    return copy.deepcopy(x)
+
+
+@dataclasses.dataclass
+class RunState:
+    """What a run must save to continue exactly: the algorithm, named generators and the
+    environments' running state (None: nothing carries over)."""
+
+    algorithm: Stateful
+    generators: dict[str, torch.Generator] = dataclasses.field(default_factory=dict)
+    env: EnvState | None = None
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "algorithm": _detached(self.algorithm.state_dict()),
+            "rng": {
+                "torch": torch.get_rng_state(),
+                **{name: g.get_state() for name, g in self.generators.items()},
+            },
+            "env": None if self.env is None else _detached(self.env.state_dict()),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore after everything was built (building consumes random numbers)."""
+        missing = [name for name in ("torch", *self.generators) if name not in state["rng"]]
+        if missing:
+            raise ValueError(f"the checkpoint has no state for the generators {missing}")
+        self.algorithm.load_state_dict(state["algorithm"])
+        if self.env is not None:
+            self.env.load_state_dict(state["env"])
+        for name, g in self.generators.items():
+            g.set_state(state["rng"][name])
+        torch.set_rng_state(state["rng"]["torch"])
+
+
+CheckpointState = dict[str, Any]
+
+
+def load_checkpoint(run_dir: Path) -> CheckpointState | None:
+    """The run's checkpoint (None if it stopped before its first iteration finished)."""
+    path = run_dir / "checkpoint.pt"
+    if not path.is_file():
+        return None
+    ckpt: CheckpointState = torch.load(path)
+    if ckpt.get("format") != FORMAT:
+        raise ValueError(
+            f"{path} was written by another version of this code (format "
+            f"{ckpt.get('format')!r}, expected {FORMAT}); it cannot be resumed exactly"
+        )
+    return ckpt
+
+
+def changed_options(saved: Mapping[str, Any], now: Mapping[str, Any]) -> list[str]:
+    """Options whose values differ between the saved config and this one, as
+    ``name (run: saved, now: current)``; the run-only options are ignored."""
+    out = []
+    for key in sorted(set(saved) | set(now)):
+        if key in RUN_ONLY_OPTIONS:
+            continue
+        if saved.get(key, "<absent>") != now.get(key, "<absent>"):
+            out.append(
+                f"{key} (run: {saved.get(key, '<absent>')!r}, now: {now.get(key, '<absent>')!r})"
+            )
+    return out
+
+
+def saved_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
+    """The config a run directory was started with (``config.json``), as a ``config_cls``,
+    with ``resume`` set: the defaults for ``--resume RUN_DIR`` on the command line."""
+    import json
+
+    path = run_dir / "config.json"
+    if not path.is_file():
+        raise ValueError(f"--resume {run_dir}: no config.json there; is it a run directory?")
+    data = json.loads(path.read_text())
+    if data.get("experiment") not in (None, experiment.replace("-", "_")):
+        raise ValueError(
+            f"--resume {run_dir}: that run is a {data.get('experiment')!r} run, not {experiment!r}"
+        )
+    fields = {f.name for f in dataclasses.fields(config_cls)}
+    values = {k: v for k, v in data.items() if k in fields}
+    for key in ("run_dir", "resume"):
+        if values.get(key) is not None:
+            values[key] = Path(values[key])
+    values["resume"] = run_dir
+    return config_cls(**values)
+
+
+@dataclasses.dataclass
+class StopRequest:
+    """Set by SIGINT/SIGTERM; the training loop stops at the next iteration boundary."""
+
+    signame: str | None = None
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[StopRequest]:
+    """While active, the first SIGINT or SIGTERM only requests a stop (the loop finishes the
+    current iteration, writes the checkpoint and raises :class:`RunInterrupted`); a second
+    one interrupts at once (the last written checkpoint stays valid). Handlers are restored
+    on exit; outside the main thread this does nothing."""
+    request = StopRequest()
+    names: dict[int, str] = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
+    previous: dict[int, Any] = {}
+
+    def handler(signum: int, frame: types.FrameType | None) -> None:
+        if request.signame is not None:
+            raise KeyboardInterrupt(f"second {names.get(signum, signum)}: stopping now")
+        request.signame = names.get(signum, str(signum))
+        print(
+            f"\n{request.signame}: finishing this iteration, then saving the checkpoint "
+            "(send it again to stop at once)",
+            file=sys.stderr,
+        )
+
+    try:
+        for sig in names:
+            previous[sig] = signal.signal(sig, handler)
+    except ValueError:  # not the main thread: leave the signals alone
+        previous.clear()
+    try:
+        yield request
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

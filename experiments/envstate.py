@@ -1,0 +1,129 @@
+"""The running state of a run's environments, for checkpoints that continue exactly.
+
+TorchRL's collectors do not save their environments' runtime state ("not generally
+serializable"), so each kind of task gets a small adapter over the collector's environment:
+
+- :class:`BatchedTaskState`: the batched torch tasks (pendulum, ball on a beam): every tensor
+  the task holds (the systems' states, step and episode counters) and the start-state
+  generator. When the environments run on
+  across iterations (``carry=True``), the collector's carried observation is set to the
+  restored states too.
+- :class:`GymRngState`: gymnasium environments that restart every iteration (robot hockey):
+  the ``np_random`` generators that draw the start states.
+
+With worker processes the environments live in other processes: their state is not saved,
+and a resumed run continues from fresh environment states (it warns that it is then not
+bit-identical to an uninterrupted run).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+__all__ = ["BatchedTaskState", "GymRngState"]
+
+
+def _local_env(collector: Any) -> Any | None:
+    """The collector's environment when it lives in this process (else None)."""
+    return getattr(collector, "env", None)
+
+
+def _warn_not_exact(what: str) -> None:
+    warnings.warn(
+        f"resuming with worker processes: the {what} are not restored, so the resumed run is "
+        "not bit-identical to an uninterrupted one (resume with --workers 1 for that)",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+
+
+class BatchedTaskState:
+    """Adapter for :class:`environments._common.ScalarActionBatchEnv` tasks in a collector."""
+
+    def __init__(self, collector: Any, carry: bool) -> None:
+        self.collector = collector
+        self.carry = carry
+
+    def _task(self) -> Any | None:
+        env = _local_env(self.collector)
+        return None if env is None else env.task
+
+    def state_dict(self) -> dict[str, Any] | None:
+        task = self._task()
+        if task is None:
+            return None
+        tensors = {k: v.clone() for k, v in vars(task).items() if isinstance(v, torch.Tensor)}
+        return {"tensors": tensors, "gen": task.gen.get_state()}
+
+    def load_state_dict(self, state: Mapping[str, Any] | None) -> None:
+        task = self._task()
+        if task is None or state is None:
+            _warn_not_exact("environment states")
+            return
+        saved = state["tensors"]
+        now = {k: v for k, v in vars(task).items() if isinstance(v, torch.Tensor)}
+        if set(saved) != set(now) or any(saved[k].shape != now[k].shape for k in now):
+            shapes = {k: tuple(v.shape) for k, v in saved.items()}
+            raise ValueError(
+                f"the checkpoint's environment state {shapes} does not fit this run's "
+                f"{ {k: tuple(v.shape) for k, v in now.items()} }"
+            )
+        for name, value in saved.items():
+            setattr(task, name, value.clone())
+        task.gen.set_state(state["gen"])
+        if self.carry:
+            carrier = getattr(self.collector, "_carrier", None)
+            if carrier is None:  # pragma: no cover - a torchrl version without it
+                raise RuntimeError(
+                    "exact resume needs torchrl's Collector._carrier (torchrl==0.14.1)"
+                )
+            carrier.set("state", task.state.clone())
+            carrier.set("observation", task.state.to(carrier.get("observation").dtype))
+            for key in ("done", "terminated", "truncated"):
+                carrier.set(key, torch.zeros_like(carrier.get(key)))
+
+
+def _gym_envs(collector: Any) -> list[Any]:
+    """The gymnasium environments (outermost unwrapped one and its ``inner`` env, if any)."""
+    env = _local_env(collector)
+    if env is None:
+        return []
+    env = getattr(env, "base_env", env)  # a TransformedEnv
+    gym_env = getattr(env, "_env", None)
+    if gym_env is None:
+        return []
+    out = [gym_env.unwrapped]
+    inner = getattr(gym_env.unwrapped, "inner", None)
+    if inner is not None:
+        out.append(inner)
+    return out
+
+
+class GymRngState:
+    """Adapter for gymnasium environments that are reset at every iteration."""
+
+    def __init__(self, collector: Any) -> None:
+        self.collector = collector
+
+    def state_dict(self) -> dict[str, Any] | None:
+        envs = _gym_envs(self.collector)
+        if not envs:
+            return None
+        return {"np_random": [e.np_random.bit_generator.state for e in envs]}
+
+    def load_state_dict(self, state: Mapping[str, Any] | None) -> None:
+        envs = _gym_envs(self.collector)
+        if not envs or state is None:
+            _warn_not_exact("environments' random generators")
+            return
+        saved = state["np_random"]
+        if len(saved) != len(envs):
+            raise ValueError(
+                f"the checkpoint holds {len(saved)} env generators, expected {len(envs)}"
+            )
+        for env, st in zip(envs, saved, strict=True):
+            env.np_random.bit_generator.state = st

@@ -1,0 +1,54 @@
+"""Worker processes: a multi-process collector acts with the updated policy after a weight
+sync, and the interpreter exits afterwards."""
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCRIPT = textwrap.dedent(
+    """
+    import torch
+    from environments.pendulum import PendulumSwingUpBatchEnv
+    from hireps_torch.policies import HierarchicalPolicy
+    from hireps_torch.rollout import make_collector, policy_module, shutdown_collector
+
+    def make_env():
+        return PendulumSwingUpBatchEnv(2, seed=0)
+
+    if __name__ == "__main__":
+        pol = HierarchicalPolicy.create(1, 2, 1, init_std=torch.tensor([1e-6], dtype=torch.float64))
+        collector = make_collector(make_env, policy_module(pol, deterministic=True),
+                                   frames_per_batch=8, total_frames=24, num_workers=2)
+        means = []
+        try:
+            for i, batch in enumerate(collector):
+                means.append(float(batch["action"].float().mean()))
+                pol.sub_policies[0].bias.fill_(0.5 * (i + 1))   # the update, in this process
+                collector.update_policy_weights_()               # ... sent to the workers
+        finally:
+            shutdown_collector(collector)
+        print("MEANS", means)
+    """
+)
+
+
+def test_workers_act_with_the_updated_policy_after_a_weight_sync(tmp_path):
+    script = tmp_path / "workers.py"
+    script.write_text(SCRIPT)
+    p = subprocess.run(
+        [sys.executable, str(script)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"},
+    )
+    assert p.returncode == 0, p.stderr
+    means = eval(p.stdout.split("MEANS", 1)[1].strip())
+    assert len(means) == 3
+    # batch 0 with the initial policy (mean 0), then every batch with the last synced update
+    assert abs(means[0]) < 1e-6
+    assert abs(means[1] - 0.5) < 1e-6 and abs(means[2] - 1.0) < 1e-6

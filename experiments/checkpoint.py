@@ -127,7 +127,13 @@ def load_checkpoint(run_dir: Path) -> CheckpointState | None:
     path = run_dir / "checkpoint.pt"
     if not path.is_file():
         return None
-    ckpt: CheckpointState = torch.load(path)
+    try:
+        ckpt: CheckpointState = torch.load(path)
+    except Exception as exc:  # truncated, not a torch file, pickled objects, ...
+        raise ValueError(
+            f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
+            "move it away to restart this run from its first iteration"
+        ) from exc
     if ckpt.get("format") != FORMAT:
         raise ValueError(
             f"{path} was written by another version of this code (format "

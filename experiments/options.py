@@ -33,6 +33,8 @@ class RunOptions:
 
     def check_run_options(self) -> None:
         """Refuse bad run options before anything is built or written."""
+        if not -(2**62) <= self.seed <= 2**62:
+            raise ValueError(f"seed must be an integer in [-2**62, 2**62], got {self.seed}")
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
         if self.resume is not None and self.run_dir is not None:

@@ -193,3 +193,36 @@ def test_checkpoint_every_must_be_positive(tmp_path):
     )
     assert p.returncode == 2 and "checkpoint_every must be >= 1, got 0" in p.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_an_unreadable_checkpoint_is_named_and_nothing_changes(tmp_path):
+    run = tmp_path / "run"
+    code, err = interrupt(
+        ["bimodal", "--episodes", "3000", "--samples-per-iteration", "100"], run, 2
+    )
+    assert code == 130, err
+    ckpt = run / "checkpoint.pt"
+    ckpt.write_bytes(ckpt.read_bytes()[:100])  # a truncated file
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    p = train("bimodal", "--resume", str(run), "--no-progress")
+    assert p.returncode == 2 and f"{ckpt} cannot be read" in p.stderr
+    assert {q.name: q.read_bytes() for q in run.iterdir()} == before
+
+
+def test_a_seed_out_of_range_is_refused(tmp_path):
+    p = train("bimodal", "--seed", str(2**70), "--run-dir", str(tmp_path / "r"), "--no-progress")
+    assert p.returncode == 2 and "seed must be an integer in" in p.stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_run_with_worker_processes_resumes_with_a_warning(tmp_path):
+    """The environments live in the workers and are not restored: the resumed run finishes,
+    says it is not bit-identical, and logs every iteration exactly once."""
+    args = ["pendulum", "--workers", "2", "--episodes", "160", "--eval-rollouts", "2"]
+    run = tmp_path / "run"
+    code, err = interrupt(args, run, 2)
+    assert code == 130, err
+    resumed = train("pendulum", "--resume", str(run), "--no-progress")
+    assert resumed.returncode == 0, resumed.stderr
+    assert "not bit-identical" in resumed.stderr
+    assert [int(r["iteration"]) for r in rows(run)] == list(range(1, 9))

@@ -8,6 +8,9 @@ user can find the bad value without reading torch's internals.
 from __future__ import annotations
 
 import math
+import numbers
+import operator
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor
@@ -15,32 +18,46 @@ from torch import Tensor
 __all__ = [
     "as_f64",
     "as_finite_f64",
+    "as_float",
+    "as_float_tensor",
+    "check_count",
     "check_finite",
     "check_positive",
     "check_positive_float",
     "check_nonnegative_float",
+    "check_state_dict",
 ]
 
 
 def as_f64(name: str, value: Tensor | object) -> Tensor:
     """``value`` as a detached float64 tensor; a ``TypeError`` naming ``name`` if it is not
-    a number, a sequence of numbers or a tensor."""
+    a number, a sequence of numbers or a tensor.
+
+    Python numbers and sequences go straight to float64 (``torch.as_tensor(0.2)`` alone would
+    round through float32: 0.20000000298); tensors keep their values (a float32 tensor holds
+    float32 values already). Complex values are a ``TypeError`` (their imaginary part would
+    be dropped silently)."""
     if not isinstance(value, Tensor):
         try:
-            value = torch.as_tensor(value)
+            value = torch.as_tensor(value, dtype=torch.float64)
         except Exception as exc:
             raise TypeError(f"{name} must be a tensor, got {type(value).__name__}") from exc
+    if value.is_complex():
+        raise TypeError(f"{name} must be real, got a {value.dtype} tensor")
     return value.detach().to(torch.float64)
 
 
-def check_finite(name: str, x: Tensor) -> None:
-    """Raise naming ``name``, the number of non-finite entries and the first one's index."""
+def check_finite(
+    name: str, x: Tensor, advice: str = "remove or fix those samples before the update"
+) -> None:
+    """Raise naming ``name``, the number of non-finite entries and the first one's index
+    (followed by ``advice``, if any)."""
     bad = ~torch.isfinite(x)
     if bool(bad.any()):
         idx = tuple(int(i) for i in bad.nonzero()[0])
         raise ValueError(
             f"{name} contains {int(bad.sum())} non-finite value(s) (first at index {idx}: "
-            f"{x[idx].item()}); remove or fix those samples before the update"
+            f"{x[idx].item()})" + (f"; {advice}" if advice else "")
         )
 
 
@@ -65,9 +82,90 @@ def check_positive(name: str, value: Tensor) -> None:
         raise ValueError(f"{name} must be finite and > 0, got {value.tolist()}")
 
 
+def as_float(name: str, value: object) -> float:
+    """A real scalar (a Python or numpy number, or a 0-d tensor) as a float.
+
+    Raises a ``TypeError`` naming ``name`` for a bool, a string or anything else that is not a
+    number, and a ``ValueError`` naming the shape for a tensor or array with dimensions (a
+    ``(2,)`` tensor where one number is expected). NaN and inf pass (the callers check ranges).
+    """
+    if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
+        raise TypeError(f"{name} must be a number, got the bool {value!r}")
+    if isinstance(value, numbers.Real):
+        return float(value)
+    shape = getattr(value, "shape", None)
+    if shape is not None:
+        if len(shape) != 0:
+            raise ValueError(
+                f"{name} must be one number (a float or a 0-d tensor), got a "
+                f"{type(value).__name__} of shape {tuple(shape)}"
+            )
+        if isinstance(value, Tensor) and (value.is_complex() or value.dtype == torch.bool):
+            raise TypeError(f"{name} must be a real number, got a {value.dtype} tensor")
+        try:
+            return float(value)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            pass
+    raise TypeError(f"{name} must be a number, got {type(value).__name__} {value!r}")
+
+
+def as_float_tensor(
+    name: str,
+    value: object,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | None = None,
+) -> Tensor:
+    """``value`` (a tensor, number or nested sequence of numbers) as a detached ``dtype``
+    tensor. Bool and integer tensors are converted; complex values, strings and other objects
+    raise a ``TypeError`` naming ``name``; a tensor on another ``device`` (when given) a
+    ``ValueError`` naming both devices. Values are not checked (see :func:`check_finite`)."""
+    if isinstance(value, Tensor):
+        t = value.detach()
+    else:
+        try:
+            t = torch.as_tensor(value)
+            if t.is_floating_point():  # Python floats keep their float64 precision
+                t = torch.as_tensor(value, dtype=torch.float64)
+        except Exception as exc:
+            raise TypeError(
+                f"{name} must be a tensor of numbers, got {type(value).__name__}"
+            ) from exc
+    if t.is_complex() or not (t.is_floating_point() or t.dtype == torch.bool or _is_int(t)):
+        raise TypeError(f"{name} must hold real numbers, got dtype {t.dtype}")
+    if device is not None and t.device != device:
+        raise ValueError(
+            f"{name} is on device {t.device} but the model is on {device}; move one of them "
+            f"(e.g. {name}.to({str(device)!r}))"
+        )
+    return t.to(dtype)
+
+
+def _is_int(t: Tensor) -> bool:
+    return not t.is_floating_point() and not t.is_complex() and t.dtype != torch.bool
+
+
+def check_count(name: str, value: object, minimum: int = 1) -> int:
+    """An integer >= ``minimum`` (a count, a dimension, a seed) as an int.
+
+    Accepts Python and numpy integers and 0-d integer tensors; a bool, a float (even 2.0) or
+    anything else raises a ``TypeError`` naming ``name``, a smaller value a ``ValueError``."""
+    if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
+        raise TypeError(f"{name} must be an integer, got the bool {value!r}")
+    try:
+        n = operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        raise TypeError(
+            f"{name} must be an integer, got {type(value).__name__} {value!r}"
+        ) from None
+    if n < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {n}")
+    return int(n)
+
+
 def check_positive_float(name: str, value: float) -> float:
-    """A finite scalar > 0 (e.g. epsilon), as a float."""
-    v = float(value)
+    """A finite scalar > 0 (e.g. epsilon), as a float; a 0-d tensor is accepted, a tensor
+    with dimensions raises (see :func:`as_float`)."""
+    v = as_float(name, value)
     if not (math.isfinite(v) and v > 0):
         raise ValueError(f"{name} must be finite and > 0, got {value}")
     return v
@@ -77,7 +175,53 @@ def check_nonnegative_float(name: str, value: float | None) -> float | None:
     """A finite scalar >= 0 or None (e.g. kappa_rel), as a float."""
     if value is None:
         return None
-    v = float(value)
+    v = as_float(name, value)
     if not (math.isfinite(v) and v >= 0):
         raise ValueError(f"{name} must be finite and >= 0 (or None), got {value}")
     return v
+
+
+def check_state_dict(
+    what: str, expected: Mapping[str, Tensor], state: object, strict: bool = True
+) -> None:
+    """Check that ``state`` can be loaded where ``expected`` (a ``state_dict()``) lives.
+
+    Raises before anything is copied: a ``TypeError`` if ``state`` is not a mapping of
+    tensors; a ``ValueError`` naming every entry whose saved shape differs from the expected
+    one (both shapes: a checkpoint of another number of options or another dimension), then
+    (with ``strict``) the missing and the unexpected keys, then a bool entry that is not bool
+    and the first non-finite entry of a floating one.
+    """
+    if not isinstance(state, Mapping):
+        raise TypeError(f"{what}: a state_dict must be a mapping, got {type(state).__name__}")
+    for key, value in state.items():
+        if key in expected and not isinstance(value, Tensor):
+            raise TypeError(f"{what}: state entry {key!r} must be a tensor, got {type(value)}")
+    wrong = [
+        f"{key}: saved {tuple(state[key].shape)}, expected {tuple(ref.shape)}"
+        for key, ref in expected.items()
+        if key in state and state[key].shape != ref.shape
+    ]
+    if wrong:
+        raise ValueError(
+            f"{what}: the checkpoint was made for other shapes (another number of options or "
+            f"another dimension?): {'; '.join(wrong)}"
+        )
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    if strict and (missing or unexpected):
+        raise ValueError(
+            f"{what}: the checkpoint does not match: missing keys {missing}, unexpected keys "
+            f"{unexpected}"
+        )
+    for key, ref in expected.items():
+        if key not in state:
+            continue
+        saved: Tensor = state[key]
+        if ref.dtype == torch.bool and saved.dtype != torch.bool:
+            raise ValueError(f"{what}: state entry {key!r} must be bool, got {saved.dtype}")
+        if ref.is_floating_point():
+            if saved.is_complex() or not (saved.is_floating_point() or _is_int(saved)):
+                raise ValueError(f"{what}: state entry {key!r} must be real, got {saved.dtype}")
+            if not bool(torch.isfinite(saved).all()):
+                raise ValueError(f"{what}: state entry {key!r} holds non-finite values")

@@ -36,10 +36,16 @@ Modules, in reading order:
 - :mod:`~hireps_torch.dual.episodic`, :mod:`~hireps_torch.dual.infinite_horizon`,
   :mod:`~hireps_torch.dual.time_indexed`: one public wrapper each (mirroring
   :mod:`hireps_torch.algorithms`): check the inputs, build (R, D, c), solve, report.
-- :mod:`~hireps_torch.dual.solutions`: the solution types, their diagnostics, the warnings.
-- :mod:`~hireps_torch.dual.inputs`: the wrappers' input checks.
-- :mod:`~hireps_torch.dual.solver`: :func:`solve_reps_dual`, LBFGS with the entropy bound's
-  KKT phases and the fallback for infeasible feature constraints (its docstring: the numerics).
+- :mod:`~hireps_torch.dual.solutions`: the solution types, their diagnostics, the warnings
+  (and what ``converged`` promises).
+- :mod:`~hireps_torch.dual.inputs`: the wrappers' and the generic solver's input checks.
+- :mod:`~hireps_torch.dual.solver`: :func:`solve_reps_dual`: exact power-of-2 scaling, the
+  solve, the safeguards, one warning (its docstring: the numerics).
+- :mod:`~hireps_torch.dual.block_solver`: LBFGS with the entropy bound's KKT phases, the
+  fallback for infeasible feature constraints, the projection solve for returns without
+  information, the eta floor and the Newton polish.
+- :mod:`~hireps_torch.dual.safeguards`: the KL bound by construction (a final search on eta),
+  the entropy bound's reachability, and the check of every constraint with its tolerance.
 - :mod:`~hireps_torch.dual.conditioning`: value start, whitening and scaling of the problem.
 - :mod:`~hireps_torch.dual.problem`: :class:`~hireps_torch.dual.problem.DualProblem`, the
   standardised K-block dual with its analytic gradient and curvature.
@@ -49,6 +55,7 @@ from hireps_torch.dual.episodic import solve_episodic_dual
 from hireps_torch.dual.infinite_horizon import solve_infinite_horizon_dual
 from hireps_torch.dual.solutions import (
     DegenerateWeightsWarning,
+    DualConvergenceWarning,
     DualSolution,
     InfeasibleConstraintsWarning,
     RepsDualSolution,
@@ -59,6 +66,7 @@ from hireps_torch.dual.time_indexed import solve_time_indexed_dual
 
 __all__ = [
     "DegenerateWeightsWarning",
+    "DualConvergenceWarning",
     "DualSolution",
     "InfeasibleConstraintsWarning",
     "RepsDualSolution",

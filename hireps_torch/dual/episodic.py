@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from hireps_torch.dual.inputs import check_features, common_inputs
+from hireps_torch.dual.inputs import centred, check_features, common_inputs
 from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
-from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
+from hireps_torch.dual.solver import checked_settings, solve_blocks
 
 __all__ = ["solve_episodic_dual"]
 
@@ -30,25 +30,36 @@ def solve_episodic_dual(
         log_responsibilities: (N, O) log p~(o | s_i, theta_i) of the old policy, rows
             normalised over options; None means one option (REPS).
         context_features: (N, F) context features phi(s_i) whose mean must be kept; None means
-            no context (plain episodic). A constant column is harmless (its multiplier is 0).
+            no context (plain episodic). Directions without spread in the samples (a constant
+            column, all contexts equal, all-zero features; spread below 1e-14 of the column's
+            magnitude) carry a constraint every distribution meets: they are dropped from the
+            solve (v is unidentifiable along them).
         kappa: absolute bound on the expected option cross-entropy E_P[-log p~], >= 0;
-            None (or inf) means no entropy bound (xi = 0).
-        max_iter: LBFGS iterations per phase.
+            None (or inf) means no entropy bound (xi = 0). A bound that no distribution within
+            the KL bound meets (kappa = 0 with soft responsibilities, say) is relaxed to what
+            half the KL budget reaches, with an
+            :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.
+        max_iter: LBFGS iterations per phase, an integer >= 1.
 
     Returns:
-        :class:`~hireps_torch.dual.DualSolution` with weights (N, O) summing to 1.
+        :class:`~hireps_torch.dual.DualSolution` with weights (N, O) summing to 1 and
+        ``kl <= epsilon (1 + 1e-6)``; ``converged`` False comes with a warning naming what
+        failed (tolerances: :mod:`hireps_torch.dual.solutions`). Returns scaled by any positive
+        factor give the same weights; constant returns give the old distribution (uniform
+        sample weights), eta = inf and the return as the dual value.
 
     Raises:
-        ValueError: on non-finite returns or features, shape mismatches, N < 2, epsilon <= 0 or
-            a negative kappa; each message names the offending value.
+        ValueError, TypeError: on non-finite returns or features, shape mismatches, N < 2,
+            epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
+    opts = checked_settings(max_iter)
     R, eps, lr, kap = common_inputs(returns, epsilon, log_responsibilities, kappa)
     N = R.shape[1]
     D = None
     if context_features is not None:
         phi = check_features("context_features", context_features, N)
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
-        D = -(phi - phi.mean(dim=0, keepdim=True)).unsqueeze(0)
-    sol = solve_blocks(R, lr, eps, D, None, kap, LbfgsSettings(max_iter))
+        D = -centred(phi).unsqueeze(0)
+    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
     warn_if_collapsed(sol, eps)
     return block_solution(sol, 0, sol.v)

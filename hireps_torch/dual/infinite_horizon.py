@@ -9,7 +9,7 @@ from torch import Tensor
 
 from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
 from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
-from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
+from hireps_torch.dual.solver import checked_settings, solve_blocks
 
 __all__ = ["solve_infinite_horizon_dual"]
 
@@ -40,18 +40,29 @@ def solve_infinite_horizon_dual(
 
     Args:
         rewards: (N,) reward of each transition (one decision).
-        features: (N, F) value features phi(s_i).
+        features: (N, F) value features phi(s_i). Directions along which phi - gamma phi' has
+            no spread (a constant feature) are dropped from the solve; their constraint holds
+            for every distribution when the start features agree (phi_hat_0 = 1 for a feature
+            that is 1 everywhere), else no reweighting meets it (an
+            :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`).
         next_features: (N, F) value features phi(s'_i) of the state reached.
         initial_features: (F,) mean value features of the start distribution, phi_hat_0.
         gamma: 1 - restart probability, in (0, 1).
         epsilon: KL bound, > 0.
         log_responsibilities: (N, O) log p~(o | s_i, a_i) or None (one option).
-        kappa: absolute bound on the option cross-entropy or None.
-        max_iter: LBFGS iterations per phase.
+        kappa: absolute bound on the option cross-entropy or None (see
+            :func:`~hireps_torch.dual.solve_episodic_dual` for one that cannot be met).
+        max_iter: LBFGS iterations per phase, an integer >= 1.
 
     Returns:
-        :class:`~hireps_torch.dual.DualSolution`; ``v`` holds the value-function weights (F,).
+        :class:`~hireps_torch.dual.DualSolution`; ``v`` holds the value-function weights (F,);
+        ``kl <= epsilon (1 + 1e-6)``, and ``converged`` False comes with a warning.
+
+    Raises:
+        ValueError, TypeError: on non-finite or mis-shaped input, gamma outside (0, 1),
+            epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
+    opts = checked_settings(max_iter)
     R, eps, lr, kap = common_inputs(rewards, epsilon, log_responsibilities, kappa, "rewards")
     N = R.shape[1]
     g = float(gamma)
@@ -67,6 +78,6 @@ def solve_infinite_horizon_dual(
     phi0 = check_feature_vector("initial_features", initial_features, phi.shape[1])
     D = (g * phi_next - phi).unsqueeze(0)
     c = (1.0 - g) * phi0
-    sol = solve_blocks(R, lr, eps, D, c, kap, LbfgsSettings(max_iter))
+    sol = solve_blocks(R, lr, eps, D, c, kap, opts, stacklevel=3)
     warn_if_collapsed(sol, eps)
     return block_solution(sol, 0, sol.v)

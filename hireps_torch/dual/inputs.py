@@ -2,12 +2,15 @@
 
 The generic checks (float64 conversion, finiteness, positivity) come from
 :mod:`hireps_torch.checks`; the dual-specific ones (normalised log-responsibilities, per-block
-bounds, feature shapes) live here. Each input is checked once, here; the solver trusts them.
+bounds, feature shapes, solver settings) live here. Each input is checked once, here; the
+solver trusts them.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
+import operator
 import warnings
 
 import torch
@@ -17,9 +20,13 @@ from hireps_torch.checks import as_f64, check_finite, check_positive
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
 __all__ = [
+    "centred",
+    "check_blocks",
+    "check_bounds",
     "check_feature_vector",
     "check_features",
     "check_log_resp",
+    "check_settings",
     "common_inputs",
     "per_block",
 ]
@@ -28,7 +35,10 @@ _LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it 
 
 
 def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tensor:
-    """Check log-probabilities normalised over the last dim; return them with log 0 floored."""
+    """Check log-probabilities normalised over the last dim; return them with log 0 floored.
+
+    Rows normalised only to float32 precision (off by up to 1e-4) are renormalised in float64,
+    so that the old distribution q p~ sums to 1 and its KL to itself is 0."""
     if bool(torch.isnan(log_resp).any()) or bool((log_resp == math.inf).any()):
         raise ValueError(f"{name} contains NaN or +inf")
     if bool((log_resp > 1e-6).any()):
@@ -40,11 +50,16 @@ def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tens
             f"{name} must be normalised over options (logsumexp over the last dim = 0); "
             f"worst row is off by {worst:.3g}"
         )
+    if worst > 1e-13:
+        log_resp = log_resp - norm.unsqueeze(-1)
     return log_resp.clamp_min(_LOG_RESP_FLOOR)
 
 
 def per_block(name: str, value: float | Tensor, K: int) -> Tensor:
-    """A bound given as one float or one value per block (K,), as a (K,) float64 tensor."""
+    """A bound given as one float or one value per block (K,), as a (K,) float64 tensor; a bool
+    is a ``TypeError`` (``epsilon=True`` is no bound)."""
+    if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
+        raise TypeError(f"{name} must be a number or a tensor of numbers, got {value!r}")
     t = as_f64(name, value)
     if t.dim() == 0:
         return t.expand(K).clone()
@@ -102,6 +117,17 @@ def common_inputs(
     check_finite(name, R)
     R = R.reshape(N, -1).T.contiguous()
     K = R.shape[0]
+    eps, kap = check_bounds(epsilon, kappa, K, N, stacklevel=4)
+    lr = _log_responsibilities(log_responsibilities, (N, K) if per_step else (N,), K)
+    return R, eps, lr, kap
+
+
+def check_bounds(
+    epsilon: float | Tensor, kappa: float | Tensor | None, K: int, N: int, stacklevel: int
+) -> tuple[Tensor, Tensor | None]:
+    """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, from one float or one
+    value per block; a :class:`~hireps_torch.dual.DegenerateWeightsWarning` (``stacklevel``
+    frames up) where epsilon >= log N."""
     eps = per_block("epsilon", epsilon, K)
     check_positive("epsilon", eps)
     big = [(k, float(e)) for k, e in enumerate(eps) if e >= math.log(N)]
@@ -113,15 +139,14 @@ def common_inputs(
             f"{which} >= log N = {math.log(N):.4g} (N = {N}): the KL bound cannot bind and the "
             "weights collapse onto the best sample(s); use a smaller epsilon or more samples",
             DegenerateWeightsWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
-    lr = _log_responsibilities(log_responsibilities, (N, K) if per_step else (N,), K)
     kap = None
     if kappa is not None:
         kap = per_block("kappa", kappa, K)
         if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
             raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
-    return R, eps, lr, kap
+    return eps, kap
 
 
 def _log_responsibilities(x: Tensor | None, lead: tuple[int, ...], K: int) -> Tensor:
@@ -153,3 +178,74 @@ def check_feature_vector(name: str, x: Tensor, F: int) -> Tensor:
         raise ValueError(f"{name} must have shape ({F},), got {tuple(phi.shape)}")
     check_finite(name, phi)
     return phi
+
+
+def check_settings(
+    max_iter: object, tolerance_grad: object = 1e-7, converged_grad: object = 1e-6
+) -> tuple[int, float, float]:
+    """The solver options: ``max_iter`` an integer >= 1 (LBFGS iterations per phase), the
+    tolerances finite and > 0; a message naming the bad value otherwise."""
+    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral | Tensor):
+        raise TypeError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    try:
+        n = operator.index(max_iter)
+    except TypeError as exc:
+        raise TypeError(f"max_iter must be an integer >= 1, got {max_iter!r}") from exc
+    if n < 1:
+        raise ValueError(f"max_iter must be an integer >= 1, got {n}")
+    tols = []
+    for name, value in (("tolerance_grad", tolerance_grad), ("converged_grad", converged_grad)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real | Tensor):
+            raise TypeError(f"{name} must be a finite number > 0, got {value!r}")
+        t = float(value)  # a tensor with more than one entry raises here
+        if not (math.isfinite(t) and t > 0):
+            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        tols.append(t)
+    return n, tols[0], tols[1]
+
+
+def check_blocks(
+    R: Tensor,
+    log_resp: Tensor,
+    epsilon: float | Tensor,
+    D: Tensor | None,
+    c: Tensor | None,
+    kappa: float | Tensor | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+    """The inputs of :func:`~hireps_torch.dual.solve_reps_dual`, checked and in float64:
+    R (K, N) finite with K >= 1 and N >= 2, log_resp (K, N, O) normalised, epsilon and kappa
+    per block, D (K, N, P) and c (P,) finite (c only with D)."""
+    Rt = as_f64("R", R)
+    if Rt.dim() != 2 or Rt.shape[0] < 1 or Rt.shape[1] < 2:
+        raise ValueError(f"R must have shape (K, N) with K >= 1, N >= 2, got {tuple(Rt.shape)}")
+    check_finite("R", Rt)
+    K, N = Rt.shape
+    lr = as_f64("log_resp", log_resp)
+    if lr.dim() != 3 or tuple(lr.shape[:2]) != (K, N) or lr.shape[2] < 1:
+        raise ValueError(
+            f"log_resp must have shape (K, N, O) = ({K}, {N}, O), got {tuple(lr.shape)}"
+        )
+    lr = check_log_resp(lr, "log_resp")
+    eps, kap = check_bounds(epsilon, kappa, K, N, stacklevel=4)
+    Dt = ct = None
+    if D is not None:
+        Dt = as_f64("D", D)
+        if Dt.dim() != 3 or tuple(Dt.shape[:2]) != (K, N):
+            raise ValueError(f"D must have shape (K, N, P) = ({K}, {N}, P), got {tuple(Dt.shape)}")
+        check_finite("D", Dt)
+    if c is not None:
+        if Dt is None:
+            raise ValueError("c (the linear term in v) needs D (the features)")
+        ct = check_feature_vector("c", c, Dt.shape[-1])
+    return Rt, lr, eps, Dt, ct, kap
+
+
+def centred(phi: Tensor) -> Tensor:
+    """phi (N, F) minus its mean over samples, with the columns that are constant to round-off
+    (spread below 1e-14 of their magnitude) exactly 0: centring would leave them as round-off
+    noise that no longer shows the magnitude it came from, and the solver would take that
+    noise for a feature."""
+    out = phi - phi.mean(dim=0, keepdim=True)
+    spread = phi.amax(dim=0) - phi.amin(dim=0)
+    constant = spread <= 1e-14 * phi.abs().amax(dim=0)
+    return torch.where(constant, torch.zeros_like(out), out)

@@ -1,4 +1,18 @@
-"""What the duals return: the solution types, their diagnostics and the dual's warnings."""
+"""What the duals return: the solution types, their diagnostics and the dual's warnings.
+
+Every solution keeps its KL bound: ``kl <= epsilon (1 + 1e-6)`` on every block, whatever the
+solver went through. ``converged`` is True only when, besides, the entropy bound
+(``cross_entropy <= kappa + 1e-6 max(kappa, 1)``) and the feature constraints (residual below
+1e-6 of the features' spread) hold and the solver met its gradient tolerance; a solve that is
+not converged issues one :class:`InfeasibleConstraintsWarning` (a constraint that cannot be met:
+the message says which and what was done instead) or :class:`DualConvergenceWarning` (naming
+what failed and by how much). See :mod:`hireps_torch.dual.safeguards`.
+
+Returns without information (constant, or fixed entirely by the features) report eta = inf:
+the weights are then the old distribution q p~, or the distribution closest to it (in KL) that
+meets the entropy bound and the feature constraints (xi = inf where the entropy bound tilts
+it), and the dual value is the mean return, the value of every such distribution.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +25,7 @@ from torch import Tensor
 
 __all__ = [
     "DegenerateWeightsWarning",
+    "DualConvergenceWarning",
     "DualSolution",
     "InfeasibleConstraintsWarning",
     "RepsDualSolution",
@@ -28,7 +43,13 @@ class DegenerateWeightsWarning(RuntimeWarning):
 
 
 class InfeasibleConstraintsWarning(RuntimeWarning):
-    """No distribution within the KL bound satisfies the feature constraints."""
+    """No distribution within the KL bound satisfies the constraints (the feature constraints
+    or the entropy bound); the message says which and what was done instead."""
+
+
+class DualConvergenceWarning(RuntimeWarning):
+    """The solve ended without meeting a constraint or its gradient tolerance (feasible as far
+    as the solver can tell); the message names what failed and by how much."""
 
 
 @dataclass(frozen=True)
@@ -36,18 +57,18 @@ class RepsDualSolution:
     """Solution of the generic K-block dual (:func:`~hireps_torch.dual.solve_reps_dual`).
 
     Attributes:
-        eta: (K,) temperatures, in the caller's return units.
+        eta: (K,) temperatures, in the caller's return units (inf without return
+            information, see the module docstring).
         xi: (K,) entropy-bound multipliers (0 where the bound is inactive or absent).
         v: (P,) value-function / feature multipliers in the caller's feature units.
         weights: (K, N, O) new sample-option distribution per block, each block sums to 1.
-        kl: (K,) realised KL(P_k || q p~_k).
+        kl: (K,) realised KL(P_k || q p~_k), at most epsilon_k (1 + 1e-6).
         cross_entropy: (K,) realised E_P[-log p~].
         effective_sample_size: (K,) 1 / sum_i w_ki^2 with w_ki = sum_o P_kio.
         feature_error: max abs violation of the feature constraints, caller's units.
-        dual_value: value of the dual at the optimum, caller's units.
-        converged: whether LBFGS met its gradient tolerance (False, with an
-            :class:`InfeasibleConstraintsWarning`, when the feature constraints cannot be met
-            within the KL bound and were relaxed to a penalty).
+        dual_value: value of the dual at the optimum, caller's units (finite).
+        converged: whether every constraint holds to its tolerance and LBFGS met its gradient
+            tolerance (see the module docstring); if not, a warning said what failed.
         iterations: LBFGS iterations over all phases.
     """
 
@@ -74,12 +95,14 @@ class DualSolution:
         v: (F,) context-feature multipliers (empty without context features).
         weights: (N, O) new distribution over samples and options; sums to 1.
         sample_weights: (N,) weights.sum(-1), the weights for a flat policy.
-        kl: realised KL(P || q p~); equals epsilon when the bound is active.
+        kl: realised KL(P || q p~); equals epsilon when the bound is active, never exceeds
+            epsilon (1 + 1e-6).
         cross_entropy: realised E_P[-log p~(o|s,theta)]; equals kappa when that bound is active.
         effective_sample_size: 1 / sum_i sample_weights_i^2, between 1 and N.
         feature_error: max |sum_i w_i phi_i - phi_hat| (0 without context features).
-        dual_value: dual objective at the optimum.
-        converged: whether the solver met its gradient tolerance.
+        dual_value: dual objective at the optimum (finite).
+        converged: whether every constraint holds to its tolerance and the solver met its
+            gradient tolerance (see the module docstring); if not, a warning said what failed.
         iterations: LBFGS iterations.
     """
 
@@ -112,12 +135,14 @@ class TimeIndexedDualSolution:
         weights: (K, N, O) new distribution over samples and options per step; each step
             sums to 1.
         sample_weights: (K, N) weights.sum(-1), the weights of a flat policy per step.
-        kl: (K,) realised KL(P_k || q p~_k); equals epsilon_k at the optimum.
+        kl: (K,) realised KL(P_k || q p~_k); equals epsilon_k where the bound is active, never
+            exceeds epsilon_k (1 + 1e-6).
         cross_entropy: (K,) realised E_P_k[-log p~_k]; <= kappa_k.
         effective_sample_size: (K,) 1 / sum_i w_ki^2 per step.
         feature_error: max abs violation of the chained feature constraints.
-        dual_value: dual objective at the optimum.
-        converged: whether the solver met its gradient tolerance.
+        dual_value: dual objective at the optimum (finite).
+        converged: whether every constraint holds to its tolerance and the solver met its
+            gradient tolerance (see the module docstring); if not, a warning said what failed.
         iterations: LBFGS iterations.
     """
 

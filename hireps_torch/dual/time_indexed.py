@@ -30,9 +30,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
+from hireps_torch.dual.inputs import (
+    centred,
+    check_feature_vector,
+    check_features,
+    common_inputs,
+)
 from hireps_torch.dual.solutions import TimeIndexedDualSolution, warn_if_collapsed
-from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
+from hireps_torch.dual.solver import checked_settings, solve_blocks
 
 __all__ = ["solve_time_indexed_dual"]
 
@@ -53,7 +58,9 @@ def solve_time_indexed_dual(
     Args:
         rewards: (N, K) reward of each episode at each decision step, N >= 2, K >= 1.
         features: (N, K, F) value features phi(s_k,i) of the state where step k's decision
-            was taken.
+            was taken. Directions without spread within a step (a constant feature, all states
+            equal) are dropped from the solve: their chained constraint holds for every
+            distribution (unless ``initial_features`` disagrees with the samples there).
         epsilon: KL bound per step, > 0: one float or (K,). Values >= log N let that step's
             weights collapse onto one sample (a
             :class:`~hireps_torch.dual.DegenerateWeightsWarning` is issued).
@@ -64,34 +71,32 @@ def solve_time_indexed_dual(
             inf leaves that step unbounded; None means no bound (xi = 0).
         initial_features: (F,) mean features of the start distribution, phi_hat_1; by default
             the sample mean of ``features[:, 0]`` (then uniform weights are feasible).
-        max_iter: LBFGS iterations per phase.
+        max_iter: LBFGS iterations per phase, an integer >= 1.
 
     Returns:
         :class:`~hireps_torch.dual.TimeIndexedDualSolution`; ``weights`` (K, N, O), each step
-        summing to 1.
+        summing to 1, ``kl <= epsilon (1 + 1e-6)`` per step. A step whose KL bound is inactive
+        (rewards the value features cancel, e.g. all 0 before a contact) has eta at its floor,
+        e^-10 of the return spread, and KL below epsilon. ``converged`` False comes with a
+        warning naming what failed.
 
     Raises:
-        ValueError: on non-finite rewards or features, shape mismatches, N < 2, K < 1,
-            epsilon <= 0 or a negative kappa; each message names the offending value.
+        ValueError, TypeError: on non-finite rewards or features, shape mismatches, N < 2,
+            K < 1, epsilon <= 0, a negative kappa or a bad max_iter; each message names the
+            offending value.
     """
+    opts = checked_settings(max_iter)
     R, eps, lr, kap = common_inputs(
         rewards, epsilon, log_responsibilities, kappa, "rewards", per_step=True
     )
     K, N = R.shape
     phi = check_features("features", features, N, K).transpose(0, 1)  # (K, N, F)
     F = phi.shape[-1]
-    phi1 = (
-        phi[0].mean(dim=0)
-        if initial_features is None
-        else check_feature_vector("initial_features", initial_features, F)
-    )
-    # D[k, i] holds -phi(s_k,i) in slot k and phi(s_{k+1},i) in slot k + 1.
-    D = torch.zeros(K, N, K, F, dtype=torch.float64)
-    steps = torch.arange(K)
-    D[steps, :, steps] = -phi
-    D[steps[:-1], :, steps[1:]] = phi[1:]
-    D[0, :, 0] += phi1
-    sol = solve_blocks(R, lr, eps, D.reshape(K, N, K * F), None, kap, LbfgsSettings(max_iter))
+    phi1 = None
+    if initial_features is not None:
+        phi1 = check_feature_vector("initial_features", initial_features, F)
+    D = _chained_map(phi, phi1)
+    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
     warn_if_collapsed(sol, eps)
     return TimeIndexedDualSolution(
         eta=sol.eta,
@@ -107,3 +112,19 @@ def solve_time_indexed_dual(
         converged=sol.converged,
         iterations=sol.iterations,
     )
+
+
+def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:
+    """D (K, N, K F) of features phi (K, N, F): block k holds -phi(s_k,i) in slot k and
+    phi(s_{k+1},i) in slot k + 1, and block 1 also phi_hat_1 in slot 1 (the sample mean when
+    ``phi1`` is None: then constant columns are exactly 0 there)."""
+    K, N, F = phi.shape
+    D = torch.zeros(K, N, K, F, dtype=torch.float64)
+    steps = torch.arange(K)
+    D[steps, :, steps] = -phi
+    D[steps[:-1], :, steps[1:]] = phi[1:]
+    if phi1 is None:
+        D[0, :, 0] = -centred(phi[0])  # = phi_hat_1 - phi(s_1)
+    else:
+        D[0, :, 0] += phi1
+    return D.reshape(K, N, K * F)

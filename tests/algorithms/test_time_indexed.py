@@ -361,19 +361,21 @@ def test_algorithm_bad_input_names_the_value():
 def test_too_few_episodes_for_the_chained_features_keep_the_kl_bound():
     # 10 episodes against 3 x 5 chained value features: the feature constraints often cannot be
     # met; the solver must then relax them (warning) rather than let the weights collapse
-    # onto one episode (KL = log 10 = 2.3 against epsilon = 1 before the fix).
+    # onto one episode (KL = log 10 = 2.3 against epsilon = 1 before the fix). The KL bound
+    # holds by construction (it measured 1.07 on some of these before the final eta search),
+    # and a solve that is not converged says so with a warning.
     q = QuadraticFeatures(2)
-    worst = 0.0
     for seed in range(20):
         gen = torch.Generator().manual_seed(seed)
         s = torch.randn(10, 3, 2, generator=gen, dtype=torch.float64)
         s = s + torch.tensor([1.5, 0.0], dtype=torch.float64)
         R = 0.5 * torch.randn(10, 3, generator=gen, dtype=torch.float64)
         R[:, -1] += torch.randint(0, 4, (10,), generator=gen)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as record:
+            warnings.simplefilter("always")
             sol = solve_time_indexed_dual(R, q(s), epsilon=1.0)
         assert torch.isfinite(sol.weights).all()
+        assert bool((sol.weights >= 0).all())
         assert torch.allclose(sol.weights.sum(dim=(1, 2)), torch.ones(3, dtype=torch.float64))
-        worst = max(worst, float(sol.kl.max()))
-    assert worst <= 1.05
+        assert float(sol.kl.max()) <= 1.0 * (1 + 1e-6), (seed, sol.kl.tolist())
+        assert sol.converged or any(issubclass(r.category, RuntimeWarning) for r in record)

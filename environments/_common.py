@@ -10,6 +10,7 @@ and actions give the same trajectory in both.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
@@ -20,16 +21,33 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from hireps_torch.checks import as_finite_f64, as_float, check_count
+
 
 def check_fields(obj: object, positive: tuple[str, ...], nonnegative: tuple[str, ...]) -> None:
     """Raise naming the first field of ``obj`` (e.g. a params dataclass) in ``positive`` that
-    is not > 0, then in ``nonnegative`` that is not >= 0 (NaN fails both, inf passes)."""
-    for name in positive:
-        if not getattr(obj, name) > 0:
-            raise ValueError(f"{name} must be > 0, got {getattr(obj, name)}")
-    for name in nonnegative:
-        if not getattr(obj, name) >= 0:
-            raise ValueError(f"{name} must be >= 0, got {getattr(obj, name)}")
+    is not a finite number > 0, then in ``nonnegative`` that is not a finite number >= 0 (NaN
+    and inf fail both: an infinite time step or gain gives NaN physics)."""
+    for names, ok, rule in ((positive, float.__gt__, "> 0"), (nonnegative, float.__ge__, ">= 0")):
+        for name in names:
+            value = as_float(name, getattr(obj, name))
+            if not (math.isfinite(value) and ok(value, 0.0)):
+                raise ValueError(f"{name} must be finite and {rule}, got {getattr(obj, name)}")
+
+
+def check_durations(**values: float) -> None:
+    """Every keyword value a finite number > 0 (seconds, tolerances); the error names it."""
+    for name, value in values.items():
+        v = as_float(name, value)
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be finite and > 0, got {value}")
+
+
+def check_state(state: Tensor, width: int) -> None:
+    """A (B, width) state with finite entries (NaN states would give silent NaN physics)."""
+    if state.dim() != 2 or state.shape[1] != width:
+        raise ValueError(f"state must have shape (B, {width}), got {tuple(state.shape)}")
+    as_finite_f64("state", state)
 
 
 def check_scalar_action(action: Tensor, batch: int, what: str) -> Tensor:
@@ -67,12 +85,10 @@ class BatchedTask:
     action_name: str
 
     def __init__(self, batch: int, seed: int = 0, device: str | torch.device = "cpu") -> None:
-        if batch < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch}")
-        self.batch = batch
+        self.batch = check_count("batch_size", batch, 1)
         self.device = torch.device(device)
         self.gen = torch.Generator()
-        self.gen.manual_seed(int(seed))
+        self.gen.manual_seed(check_count("seed", seed, -(2**63)))
         self.t = torch.zeros(batch, dtype=torch.long, device=self.device)
         self.state = torch.zeros(batch, self.state_dim, dtype=torch.float64, device=self.device)
 
@@ -91,7 +107,7 @@ class BatchedTask:
 
     # ---- shared -----------------------------------------------------------------------------
     def seed(self, seed: int | None) -> None:
-        self.gen.manual_seed(0 if seed is None else int(seed))
+        self.gen.manual_seed(0 if seed is None else check_count("seed", seed, -(2**63)))
 
     def reset(self, mask: Tensor | None = None) -> None:
         """Restart the masked systems (all when ``mask`` is None)."""

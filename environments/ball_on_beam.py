@@ -78,9 +78,12 @@ from environments._common import (
     BatchedTask,
     ScalarActionBatchEnv,
     ScalarActionGymEnv,
+    check_durations,
     check_fields,
     check_scalar_action,
+    check_state,
 )
+from hireps_torch.checks import check_count
 
 __all__ = [
     "BallOnBeamBatchEnv",
@@ -197,8 +200,7 @@ def beam_step(
         it left the beam); path (B, steps_per_decision, 3), the state after each control step
         (held after a fall).
     """
-    if state.dim() != 2 or state.shape[1] != 3:
-        raise ValueError(f"state must have shape (B, 3), got {tuple(state.shape)}")
+    check_state(state, 3)
     off = state[:, 0].abs() > params.half_length
     if bool(off.any()):
         i = int(off.nonzero()[0, 0])
@@ -351,10 +353,10 @@ def evaluate_beam(
         seed: seed of the start noise.
     """
     p = params or BeamParams()
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    n_episodes = check_count("n_episodes", n_episodes, 1)
+    check_durations(hold_seconds=hold_seconds, tolerance=tolerance)
     gen = torch.Generator()
-    gen.manual_seed(int(seed))
+    gen.manual_seed(check_count("seed", seed, -(2**63)))
     sides = torch.where(torch.arange(n_episodes) % 2 == 0, 1.0, -1.0)
     state = sample_start(sides, p, gen)
     returns = torch.zeros(n_episodes, dtype=torch.float64)

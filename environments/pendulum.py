@@ -80,9 +80,12 @@ from environments._common import (
     BatchedTask,
     ScalarActionBatchEnv,
     ScalarActionGymEnv,
+    check_durations,
     check_fields,
     check_scalar_action,
+    check_state,
 )
+from hireps_torch.checks import check_count
 
 __all__ = [
     "PendulumParams",
@@ -121,8 +124,7 @@ class PendulumParams:
     restart_probability: float | None = None  # None: 0.02 / steps_per_decision
 
     def __post_init__(self) -> None:
-        if self.steps_per_decision < 1:
-            raise ValueError(f"steps_per_decision must be >= 1, got {self.steps_per_decision}")
+        check_count("steps_per_decision", self.steps_per_decision, 1)
         check_fields(
             self,
             positive=("mass", "length", "dt", "action_limit"),
@@ -206,8 +208,7 @@ def pendulum_step(
         next_state (B, 2), reward (B,) summed over the d control steps, and the path
         (B, d, 2) of states after each control step.
     """
-    if state.dim() != 2 or state.shape[1] != 2:
-        raise ValueError(f"state must have shape (B, 2), got {tuple(state.shape)}")
+    check_state(state, 2)
     target = check_scalar_action(action, state.shape[0], "desired angle").to(state.dtype)
     target = target.clamp(-params.action_limit, params.action_limit)
     path = []
@@ -255,6 +256,7 @@ def mirror_decisions(
 
 def sample_start(n: int, params: PendulumParams, generator: torch.Generator | None) -> Tensor:
     """n start states hanging down with a perturbation: (n, 2) float64."""
+    n = check_count("n", n, 0)
     noise = torch.randn(n, 2, generator=generator, dtype=torch.float64) * params.start_noise
     return torch.stack([wrap_angle(math.pi + noise[:, 0]), noise[:, 1]], dim=-1)
 
@@ -279,7 +281,9 @@ class PendulumTask(BatchedTask):
     ) -> None:
         self.params = params
         self.action_limit = params.action_limit
-        self.max_decisions = max_decisions
+        self.max_decisions = (
+            None if max_decisions is None else check_count("max_decisions", max_decisions, 1)
+        )
         super().__init__(batch, seed, device)
 
     def start_states(self, mask: Tensor) -> Tensor:
@@ -388,8 +392,11 @@ def evaluate_swing_up(
         seed: seed of the start states.
     """
     p = params or PendulumParams()
+    n_rollouts = check_count("n_rollouts", n_rollouts, 1)
+    check_durations(seconds=seconds, hold_seconds=hold_seconds)
+    check_durations(angle_tol=angle_tol, velocity_tol=velocity_tol)
     gen = torch.Generator()
-    gen.manual_seed(int(seed))
+    gen.manual_seed(check_count("seed", seed, -(2**63)))
     state = sample_start(n_rollouts, p, gen)
     n_decisions = max(1, round(seconds / p.decision_seconds))
     paths = []

@@ -23,12 +23,13 @@ inputs instead of returning NaN.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
-from hireps_torch.checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64, as_float, as_float_tensor, check_count
 
 __all__ = ["ContextualTwoGaussians", "TwoGaussians", "two_gaussians_reward"]
 
@@ -52,6 +53,18 @@ def two_gaussians_reward(theta: Tensor, modes: Tensor, heights: Tensor, width: f
     return (heights * torch.exp(-0.5 * d2 / width**2)).sum(-1)
 
 
+def _floats(name: str, value: Tensor) -> Tensor:
+    """A floating tensor as it is (its dtype kept), anything else (ints, bools) as float64."""
+    if isinstance(value, Tensor) and value.is_floating_point():
+        return value
+    return as_float_tensor(name, value)
+
+
+def _check_width(width: float) -> None:
+    if not (math.isfinite(as_float("width", width)) and width > 0):
+        raise ValueError(f"width must be finite and > 0, got {width}")
+
+
 @dataclass
 class TwoGaussians:
     """Bimodal 2-D objective (see the module docstring); ``__call__(theta (N, 2)) -> (N,)``."""
@@ -63,8 +76,11 @@ class TwoGaussians:
     param_dim: int = 2
     context_dim: int = 0
 
+    def __post_init__(self) -> None:
+        _check_width(self.width)
+
     def __call__(self, theta: Tensor) -> Tensor:
-        t = torch.as_tensor(theta)
+        t = _floats("theta", theta)
         return two_gaussians_reward(t, self.modes.to(t.dtype), self.heights.to(t.dtype), self.width)
 
     @property
@@ -93,13 +109,19 @@ class ContextualTwoGaussians:
             raise ValueError(f"context must have shape (N, 1), got {tuple(s.shape)}")
         return self.offsets.to(s.dtype) + s[:, :, None] * self.slope.to(s.dtype)
 
+    def __post_init__(self) -> None:
+        _check_width(self.width)
+        low, high = self.context_low, self.context_high
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(f"need finite context_low < context_high, got {low}, {high}")
+
     def sample_contexts(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """(n, 1) contexts uniform in [context_low, context_high]."""
-        u = torch.rand(n, 1, generator=generator, dtype=torch.float64)
+        u = torch.rand(check_count("n", n, 0), 1, generator=generator, dtype=torch.float64)
         return self.context_low + (self.context_high - self.context_low) * u
 
     def __call__(self, context: Tensor, theta: Tensor) -> Tensor:
-        t = torch.as_tensor(theta)
+        t = _floats("theta", theta)
         s = torch.as_tensor(context, dtype=t.dtype)
         as_finite_f64("context", s)
         if s.shape[0] != t.shape[0]:

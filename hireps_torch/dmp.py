@@ -72,7 +72,7 @@ import torch
 from torch import Tensor, nn
 
 from hireps_torch._dmp_math import finite_differences, quintic_coefficients, response_from_rest
-from hireps_torch.checks import as_finite_f64, check_positive_float
+from hireps_torch.checks import as_finite_f64, check_count, check_positive_float
 
 __all__ = ["DMP", "DMPTrajectory"]
 
@@ -141,12 +141,8 @@ class DMP(nn.Module):
         width: float = 0.7,
     ) -> None:
         super().__init__()
-        if n_joints < 1:
-            raise ValueError(f"n_joints must be >= 1, got {n_joints}")
-        if n_basis < 2:
-            raise ValueError(f"n_basis must be >= 2, got {n_basis}")
-        self.n_joints = int(n_joints)
-        self.n_basis = int(n_basis)
+        self.n_joints = n_joints = check_count("n_joints", n_joints, 1)
+        self.n_basis = n_basis = check_count("n_basis", n_basis, 2)
         self.alpha_z = check_positive_float("alpha_z", alpha_z)
         self.beta_z = check_positive_float("beta_z", alpha_z / 4.0 if beta_z is None else beta_z)
         self.alpha_x = check_positive_float("alpha_x", alpha_x)

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
+from hireps_torch.checks import as_float_tensor, check_count
+
 __all__ = [
     "ConcatFeatures",
     "FeatureMap",
@@ -24,10 +26,24 @@ __all__ = [
 
 
 class FeatureMap(nn.Module):
-    """Base of the feature maps: ``(..., in_features) -> (..., out_features)``."""
+    """Base of the feature maps: ``(..., in_features) -> (..., out_features)``.
+
+    A state of another width raises a ``ValueError`` naming both widths; bool and integer
+    states are used as float64 (floating states keep their dtype).
+    """
 
     in_features: int
     out_features: int
+
+    def _input(self, x: Tensor) -> Tensor:
+        """x checked for its last dimension, as a floating tensor."""
+        t = x if isinstance(x, Tensor) and x.is_floating_point() else as_float_tensor("x", x)
+        if t.dim() < 1 or t.shape[-1] != self.in_features:
+            raise ValueError(
+                f"{type(self).__name__} takes states of shape (..., {self.in_features}), got "
+                f"{tuple(t.shape)}"
+            )
+        return t
 
     if TYPE_CHECKING:  # nn.Module.__call__ returns Any; a feature map returns a tensor
 
@@ -39,14 +55,12 @@ class IdentityFeatures(FeatureMap):
 
     def __init__(self, in_features: int) -> None:
         super().__init__()
-        if in_features < 0:
-            raise ValueError(f"in_features must be >= 0, got {in_features}")
-        self.in_features = in_features
-        self.out_features = in_features
+        self.in_features = check_count("in_features", in_features, 0)
+        self.out_features = self.in_features
 
     def forward(self, x: Tensor) -> Tensor:
         """x: (..., S) -> (..., S)."""
-        return x
+        return self._input(x)
 
 
 class QuadraticFeatures(FeatureMap):
@@ -62,8 +76,7 @@ class QuadraticFeatures(FeatureMap):
 
     def __init__(self, in_features: int, scale: Tensor | None = None) -> None:
         super().__init__()
-        if in_features < 0:
-            raise ValueError(f"in_features must be >= 0, got {in_features}")
+        in_features = check_count("in_features", in_features, 0)
         self.in_features = in_features
         self.out_features = in_features + in_features * (in_features + 1) // 2
         iu = torch.triu_indices(in_features, in_features)
@@ -72,14 +85,15 @@ class QuadraticFeatures(FeatureMap):
         s = (
             torch.ones(in_features)
             if scale is None
-            else torch.as_tensor(scale, dtype=torch.float32)
+            else as_float_tensor("scale", scale, torch.float32)
         )
-        if s.shape != (in_features,) or bool((s <= 0).any()):
+        if s.shape != (in_features,) or not bool((torch.isfinite(s) & (s > 0)).all()):
             raise ValueError(f"scale must be positive with shape ({in_features},), got {s}")
         self.register_buffer("scale", s.clone())
 
     def forward(self, x: Tensor) -> Tensor:
         """x: (..., S) -> (..., S + S(S+1)/2)."""
+        x = self._input(x)
         z = x / self.scale.to(x.dtype)
         quad = z[..., self._rows] * z[..., self._cols]
         return torch.cat([z, quad], dim=-1)
@@ -121,17 +135,19 @@ class FourierFeatures(FeatureMap):
         coupling: int | None = None,
     ):
         super().__init__()
-        lo = torch.as_tensor(low, dtype=torch.float64).reshape(-1)
-        hi = torch.as_tensor(high, dtype=torch.float64).reshape(-1)
-        if lo.shape != hi.shape or not bool((hi > lo).all()):
-            raise ValueError(f"need high > low elementwise with equal shapes, got {lo}, {hi}")
-        if n_bases < 2:
-            raise ValueError(f"n_bases must be >= 2, got {n_bases}")
+        lo = as_float_tensor("low", low).reshape(-1)
+        hi = as_float_tensor("high", high).reshape(-1)
+        finite = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all())
+        if lo.shape != hi.shape or not finite or not bool((hi > lo).all()):
+            raise ValueError(
+                f"need finite high > low elementwise with equal shapes, got {lo}, {hi}"
+            )
+        n_bases = check_count("n_bases", n_bases, 2)
         S = lo.shape[0]
         per = [False] * S if periodic is None else [bool(p) for p in periodic]
         if len(per) != S:
             raise ValueError(f"periodic must have {S} entries, got {periodic}")
-        if coupling is not None and not 1 <= coupling <= S:
+        if coupling is not None and not 1 <= check_count("coupling", coupling, 1) <= S:
             raise ValueError(f"coupling must be in 1..{S} (or None), got {coupling}")
         coeffs = torch.tensor(
             list(itertools.product(range(n_bases), repeat=S)), dtype=torch.float64
@@ -149,8 +165,7 @@ class FourierFeatures(FeatureMap):
 
     def forward(self, x: Tensor) -> Tensor:
         """x: (..., S) -> (..., out_features)."""
-        if x.shape[-1] != self.in_features:
-            raise ValueError(f"expected (..., {self.in_features}) states, got {tuple(x.shape)}")
+        x = self._input(x)
         u = (x.to(torch.float64) - self.low) / self.width
         phase = math.pi * u @ self.coefficients.T
         out = torch.cat([phase.cos(), phase.sin()], -1) if self.with_sin else phase.cos()
@@ -181,4 +196,5 @@ class ConcatFeatures(FeatureMap):
 
     def forward(self, x: Tensor) -> Tensor:
         """x: (..., S) -> (..., sum of the maps' out_features)."""
+        x = self._input(x)
         return torch.cat([m(x) for m in self.maps], dim=-1)

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase
 
+from hireps_torch.checks import check_count
 from hireps_torch.policies import HierarchicalPolicy
 
 __all__ = [
@@ -61,7 +62,7 @@ class PolicyActor(nn.Module):
         else:
             a, o = self.policy.sample(s)
         return (
-            a.to(observation.dtype).reshape(*lead, -1),
+            a.to(observation.dtype).reshape(*lead, a.shape[-1]),
             o.reshape(lead),
         )
 
@@ -116,7 +117,7 @@ class TimeIndexedActor(nn.Module):
             pol = self.policies[step]
             out = pol.mean_action(s[rows]) if self.deterministic else pol.sample(s[rows])
             a[rows], o[rows] = out[0], out[1]
-        return a.to(observation.dtype).reshape(*lead, -1), o.reshape(lead)
+        return a.to(observation.dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
 
 
 def time_indexed_module(
@@ -156,10 +157,8 @@ def make_collector(
     ``reset_at_each_iter`` restarts every environment at the start of each batch (episodes
     that begin with the batch), otherwise the environments continue across batches.
     """
-    if num_workers < 1:
-        raise ValueError(f"num_workers must be >= 1, got {num_workers}")
-    if frames_per_batch < 1:
-        raise ValueError(f"frames_per_batch must be >= 1, got {frames_per_batch}")
+    num_workers = check_count("num_workers", num_workers, 1)
+    frames_per_batch = check_count("frames_per_batch", frames_per_batch, 1)
     collector: Collector | MultiSyncCollector
     if num_workers == 1:
         collector = Collector(
@@ -223,6 +222,7 @@ def episodes(
     Returns:
         states (N, K, S), actions (N, K, A), rewards (N, K) and final states (N, S), float64.
     """
+    K = check_count("K", K, 1)
     flat = batch.reshape(-1)
     T = flat.shape[0]
     if T % K:

@@ -220,3 +220,12 @@ def test_rollout_follows_in_place_changes_of_weights_and_gains():
     fresh.weights.data.copy_(weights)
     assert (changed - first).abs().max() > 1e-4
     assert torch.allclose(changed, fresh.rollout(g, gd).positions, atol=1e-12)
+
+
+def test_counts_must_be_integers():
+    with pytest.raises(TypeError, match="n_joints must be an integer"):
+        DMP(2.5)
+    with pytest.raises(TypeError, match="n_basis must be an integer"):
+        DMP(2, n_basis=10.0)
+    with pytest.raises(ValueError, match="n_basis must be >= 2"):
+        DMP(2, n_basis=1)

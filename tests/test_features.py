@@ -53,7 +53,7 @@ def test_feature_maps_reject_bad_arguments():
         FourierFeatures([0.0], [0.0])
     with pytest.raises(ValueError, match="n_bases"):
         FourierFeatures([0.0], [1.0], n_bases=1)
-    with pytest.raises(ValueError, match="expected"):
+    with pytest.raises(ValueError, match=r"takes states of shape \(\.\.\., 1\), got \(3, 2\)"):
         FourierFeatures([0.0], [1.0])(torch.zeros(3, 2))
     assert QuadraticFeatures(2)(torch.ones(4, 2)).shape == (4, 5)
 
@@ -70,3 +70,26 @@ def test_concat_features_stack_the_maps_in_order():
         ConcatFeatures(four, QuadraticFeatures(3))
     with pytest.raises(ValueError, match="at least one"):
         ConcatFeatures()
+
+
+def test_feature_maps_check_widths_dtypes_and_arguments():
+    from hireps_torch.features import IdentityFeatures
+
+    quad, four = QuadraticFeatures(2), FourierFeatures([0.0, 0.0], [1.0, 2.0], n_bases=3)
+    for fmap in (quad, four, IdentityFeatures(2), ConcatFeatures(quad, four)):
+        name = type(fmap).__name__
+        with pytest.raises(
+            ValueError, match=rf"{name} takes states of shape \(\.\.\., 2\), got \(3, 3\)"
+        ):
+            fmap(torch.zeros(3, 3))
+        ints = torch.ones(4, 2, dtype=torch.long)  # integer states are used as float64
+        assert torch.equal(fmap(ints), fmap(ints.double()))
+        assert fmap(ints).dtype == torch.float64
+    with pytest.raises(ValueError, match="scale must be positive"):
+        QuadraticFeatures(2, scale=torch.tensor([math.nan, 1.0]))
+    with pytest.raises(ValueError, match="finite high > low"):
+        FourierFeatures([0.0], [math.inf])
+    with pytest.raises(TypeError, match="coupling must be an integer"):
+        FourierFeatures([0.0, 0.0], [1.0, 1.0], coupling=1.5)
+    with pytest.raises(TypeError, match="in_features must be an integer"):
+        QuadraticFeatures(2.0)

@@ -132,3 +132,21 @@ def test_time_indexed_actor_rejects_float_steps_and_mixed_dimensions():
     )
     with pytest.raises(ValueError, match="step_count must be an integer tensor"):
         actor(td)
+
+
+def test_episodes_need_a_positive_episode_length():
+    batch = TensorDict({}, batch_size=[4])
+    for K, error in ((0, ValueError), (-2, ValueError), (2.0, TypeError)):
+        with pytest.raises(error, match="K must be"):
+            episodes(batch, K)
+
+
+def test_actors_take_an_empty_batch():
+    pol = HierarchicalPolicy.create(2, 1, 3, generator=torch.Generator().manual_seed(0))
+    for module in (policy_module(pol), time_indexed_module([pol, pol])):
+        td = TensorDict(
+            {"observation": torch.zeros(0, 1), "step_count": torch.zeros(0, 1, dtype=torch.long)},
+            batch_size=[0],
+        )
+        out = module(td)
+        assert out["action"].shape == (0, 3) and out["option"].shape == (0,)

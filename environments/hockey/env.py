@@ -80,7 +80,7 @@ from torch import Tensor
 
 from environments.hockey.params import HockeyParams
 from environments.hockey.sim import HockeySim, demo_action
-from hireps_torch.checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64, check_count
 
 __all__ = [
     "ENV_ID",
@@ -173,8 +173,7 @@ class RobotHockeyEnv(gym.Env):
         gui: bool = False,
         frame_every: int = 0,
     ) -> None:
-        if frame_every < 0:
-            raise ValueError(f"frame_every must be >= 0, got {frame_every}")
+        frame_every = check_count("frame_every", frame_every, 0)
         self.frame_every = frame_every if render_mode == "rgb_array" else 0
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")

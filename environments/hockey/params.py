@@ -7,6 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from environments.hockey.kinematics import ArmGeometry
+from hireps_torch.checks import check_count
 
 __all__ = ["HockeyParams"]
 
@@ -99,12 +100,13 @@ class HockeyParams:
             raise ValueError(
                 f"HockeyParams.target_mean must be 2 finite numbers, got {self.target_mean}"
             )
-        if self.dmp_basis < 2:
-            raise ValueError(f"HockeyParams.dmp_basis must be >= 2, got {self.dmp_basis}")
-        if self.n_shots < 1:
-            raise ValueError(f"HockeyParams.n_shots must be >= 1, got {self.n_shots}")
-        if list(self.zones) != sorted(self.zones) or len(self.zones) != 4:
-            raise ValueError(f"HockeyParams.zones must be 4 increasing edges, got {self.zones}")
+        check_count("HockeyParams.dmp_basis", self.dmp_basis, 2)
+        check_count("HockeyParams.n_shots", self.n_shots, 1)
+        zones = list(self.zones)
+        if len(zones) != 4 or not all(math.isfinite(z) for z in zones) or zones != sorted(zones):
+            raise ValueError(
+                f"HockeyParams.zones must be 4 finite increasing edges, got {self.zones}"
+            )
 
     @property
     def control_start(self) -> tuple[float, float]:

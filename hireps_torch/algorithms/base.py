@@ -13,6 +13,7 @@ seeded sampling generator, the iteration count and their checkpoint entries);
 
 from __future__ import annotations
 
+import numbers
 import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -21,7 +22,14 @@ from typing import TYPE_CHECKING, Any, Protocol, TypedDict, runtime_checkable
 import torch
 from torch import Tensor
 
-from hireps_torch.checks import check_nonnegative_float
+from hireps_torch.checks import (
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_nonnegative_float,
+    check_positive_float,
+)
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -33,9 +41,14 @@ __all__ = [
     "Experience",
     "HiREPSBase",
     "PolicyKwargs",
+    "check_epsilons",
     "check_experience",
+    "check_state_keys",
     "check_step",
+    "check_prune_threshold",
+    "check_saved_values",
     "fresh_policies",
+    "next_seed",
     "seeded_generator",
 ]
 
@@ -96,7 +109,11 @@ class Algorithm(Protocol):
         ...
 
     def learn(self, experience: Experience) -> dict[str, Any]:
-        """One policy update from samples drawn with the current policies; diagnostics."""
+        """One policy update from samples drawn with the current policies; diagnostics.
+
+        Either completes or, raising (bad input, a failing dual or refit), changes nothing;
+        rewards without information leave the policies where they are (``refitted`` False).
+        """
         ...
 
     def state_dict(self) -> dict[str, Any]:
@@ -104,7 +121,8 @@ class Algorithm(Protocol):
         ...
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore what :meth:`state_dict` returned."""
+        """Restore what :meth:`state_dict` returned; a state that does not fit (another
+        variant, number of options or dimension, a missing key) raises and changes nothing."""
         ...
 
 
@@ -132,10 +150,16 @@ class PolicyKwargs(TypedDict, total=False):
 
 
 def seeded_generator(seed: int | None) -> torch.Generator:
-    """A CPU generator seeded with ``seed`` (0 when None)."""
+    """A CPU generator seeded with ``seed`` (0 when None); a non-integer seed raises a
+    ``TypeError`` naming it."""
     gen = torch.Generator()
-    gen.manual_seed(0 if seed is None else int(seed))
+    gen.manual_seed(0 if seed is None else check_count("seed", seed, -(2**63)))
     return gen
+
+
+def next_seed(seed: int | None) -> int | None:
+    """The seed of the sampling generator of a ``create``d algorithm: ``seed + 1``."""
+    return None if seed is None else check_count("seed", seed, -(2**63)) + 1
 
 
 def fresh_policies(
@@ -176,6 +200,8 @@ def fresh_policies(
 def check_step(step: int, n_steps: int) -> int:
     """``step`` as an int in [0, n_steps); a ValueError naming the range otherwise."""
     try:
+        if isinstance(step, bool):
+            raise TypeError
         k = operator.index(step)
     except TypeError:
         raise ValueError(f"step must be an integer in [0, {n_steps}), got {step!r}") from None
@@ -237,19 +263,54 @@ def check_experience(
     return N
 
 
+def check_state_keys(state: object, required: set[str], algorithm: str) -> Mapping[str, Any]:
+    """``state`` as a mapping with exactly the ``required`` keys (plus, optionally,
+    ``generator``); a ``ValueError`` naming the missing and unexpected keys, and the variant
+    that seems to have written it, otherwise (before anything is loaded)."""
+    if not isinstance(state, Mapping):
+        raise TypeError(f"{algorithm}.load_state_dict takes a mapping, got {type(state).__name__}")
+    keys = set(state)
+    missing, unexpected = sorted(required - keys), sorted(keys - required - {"generator"})
+    if missing or unexpected:
+        writer = (
+            "TimeIndexedHiREPS"
+            if "policies" in keys
+            else "InfiniteHorizonHiREPS"
+            if "gamma" in keys
+            else "EpisodicHiREPS / REPS"
+            if "policy" in keys
+            else "an unknown writer"
+        )
+        raise ValueError(
+            f"{algorithm}.load_state_dict: this state does not fit (missing keys {missing}, "
+            f"unexpected keys {unexpected}); it looks like a checkpoint of {writer}"
+        )
+    return state
+
+
+@dataclass(frozen=True)
+class _Shared:
+    """The checked shared entries of a checkpoint."""
+
+    generator: Tensor | None
+    iteration: int
+    kappa_rel: float | None
+
+
 class HiREPSBase:
     """Bookkeeping shared by the variants.
 
     Holds ``kappa_rel`` (checked), ``prune_threshold``, the sampling ``generator`` (seeded with
     ``seed``, 0 when None) and the ``iteration`` count, and writes / restores them in the
-    checkpoint next to what each variant learns (:meth:`_state`, :meth:`_load_state`).
+    checkpoint next to what each variant learns (:meth:`_state`; :meth:`_check_shared`, then
+    :meth:`_set_shared`).
     """
 
     def __init__(
         self, *, kappa_rel: float | None, prune_threshold: float, seed: int | None
     ) -> None:
         self.kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
-        self.prune_threshold = float(prune_threshold)
+        self.prune_threshold = check_prune_threshold(prune_threshold)
         self.generator = seeded_generator(seed)
         self.iteration = 0
 
@@ -262,10 +323,63 @@ class HiREPSBase:
             "kappa_rel": self.kappa_rel,
         }
 
-    def _load_state(self, state: Mapping[str, Any]) -> None:
-        """Restore the shared entries of :meth:`_state` (a checkpoint without a generator, as
-        the infinite-horizon variant wrote before it had one, keeps the current one)."""
-        if "generator" in state:
-            self.generator.set_state(state["generator"])
-        self.iteration = int(state["iteration"])
-        self.kappa_rel = state["kappa_rel"]
+    def _check_shared(self, state: Mapping[str, Any]) -> _Shared:
+        """The shared entries of :meth:`_state`, checked (nothing is set)."""
+        gen = state.get("generator")
+        if gen is not None:
+            try:
+                torch.Generator().set_state(gen)
+            except (RuntimeError, TypeError) as exc:
+                msg = f"the state's generator is not a CPU generator state: {exc}"
+                raise ValueError(msg) from None
+        iteration = check_count("iteration", state["iteration"], 0)
+        kappa_rel = check_nonnegative_float("kappa_rel", state["kappa_rel"])
+        return _Shared(gen, iteration, kappa_rel)
+
+    def _set_shared(self, shared: _Shared) -> None:
+        """Set what :meth:`_check_shared` returned (a checkpoint without a generator, as the
+        infinite-horizon variant wrote before it had one, keeps the current one)."""
+        if shared.generator is not None:
+            self.generator.set_state(shared.generator)
+        self.iteration = shared.iteration
+        self.kappa_rel = shared.kappa_rel
+
+
+def check_epsilons(epsilon: object, K: int) -> list[float]:
+    """epsilon (one number, a 0-d tensor, or K numbers, e.g. a (K,) tensor) as K floats > 0;
+    the error names the bad entry, or the expected and given count."""
+    shape = getattr(epsilon, "shape", None)
+    if isinstance(epsilon, numbers.Real | bool) or (shape is not None and len(shape) == 0):
+        return [check_positive_float("epsilon", epsilon)] * K  # type: ignore[arg-type]
+    try:
+        items = list(epsilon)  # type: ignore[call-overload]
+    except TypeError:
+        raise TypeError(
+            f"epsilon must be a float or {K} floats, got {type(epsilon).__name__}"
+        ) from None
+    if len(items) != K:
+        raise ValueError(
+            f"epsilon must be finite and > 0, one float or {K} (one per step), got {epsilon}"
+        )
+    return [check_positive_float(f"epsilon[{k}]", e) for k, e in enumerate(items)]
+
+
+def check_saved_values(saved: object, current: Tensor) -> Tensor:
+    """A checkpoint's value weights, checked against the ``current`` ones: a float64 copy of
+    the same shape (both shapes named otherwise: other value features or steps) and finite."""
+    v = as_float_tensor("value_weights", saved).clone()
+    if v.shape != current.shape:
+        raise ValueError(
+            f"value_weights: saved {tuple(v.shape)}, expected {tuple(current.shape)} (a "
+            "checkpoint with other value features or another number of steps?)"
+        )
+    check_finite("value_weights", v, "")
+    return v
+
+
+def check_prune_threshold(value: float) -> float:
+    """A prior mass in [0, 1) below which options are pruned (0: never), as a float."""
+    threshold = as_float("prune_threshold", value)
+    if not 0.0 <= threshold < 1.0:
+        raise ValueError(f"prune_threshold must be in [0, 1) (0: never prune), got {value}")
+    return threshold

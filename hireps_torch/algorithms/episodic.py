@@ -27,16 +27,24 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import option_bound, refit_and_report
+from hireps_torch.algorithms._options import apply_refit, option_bound, plan_refit
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
     PolicyKwargs,
     check_experience,
+    check_state_keys,
     check_step,
     fresh_policies,
+    next_seed,
 )
-from hireps_torch.checks import as_finite_f64, check_positive_float
+from hireps_torch.checks import (
+    as_finite_f64,
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_positive_float,
+)
 from hireps_torch.dual import solve_episodic_dual
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
@@ -67,6 +75,11 @@ class EpisodicHiREPS(HiREPSBase):
             squared expansion of the context (first and second moments).
         prune_threshold: options whose prior mass falls below this are pruned.
         seed: seed of the sampling generator (same seed, same run).
+
+    ``tell`` and ``load_state_dict`` check all their inputs first and then either complete or
+    leave the algorithm (policy, generator, iteration) exactly as it was. Returns without
+    information (all equal) leave the policy where it is (see
+    :mod:`hireps_torch.algorithms._options`).
     """
 
     def __init__(
@@ -82,8 +95,19 @@ class EpisodicHiREPS(HiREPSBase):
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
         super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
-        if context_dim < 0:
-            raise ValueError(f"context_dim must be >= 0, got {context_dim}")
+        context_dim = check_count("context_dim", context_dim, 0)
+        if not isinstance(policy, HierarchicalPolicy):
+            raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
+        if policy.context_dim != context_dim:
+            raise ValueError(
+                f"the policy takes contexts of dimension {policy.context_dim} but context_dim = "
+                f"{context_dim}"
+            )
+        if context_features is not None and context_features.in_features != context_dim:
+            raise ValueError(
+                f"context_features take contexts of dimension {context_features.in_features}, "
+                f"not context_dim = {context_dim}"
+            )
         self.policy = policy
         self.context_dim = context_dim
         self.context_features = context_features or (
@@ -129,29 +153,66 @@ class EpisodicHiREPS(HiREPSBase):
             epsilon=epsilon,
             kappa_rel=kappa_rel,
             context_dim=context_dim,
-            seed=None if seed is None else int(seed) + 1,
+            seed=next_seed(seed),
         )
 
     # ---- input handling ---------------------------------------------------------------------
     def _contexts(self, contexts: Tensor | int | None, n: int | None = None) -> Tensor:
-        if contexts is None or isinstance(contexts, int):
+        """Contexts (N, S) as checked float64, from a tensor, or from a count / None without
+        context (``n``: the number of samples that None stands for)."""
+        if _is_count(contexts):
             if self.context_dim > 0:
                 raise ValueError(
                     f"this algorithm is contextual (context_dim = {self.context_dim}): pass a "
                     f"(N, {self.context_dim}) tensor of contexts, got {contexts!r}"
                 )
-            count = contexts if isinstance(contexts, int) else n
+            count = n if contexts is None else check_count("the number of samples", contexts, 1)
             if count is None or count < 1:
                 raise ValueError(f"the number of samples must be >= 1, got {count}")
             return torch.zeros(count, 0, dtype=torch.float64)
-        c = torch.as_tensor(contexts, dtype=torch.float64)
+        c = as_float_tensor("contexts", contexts, device=torch.device("cpu"))
         if c.dim() == 1 and self.context_dim == 1:
             c = c[:, None]
         if c.dim() != 2 or c.shape[1] != self.context_dim:
-            raise ValueError(
-                f"contexts must have shape (N, {self.context_dim}), got {tuple(c.shape)}"
+            hint = (
+                " (this algorithm has no context: pass the number of samples, or None to tell)"
+                if self.context_dim == 0
+                else ""
             )
-        return as_finite_f64("contexts", c)
+            raise ValueError(
+                f"contexts must have shape (N, {self.context_dim}), got {tuple(c.shape)}{hint}"
+            )
+        if c.shape[0] < 1:
+            raise ValueError(f"contexts must hold at least one context, got {tuple(c.shape)}")
+        as_finite_f64("contexts", c)
+        return c
+
+    def _samples(
+        self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Checked float64 contexts (N, S), params (N, D) and returns (N,) for :meth:`tell`."""
+        D = self.policy.action_dim
+        cpu = torch.device("cpu")
+        theta = as_float_tensor("params", params, device=cpu)
+        R = as_float_tensor("returns", returns, device=cpu)
+        if R.dim() != 1:
+            n = f"({theta.shape[0]},)" if theta.dim() == 2 else "(N,)"
+            raise ValueError(
+                f"returns must have shape {n} (one return per row of params "
+                f"{tuple(theta.shape)}), got {tuple(R.shape)}"
+            )
+        N = R.shape[0]
+        if theta.shape != (N, D):
+            raise ValueError(
+                f"params must have shape ({N}, {D}) to match returns {tuple(R.shape)}, got "
+                f"{tuple(theta.shape)}"
+            )
+        check_finite("returns", R)
+        as_finite_f64("params", theta)
+        c = self._contexts(contexts, n=N)
+        if c.shape[0] != N:
+            raise ValueError(f"got {c.shape[0]} contexts for {N} params and returns")
+        return c, theta, R
 
     # ---- ask / tell -------------------------------------------------------------------------
     @torch.no_grad()
@@ -159,7 +220,8 @@ class EpisodicHiREPS(HiREPSBase):
         """Sample one parameter vector per context.
 
         Args:
-            contexts: (N, S) contexts, or the number of samples N when there is no context.
+            contexts: (N, S) contexts, or the number of samples N >= 1 when there is no
+                context.
 
         Returns:
             theta: (N, D) float64.
@@ -179,33 +241,24 @@ class EpisodicHiREPS(HiREPSBase):
     ) -> dict[str, Any]:
         """Update the policy from evaluated samples drawn from the current policy.
 
+        Everything (dual, refit) is computed before the policy changes: a bad input or a
+        failing refit raises and leaves the algorithm as it was.
+
         Args:
             contexts: (N, S) contexts of the samples (None or N without context).
             params: (N, D) parameters returned by :meth:`ask`.
-            returns: (N,) their returns (higher is better).
+            returns: (N,) their returns (higher is better); exactly (N,): an (N, 1) or
+                (1, N) tensor is refused.
 
         Returns:
             Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
             option_entropy`` (mean responsibility entropy before the update),
             ``policy_entropy`` (weighted mean entropy of the options after the update),
-            ``n_active_options, pruned, mean_return, max_return, dual_converged,
+            ``n_active_options, pruned, refitted`` (False: the returns carried no information
+            and the policy was left as it is), ``mean_return, max_return, dual_converged,
             dual_iterations, feature_error, iteration``.
         """
-        R = torch.as_tensor(returns, dtype=torch.float64)
-        theta = torch.as_tensor(params, dtype=torch.float64)
-        if R.dim() != 1:
-            raise ValueError(f"returns must have shape (N,), got {tuple(R.shape)}")
-        N = R.shape[0]
-        if theta.shape != (N, self.policy.action_dim):
-            raise ValueError(
-                f"params must have shape ({N}, {self.policy.action_dim}) to match returns "
-                f"{tuple(R.shape)}, got {tuple(theta.shape)}"
-            )
-        as_finite_f64("params", theta)
-        c = self._contexts(contexts, n=N)
-        if c.shape[0] != N:
-            raise ValueError(f"got {c.shape[0]} contexts for {N} returns")
-
+        c, theta, R = self._samples(contexts, params, returns)
         bound = option_bound(self.policy, c, theta, self.kappa_rel)
         phi = self.context_features(c) if self.context_features is not None else None
         sol = solve_episodic_dual(
@@ -215,7 +268,8 @@ class EpisodicHiREPS(HiREPSBase):
             context_features=phi,
             kappa=bound.kappa,
         )
-        report = refit_and_report(self.policy, c, theta, sol, bound, self.prune_threshold)
+        refit = plan_refit(self.policy, c, theta, sol, bound)
+        report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1
         return {
             "iteration": self.iteration,
@@ -254,9 +308,27 @@ class EpisodicHiREPS(HiREPSBase):
         return self._state(policy=self.policy.state_dict(), epsilon=self.epsilon)
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s output; everything is checked first (a checkpoint of
+        another variant, number of options or dimension raises, naming it), nothing is
+        changed unless all of it loads."""
+        name = type(self).__name__
+        state = check_state_keys(state, {"policy", "epsilon", "iteration", "kappa_rel"}, name)
+        self.policy.check_state_dict(state["policy"])
+        epsilon = check_positive_float("epsilon", state["epsilon"])
+        shared = self._check_shared(state)
         self.policy.load_state_dict(state["policy"])
-        self._load_state(state)
-        self.epsilon = float(state["epsilon"])
+        self._set_shared(shared)
+        self.epsilon = epsilon
+
+
+def _is_count(contexts: object) -> bool:
+    """None, or one number (an int, a 0-d tensor), stands for a count of context-free samples."""
+    if contexts is None:
+        return True
+    if isinstance(contexts, list | tuple):
+        return False
+    shape = getattr(contexts, "shape", None)
+    return shape is None or len(shape) == 0
 
 
 class REPS(EpisodicHiREPS):

@@ -30,16 +30,26 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import option_bound, refit_and_report
+from hireps_torch.algorithms._options import apply_refit, option_bound, plan_refit
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
     PolicyKwargs,
     check_experience,
+    check_saved_values,
+    check_state_keys,
     check_step,
     fresh_policies,
+    next_seed,
 )
-from hireps_torch.checks import as_finite_f64, check_positive_float
+from hireps_torch.checks import (
+    as_finite_f64,
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_positive_float,
+)
 from hireps_torch.dual import solve_infinite_horizon_dual
 from hireps_torch.features import FeatureMap
 from hireps_torch.policies import HierarchicalPolicy
@@ -70,6 +80,10 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         kappa_rel: entropy bound as a fraction of the current mean option entropy; None: off.
         prune_threshold: options whose prior mass falls below this are pruned (0: never).
         seed: seed of the generator of :meth:`sample` (None: 0). The update draws nothing.
+
+    ``update`` / ``learn`` and ``load_state_dict`` check all their inputs first and then either
+    complete or leave the algorithm exactly as it was; rewards without information (all
+    equal) leave the policy where it is (see :mod:`hireps_torch.algorithms._options`).
     """
 
     def __init__(
@@ -85,19 +99,20 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         seed: int | None = None,
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
-        if not (math.isfinite(gamma) and 0.0 < gamma < 1.0):
-            raise ValueError(f"gamma must be in (0, 1), got {gamma}")
+        self.gamma = _check_gamma(gamma)
         super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
-        s0 = torch.as_tensor(initial_states, dtype=torch.float64)
-        if s0.dim() != 2 or s0.shape[1] != value_features.in_features or s0.shape[0] < 1:
+        if not isinstance(policy, HierarchicalPolicy):
+            raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
+        S = value_features.in_features
+        if policy.context_dim != S:
             raise ValueError(
-                f"initial_states must have shape (M, {value_features.in_features}), got "
-                f"{tuple(s0.shape)}"
+                f"the policy takes states of dimension {policy.context_dim} but the value "
+                f"features take S = {S}"
             )
         self.policy = policy
         self.value_features = value_features
+        s0 = self._states(initial_states, "initial_states")
         self.initial_features = value_features(s0).mean(0)
-        self.gamma = float(gamma)
         self.value_weights = torch.zeros(value_features.out_features, dtype=torch.float64)
 
     @classmethod
@@ -139,8 +154,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 min_variance, covariance_prior`` (see
                 :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
-        if state_dim < 1:
-            raise ValueError(f"state_dim must be >= 1, got {state_dim}")
+        state_dim = check_count("state_dim", state_dim, 1)
         if value_features.in_features != state_dim:
             raise ValueError(
                 f"value_features take states of dimension {value_features.in_features}, "
@@ -157,14 +171,52 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             epsilon=epsilon,
             kappa_rel=kappa_rel,
             prune_threshold=prune_threshold,
-            seed=None if seed is None else int(seed) + 1,
+            seed=next_seed(seed),
         )
 
     def value(self, states: Tensor) -> Tensor:
         """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,)."""
-        return self.value_features(torch.as_tensor(states, dtype=torch.float64)) @ (
-            self.value_weights
-        )
+        return self.value_features(self._states(states)) @ self.value_weights
+
+    def _transitions(
+        self,
+        states: Tensor,
+        actions: Tensor,
+        rewards: Tensor,
+        next_states: Tensor,
+        terminated: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+        """Checked float64 states, actions, rewards (exactly (N,)), next states and the
+        optional (N,) bool terminated flags of :meth:`update`."""
+        s = self._states(states)
+        N, A = s.shape[0], self.policy.action_dim
+        if N < 2:
+            raise ValueError(f"the update needs at least 2 decisions, got states {tuple(s.shape)}")
+        a = as_float_tensor("actions", actions, device=torch.device("cpu"))
+        if a.shape != (N, A):
+            raise ValueError(f"actions must have shape ({N}, {A}), got {tuple(a.shape)}")
+        as_finite_f64("actions", a)
+        R = as_float_tensor("rewards", rewards, device=torch.device("cpu"))
+        if R.shape != (N,):
+            raise ValueError(
+                f"rewards must have shape ({N},) (one per decision of states {tuple(s.shape)}), "
+                f"got {tuple(R.shape)}"
+            )
+        check_finite("rewards", R)
+        s_next = self._states(next_states, "next_states")
+        if s_next.shape != s.shape:
+            raise ValueError(
+                f"next_states must have shape {tuple(s.shape)}, got {tuple(s_next.shape)}"
+            )
+        term = None
+        if terminated is not None:
+            term = torch.as_tensor(terminated)
+            if term.shape != (N,) or term.dtype != torch.bool:
+                raise ValueError(
+                    f"terminated must be a bool tensor of shape ({N},), got {term.dtype} "
+                    f"{tuple(term.shape)}"
+                )
+        return s, a, R, s_next, term
 
     @torch.no_grad()
     def update(
@@ -177,10 +229,13 @@ class InfiniteHorizonHiREPS(HiREPSBase):
     ) -> dict[str, Any]:
         """One policy update from transitions sampled with the current policy.
 
+        Everything (dual, refit) is computed before anything changes: a bad input or a
+        failing refit raises and leaves the algorithm as it was.
+
         Args:
             states: (N, S) states where the decisions were taken.
             actions: (N, A) actions taken.
-            rewards: (N,) reward of each decision.
+            rewards: (N,) reward of each decision (exactly (N,): (N, 1) is refused).
             next_states: (N, S) states reached (before any restart).
             terminated: optional (N,) bool, the decision ended the episode in a terminal state
                 (e.g. a ball that fell off). The process then restarts for sure, so the next
@@ -189,24 +244,13 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
         Returns:
             Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
-            option_entropy, policy_entropy, n_active_options, pruned, mean_reward,
-            feature_error, dual_converged, dual_iterations, iteration``.
+            option_entropy, policy_entropy, n_active_options, pruned, refitted`` (False: no
+            information, the policy was left as it is), ``mean_reward, feature_error,
+            dual_converged, dual_iterations, iteration``.
         """
-        R = torch.as_tensor(rewards, dtype=torch.float64).reshape(-1)
-        N = R.shape[0]
-        S = self.value_features.in_features
-        s = as_finite_f64("states", states, (N, S))
-        s_next = as_finite_f64("next_states", next_states, (N, S))
-        a = as_finite_f64("actions", actions, (N, self.policy.action_dim))
-
+        s, a, R, s_next, term = self._transitions(states, actions, rewards, next_states, terminated)
         next_features = self.value_features(s_next)
-        if terminated is not None:
-            term = torch.as_tensor(terminated).reshape(-1)
-            if term.shape != (N,) or term.dtype != torch.bool:
-                raise ValueError(
-                    f"terminated must be a bool tensor of shape ({N},), got {term.dtype} "
-                    f"{tuple(term.shape)}"
-                )
+        if term is not None:
             next_features = torch.where(term[:, None], self.initial_features, next_features)
         bound = option_bound(self.policy, s, a, self.kappa_rel)
         sol = solve_infinite_horizon_dual(
@@ -219,8 +263,9 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             log_responsibilities=bound.log_responsibilities,
             kappa=bound.kappa,
         )
+        refit = plan_refit(self.policy, s, a, sol, bound)
         self.value_weights = sol.v.clone()
-        report = refit_and_report(self.policy, s, a, sol, bound, self.prune_threshold)
+        report = apply_refit(self.policy, s, refit, self.prune_threshold)
         self.iteration += 1
         return {"iteration": self.iteration, **report, "mean_reward": float(R.mean())}
 
@@ -230,12 +275,16 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         """The one policy, as the interface's one-entry sequence."""
         return (self.policy,)
 
-    def _states(self, states: Tensor) -> Tensor:
+    def _states(self, states: Tensor, name: str = "states") -> Tensor:
+        """States (N, S), N >= 1, as checked float64."""
         S = self.value_features.in_features
-        s = torch.as_tensor(states, dtype=torch.float64)
+        s = as_float_tensor(name, states, device=torch.device("cpu"))
         if s.dim() != 2 or s.shape[1] != S:
-            raise ValueError(f"states must have shape (N, {S}), got {tuple(s.shape)}")
-        return as_finite_f64("states", s)
+            raise ValueError(f"{name} must have shape (N, {S}), got {tuple(s.shape)}")
+        if s.shape[0] < 1:
+            raise ValueError(f"{name} must hold at least one state, got {tuple(s.shape)}")
+        as_finite_f64(name, s)
+        return s
 
     @torch.no_grad()
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
@@ -274,8 +323,27 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         )
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s output; everything is checked first (a checkpoint of
+        another variant, number of options or dimension raises, naming it), nothing is
+        changed unless all of it loads. A checkpoint without a generator (written before the
+        variant had one) keeps the current generator."""
+        keys = {"policy", "value_weights", "gamma", "epsilon", "iteration", "kappa_rel"}
+        state = check_state_keys(state, keys, type(self).__name__)
+        self.policy.check_state_dict(state["policy"])
+        v = check_saved_values(state["value_weights"], self.value_weights)
+        gamma = _check_gamma(state["gamma"])
+        epsilon = check_positive_float("epsilon", state["epsilon"])
+        shared = self._check_shared(state)
         self.policy.load_state_dict(state["policy"])
-        self.value_weights = state["value_weights"].clone()
-        self._load_state(state)
-        self.gamma = float(state["gamma"])
-        self.epsilon = float(state["epsilon"])
+        self.value_weights = v
+        self._set_shared(shared)
+        self.gamma = gamma
+        self.epsilon = epsilon
+
+
+def _check_gamma(gamma: float) -> float:
+    """gamma in (0, 1) as a float."""
+    g = as_float("gamma", gamma)
+    if not (math.isfinite(g) and 0.0 < g < 1.0):
+        raise ValueError(f"gamma must be in (0, 1), got {gamma}")
+    return g

@@ -31,23 +31,31 @@ Steps are indexed k = 0..K-1 in the code (1..K in the equations above).
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import OptionBound, option_bound, refit_and_report
+from hireps_torch.algorithms._options import apply_refit, option_bound, plan_refit, stack_bounds
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
     PolicyKwargs,
+    check_epsilons,
     check_experience,
+    check_saved_values,
+    check_state_keys,
     check_step,
     fresh_policies,
+    next_seed,
 )
-from hireps_torch.checks import as_finite_f64
+from hireps_torch.checks import (
+    as_finite_f64,
+    as_float_tensor,
+    check_count,
+    check_finite,
+)
 from hireps_torch.dual import solve_time_indexed_dual
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
@@ -69,6 +77,7 @@ _PER_STEP = (
     "policy_entropy",
     "n_active_options",
     "pruned",
+    "refitted",
 )
 
 
@@ -100,6 +109,12 @@ class TimeIndexedHiREPS(HiREPSBase):
             entropy of the responsibilities (0.8-0.9 in the paper); None disables the bound.
         prune_threshold: options whose prior mass falls below this are pruned (0: never).
         seed: seed of the sampling generator (same seed, same run).
+
+    ``tell`` / ``learn`` and ``load_state_dict`` check all their inputs first and then either
+    complete or leave the algorithm exactly as it was (every step's refit is computed before
+    any policy changes). A step whose weights carry no information (all rewards equal: the
+    dual keeps its old distribution) leaves its policy where it is (see
+    :mod:`hireps_torch.algorithms._options`).
     """
 
     def __init__(
@@ -115,14 +130,14 @@ class TimeIndexedHiREPS(HiREPSBase):
         K = len(policies)
         if K < 1:
             raise ValueError("policies must hold one policy per decision step (K >= 1), got 0")
-        eps = [float(e) for e in ([epsilon] * K if isinstance(epsilon, float | int) else epsilon)]
-        if len(eps) != K or not all(math.isfinite(e) and e > 0 for e in eps):
-            raise ValueError(
-                f"epsilon must be finite and > 0, one float or {K} (one per step), got {epsilon}"
-            )
+        eps = check_epsilons(epsilon, K)
         super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         S = value_features.in_features
         for k, pol in enumerate(policies):
+            if not isinstance(pol, HierarchicalPolicy):
+                raise TypeError(
+                    f"policy {k} must be a HierarchicalPolicy, got {type(pol).__name__}"
+                )
             dims = (pol.gating_features.in_features, pol.policy_features.in_features)
             if dims != (S, S):
                 raise ValueError(
@@ -172,13 +187,12 @@ class TimeIndexedHiREPS(HiREPSBase):
                 the state by default), ``policy_features, min_variance, covariance_prior``
                 (see :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
-        if K < 1:
-            raise ValueError(f"K (the number of decision steps) must be >= 1, got {K}")
-        if context_dim < 1:
-            raise ValueError(f"context_dim (the state dimension) must be >= 1, got {context_dim}")
+        K = check_count("K (the number of decision steps)", K, 1)
+        context_dim = check_count("context_dim (the state dimension)", context_dim, 1)
+        param_dim = check_count("param_dim", param_dim, 1)
         mean = torch.zeros(K, param_dim, dtype=torch.float64)
         if init_mean is not None:
-            m = torch.as_tensor(init_mean, dtype=torch.float64)
+            m = as_float_tensor("init_mean", init_mean)
             if m.shape not in ((param_dim,), (K, param_dim)):
                 raise ValueError(
                     f"init_mean must have shape (D,) = ({param_dim},) or (K, D) = "
@@ -193,7 +207,7 @@ class TimeIndexedHiREPS(HiREPSBase):
             value_features or QuadraticFeatures(context_dim),
             epsilon=epsilon,
             kappa_rel=kappa_rel,
-            seed=None if seed is None else int(seed) + 1,
+            seed=next_seed(seed),
         )
 
     @property
@@ -207,12 +221,32 @@ class TimeIndexedHiREPS(HiREPSBase):
 
     def _contexts(self, contexts: Tensor) -> Tensor:
         S = self.value_features.in_features
-        c = torch.as_tensor(contexts, dtype=torch.float64)
+        c = as_float_tensor("contexts", contexts, device=torch.device("cpu"))
         if c.dim() == 1 and S == 1:
             c = c[:, None]
-        if c.dim() != 2 or c.shape[1] != S or c.shape[0] < 1:
+        if c.dim() != 2 or c.shape[1] != S:
             raise ValueError(f"contexts must have shape (N, {S}), got {tuple(c.shape)}")
-        return as_finite_f64("contexts", c)
+        if c.shape[0] < 1:
+            raise ValueError(f"contexts must hold at least one state, got {tuple(c.shape)}")
+        as_finite_f64("contexts", c)
+        return c
+
+    def _episodes(
+        self, states: Tensor, params: Tensor, rewards: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Checked float64 states (N, K, S), params (N, K, D) and rewards (N, K) of
+        :meth:`tell` (exactly these shapes)."""
+        K = self.n_steps
+        R = as_float_tensor("rewards", rewards, device=torch.device("cpu"))
+        if R.dim() != 2 or R.shape[1] != K:
+            raise ValueError(f"rewards must have shape (N, K) = (N, {K}), got {tuple(R.shape)}")
+        check_finite("rewards", R)
+        N = R.shape[0]
+        S, D = self.value_features.in_features, self.policies[0].action_dim
+        cpu = torch.device("cpu")
+        s = as_finite_f64("states", as_float_tensor("states", states, device=cpu), (N, K, S))
+        theta = as_finite_f64("params", as_float_tensor("params", params, device=cpu), (N, K, D))
+        return s, theta, R
 
     # ---- ask / tell -------------------------------------------------------------------------
     @torch.no_grad()
@@ -261,20 +295,13 @@ class TimeIndexedHiREPS(HiREPSBase):
             ``feature_error, dual_converged, dual_iterations, mean_return`` (mean over
             episodes of the summed rewards), ``max_return, iteration``.
         """
-        K = self.n_steps
-        R = torch.as_tensor(rewards, dtype=torch.float64)
-        if R.dim() != 2 or R.shape[1] != K:
-            raise ValueError(f"rewards must have shape (N, K) = (N, {K}), got {tuple(R.shape)}")
+        s, theta, R = self._episodes(states, params, rewards)
         N = R.shape[0]
-        S, D = self.value_features.in_features, self.policies[0].action_dim
-        s = as_finite_f64("states", states, (N, K, S))
-        theta = as_finite_f64("params", params, (N, K, D))
-
         bounds = [
             option_bound(pol, s[:, k], theta[:, k], self.kappa_rel)
             for k, pol in enumerate(self.policies)
         ]
-        log_resp, kappa = _stack_bounds(bounds, N)
+        log_resp, kappa = stack_bounds(bounds, N)
         sol = solve_time_indexed_dual(
             R,
             self.value_features(s),
@@ -282,14 +309,16 @@ class TimeIndexedHiREPS(HiREPSBase):
             log_responsibilities=log_resp,
             kappa=kappa,
         )
-        self.value_weights = sol.v.clone()
-        reports = []
+        refits = []  # every step's refit first: a failing step leaves all policies unchanged
         for k, (pol, bound) in enumerate(zip(self.policies, bounds, strict=True)):
             step = sol.step(k)
             step = dataclasses.replace(step, weights=step.weights[:, : bound.n_columns])
-            reports.append(
-                refit_and_report(pol, s[:, k], theta[:, k], step, bound, self.prune_threshold)
-            )
+            refits.append(plan_refit(pol, s[:, k], theta[:, k], step, bound))
+        self.value_weights = sol.v.clone()
+        reports = [
+            apply_refit(pol, s[:, k], refit, self.prune_threshold)
+            for k, (pol, refit) in enumerate(zip(self.policies, refits, strict=True))
+        ]
         self.iteration += 1
         returns = R.sum(1)
         return {
@@ -329,39 +358,27 @@ class TimeIndexedHiREPS(HiREPSBase):
         )
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        if len(state["policies"]) != self.n_steps:
+        """Restore :meth:`state_dict`'s output; everything is checked first (a checkpoint of
+        another variant, number of steps or options, or dimension raises, naming it), nothing
+        is changed unless all of it loads."""
+        keys = {"policies", "value_weights", "epsilon", "iteration", "kappa_rel"}
+        state = check_state_keys(state, keys, type(self).__name__)
+        saved = state["policies"]
+        if not isinstance(saved, Sequence) or len(saved) != self.n_steps:
+            n = len(saved) if isinstance(saved, Sequence) else type(saved).__name__
             raise ValueError(
-                f"the state holds {len(state['policies'])} policies, this algorithm has "
-                f"K = {self.n_steps} steps"
+                f"the state holds {n} policies, this algorithm has K = {self.n_steps} steps"
             )
-        for pol, sd in zip(self.policies, state["policies"], strict=True):
+        for k, (pol, sd) in enumerate(zip(self.policies, saved, strict=True)):
+            try:
+                pol.check_state_dict(sd)
+            except ValueError as exc:
+                raise ValueError(f"step {k}: {exc}") from None
+        v = check_saved_values(state["value_weights"], self.value_weights)
+        epsilon = check_epsilons(state["epsilon"], self.n_steps)
+        shared = self._check_shared(state)
+        for pol, sd in zip(self.policies, saved, strict=True):
             pol.load_state_dict(sd)
-        self.value_weights = state["value_weights"].clone()
-        self._load_state(state)
-        self.epsilon = [float(e) for e in state["epsilon"]]
-
-
-def _stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Tensor | None]:
-    """Per-step responsibilities and entropy bounds as the dual's (N, K, O) and (K,) inputs.
-
-    Steps may have different numbers of active options: the missing columns get log 0, and a
-    step with one active option gets log p~ = 0 on it and no bound (kappa = inf). Returns
-    (None, None) when every step has a single active option.
-    """
-    counts = [b.n_columns for b in bounds]
-    O = max(counts)
-    if O == 1:
-        return None, None
-    K = len(bounds)
-    log_resp = torch.full((N, K, O), -math.inf, dtype=torch.float64)
-    for k, b in enumerate(bounds):
-        if b.log_responsibilities is None:
-            log_resp[:, k, 0] = 0.0
-        else:
-            log_resp[:, k, : counts[k]] = b.log_responsibilities
-    if all(b.kappa is None for b in bounds):
-        return log_resp, None
-    kappa = torch.tensor(
-        [math.inf if b.kappa is None else b.kappa for b in bounds], dtype=torch.float64
-    )
-    return log_resp, kappa
+        self.value_weights = v
+        self._set_shared(shared)
+        self.epsilon = epsilon

@@ -2,42 +2,67 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Mapping
 from typing import cast
 
 import torch
 from torch import Tensor, nn
 
+from hireps_torch.checks import as_float, as_float_tensor, check_count, check_finite
+from hireps_torch.policies._module import PolicyModule
+
 __all__ = ["ConstantGating", "Gating", "SoftmaxGating"]
 
 
-class Gating(nn.Module):
+class Gating(PolicyModule):
     """Base of the gatings: ``features (N, F) -> log pi(o | s) (N, O)`` over the active options.
 
     Holds ``in_features``, ``n_options`` and the ``active`` bool buffer (pruned options are
     masked, never removed, so ``state_dict`` shapes never change). Subclasses implement
-    :meth:`log_probs` and :meth:`weighted_fit`.
+    :meth:`log_probs` and :meth:`fit_parameters` (the new parameter values of a weighted fit,
+    computed without changing the gating; :meth:`weighted_fit` then sets them).
     """
 
     active: Tensor
 
     def __init__(self, in_features: int, n_options: int) -> None:
         super().__init__()
-        if n_options < 1:
-            raise ValueError(f"n_options must be >= 1, got {n_options}")
-        if in_features < 0:
-            raise ValueError(f"in_features must be >= 0, got {in_features}")
-        self.in_features = in_features
-        self.n_options = n_options
-        self.register_buffer("active", torch.ones(n_options, dtype=torch.bool))
+        self.n_options = check_count("n_options", n_options, 1)
+        self.in_features = check_count("in_features", in_features, 0)
+        self.register_buffer("active", torch.ones(self.n_options, dtype=torch.bool))
 
     def _features(self, features: Tensor) -> Tensor:
-        if features.dim() != 2 or features.shape[1] != self.in_features:
+        x = as_float_tensor("gating features", features, device=self.active.device)
+        if x.dim() != 2 or x.shape[1] != self.in_features:
             raise ValueError(
-                f"gating features must have shape (N, {self.in_features}), got "
-                f"{tuple(features.shape)}"
+                f"gating features must have shape (N, {self.in_features}), got {tuple(x.shape)}"
             )
-        return features.to(torch.float64)
+        check_finite("gating features", x, "")
+        return x
+
+    def _fit_inputs(
+        self, features: Tensor, targets: Tensor, sample_weights: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Checked float64 features (N, F), targets (N, O) and normalised weights (N,)."""
+        x = self._features(features)
+        N = x.shape[0]
+        t = as_float_tensor("targets", targets)
+        if t.shape != (N, self.n_options):
+            raise ValueError(
+                f"targets must have shape ({N}, {self.n_options}), got {tuple(t.shape)}"
+            )
+        if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+            raise ValueError("targets must be finite and non-negative")
+        w = as_float_tensor("sample_weights", sample_weights)
+        if w.shape != (N,) or not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
+            raise ValueError(
+                f"sample_weights must be ({N},), finite and non-negative, got shape "
+                f"{tuple(w.shape)}"
+            )
+        if float(w.sum()) <= 0:
+            raise ValueError("sample_weights are all zero")
+        return x, t, w / w.sum()
 
     def log_probs(self, features: Tensor) -> Tensor:
         """features: (N, F) -> log pi(o | s): (N, O), -inf for pruned options."""
@@ -47,11 +72,26 @@ class Gating(nn.Module):
         """features: (N, F) -> pi(o | s): (N, O)."""
         return self.log_probs(features).exp()
 
+    def fit_parameters(
+        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
+    ) -> dict[str, Tensor]:
+        """The new parameter values (name -> tensor) of a fit to soft targets (N, O) with
+        sample weights (N,); the gating is unchanged."""
+        raise NotImplementedError
+
+    @torch.no_grad()
     def weighted_fit(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
     ) -> None:
-        """Fit to soft targets (N, O) with sample weights (N,)."""
-        raise NotImplementedError
+        """Fit to soft targets (N, O) with sample weights (N,): everything is computed and
+        checked before the first parameter changes (a failed fit changes nothing)."""
+        self.set_parameters(self.fit_parameters(features, targets, sample_weights, max_iter))
+
+    def check_state(self, state: Mapping[str, Tensor]) -> None:
+        """A loaded ``active`` mask must keep at least one option."""
+        active = state.get("active")
+        if active is not None and not bool(active.any()):
+            raise ValueError("active: a state with every option pruned cannot be loaded")
 
 
 class SoftmaxGating(Gating):
@@ -73,7 +113,12 @@ class SoftmaxGating(Gating):
         self, in_features: int, n_options: int, l2: float = 1e-4, dtype: torch.dtype = torch.float64
     ) -> None:
         super().__init__(in_features, n_options)
-        self.l2 = float(l2)
+        self.l2 = as_float("l2", l2)
+        if not (math.isfinite(self.l2) and self.l2 >= 0):
+            raise ValueError(f"l2 must be finite and >= 0, got {l2}")
+        if not dtype.is_floating_point:
+            raise TypeError(f"dtype must be a floating dtype, got {dtype}")
+        n_options, in_features = self.n_options, self.in_features
         self.weight = nn.Parameter(torch.zeros(n_options, in_features, dtype=dtype), False)
         self.bias = nn.Parameter(torch.zeros(n_options, dtype=dtype), False)
 
@@ -88,10 +133,10 @@ class SoftmaxGating(Gating):
         return torch.log_softmax(logits, dim=-1)
 
     @torch.no_grad()
-    def weighted_fit(
+    def fit_parameters(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
-    ) -> None:
-        """Weighted multinomial logistic regression onto soft targets.
+    ) -> dict[str, Tensor]:
+        """Weighted multinomial logistic regression onto soft targets (the gating unchanged).
 
         Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 ||weight||^2``
         over the active options. Without features (F = 0) this has the closed form
@@ -101,26 +146,36 @@ class SoftmaxGating(Gating):
             features: (N, F).
             targets: (N, O) rows are distributions over options (0 on pruned options).
             sample_weights: (N,) non-negative, not all zero.
+
+        Returns:
+            ``{"weight": (O, F), "bias": (O,)}``, the new values (pruned options' rows kept).
         """
-        x = self._features(features).to(torch.float64)
-        N = x.shape[0]
-        if targets.shape != (N, self.n_options):
-            raise ValueError(
-                f"targets must have shape ({N}, {self.n_options}), got {tuple(targets.shape)}"
-            )
-        w = sample_weights.to(torch.float64)
-        if w.shape != (N,) or not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
-            raise ValueError("sample_weights must be (N,), finite and non-negative")
-        if float(w.sum()) <= 0:
-            raise ValueError("sample_weights are all zero")
-        w = w / w.sum()
+        x, t_all, w = self._fit_inputs(features, targets, sample_weights)
+        x = x.to(torch.float64)
+        max_iter = check_count("max_iter", max_iter, 1)
         act = self.active
-        t = targets.to(torch.float64)[:, act]
+        t = t_all[:, act]
+        weight, bias = self.weight.detach().clone(), self.bias.detach().clone()
         if self.in_features == 0:
             prior = (w[:, None] * t).sum(0).clamp_min(1e-300)
             logp = torch.log(prior / prior.sum())
-            self.bias[act] = (logp - logp.mean()).to(self.bias.dtype)
-            return
+            bias[act] = (logp - logp.mean()).to(self.bias.dtype)
+            return {"bias": bias}
+        Wp, bp = self._logistic_regression(x, t, w, max_iter)
+        if not (bool(torch.isfinite(Wp).all()) and bool(torch.isfinite(bp).all())):
+            raise ValueError(
+                "the gating fit is not finite (gating features up to "
+                f"{float(x.abs().max()):.3g}): rescale the gating features"
+            )
+        weight[act] = Wp.to(self.weight.dtype)
+        bias[act] = (bp - bp.mean()).to(self.bias.dtype)
+        return {"weight": weight, "bias": bias}
+
+    def _logistic_regression(
+        self, x: Tensor, t: Tensor, w: Tensor, max_iter: int
+    ) -> tuple[Tensor, Tensor]:
+        """LBFGS on the weighted cross-entropy from the current active parameters."""
+        act = self.active
         Wp = self.weight[act].to(torch.float64).clone().requires_grad_(True)
         bp = self.bias[act].to(torch.float64).clone().requires_grad_(True)
         opt = torch.optim.LBFGS(
@@ -144,8 +199,7 @@ class SoftmaxGating(Gating):
         step = cast(Callable[[Callable[[], Tensor]], Tensor], opt.step)
         with torch.enable_grad():
             step(closure)
-        self.weight[act] = Wp.detach().to(self.weight.dtype)
-        self.bias[act] = (bp.detach() - bp.detach().mean()).to(self.bias.dtype)
+        return Wp.detach(), bp.detach()
 
 
 class ConstantGating(Gating):
@@ -162,36 +216,44 @@ class ConstantGating(Gating):
     centroids: Tensor
 
     def __init__(self, centroids: Tensor) -> None:
-        c = torch.as_tensor(centroids, dtype=torch.float64)
+        c = as_float_tensor("centroids", centroids).clone()
         if c.dim() != 2 or c.shape[0] < 1:
             raise ValueError(f"centroids must have shape (O, F), got {tuple(c.shape)}")
+        check_finite("centroids", c, "")
         super().__init__(c.shape[1], c.shape[0])
-        self.register_buffer("centroids", c.clone())
+        self.register_buffer("centroids", c)
 
     @classmethod
     def from_kmeans(cls, points: Tensor, n_options: int, seed: int = 0) -> ConstantGating:
         """k-means (scipy's ``kmeans2``, k-means++ start) of points (M, F) into O centroids."""
         from scipy.cluster.vq import kmeans2
 
-        x = torch.as_tensor(points, dtype=torch.float64)
+        n_options = check_count("n_options", n_options, 1)
+        x = as_float_tensor("points", points)
         if x.dim() != 2 or x.shape[0] < n_options:
             raise ValueError(
                 f"need points of shape (M, F) with M >= n_options = {n_options}, got "
                 f"{tuple(x.shape)}"
             )
-        centroids, _ = kmeans2(x.numpy(), n_options, minit="++", seed=seed)
+        check_finite("points", x, "")
+        centroids, _ = kmeans2(
+            x.cpu().numpy(), n_options, minit="++", seed=check_count("seed", seed, 0)
+        )
         return cls(torch.from_numpy(centroids))
 
     def log_probs(self, features: Tensor) -> Tensor:
         """features: (N, F) -> (N, O) with 0 at the nearest centroid and -inf elsewhere."""
         x = self._features(features)
         nearest = torch.cdist(x, self.centroids.to(x.dtype)).argmin(dim=-1)
-        out = torch.full((x.shape[0], self.n_options), float("-inf"), dtype=x.dtype)
-        out[torch.arange(x.shape[0]), nearest] = 0.0
+        out = torch.full(
+            (x.shape[0], self.n_options), float("-inf"), dtype=x.dtype, device=x.device
+        )
+        out[torch.arange(x.shape[0], device=x.device), nearest] = 0.0
         return out
 
-    @torch.no_grad()
-    def weighted_fit(
+    def fit_parameters(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
-    ) -> None:
-        """Constant gating: nothing to fit."""
+    ) -> dict[str, Tensor]:
+        """Constant gating: nothing to fit (the inputs are checked all the same)."""
+        self._fit_inputs(features, targets, sample_weights)
+        return {}

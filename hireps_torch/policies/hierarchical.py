@@ -2,25 +2,36 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import cast
 
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import as_finite_f64
+from hireps_torch.checks import as_float, as_float_tensor, check_count, check_finite
 from hireps_torch.features import FeatureMap, IdentityFeatures
+from hireps_torch.policies._module import PolicyModule
 from hireps_torch.policies.gating import Gating, SoftmaxGating
-from hireps_torch.policies.linear_gaussian import LinearGaussian
+from hireps_torch.policies.linear_gaussian import (
+    LinearGaussian,
+    covariance_pseudo_samples,
+    initial_std,
+    variance_floor,
+)
 
 __all__ = ["HierarchicalPolicy"]
 
 
-class HierarchicalPolicy(nn.Module):
+class HierarchicalPolicy(PolicyModule):
     """Mixture policy ``pi(theta | s) = sum_o pi(o | s) pi(theta | s, o)``.
 
     The gating sees ``gating_features(s)``, every option sees ``policy_features(s)``.
     Shapes: ``context: (N, S)`` (S may be 0), ``theta: (N, D)``, options ``(N,)`` int64.
+    Contexts and parameters may be bool, integer or floating tensors (used as float64); a
+    wrong shape, a non-finite entry or a tensor on another device raises a ``ValueError``
+    naming it. :meth:`weighted_fit`, :meth:`prune` and :meth:`load_state_dict` either
+    complete or leave the policy exactly as it was.
 
     Args:
         gating: a gating module with ``log_probs(features) -> (N, O)``, ``weighted_fit`` and an
@@ -49,10 +60,13 @@ class HierarchicalPolicy(nn.Module):
         dims = {o.action_dim for o in options}
         if len(dims) != 1:
             raise ValueError(f"all options must share action_dim, got {sorted(dims)}")
+        gf = gating_features or IdentityFeatures(gating.in_features)
+        pf = policy_features or IdentityFeatures(options[0].in_features)
+        _check_feature_maps(gating, options, gf, pf)
         self.gating = gating
         self.options = nn.ModuleList(options)
-        self.gating_features = gating_features or IdentityFeatures(gating.in_features)
-        self.policy_features = policy_features or IdentityFeatures(options[0].in_features)
+        self.gating_features = gf
+        self.policy_features = pf
         self.action_dim = dims.pop()
 
     @classmethod
@@ -81,19 +95,24 @@ class HierarchicalPolicy(nn.Module):
         :class:`SoftmaxGating`. ``covariance_prior`` goes to every option (see
         :class:`LinearGaussian`).
         """
+        n_options = check_count("n_options", n_options, 1)
+        context_dim = check_count("context_dim", context_dim, 0)
+        action_dim = check_count("action_dim", action_dim, 1)
         gf = gating_features or IdentityFeatures(context_dim)
         pf = policy_features or IdentityFeatures(context_dim)
-        mean = (
-            torch.zeros(action_dim, dtype=torch.float64)
-            if init_mean is None
-            else (torch.as_tensor(init_mean, dtype=torch.float64))
-        )
-        if mean.shape not in ((action_dim,), (n_options, action_dim)):
-            raise ValueError(
-                f"init_mean must have shape (D,) = ({action_dim},) or (O, D) = "
-                f"({n_options}, {action_dim}), got {tuple(mean.shape)}"
-            )
-        std = torch.as_tensor(init_std, dtype=torch.float64).expand(action_dim)
+        for name, fmap in (("gating_features", gf), ("policy_features", pf)):
+            if fmap.in_features != context_dim:
+                raise ValueError(
+                    f"{name} take contexts of dimension {fmap.in_features}, not context_dim = "
+                    f"{context_dim}"
+                )
+        mean = _initial_means(init_mean, n_options, action_dim)
+        std = initial_std(init_std, action_dim)
+        spread = as_float("spread", spread)
+        if not (math.isfinite(spread) and spread >= 0):
+            raise ValueError(f"spread must be finite and >= 0, got {spread}")
+        variance_floor(min_variance, action_dim)  # checked before the generator draws
+        covariance_pseudo_samples(covariance_prior)
         opts = []
         for o in range(n_options):
             m = (
@@ -129,20 +148,35 @@ class HierarchicalPolicy(nn.Module):
         return len(self.options)
 
     @property
+    def context_dim(self) -> int:
+        """S, the width of the contexts."""
+        return self.gating_features.in_features
+
+    @property
     def active(self) -> Tensor:
         """(O,) bool mask of options that have not been pruned."""
         return self.gating.active
 
+    def _context(self, context: Tensor) -> Tensor:
+        """context as a checked float64 (N, S) tensor."""
+        device = self.sub_policies[0].bias.device
+        c = as_float_tensor("context", context, device=device)
+        S = self.context_dim
+        if c.dim() != 2 or c.shape[1] != S:
+            raise ValueError(f"context must have shape (N, S) = (N, {S}), got {tuple(c.shape)}")
+        check_finite("context", c, "")
+        if not bool(self.active.any()):
+            raise ValueError("every option of this policy is pruned (active is all False)")
+        return c
+
     def _features(self, context: Tensor) -> tuple[Tensor, Tensor]:
-        if context.dim() != 2:
-            raise ValueError(f"context must have shape (N, S), got {tuple(context.shape)}")
-        as_finite_f64("context", context)
-        return self.gating_features(context), self.policy_features(context)
+        c = self._context(context)
+        return self.gating_features(c), self.policy_features(c)
 
     # ---- distribution -----------------------------------------------------------------------
     def gating_log_probs(self, context: Tensor) -> Tensor:
         """context: (N, S) -> log pi(o | s): (N, O)."""
-        return self.gating.log_probs(self.gating_features(context))
+        return self.gating.log_probs(self._features(context)[0])
 
     def log_joint(self, context: Tensor, theta: Tensor) -> Tensor:
         """context: (N, S), theta: (N, D) -> log pi(o | s) + log pi(theta | s, o): (N, O)."""
@@ -156,8 +190,23 @@ class HierarchicalPolicy(nn.Module):
         return torch.logsumexp(self.log_joint(context, theta), dim=-1)
 
     def log_responsibilities(self, context: Tensor, theta: Tensor) -> Tensor:
-        """log p(o | s, theta): (N, O); -inf for pruned options."""
-        return torch.log_softmax(self.log_joint(context, theta), dim=-1)
+        """log p(o | s, theta): (N, O); -inf for pruned options.
+
+        Raises:
+            ValueError: when a sample has zero density under every active option (e.g.
+                parameters so far out, like 1e200, that every log density is -inf): its
+                responsibilities would be NaN.
+        """
+        joint = self.log_joint(context, theta)
+        impossible = torch.isneginf(joint).all(dim=-1)
+        if bool(impossible.any()):
+            i = int(impossible.nonzero()[0, 0])
+            raise ValueError(
+                f"theta[{i}] has zero density under every active option (|theta| up to "
+                f"{float(torch.as_tensor(theta)[i].abs().max()):.3g}); its responsibilities are "
+                "undefined: rescale or drop that sample"
+            )
+        return torch.log_softmax(joint, dim=-1)
 
     def responsibilities(self, context: Tensor, theta: Tensor) -> Tensor:
         """p(o | s, theta): (N, O)."""
@@ -169,14 +218,18 @@ class HierarchicalPolicy(nn.Module):
         """Draw an option from the gating, then theta from that option.
 
         Returns:
-            theta (N, D) and option (N,) int64.
+            theta (N, D) and option (N,) int64 (empty for N = 0).
         """
         gf, pf = self._features(context)
         probs = self.gating.probs(gf)
+        N = pf.shape[0]
+        dtype = self.sub_policies[0].bias.dtype
+        if N == 0:
+            empty = torch.zeros(0, dtype=torch.long, device=pf.device)
+            return pf.new_empty((0, self.action_dim), dtype=dtype), empty
         option = torch.multinomial(probs, 1, generator=generator).squeeze(-1)
-        N = context.shape[0]
         used = torch.bincount(option, minlength=self.n_options).tolist()
-        theta = pf.new_empty((N, self.action_dim), dtype=self.sub_policies[0].bias.dtype)
+        theta = pf.new_empty((N, self.action_dim), dtype=dtype)
         for o, opt in enumerate(self.sub_policies):
             if used[o]:
                 rows = option == o
@@ -197,12 +250,52 @@ class HierarchicalPolicy(nn.Module):
         gf, pf = self._features(context)
         option = self.gating.log_probs(gf).argmax(dim=-1)
         means = torch.stack([opt.mean(pf) for opt in self.sub_policies], dim=1)
-        return means[torch.arange(context.shape[0]), option], option
+        return means[torch.arange(pf.shape[0], device=pf.device), option], option
 
     # ---- refit and pruning ------------------------------------------------------------------
     @torch.no_grad()
+    def fit_parameters(self, context: Tensor, theta: Tensor, weights: Tensor) -> dict[str, Tensor]:
+        """The new values (``state_dict`` names -> tensors) of :meth:`weighted_fit`, computed
+        and checked without changing the policy (:meth:`set_parameters` sets them).
+
+        Raises:
+            ValueError: for bad inputs (naming them) or a refit that fails, naming the option
+                (e.g. parameters so large that the option's covariance overflows).
+        """
+        gf, pf = self._features(context)
+        N = pf.shape[0]
+        t = as_float_tensor("theta", theta)
+        if t.shape != (N, self.action_dim):
+            raise ValueError(
+                f"theta must have shape ({N}, {self.action_dim}), got {tuple(t.shape)}"
+            )
+        check_finite("theta", t)
+        w = as_float_tensor("weights", weights)
+        if w.shape != (N, self.n_options):
+            raise ValueError(
+                f"weights must have shape ({N}, {self.n_options}), got {tuple(w.shape)}"
+            )
+        if not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
+            raise ValueError("weights must be finite, non-negative and not all zero")
+        ws = w.sum(-1)
+        targets = w / ws.clamp_min(1e-300)[:, None]
+        new = {f"gating.{k}": v for k, v in self.gating.fit_parameters(gf, targets, ws).items()}
+        total = float(w.sum())
+        for o, opt in enumerate(self.sub_policies):
+            if bool(self.active[o]) and float(w[:, o].sum()) > 1e-12 * total:
+                try:
+                    fit = opt.fit_parameters(pf, t, w[:, o])
+                except ValueError as exc:
+                    raise ValueError(f"option {o}: {exc}") from None
+                new.update({f"options.{o}.{k}": v for k, v in fit.items()})
+        return new
+
+    @torch.no_grad()
     def weighted_fit(self, context: Tensor, theta: Tensor, weights: Tensor) -> None:
         """Refit gating and options to the weighted samples.
+
+        Every new value is computed and checked first (:meth:`fit_parameters`), then all are
+        set: a failure (a bad input, option 3's refit after options 1 and 2) changes nothing.
 
         Args:
             context: (N, S).
@@ -212,20 +305,7 @@ class HierarchicalPolicy(nn.Module):
                 P_io / sum_o P_io and sample weights sum_o P_io. Options without weight keep
                 their parameters (they are left to pruning).
         """
-        gf, pf = self._features(context)
-        if weights.shape != (context.shape[0], self.n_options):
-            raise ValueError(
-                f"weights must have shape ({context.shape[0]}, {self.n_options}), got "
-                f"{tuple(weights.shape)}"
-            )
-        w = weights.to(torch.float64)
-        ws = w.sum(-1)
-        targets = w / ws.clamp_min(1e-300)[:, None]
-        self.gating.weighted_fit(gf, targets, ws)
-        total = float(w.sum())
-        for o, opt in enumerate(self.sub_policies):
-            if bool(self.active[o]) and float(w[:, o].sum()) > 1e-12 * total:
-                opt.weighted_fit(pf, theta, w[:, o])
+        self.set_parameters(self.fit_parameters(context, theta, weights))
 
     @torch.no_grad()
     def prune(self, context: Tensor, threshold: float = 1e-4) -> list[int]:
@@ -233,8 +313,14 @@ class HierarchicalPolicy(nn.Module):
 
         The most probable option is never pruned. Returns the indices pruned by this call.
         """
-        prior = self.gating.probs(self.gating_features(context)).mean(0)
-        drop = self.active & (prior < threshold)
+        limit = as_float("threshold", threshold)
+        if not 0.0 <= limit < 1.0:
+            raise ValueError(f"threshold must be in [0, 1), got {threshold}")
+        c = self._context(context)
+        if c.shape[0] == 0:
+            raise ValueError("prune needs at least one context, got an empty (0, S) batch")
+        prior = self.gating.probs(self.gating_features(c)).mean(0)
+        drop = self.active & (prior < limit)
         drop[int(prior.argmax())] = False
         if bool(drop.any()):
             self.gating.active &= ~drop
@@ -245,3 +331,38 @@ class HierarchicalPolicy(nn.Module):
         lr = self.log_responsibilities(context, theta)
         p = lr.exp()
         return -(torch.where(p > 0, p * lr, torch.zeros_like(p))).sum(-1).mean()
+
+
+def _initial_means(init_mean: Tensor | None, n_options: int, action_dim: int) -> Tensor:
+    """init_mean (None, (D,) or (O, D)), checked, as float64."""
+    if init_mean is None:
+        return torch.zeros(action_dim, dtype=torch.float64)
+    mean = as_float_tensor("init_mean", init_mean)
+    if mean.shape not in ((action_dim,), (n_options, action_dim)):
+        raise ValueError(
+            f"init_mean must have shape (D,) = ({action_dim},) or (O, D) = "
+            f"({n_options}, {action_dim}), got {tuple(mean.shape)}"
+        )
+    check_finite("init_mean", mean, "")
+    return mean
+
+
+def _check_feature_maps(
+    gating: Gating, options: Sequence[LinearGaussian], gf: FeatureMap, pf: FeatureMap
+) -> None:
+    """The feature maps must take the same contexts and feed the gating and the options."""
+    if gf.in_features != pf.in_features:
+        raise ValueError(
+            f"gating_features take contexts of dimension {gf.in_features} but policy_features "
+            f"of dimension {pf.in_features}"
+        )
+    if gf.out_features != gating.in_features:
+        raise ValueError(
+            f"gating_features give {gf.out_features} features but the gating takes "
+            f"{gating.in_features}"
+        )
+    widths = sorted({o.in_features for o in options})
+    if widths != [pf.out_features]:
+        raise ValueError(
+            f"policy_features give {pf.out_features} features but the options take {widths}"
+        )

@@ -3,13 +3,28 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import as_finite_f64, check_positive
+from hireps_torch.checks import (
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_nonnegative_float,
+    check_positive,
+)
+from hireps_torch.policies._module import PolicyModule
 
-__all__ = ["LinearGaussian", "weighted_least_squares"]
+__all__ = [
+    "LinearGaussian",
+    "covariance_pseudo_samples",
+    "initial_std",
+    "variance_floor",
+    "weighted_least_squares",
+]
 
 
 def weighted_least_squares(
@@ -44,13 +59,53 @@ def weighted_least_squares(
     return beta[1:].T.contiguous(), beta[0].contiguous()
 
 
-class LinearGaussian(nn.Module):
+def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
+    """``min_variance`` (a float or a (D,) tensor, finite and > 0) as a (D,) float64 tensor;
+    a ``ValueError`` naming it otherwise."""
+    floor = as_float_tensor("min_variance", min_variance).clone()
+    if floor.dim() == 0:
+        floor = floor.expand(action_dim).clone()
+    if (
+        floor.shape != (action_dim,)
+        or not bool(torch.isfinite(floor).all())
+        or bool((floor <= 0).any())
+    ):
+        raise ValueError(
+            f"min_variance must be > 0 (a float or a ({action_dim},) tensor), got "
+            f"{torch.as_tensor(min_variance).tolist()}"
+        )
+    return floor
+
+
+def covariance_pseudo_samples(covariance_prior: float) -> float:
+    """``covariance_prior`` (finite and >= 0) as a float; a ``ValueError`` naming it."""
+    prior = as_float("covariance_prior", covariance_prior)
+    if not (math.isfinite(prior) and prior >= 0):
+        raise ValueError(f"covariance_prior must be finite and >= 0, got {covariance_prior}")
+    return prior
+
+
+def initial_std(init_std: float | Tensor, action_dim: int) -> Tensor:
+    """``init_std`` (a float or a (D,) tensor, finite and > 0) as a (D,) float64 tensor."""
+    std = as_float_tensor("init_std", init_std)
+    if std.dim() == 0:
+        std = std.expand(action_dim)
+    if std.shape != (action_dim,):
+        raise ValueError(
+            f"init_std must be a float or a ({action_dim},) tensor, got shape {tuple(std.shape)}"
+        )
+    check_positive("init_std", std)
+    return std.clone()
+
+
+class LinearGaussian(PolicyModule):
     """Gaussian with a mean linear in the features and a full covariance held by its Cholesky
     factor: ``theta ~ N(weight @ psi + bias, chol @ chol.T)``.
 
     Shapes: ``features: (N, F)``, ``theta: (N, D)``. ``F = 0`` gives a context-free Gaussian.
     Parameters are ``nn.Parameter``s without gradients (the fit is closed form), so they travel
-    with ``state_dict`` and TorchRL weight updates.
+    with ``state_dict`` and TorchRL weight updates. Inputs may be bool, integer or floating
+    tensors (converted to the parameter dtype); non-finite ones raise a ``ValueError``.
 
     Args:
         in_features: F, number of input features.
@@ -80,34 +135,22 @@ class LinearGaussian(nn.Module):
         covariance_prior: float = 0.0,
     ) -> None:
         super().__init__()
-        if action_dim < 1:
-            raise ValueError(f"action_dim must be >= 1, got {action_dim}")
-        if in_features < 0:
-            raise ValueError(f"in_features must be >= 0, got {in_features}")
-        floor = torch.as_tensor(min_variance, dtype=torch.float64).detach().clone()
-        if floor.dim() == 0:
-            floor = floor.expand(action_dim).clone()
-        if (
-            floor.shape != (action_dim,)
-            or not bool(torch.isfinite(floor).all())
-            or bool((floor <= 0).any())
-        ):
-            raise ValueError(
-                f"min_variance must be > 0 (a float or a ({action_dim},) tensor), got "
-                f"{torch.as_tensor(min_variance).tolist()}"
-            )
-        if not (math.isfinite(covariance_prior) and covariance_prior >= 0):
-            raise ValueError(f"covariance_prior must be finite and >= 0, got {covariance_prior}")
-        self.covariance_prior = float(covariance_prior)
-        std = torch.as_tensor(init_std, dtype=dtype).expand(action_dim).clone()
-        check_positive("init_std", std)
+        action_dim = check_count("action_dim", action_dim, 1)
+        in_features = check_count("in_features", in_features, 0)
+        if not dtype.is_floating_point:
+            raise TypeError(f"dtype must be a floating dtype, got {dtype}")
+        floor = variance_floor(min_variance, action_dim)
+        prior = covariance_pseudo_samples(covariance_prior)
+        std = initial_std(init_std, action_dim).to(dtype)
         mean = (
             torch.zeros(action_dim, dtype=dtype)
             if init_mean is None
-            else torch.as_tensor(init_mean, dtype=dtype).clone()
+            else as_float_tensor("init_mean", init_mean, dtype).clone()
         )
         if mean.shape != (action_dim,):
             raise ValueError(f"init_mean must have shape ({action_dim},), got {tuple(mean.shape)}")
+        check_finite("init_mean", mean, "")
+        self.covariance_prior = prior
         self.in_features = in_features
         self.action_dim = action_dim
         self.min_variance = floor  # (D,) float64, a float given is broadcast
@@ -117,11 +160,20 @@ class LinearGaussian(nn.Module):
 
     # ---- distribution ---------------------------------------------------------------------
     def _features(self, features: Tensor) -> Tensor:
-        if features.dim() != 2 or features.shape[1] != self.in_features:
+        x = as_float_tensor("features", features, self.bias.dtype, self.bias.device)
+        if x.dim() != 2 or x.shape[1] != self.in_features:
             raise ValueError(
-                f"features must have shape (N, {self.in_features}), got {tuple(features.shape)}"
+                f"features must have shape (N, {self.in_features}), got {tuple(x.shape)}"
             )
-        return features.to(self.bias.dtype)
+        check_finite("features", x, "")
+        return x
+
+    def _theta(self, theta: Tensor, N: int) -> Tensor:
+        t = as_float_tensor("theta", theta, self.bias.dtype, self.bias.device)
+        if t.shape != (N, self.action_dim):
+            raise ValueError(f"theta must have shape {(N, self.action_dim)}, got {tuple(t.shape)}")
+        check_finite("theta", t, "")
+        return t
 
     def mean(self, features: Tensor) -> Tensor:
         """features: (N, F) -> mean (N, D)."""
@@ -142,9 +194,7 @@ class LinearGaussian(nn.Module):
     def log_prob(self, features: Tensor, theta: Tensor) -> Tensor:
         """features: (N, F), theta: (N, D) -> log density (N,)."""
         mu = self.mean(features)
-        if theta.shape != mu.shape:
-            raise ValueError(f"theta must have shape {tuple(mu.shape)}, got {tuple(theta.shape)}")
-        diff = (theta.to(mu.dtype) - mu).T  # (D, N)
+        diff = (self._theta(theta, mu.shape[0]) - mu).T  # (D, N)
         z: Tensor = torch.linalg.solve_triangular(self.chol, diff, upper=False)
         half_logdet = torch.log(torch.diagonal(self.chol)).sum()
         return -0.5 * (z**2).sum(0) - half_logdet - 0.5 * self.action_dim * math.log(2 * math.pi)
@@ -156,6 +206,59 @@ class LinearGaussian(nn.Module):
 
     # ---- weighted maximum likelihood --------------------------------------------------------
     @torch.no_grad()
+    def fit_parameters(
+        self, inputs: Tensor, targets: Tensor, weights: Tensor, ridge: float = 1e-6
+    ) -> dict[str, Tensor]:
+        """The new ``weight``, ``bias`` and ``chol`` of :meth:`weighted_fit`, without setting
+        them (the option is unchanged; :meth:`set_parameters` sets them).
+
+        Raises:
+            ValueError: naming the argument, for a wrong shape, a non-finite input, negative or
+                all-zero weights; or a fit that is not finite (parameters so large that their
+                covariance overflows).
+        """
+        x = self._features(inputs).to(torch.float64)
+        N = x.shape[0]
+        y = as_float_tensor("targets", targets)
+        if y.shape != (N, self.action_dim):
+            raise ValueError(
+                f"targets must have shape ({N}, {self.action_dim}), got {tuple(y.shape)}"
+            )
+        check_finite("targets", y)
+        w = as_float_tensor("weights", weights)
+        if w.shape != (N,):
+            raise ValueError(f"weights must have shape ({N},), got {tuple(w.shape)}")
+        if not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
+            raise ValueError("weights must be finite, non-negative and not all zero")
+        r = check_nonnegative_float("ridge", ridge) or 0.0
+        overflow = ValueError(
+            f"the weighted fit overflows (largest |target| {float(y.abs().max()):.3g}, largest "
+            f"|input| {float(x.abs().max()) if x.numel() else 0.0:.3g}): rescale the "
+            "parameters / features"
+        )
+        try:
+            W, b = weighted_least_squares(x, y, w, ridge=r)
+        except RuntimeError:
+            raise overflow from None
+        resid = y - (x @ W.T + b)
+        cov = (w[:, None] * resid).T @ resid / w.sum()
+        if not (bool(torch.isfinite(cov).all()) and bool(torch.isfinite(W).all())):
+            raise overflow
+        if self.covariance_prior > 0:
+            n_eff = w.sum() ** 2 / (w**2).sum()
+            k = self.covariance_prior
+            cov = (n_eff * cov + k * self.covariance.to(torch.float64)) / (n_eff + k)
+        new = {
+            "weight": W.to(self.weight.dtype),
+            "bias": b.to(self.bias.dtype),
+            "chol": self._floored_cholesky(cov),
+        }
+        for name, value in new.items():
+            if not bool(torch.isfinite(value).all()):
+                raise ValueError(f"the refitted {name} does not fit in {value.dtype}")
+        return new
+
+    @torch.no_grad()
     def weighted_fit(
         self, inputs: Tensor, targets: Tensor, weights: Tensor, ridge: float = 1e-6
     ) -> None:
@@ -165,6 +268,8 @@ class LinearGaussian(nn.Module):
         the slopes); the covariance is the weighted covariance of the residuals
         ``sum_i w_i r_i r_i^T / sum_i w_i``, shrunk toward the current covariance when
         ``covariance_prior > 0``, then floored by ``min_variance`` (see the class docstring).
+        Everything is computed (and checked) before the parameters change: a failed fit
+        leaves the option as it was.
 
         Args:
             inputs: (N, F) features.
@@ -172,38 +277,48 @@ class LinearGaussian(nn.Module):
             weights: (N,) non-negative, finite, not all zero.
             ridge: slope penalty relative to the weight sum (0 for plain WLS).
         """
-        x = self._features(inputs)
-        if targets.shape != (x.shape[0], self.action_dim):
-            raise ValueError(
-                f"targets must have shape ({x.shape[0]}, {self.action_dim}), got "
-                f"{tuple(targets.shape)}"
-            )
-        w = weights.to(torch.float64)
-        if w.shape != (x.shape[0],):
-            raise ValueError(f"weights must have shape ({x.shape[0]},), got {tuple(w.shape)}")
-        if not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
-            raise ValueError("weights must be finite, non-negative and not all zero")
-        as_finite_f64("targets", targets)
-        W, b = weighted_least_squares(x, targets, w, ridge=ridge)
-        resid = targets.to(torch.float64) - (x.to(torch.float64) @ W.T + b)
-        cov = (w[:, None] * resid).T @ resid / w.sum()
-        if self.covariance_prior > 0:
-            n_eff = w.sum() ** 2 / (w**2).sum()
-            k = self.covariance_prior
-            cov = (n_eff * cov + k * self.covariance.to(torch.float64)) / (n_eff + k)
-        self.weight.copy_(W.to(self.weight.dtype))
-        self.bias.copy_(b.to(self.bias.dtype))
-        self.set_covariance(cov)
+        self.set_parameters(self.fit_parameters(inputs, targets, weights, ridge))
 
-    @torch.no_grad()
-    def set_covariance(self, cov: Tensor) -> None:
-        """Set the covariance (D, D), symmetrised and floored at ``min_variance``."""
+    def _floored_cholesky(self, cov: Tensor) -> Tensor:
+        """Cholesky factor (parameter dtype) of cov (D, D) symmetrised and floored."""
         cov = cov.to(torch.float64)
         cov = 0.5 * (cov + cov.T)
         root = self.min_variance.sqrt()
         scale = root[:, None] * root[None, :]
-        evals, evecs = torch.linalg.eigh(cov / scale)
+        scaled = cov / scale
+        if not bool(torch.isfinite(scaled).all()):
+            raise ValueError(
+                f"the covariance overflows (largest entry {float(cov.abs().max()):.3g}): "
+                "rescale the parameters"
+            )
+        evals, evecs = torch.linalg.eigh(scaled)
         if bool((evals < 1.0).any()):
             cov = (evecs * evals.clamp_min(1.0)) @ evecs.T * scale
             cov = 0.5 * (cov + cov.T)
-        self.chol.copy_(torch.linalg.cholesky(cov).to(self.chol.dtype))
+        try:
+            chol: Tensor = torch.linalg.cholesky(cov)
+        except RuntimeError as exc:
+            raise ValueError(f"the floored covariance is not positive definite: {exc}") from None
+        return chol.to(self.chol.dtype)
+
+    @torch.no_grad()
+    def set_covariance(self, cov: Tensor) -> None:
+        """Set the covariance (D, D), symmetrised and floored at ``min_variance``."""
+        c = as_float_tensor("cov", cov)
+        D = self.action_dim
+        if c.shape != (D, D):
+            raise ValueError(f"cov must have shape ({D}, {D}), got {tuple(c.shape)}")
+        check_finite("cov", c, "")
+        self.set_parameters({"chol": self._floored_cholesky(c)})
+
+    def check_state(self, state: Mapping[str, Tensor]) -> None:
+        """A loaded ``chol`` must be lower triangular with a positive diagonal."""
+        chol = state.get("chol")
+        if chol is None:
+            return
+        c = chol.to(torch.float64)
+        if bool((c.triu(1) != 0).any()) or bool((torch.diagonal(c) <= 0).any()):
+            raise ValueError(
+                "chol must be lower triangular with a positive diagonal, got "
+                f"diagonal {torch.diagonal(c).tolist()}"
+            )

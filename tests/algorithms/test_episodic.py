@@ -89,6 +89,8 @@ def test_bad_input_is_rejected_with_clear_errors():
         algo.tell(None, th[:, :1], quadratic(th))
     with pytest.raises(ValueError, match=r"params must have shape \(9, 2\)"):
         algo.tell(None, th, quadratic(th)[:9])
+    with pytest.raises(ValueError, match=r"returns must have shape \(10,\).*got \(10, 1\)"):
+        algo.tell(None, th, quadratic(th)[:, None])
     with pytest.raises(ValueError, match="at least 2 samples"):
         algo.tell(None, th[:1], quadratic(th[:1]))
     with pytest.raises(ValueError, match="epsilon"):
@@ -102,13 +104,14 @@ def test_bad_input_is_rejected_with_clear_errors():
 
 def test_constant_returns_leave_policy_in_place():
     algo = REPS.create(2, init_std=1.0, seed=0)
-    before = algo.policy.options[0].bias.clone()
+    before = {k: v.clone() for k, v in algo.policy.state_dict().items()}
     th = algo.ask(50)
     d = algo.tell(None, th, torch.zeros(50))
     assert math.isinf(d["eta"]) and d["kl"] == pytest.approx(0.0, abs=1e-12)
-    # uniform weights: the refit is the sample mean, not a NaN
-    assert torch.allclose(algo.policy.options[0].bias, th.mean(0), atol=1e-12)
-    assert not torch.equal(before, algo.policy.options[0].bias)
+    # uniform weights carry no information: the policy stays exactly where it was
+    assert d["refitted"] is False and d["iteration"] == 1
+    for k, v in algo.policy.state_dict().items():
+        assert torch.equal(v, before[k]), k
 
 
 def test_collapsing_epsilon_warns_and_keeps_policy_finite():

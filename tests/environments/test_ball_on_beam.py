@@ -176,3 +176,24 @@ def test_evaluation_tells_a_stabilising_controller_from_a_level_beam():
     assert level.average_return < good.average_return
     tip = evaluate_beam(lambda s: torch.full((s.shape[0],), 0.15, dtype=torch.float64), p)
     assert tip.fell_share == 1.0 and tip.success_rate == 0.0
+
+
+@pytest.mark.parametrize(
+    "make, error, match",
+    [
+        (lambda: BeamParams(episode_seconds=0.0), ValueError, "episode_seconds must be finite"),
+        (lambda: BeamParams(dt=math.inf), ValueError, "dt must be finite and > 0"),
+        (lambda: BallOnBeamBatchEnv(0), ValueError, "batch_size must be >= 1"),
+        (lambda: evaluate_beam(abs, n_episodes=0), ValueError, "n_episodes must be >= 1"),
+        (lambda: evaluate_beam(abs, hold_seconds=math.nan), ValueError, "hold_seconds"),
+        (lambda: evaluate_beam(abs, tolerance=0.0), ValueError, "tolerance must be finite"),
+        (
+            lambda: beam_step(f64([0.1, math.nan, 0.0]), torch.zeros(1), BeamParams()),
+            ValueError,
+            "state contains non-finite",
+        ),
+    ],
+)
+def test_bad_counts_params_and_states_are_named(make, error, match):
+    with pytest.raises(error, match=match):
+        make()

@@ -213,8 +213,13 @@ def test_episodic_env_checks_all_three_shots_before_playing(env):
         ("min_blade_height", float("nan"), "min_blade_height must be finite"),
         ("position_gain", 0.0, "position_gain must be in"),
         ("dmp_basis", 1, "dmp_basis must be >= 2"),
+        ("dmp_basis", 7.5, "dmp_basis must be an integer"),
+        ("n_shots", 0, "n_shots must be >= 1"),
+        ("n_shots", 2.0, "n_shots must be an integer"),
+        ("zones", (1.4, float("nan"), 2.2, 2.6), "zones must be 4 finite increasing edges"),
+        ("zones", (1.4, 1.8, 2.2), "zones must be 4 finite"),
     ],
 )
 def test_bad_params_are_named(field, value, message):
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises((ValueError, TypeError), match=message):
         HockeyParams(**{field: value})

@@ -184,3 +184,33 @@ def test_the_task_is_mirror_symmetric_and_mirror_decisions_use_it():
     assert ms.shape == (400, 2) and ma.shape == (400, 1) and mt.shape == (400,)
     assert torch.equal(ms[:200], s) and torch.equal(ma[200:, 0], -a) and torch.equal(mr[200:], r)
     assert torch.equal(mn[200:], mirror_states(nxt))
+
+
+@pytest.mark.parametrize(
+    "make, error, match",
+    [
+        (lambda: PendulumSwingUpEnv(max_decisions=0), ValueError, "max_decisions must be >= 1"),
+        (lambda: PendulumSwingUpBatchEnv(4, max_decisions=-1), ValueError, "max_decisions"),
+        (lambda: PendulumSwingUpBatchEnv(4, max_decisions=2.5), TypeError, "max_decisions"),
+        (lambda: PendulumSwingUpBatchEnv(0), ValueError, "batch_size must be >= 1"),
+        (lambda: PendulumSwingUpBatchEnv(2.0), TypeError, "batch_size must be an integer"),
+        (lambda: PendulumSwingUpBatchEnv(2, seed=1.5), TypeError, "seed must be an integer"),
+        (lambda: PendulumParams(steps_per_decision=2.5), TypeError, "steps_per_decision"),
+        (lambda: PendulumParams(steps_per_decision=0), ValueError, "steps_per_decision"),
+        (lambda: PendulumParams(dt=math.inf), ValueError, "dt must be finite and > 0"),
+        (lambda: PendulumParams(kp=math.nan), ValueError, "kp must be finite and >= 0"),
+        (lambda: sample_start(-3, PendulumParams(), None), ValueError, "n must be >= 0"),
+        (lambda: evaluate_swing_up(abs, n_rollouts=0), ValueError, "n_rollouts must be >= 1"),
+        (lambda: evaluate_swing_up(abs, seconds=math.nan), ValueError, "seconds must be finite"),
+        (lambda: evaluate_swing_up(abs, hold_seconds=-1), ValueError, "hold_seconds"),
+    ],
+)
+def test_bad_counts_and_params_are_named(make, error, match):
+    with pytest.raises(error, match=match):
+        make()
+
+
+def test_a_non_finite_state_is_named_not_propagated():
+    state = torch.tensor([[0.1, math.nan]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="state contains non-finite"):
+        pendulum_step(state, torch.zeros(1), PendulumParams())

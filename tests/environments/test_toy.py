@@ -35,3 +35,18 @@ def test_bad_input_raises():
         TwoGaussians()(torch.tensor([[math.nan, 0.0]]))
     with pytest.raises(ValueError, match=r"context must have shape \(N, 1\)"):
         ContextualTwoGaussians()(torch.zeros(3, 2), torch.zeros(3, 2))
+
+
+def test_bad_widths_and_counts_are_named():
+    for width in (0.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="width must be finite and > 0"):
+            TwoGaussians(width=width)
+        with pytest.raises(ValueError, match="width must be finite and > 0"):
+            ContextualTwoGaussians(width=width)
+    with pytest.raises(ValueError, match="context_low < context_high"):
+        ContextualTwoGaussians(context_low=1.0, context_high=1.0)
+    with pytest.raises(ValueError, match="n must be >= 0"):
+        ContextualTwoGaussians().sample_contexts(-1)
+    assert ContextualTwoGaussians().sample_contexts(0).shape == (0, 1)
+    ints = torch.zeros(3, 2, dtype=torch.long)
+    assert torch.equal(TwoGaussians()(ints), TwoGaussians()(ints.double()))

@@ -1,0 +1,121 @@
+"""No drift without information: a flat reward leaves every variant's policy where it is.
+
+With all returns equal the dual keeps the sampling distribution (P = q p~, eta = inf, KL = 0)
+and the refit is skipped. Before, 100 flat iterations shrank the standard deviations by 5-10000x
+(maximum-likelihood covariance bias plus the downward random walk of log-variances) and pruned
+options (the mixture weights random-walked).
+"""
+
+import math
+
+import torch
+
+from hireps_torch.algorithms import (
+    REPS,
+    EpisodicHiREPS,
+    InfiniteHorizonHiREPS,
+    TimeIndexedHiREPS,
+)
+from hireps_torch.algorithms._options import OptionBound, carries_information
+from hireps_torch.dual import solve_episodic_dual
+from hireps_torch.features import FourierFeatures
+
+f64 = torch.float64
+ITERATIONS = 100
+
+
+def stds(algo):
+    """Standard deviations of every active option of every policy, and the active count."""
+    out, active = [], 0
+    for pol in algo.policies:
+        for o, opt in enumerate(pol.sub_policies):
+            if bool(pol.active[o]):
+                out.append(torch.diagonal(opt.covariance).sqrt())
+                active += 1
+    return torch.cat(out), active
+
+
+def check_no_drift(algo, step):
+    before, n_options = stds(algo)
+    for _ in range(ITERATIONS):
+        d = step()
+        refitted = d["refitted"] if isinstance(d["refitted"], list) else [d["refitted"]]
+        assert not any(refitted)
+    after, active = stds(algo)
+    assert active == n_options  # every option kept
+    ratio = after / before
+    assert bool(((ratio > 0.5) & (ratio < 2.0)).all()), ratio
+    assert algo.iteration == ITERATIONS
+
+
+def test_reps_keeps_its_standard_deviation_under_a_flat_reward():
+    algo = REPS.create(2, init_std=1.0, seed=0)  # was 1.0 -> ~1e-4 at N = 10
+    check_no_drift(algo, lambda: algo.tell(None, algo.ask(10), torch.zeros(10)))
+
+
+def test_hireps_keeps_five_options_under_a_flat_reward():
+    algo = EpisodicHiREPS.create(2, n_options=5, init_std=1.0, seed=0)  # default kappa_rel
+    check_no_drift(algo, lambda: algo.tell(None, algo.ask(50), torch.full((50,), 3.0)))
+    ctx = EpisodicHiREPS.create(2, context_dim=1, n_options=5, init_std=1.0, seed=0)
+    g = torch.Generator().manual_seed(0)
+
+    def step():
+        s = torch.randn(50, 1, generator=g, dtype=f64)
+        return ctx.tell(s, ctx.ask(s), torch.zeros(50))
+
+    check_no_drift(ctx, step)
+
+
+def test_time_indexed_keeps_every_step_under_a_flat_reward():
+    algo = TimeIndexedHiREPS.create(3, 2, 2, n_options=5, init_std=1.0, seed=0)
+    g = torch.Generator().manual_seed(0)
+
+    def step():
+        s = torch.zeros(40, 3, 2, dtype=f64)
+        theta = torch.zeros(40, 3, 2, dtype=f64)
+        s[:, 0] = torch.randn(40, 2, generator=g, dtype=f64)
+        for k in range(3):
+            theta[:, k] = algo.ask(k, s[:, k])
+            if k < 2:
+                s[:, k + 1] = s[:, k] + 0.1 * theta[:, k]
+        return algo.tell(s, theta, torch.ones(40, 3))
+
+    check_no_drift(algo, step)
+
+
+def test_infinite_horizon_keeps_its_options_under_a_flat_reward():
+    g = torch.Generator().manual_seed(0)
+    algo = InfiniteHorizonHiREPS.create(
+        2, 1, value_features=FourierFeatures([-3.0, -3.0], [3.0, 3.0], 3),
+        initial_states=torch.randn(200, 2, generator=g, dtype=f64), gamma=0.95,
+        n_options=5, init_std=1.0, seed=0,
+    )  # fmt: skip
+
+    def step():
+        s = torch.randn(50, 2, generator=g, dtype=f64)
+        a = algo.sample(s)
+        return algo.update(s, a, torch.zeros(50), (0.9 * s + 0.1 * a).clamp(-3, 3))
+
+    check_no_drift(algo, step)
+
+
+def test_only_weights_equal_to_the_sampling_distribution_carry_no_information():
+    lr = torch.log_softmax(torch.randn(20, 3, dtype=f64), -1)
+    bound = OptionBound(lr, 0.0, None)
+    flat = solve_episodic_dual(torch.zeros(20), epsilon=0.5, log_responsibilities=lr)
+    assert math.isinf(flat.eta) and not carries_information(flat, bound)
+    informative = solve_episodic_dual(torch.arange(20.0), epsilon=1e-4, log_responsibilities=lr)
+    assert carries_information(informative, bound)  # even a tiny KL bound moves the weights
+    one = solve_episodic_dual(torch.ones(20), epsilon=0.5)
+    assert not carries_information(one, OptionBound(None, 0.0, None))
+
+
+def test_an_informative_update_after_flat_ones_still_learns():
+    algo = REPS.create(2, init_std=1.0, seed=0)
+    for _ in range(5):
+        algo.tell(None, algo.ask(20), torch.zeros(20))
+    for _ in range(30):
+        th = algo.ask(30)
+        d = algo.tell(None, th, -((th - 1.0) ** 2).sum(1))
+        assert d["refitted"]
+    assert torch.allclose(algo.act(1)[0], torch.ones(2, dtype=f64), atol=0.1)

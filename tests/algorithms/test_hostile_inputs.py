@@ -1,0 +1,167 @@
+"""A user who misuses the algorithms gets a ValueError / TypeError naming the argument and the
+bad value or shape, at construction or at the call, never an error from deep inside torch or a
+silent NaN; and what is harmless (0-d tensors, integer tensors, telling twice) just works."""
+
+import math
+
+import pytest
+import torch
+
+from hireps_torch.algorithms import (
+    REPS,
+    EpisodicHiREPS,
+    InfiniteHorizonHiREPS,
+    TimeIndexedHiREPS,
+)
+from hireps_torch.features import QuadraticFeatures
+
+f64 = torch.float64
+NAN, INF = math.nan, math.inf
+START = torch.linspace(-2, 2, 41, dtype=f64)[:, None]
+
+
+def make_ih(**kwargs):
+    args = dict(value_features=QuadraticFeatures(1), initial_states=START, gamma=0.9, seed=0)
+    return InfiniteHorizonHiREPS.create(1, 1, **(args | kwargs))
+
+
+BASE = dict(n_options=3, seed=0)
+CREATE = {
+    "episodic": lambda **k: EpisodicHiREPS.create(2, **(BASE | k)),
+    "time_indexed": lambda **k: TimeIndexedHiREPS.create(2, 1, 1, **(BASE | k)),
+    "infinite_horizon": lambda **k: make_ih(**(BASE | k)),
+}
+
+
+@pytest.mark.parametrize("variant", list(CREATE))
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        (dict(epsilon=torch.tensor([0.5, 0.5, 0.5])), ValueError, "epsilon"),
+        (dict(epsilon=NAN), ValueError, "epsilon"),
+        (dict(epsilon=True), TypeError, "epsilon must be a number, got the bool"),
+        (dict(kappa_rel=torch.tensor([0.5, 0.5])), ValueError, "kappa_rel must be one number"),
+        (dict(kappa_rel=-0.1), ValueError, "kappa_rel must be finite and >= 0"),
+        (dict(seed=1.5), TypeError, "seed must be an integer, got float"),
+        (dict(init_mean=torch.tensor([NAN])), ValueError, "init_mean contains"),
+        (dict(init_std=INF), ValueError, "init_std must be finite and > 0"),
+        (dict(spread=NAN), ValueError, "spread must be finite"),
+        (dict(min_variance=-1.0), ValueError, "min_variance must be > 0"),
+        (dict(covariance_prior=INF), ValueError, "covariance_prior must be finite"),
+        (dict(n_options=0), ValueError, "n_options must be >= 1"),
+    ],
+)
+def test_create_names_the_bad_argument(variant, kwargs, error, match):
+    if variant == "episodic" and "init_mean" in kwargs:
+        kwargs = dict(init_mean=torch.tensor([NAN, 0.0]))
+    with pytest.raises(error, match=match):
+        CREATE[variant](**kwargs)
+
+
+def test_zero_d_tensors_are_numbers():
+    algo = EpisodicHiREPS.create(
+        2, epsilon=torch.tensor(0.5, dtype=f64), kappa_rel=torch.tensor(0.8)
+    )
+    assert algo.epsilon == 0.5 and algo.kappa_rel == pytest.approx(0.8)
+    ti = TimeIndexedHiREPS.create(2, 1, 1, epsilon=torch.tensor([0.3, 0.4], dtype=f64))
+    assert ti.epsilon == [0.3, 0.4]
+    assert (
+        TimeIndexedHiREPS.create(2, 1, 1, epsilon=torch.tensor(0.3, dtype=f64)).epsilon == [0.3] * 2
+    )
+    assert make_ih(gamma=torch.tensor(0.5, dtype=f64)).gamma == 0.5
+    assert EpisodicHiREPS.create(2, n_options=torch.tensor(2)).policy.n_options == 2
+
+
+def test_counts_and_thresholds_are_checked():
+    pol = REPS.create(2).policy
+    for kwargs, error, match in [
+        (dict(prune_threshold=NAN), ValueError, r"prune_threshold must be in \[0, 1\)"),
+        (dict(prune_threshold=1.0), ValueError, "prune_threshold"),
+        (dict(context_dim=-1), ValueError, "context_dim must be >= 0"),
+        (dict(context_dim=1), ValueError, "the policy takes contexts of dimension 0"),
+    ]:
+        with pytest.raises(error, match=match):
+            EpisodicHiREPS(pol, **kwargs)
+    with pytest.raises(TypeError, match="policy must be a HierarchicalPolicy"):
+        EpisodicHiREPS(pol.options[0])
+    with pytest.raises(ValueError, match=r"K \(the number of decision steps\) must be >= 1"):
+        TimeIndexedHiREPS.create(0, 1, 1)
+    with pytest.raises(TypeError, match="param_dim must be an integer"):
+        TimeIndexedHiREPS.create(2, 1.0 * 2, 1)
+    with pytest.raises(ValueError, match="initial_states contains non-finite"):
+        make_ih(initial_states=START.masked_fill(START > 1, NAN))
+    with pytest.raises(ValueError, match=r"initial_states must have shape \(N, 1\), got \(41,\)"):
+        make_ih(initial_states=START[:, 0])
+    with pytest.raises(ValueError, match="state_dim must be >= 1"):
+        InfiniteHorizonHiREPS.create(
+            0, 1, value_features=QuadraticFeatures(0), initial_states=START, gamma=0.9
+        )
+
+
+def test_sample_counts_contexts_and_widths_are_named():
+    free, ctx = EpisodicHiREPS.create(2, n_options=2), EpisodicHiREPS.create(2, context_dim=1)
+    for call, error, match in [
+        (lambda: free.ask(0), ValueError, "the number of samples must be >= 1, got 0"),
+        (lambda: free.ask(-3), ValueError, "the number of samples must be >= 1, got -3"),
+        (lambda: free.ask(2.0), TypeError, "the number of samples must be an integer"),
+        (lambda: free.ask(True), TypeError, "the number of samples must be an integer"),
+        (lambda: free.ask(torch.zeros(5, 2)), ValueError, "this algorithm has no context"),
+        (lambda: free.act(torch.zeros(0, 0)), ValueError, "at least one context"),
+        (lambda: ctx.act(torch.zeros(4, 2)), ValueError, r"contexts must have shape \(N, 1\)"),
+        (lambda: ctx.ask(None), ValueError, r"contextual \(context_dim = 1\)"),
+        (lambda: make_ih().value(torch.zeros(3, 2)), ValueError, r"\(N, 1\), got \(3, 2\)"),
+        (
+            lambda: make_ih().act if False else make_ih().value(torch.zeros(0, 1)),
+            ValueError,
+            "at least one",
+        ),
+        (
+            lambda: TimeIndexedHiREPS.create(2, 1, 2).value(1, torch.zeros(3, 1)),
+            ValueError,
+            r"contexts must have shape \(N, 2\), got \(3, 1\)",
+        ),
+        (lambda: ctx.ask(torch.zeros(4, 1, device="meta")), ValueError, "device meta"),
+    ]:
+        with pytest.raises(error, match=match):
+            call()
+    assert free.ask(torch.tensor(3)).shape == (3, 2)  # a 0-d integer tensor is a count
+    assert free.ask(torch.zeros(4, 0)).shape == (4, 2)
+    assert ctx.ask(torch.zeros(4)).shape == (4, 2)  # S = 1: a flat batch of contexts
+
+
+def test_integer_and_bool_tensors_are_used_as_floats():
+    algo = EpisodicHiREPS.create(2, context_dim=1, n_options=2, seed=0)
+    s = torch.randint(-2, 3, (30, 1))
+    th = algo.ask(s).round().to(torch.int64)
+    d = algo.tell(s, th, -(th**2).sum(1))  # int contexts, params and returns
+    assert d["kl"] == pytest.approx(algo.epsilon, abs=1e-3) and d["refitted"]
+    ti = TimeIndexedHiREPS.create(1, 1, 1, n_options=1, kappa_rel=None, seed=0)
+    states = torch.randint(0, 2, (20, 1, 1)).bool()
+    ti.tell(states, ti.ask(0, states[:, 0]).round().int()[:, None], torch.arange(20)[:, None])
+    assert ti.iteration == 1
+
+
+def test_single_option_tell_twice_and_tell_before_ask():
+    algo = EpisodicHiREPS.create(2, n_options=1, seed=0)  # one option, with the entropy bound
+    th = torch.randn(20, 2, generator=torch.Generator().manual_seed(1), dtype=f64)
+    R = -(th**2).sum(1)
+    first = algo.tell(None, th, R)  # samples that ask never drew: any samples are data
+    second = algo.tell(None, th, R)  # the same samples again: a second, valid update
+    assert math.isnan(first["kappa"]) and first["n_active_options"] == 1
+    assert second["iteration"] == 2 and math.isfinite(second["kl"])
+    assert bool(torch.isfinite(algo.policy.options[0].chol).all())
+
+
+def test_update_needs_at_least_two_samples_and_exact_shapes():
+    algo = EpisodicHiREPS.create(2, n_options=2, seed=0)
+    th = algo.ask(6)
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        algo.tell(None, th[:1], torch.zeros(1))
+    with pytest.raises(ValueError, match="the number of samples must be >= 1, got 0"):
+        algo.tell(None, th[:0], torch.zeros(0))
+    with pytest.raises(ValueError, match=r"returns must have shape \(6,\).*got \(6, 1\)"):
+        algo.tell(None, th, torch.zeros(6, 1))
+    ih = make_ih()
+    s = torch.zeros(6, 1, dtype=f64)
+    with pytest.raises(ValueError, match=r"rewards must have shape \(6,\).*got \(1, 6\)"):
+        ih.update(s, s, torch.zeros(1, 6), s)

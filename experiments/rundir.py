@@ -210,12 +210,13 @@ class RunWriter:
         plt.close(fig)
 
     def finish(self, summary: Mapping[str, Any]) -> dict[str, Any]:
-        """Write ``summary.json`` (adds ``wall_seconds``) and return it."""
+        """Write ``summary.json`` (adds ``wall_seconds``) and return what it holds."""
         out = dict(summary)
         out["wall_seconds"] = round(self.elapsed(), 3)
         self.write_json("summary.json", out)
         self.close()
-        return out
+        written: dict[str, Any] = jsonable(out)  # what summary.json holds (NaN -> None)
+        return written
 
     def close(self) -> None:
         """Flush and close the TorchRL logger (if any); ``metrics.csv`` is always flushed."""

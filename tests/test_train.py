@@ -4,6 +4,7 @@ package behind it."""
 import csv
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -57,35 +58,19 @@ def test_bimodal_subprocess_writes_the_run_directory(tmp_path):
     assert (run / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def in_process(name, tmp_path, run_name, **options):
+    """Run experiment ``name`` in this process (no interpreter start-up) into tmp_path/run_name."""
+    from experiments import EXPERIMENTS
+
+    config_cls, run = EXPERIMENTS[name]
+    return run(config_cls(progress=False, run_dir=tmp_path / run_name, **options))
+
+
 def test_same_seed_gives_the_same_run(tmp_path):
-    for name in ("a", "b"):
-        p = train(
-            "bimodal",
-            "--episodes",
-            "600",
-            "--seed",
-            "3",
-            "--contextual",
-            "--run-dir",
-            str(tmp_path / name),
-            "--no-progress",
-        )
-        assert p.returncode == 0, p.stderr
-    a = (tmp_path / "a" / "metrics.csv").read_text()
-    b = (tmp_path / "b" / "metrics.csv").read_text()
-    assert a == b
-    p = train(
-        "bimodal",
-        "--episodes",
-        "600",
-        "--seed",
-        "4",
-        "--contextual",
-        "--run-dir",
-        str(tmp_path / "c"),
-        "--no-progress",
-    )
-    assert (tmp_path / "c" / "metrics.csv").read_text() != a
+    for name, seed in (("a", 3), ("b", 3), ("c", 4)):
+        in_process("bimodal", tmp_path, name, episodes=600, seed=seed, contextual=True)
+    a, b, c = ((tmp_path / n / "metrics.csv").read_text() for n in "abc")
+    assert a == b and c != a
 
 
 def test_existing_run_directory_is_never_overwritten(tmp_path):
@@ -100,17 +85,22 @@ def test_existing_run_directory_is_never_overwritten(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "args,message",
+    "options,message",
     [
-        (["--samples-per-iteration", "1"], "samples_per_iteration must be >= 2"),
-        (["--episodes", "50"], "episodes (50) must be at least samples_per_iteration"),
-        (["--epsilon", "-1"], "epsilon must be finite and > 0, got -1.0"),
+        ({"samples_per_iteration": 1}, "samples_per_iteration must be >= 2"),
+        ({"episodes": 50}, "episodes (50) must be at least samples_per_iteration"),
     ],
 )
-def test_bad_config_gives_a_clear_error(tmp_path, args, message):
-    p = train("bimodal", *args, "--run-dir", str(tmp_path / "r"), "--no-progress")
+def test_bad_config_gives_a_clear_error(tmp_path, options, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        in_process("bimodal", tmp_path, "r", **options)
+    assert not (tmp_path / "r").exists()
+
+
+def test_bad_option_on_the_command_line_exits_with_code_2_and_the_message(tmp_path):
+    p = train("bimodal", "--epsilon", "-1", "--run-dir", str(tmp_path / "r"), "--no-progress")
     assert p.returncode == 2
-    assert message in p.stderr
+    assert "epsilon must be finite and > 0, got -1.0" in p.stderr
 
 
 def test_pendulum_subprocess_writes_the_run_directory(tmp_path):
@@ -135,22 +125,10 @@ def test_pendulum_subprocess_writes_the_run_directory(tmp_path):
 
 @pytest.mark.parametrize("gating", ["constant", "flat"])
 def test_pendulum_baselines_run(tmp_path, gating):
-    p = train(
-        "pendulum",
-        "--gating",
-        gating,
-        "--n-options",
-        "20",
-        "--episodes",
-        "20",
-        "--eval-rollouts",
-        "2",
-        "--run-dir",
-        str(tmp_path / "r"),
-        "--no-progress",
+    summary = in_process(
+        "pendulum", tmp_path, "r", gating=gating, n_options=20, episodes=20, eval_rollouts=2
     )
-    assert p.returncode == 0, p.stderr
-    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert json.loads((tmp_path / "r" / "summary.json").read_text()) == summary
     assert summary["gating"] == gating
     assert summary["n_options"] == (1 if gating == "flat" else 20)
 
@@ -361,13 +339,8 @@ def test_tensorboard_logger_writes_event_files_that_read_back(tmp_path):
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+    in_process("bimodal", tmp_path, "run", episodes=600, logger="tensorboard")
     run = tmp_path / "run"
-    p = train(
-        "bimodal",
-        *("--episodes", "600", "--logger", "tensorboard"),
-        *("--run-dir", str(run), "--no-progress"),
-    )
-    assert p.returncode == 0, p.stderr
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     events = list(run.rglob("events.out.tfevents.*"))
     assert events, sorted(str(x) for x in run.rglob("*"))
@@ -396,23 +369,21 @@ def test_wandb_logger_runs_offline_without_an_account(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "args,message",
+    "name,options,message",
     [
-        (
-            ["pendulum", "--eval-rollouts", "0"],
-            "eval_rollouts (--eval-rollouts) must be an integer",
-        ),
-        (["pendulum", "--episode-seconds", "-1"], "episode_seconds (--episode-seconds) must be"),
-        (["pendulum", "--episode-seconds", "nan"], "got nan"),
-        (["bimodal", "--bump-width", "0"], "bump_width (--bump-width) must be finite and > 0"),
-        (["bimodal", "--n-options", "0"], "n_options (--n-options) must be an integer >= 1"),
-        (["ball-on-beam", "--fourier-bases", "0"], "fourier_bases (--fourier-bases)"),
-        (["hockey-sequential", "--init-std-velocity", "inf"], "init_std_velocity"),
-        (["hockey-episodic", "--covariance-prior", "-1"], "covariance_prior"),
+        ("pendulum", {"eval_rollouts": 0}, "eval_rollouts (--eval-rollouts) must be an integer"),
+        ("pendulum", {"episode_seconds": -1.0}, "episode_seconds (--episode-seconds) must be"),
+        ("pendulum", {"episode_seconds": float("nan")}, "got nan"),
+        ("bimodal", {"bump_width": 0.0}, "bump_width (--bump-width) must be finite and > 0"),
+        ("bimodal", {"n_options": 0}, "n_options (--n-options) must be an integer >= 1"),
+        ("ball-on-beam", {"fourier_bases": 0}, "fourier_bases (--fourier-bases)"),
+        ("hockey-sequential", {"init_std_velocity": float("inf")}, "init_std_velocity"),
+        ("hockey-episodic", {"covariance_prior": -1.0}, "covariance_prior"),
+        ("bimodal", {"checkpoint_every": 0}, "checkpoint_every must be >= 1, got 0"),
+        ("bimodal", {"seed": 2**70}, "seed must be an integer in"),
     ],
 )
-def test_bad_option_values_are_named_before_anything_is_written(tmp_path, args, message):
-    p = train(*args, "--run-dir", str(tmp_path / "r"), "--no-progress")
-    assert p.returncode == 2, p.stderr
-    assert message in p.stderr
+def test_bad_option_values_are_named_before_anything_is_written(tmp_path, name, options, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        in_process(name, tmp_path, "r", **options)
     assert not (tmp_path / "r").exists()

@@ -213,38 +213,26 @@ def test_weights_invariant_to_return_shift_and_scale(gen, O, F, use_kappa):
     assert scaled.xi == pytest.approx(37.0 * base.xi, rel=1e-6, abs=1e-12)
 
 
-def test_float32_input_is_solved_in_float64(gen):
-    R, lr, _ = random_problem(gen, N=100, O=2)
-    sol = solve_episodic_dual(R.float(), epsilon=0.5, log_responsibilities=lr.float())
-    assert sol.weights.dtype == torch.float64
-    assert sol.kl == pytest.approx(0.5, abs=1e-3)
-
-
 def test_pruned_option_columns_get_zero_weight(gen):
     R, lr, _ = random_problem(gen, N=100, O=3)
     lr2 = torch.log_softmax(lr[:, :2], -1)
     lr3 = torch.cat([lr2, torch.full((100, 1), -math.inf, dtype=torch.float64)], 1)
     sol = solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr3, kappa=0.3)
     ref = solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr2, kappa=0.3)
+    assert sol.converged and ref.converged
     assert bool(torch.isfinite(sol.weights).all())
     assert float(sol.weights[:, 2].abs().max()) == 0.0
     assert torch.allclose(sol.weights[:, :2], ref.weights, atol=1e-9)
 
 
 # ---- degenerate and bad input ---------------------------------------------------------------
-def test_zero_variance_returns_give_uniform_weights():
-    sol = solve_episodic_dual(torch.full((10,), 3.0), epsilon=0.5)
-    assert torch.allclose(sol.sample_weights, torch.full((10,), 0.1, dtype=torch.float64))
-    assert sol.kl == pytest.approx(0.0, abs=1e-12)
-    assert math.isinf(sol.eta)
-
-
 def test_epsilon_beyond_log_n_warns_and_stays_finite(gen):
     R = torch.randn(20, generator=gen, dtype=torch.float64)
     with pytest.warns(DegenerateWeightsWarning) as record:
         sol = solve_episodic_dual(R, epsilon=5.0)
-    messages = " | ".join(str(r.message) for r in record)
-    assert "log N" in messages and "collapsed" in messages
+    messages = [str(r.message) for r in record]
+    # one warning before the solve (epsilon >= log N), one after it (the weights collapsed)
+    assert any("log N" in m for m in messages) and any("collapsed onto" in m for m in messages)
     assert bool(torch.isfinite(sol.weights).all())
     assert sol.effective_sample_size < 1.5
     assert int(sol.sample_weights.argmax()) == int(R.argmax())
@@ -261,20 +249,20 @@ def test_nonfinite_returns_raise(bad):
 @pytest.mark.parametrize("eps", [0.0, -1.0, math.nan, math.inf])
 def test_bad_epsilon_raises(eps):
     with pytest.raises(ValueError, match="epsilon"):
-        solve_episodic_dual(torch.randn(10), epsilon=eps)
+        solve_episodic_dual(torch.arange(10.0), epsilon=eps)
 
 
 def test_shape_mismatches_raise():
     with pytest.raises(ValueError, match=r"returns must have shape \(N,\)"):
         solve_episodic_dual(torch.zeros(4, 2), epsilon=0.5)
     with pytest.raises(ValueError, match=r"log_responsibilities must have shape \(N, O\) = \(4"):
-        solve_episodic_dual(torch.randn(4), epsilon=0.5, log_responsibilities=torch.zeros(5, 2))
+        solve_episodic_dual(torch.arange(4.0), epsilon=0.5, log_responsibilities=torch.zeros(5, 2))
     with pytest.raises(ValueError, match=r"context_features must have shape \(N, F\) = \(4"):
-        solve_episodic_dual(torch.randn(4), epsilon=0.5, context_features=torch.zeros(3, 2))
+        solve_episodic_dual(torch.arange(4.0), epsilon=0.5, context_features=torch.zeros(3, 2))
     with pytest.raises(ValueError, match="normalised over options"):
-        solve_episodic_dual(torch.randn(4), epsilon=0.5, log_responsibilities=torch.zeros(4, 2))
+        solve_episodic_dual(torch.arange(4.0), epsilon=0.5, log_responsibilities=torch.zeros(4, 2))
     with pytest.raises(ValueError, match="kappa"):
-        solve_episodic_dual(torch.randn(4), epsilon=0.5, kappa=-0.1)
+        solve_episodic_dual(torch.arange(4.0), epsilon=0.5, kappa=-0.1)
 
 
 def test_single_sample_raises():

@@ -37,7 +37,7 @@ def test_fourier_coupling_keeps_the_terms_with_few_coupled_dimensions():
     one = FourierFeatures([0.0] * 3, [1.0] * 3, n_bases=5, coupling=1)
     two = FourierFeatures([0.0] * 3, [1.0] * 3, n_bases=5, coupling=2)
     assert (full.out_features, one.out_features, two.out_features) == (124, 12, 60)
-    x = torch.rand(7, 3, dtype=torch.float64)
+    x = torch.rand(7, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     # every kept term is a column of the full basis
     fx = full(x)
     for sub in (one, two):
@@ -55,7 +55,17 @@ def test_feature_maps_reject_bad_arguments():
         FourierFeatures([0.0], [1.0], n_bases=1)
     with pytest.raises(ValueError, match=r"takes states of shape \(\.\.\., 1\), got \(3, 2\)"):
         FourierFeatures([0.0], [1.0])(torch.zeros(3, 2))
-    assert QuadraticFeatures(2)(torch.ones(4, 2)).shape == (4, 5)
+
+
+def test_quadratic_features_match_their_formula():
+    # [z, z_i z_j for i <= j] with z = x / scale, batch dimensions kept
+    quad = QuadraticFeatures(2, scale=torch.tensor([2.0, 1.0]))
+    assert (quad.in_features, quad.out_features) == (2, 5)
+    x = torch.tensor([[2.0, -3.0], [0.0, 0.5]], dtype=torch.float64)
+    expected = [[1.0, -3.0, 1.0, -3.0, 9.0], [0.0, 0.5, 0.0, 0.0, 0.25]]
+    assert quad(x).tolist() == expected
+    assert quad(x.expand(4, 2, 2)).shape == (4, 2, 5)
+    assert QuadraticFeatures(3).out_features == 3 + 6
 
 
 def test_concat_features_stack_the_maps_in_order():
@@ -63,7 +73,7 @@ def test_concat_features_stack_the_maps_in_order():
     quad = QuadraticFeatures(2, scale=torch.tensor([math.pi, 10.0]))
     both = ConcatFeatures(four, quad)
     assert both.in_features == 2 and both.out_features == 48 + 5
-    x = torch.randn(6, 2, dtype=torch.float64)
+    x = torch.randn(6, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     out = both(x)
     assert torch.equal(out[:, :48], four(x)) and torch.equal(out[:, 48:], quad(x))
     with pytest.raises(ValueError, match="in_features"):

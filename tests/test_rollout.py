@@ -64,9 +64,7 @@ def test_policy_updates_are_seen_by_the_collector():
 def test_deterministic_actor_uses_the_mean_of_the_most_probable_option():
     pol = HierarchicalPolicy.create(2, 2, 1)
     actor = policy_module(pol, deterministic=True)
-    from tensordict import TensorDict
-
-    obs = torch.randn(5, 2)
+    obs = torch.randn(5, 2, generator=torch.Generator().manual_seed(0))
     td = actor(TensorDict({"observation": obs}, batch_size=[5]))
     expected, option = pol.mean_action(obs.double())
     assert torch.allclose(td["action"], expected.float())

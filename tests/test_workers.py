@@ -1,6 +1,7 @@
 """Worker processes: a multi-process collector acts with the updated policy after a weight
 sync, and the interpreter exits afterwards."""
 
+import ast
 import subprocess
 import sys
 import textwrap
@@ -47,7 +48,7 @@ def test_workers_act_with_the_updated_policy_after_a_weight_sync(tmp_path):
         env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"},
     )
     assert p.returncode == 0, p.stderr
-    means = eval(p.stdout.split("MEANS", 1)[1].strip())
+    means = ast.literal_eval(p.stdout.split("MEANS", 1)[1].strip())
     assert len(means) == 3
     # batch 0 with the initial policy (mean 0), then every batch with the last synced update
     assert abs(means[0]) < 1e-6

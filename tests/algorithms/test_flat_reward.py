@@ -21,35 +21,32 @@ from hireps_torch.dual import solve_episodic_dual
 from hireps_torch.features import FourierFeatures
 
 f64 = torch.float64
-ITERATIONS = 100
+ITERATIONS = 20  # the refit is skipped every time: any drift would show after the first
 
 
-def stds(algo):
-    """Standard deviations of every active option of every policy, and the active count."""
-    out, active = [], 0
-    for pol in algo.policies:
-        for o, opt in enumerate(pol.sub_policies):
-            if bool(pol.active[o]):
-                out.append(torch.diagonal(opt.covariance).sqrt())
-                active += 1
-    return torch.cat(out), active
+def policy_states(algo):
+    """A copy of every policy's state (means, Cholesky factors, gating, active flags)."""
+    return [{k: v.clone() for k, v in pol.state_dict().items()} for pol in algo.policies]
 
 
 def check_no_drift(algo, step):
-    before, n_options = stds(algo)
+    before = policy_states(algo)
+    n_active = [int(pol.active.sum()) for pol in algo.policies]
     for _ in range(ITERATIONS):
         d = step()
         refitted = d["refitted"] if isinstance(d["refitted"], list) else [d["refitted"]]
         assert not any(refitted)
-    after, active = stds(algo)
-    assert active == n_options  # every option kept
-    ratio = after / before
-    assert bool(((ratio > 0.5) & (ratio < 2.0)).all()), ratio
+    # every option kept, every mean and standard deviation exactly where it was
+    assert [int(pol.active.sum()) for pol in algo.policies] == n_active
+    for old, new in zip(before, policy_states(algo), strict=True):
+        assert old.keys() == new.keys()
+        for key, value in old.items():
+            assert torch.equal(value, new[key]), key
     assert algo.iteration == ITERATIONS
 
 
 def test_reps_keeps_its_standard_deviation_under_a_flat_reward():
-    algo = REPS.create(2, init_std=1.0, seed=0)  # was 1.0 -> ~1e-4 at N = 10
+    algo = REPS.create(2, init_std=1.0, seed=0)  # std was 1.0 -> ~1e-4 after 100 at N = 10
     check_no_drift(algo, lambda: algo.tell(None, algo.ask(10), torch.zeros(10)))
 
 
@@ -100,7 +97,9 @@ def test_infinite_horizon_keeps_its_options_under_a_flat_reward():
 
 
 def test_only_weights_equal_to_the_sampling_distribution_carry_no_information():
-    lr = torch.log_softmax(torch.randn(20, 3, dtype=f64), -1)
+    lr = torch.log_softmax(
+        torch.randn(20, 3, generator=torch.Generator().manual_seed(0), dtype=f64), -1
+    )
     bound = OptionBound(lr, 0.0, None)
     flat = solve_episodic_dual(torch.zeros(20), epsilon=0.5, log_responsibilities=lr)
     assert math.isinf(flat.eta) and not carries_information(flat, bound)
@@ -118,4 +117,5 @@ def test_an_informative_update_after_flat_ones_still_learns():
         th = algo.ask(30)
         d = algo.tell(None, th, -((th - 1.0) ** 2).sum(1))
         assert d["refitted"]
-    assert torch.allclose(algo.act(1)[0], torch.ones(2, dtype=f64), atol=0.1)
+    # measured error 2.3e-5 (the start is 1.0 away)
+    assert torch.allclose(algo.act(1)[0], torch.ones(2, dtype=f64), atol=1e-3, rtol=0)

@@ -110,11 +110,7 @@ def test_sample_counts_contexts_and_widths_are_named():
         (lambda: ctx.act(torch.zeros(4, 2)), ValueError, r"contexts must have shape \(N, 1\)"),
         (lambda: ctx.ask(None), ValueError, r"contextual \(context_dim = 1\)"),
         (lambda: make_ih().value(torch.zeros(3, 2)), ValueError, r"\(N, 1\), got \(3, 2\)"),
-        (
-            lambda: make_ih().act if False else make_ih().value(torch.zeros(0, 1)),
-            ValueError,
-            "at least one",
-        ),
+        (lambda: make_ih().value(torch.zeros(0, 1)), ValueError, "at least one"),
         (
             lambda: TimeIndexedHiREPS.create(2, 1, 2).value(1, torch.zeros(3, 1)),
             ValueError,
@@ -130,15 +126,28 @@ def test_sample_counts_contexts_and_widths_are_named():
 
 
 def test_integer_and_bool_tensors_are_used_as_floats():
-    algo = EpisodicHiREPS.create(2, context_dim=1, n_options=2, seed=0)
-    s = torch.randint(-2, 3, (30, 1))
+    # the same update as with the float64 values: same diagnostics, same policy
+    gen = torch.Generator().manual_seed(0)
+    algo, twin = (EpisodicHiREPS.create(2, context_dim=1, n_options=2, seed=0) for _ in "ab")
+    s = torch.randint(-2, 3, (30, 1), generator=gen)
     th = algo.ask(s).round().to(torch.int64)
+    assert torch.equal(twin.ask(s.double()).round(), th.double())  # the same draws
     d = algo.tell(s, th, -(th**2).sum(1))  # int contexts, params and returns
     assert d["kl"] == pytest.approx(algo.epsilon, abs=1e-3) and d["refitted"]
-    ti = TimeIndexedHiREPS.create(1, 1, 1, n_options=1, kappa_rel=None, seed=0)
-    states = torch.randint(0, 2, (20, 1, 1)).bool()
-    ti.tell(states, ti.ask(0, states[:, 0]).round().int()[:, None], torch.arange(20)[:, None])
-    assert ti.iteration == 1
+    assert d == twin.tell(s.double(), th.double(), -(th.double() ** 2).sum(1))
+    for key, value in algo.policy.state_dict().items():
+        assert torch.equal(value, twin.policy.state_dict()[key]), key
+    ti, ti_twin = (
+        TimeIndexedHiREPS.create(1, 1, 1, n_options=1, kappa_rel=None, seed=0) for _ in "ab"
+    )
+    states = torch.randint(0, 2, (20, 1, 1), generator=gen).bool()
+    theta = ti.ask(0, states[:, 0]).round().int()[:, None]
+    d = ti.tell(states, theta, torch.arange(20)[:, None])
+    d_twin = ti_twin.tell(states.double(), theta.double(), torch.arange(20.0)[:, None])
+    assert ti.iteration == 1 and d["kl"] == d_twin["kl"]
+    assert torch.equal(ti.value_weights, ti_twin.value_weights)
+    for key, value in ti.policies[0].state_dict().items():
+        assert torch.equal(value, ti_twin.policies[0].state_dict()[key]), key
 
 
 def test_single_option_tell_twice_and_tell_before_ask():

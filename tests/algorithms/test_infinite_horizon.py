@@ -7,6 +7,7 @@ import torch
 
 from environments.pendulum import PendulumParams, pendulum_step, sample_start
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
+from hireps_torch.dual import solve_infinite_horizon_dual
 from hireps_torch.features import FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -44,6 +45,7 @@ def test_update_meets_kl_entropy_and_stationarity(gen):
     s, a, r, s2 = rollout(algo, p, gen)
     before = algo.policy.log_responsibilities(s, a)
     kappa = 0.9 * float(-(before.exp() * before).sum(-1).mean())
+    phi, phi_next, phi0 = algo.value_features(s), algo.value_features(s2), algo.initial_features
     d = algo.update(s, a, r, s2)
     assert d["dual_converged"]
     assert d["kl"] == pytest.approx(0.5, abs=1e-3)
@@ -54,7 +56,12 @@ def test_update_meets_kl_entropy_and_stationarity(gen):
     for key in ("eta", "xi", "option_entropy", "policy_entropy", "mean_reward"):
         assert math.isfinite(d[key]), key
     # the value estimate is the dual's v on the value features
-    assert algo.value(s[:3]).shape == (3,)
+    sol = solve_infinite_horizon_dual(
+        r, phi, phi_next, phi0, gamma=p.gamma, epsilon=0.5, log_responsibilities=before,
+        kappa=kappa,
+    )  # fmt: skip
+    assert torch.equal(algo.value_weights, sol.v)
+    assert torch.allclose(algo.value(s[:3]), phi[:3] @ sol.v, rtol=1e-12, atol=0)
 
 
 def test_terminated_transitions_lead_to_the_start_distribution(gen):
@@ -90,6 +97,18 @@ def test_terminated_transitions_lead_to_the_start_distribution(gen):
         algo.update(s, a, r, s2, term[:-1])
 
 
+def assert_same_state(a, b):
+    """Two state dicts are equal entry by entry (policy tensors, value weights, generator)."""
+    assert a.keys() == b.keys()
+    for key, value in a.items():
+        if isinstance(value, dict):
+            assert_same_state(value, b[key])
+        elif isinstance(value, torch.Tensor):
+            assert torch.equal(value, b[key]), key
+        else:
+            assert value == b[key], key
+
+
 def test_update_is_deterministic_and_state_dict_round_trips():
     outs = []
     for _ in range(2):
@@ -98,11 +117,12 @@ def test_update_is_deterministic_and_state_dict_round_trips():
         algo.update(*rollout(algo, p, g))
         outs.append(algo.state_dict())
     a, b = outs
-    assert all(torch.equal(a["policy"][k], b["policy"][k]) for k in a["policy"])
+    assert_same_state(a, b)
     g = torch.Generator().manual_seed(6)
     fresh, _ = make_algo(g)
+    assert not torch.equal(fresh.value_weights, a["value_weights"])  # the load has work to do
     fresh.load_state_dict(a)
-    assert torch.equal(fresh.value_weights, a["value_weights"])
+    assert_same_state(fresh.state_dict(), a)
 
 
 def test_bad_input_is_named(gen):

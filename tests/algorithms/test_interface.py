@@ -132,23 +132,42 @@ def test_one_loop_improves_every_variant_and_checkpoints_round_trip(name):
     assert curve[0] < 0 and curve[-1] > 0.2 * curve[0], curve  # the cost falls by > 80 %
 
 
+def assert_same_state(a, b):
+    """Two state dicts are equal entry by entry (policies, value weights, generator, ...)."""
+    if isinstance(a, torch.Tensor):
+        assert torch.equal(a, b)
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert_same_state(a[key], b[key])
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b)
+        for x, y in zip(a, b, strict=True):
+            assert_same_state(x, y)
+    else:
+        assert a == b
+
+
 def test_learn_is_tell_and_update():
-    """learn delegates: the same samples give the same policies as the variant's own update."""
+    """learn delegates: the same samples give the same state (policies, value weights) and the
+    same diagnostics as the variant's own update."""
     gen = torch.Generator().manual_seed(4)
     a, b = make_linear_system_algo(), make_linear_system_algo()
     exp = linear_system(a.sample, gen)
+    b.generator.set_state(a.generator.get_state())  # as if b had drawn the samples
     da = a.learn(exp)
     e = exp
     db = b.update(e.states[:, 0], e.actions[:, 0], e.rewards[:, 0], e.next_states[:, 0])
-    assert da["kl"] == db["kl"]
-    for k, x in a.policy.state_dict().items():
-        assert torch.equal(x, b.policy.state_dict()[k]), k
+    assert da == db
+    assert_same_state(a.state_dict(), b.state_dict())
 
     ti = [TimeIndexedHiREPS.create(2, 1, 1, n_options=2, seed=0) for _ in range(2)]
     exp = two_step_sequence(ti[0].sample, torch.Generator().manual_seed(1))
-    ti[0].learn(exp)
-    ti[1].tell(exp.states, exp.actions, exp.rewards)
-    assert torch.equal(ti[0].value_weights, ti[1].value_weights)
+    ti[1].generator.set_state(ti[0].generator.get_state())
+    d0 = ti[0].learn(exp)
+    d1 = ti[1].tell(exp.states, exp.actions, exp.rewards)
+    assert d0 == d1
+    assert_same_state(ti[0].state_dict(), ti[1].state_dict())
 
 
 def test_sample_draws_from_the_algorithms_generator():
@@ -235,11 +254,3 @@ def test_infinite_horizon_create_is_the_manual_construction():
         InfiniteHorizonHiREPS.create(0, 1, **kw)
     with pytest.raises(ValueError, match="gamma"):
         InfiniteHorizonHiREPS.create(2, 1, **{**kw, "gamma": 1.0})
-
-
-def test_infinite_horizon_checkpoint_without_generator_still_loads():
-    """Checkpoints written before the variant had a generator lack the entry."""
-    algo = make_linear_system_algo()
-    state = algo.state_dict()
-    del state["generator"]
-    make_linear_system_algo(seed=3).load_state_dict(state)

@@ -96,7 +96,8 @@ def test_servo_follows_the_command_as_a_first_order_lag():
     _, _, _, path = beam_step(s, torch.tensor([0.1], dtype=torch.float64), p)
     t = p.dt * torch.arange(1, p.steps_per_decision + 1, dtype=torch.float64)
     expected = 0.1 * (1 - torch.exp(-t / p.servo_tau))
-    assert torch.allclose(path[0, :, 2], expected, atol=1e-7)
+    # RK4 with dt / tau = 0.2: measured truncation error 5.8e-7 rad
+    assert torch.allclose(path[0, :, 2], expected, atol=5e-6, rtol=0)
 
 
 def test_reward_formula_at_hand_computed_states():

@@ -36,6 +36,7 @@ def test_gym_make_builds_the_torch_tasks(env_id, obs_shape):
     env = gym.make(env_id)
     obs, _ = env.reset(seed=0)
     assert obs.shape == obs_shape
+    env.action_space.seed(0)
     obs, reward, *_ = env.step(env.action_space.sample())
     assert obs.shape == obs_shape and isinstance(reward, float)
     env.close()

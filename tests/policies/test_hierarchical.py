@@ -109,8 +109,9 @@ def test_sample_draws_the_same_stream_as_sampling_every_option(O, D, N):
         gating_features=QuadraticFeatures(2),
         generator=torch.Generator().manual_seed(1),
     )
-    pol.gating.weight.data = torch.randn_like(pol.gating.weight)
-    ctx = torch.randn(N, 2, dtype=torch.float64)
+    g0 = torch.Generator().manual_seed(0)
+    pol.gating.weight.data = torch.randn(pol.gating.weight.shape, generator=g0, dtype=torch.float64)
+    ctx = torch.randn(N, 2, generator=g0, dtype=torch.float64)
     g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
     theta, option = pol.sample(ctx, g1)
     gf, pf = pol.gating_features(ctx), pol.policy_features(ctx)

@@ -70,12 +70,14 @@ def test_few_samples_many_features_stays_finite(gen):
 
 def test_wls_ridge_shrinks_slopes_only(gen):
     x = torch.randn(100, 2, generator=gen, dtype=torch.float64)
+    x = x - x.mean(0)  # centred inputs: the unpenalised bias is mean(y) whatever the slopes
     y = 3.0 * x[:, :1] + 5.0
     W0, b0 = weighted_least_squares(x, y, torch.ones(100))
-    W1, _ = weighted_least_squares(x, y, torch.ones(100), ridge=10.0)
+    W1, b1 = weighted_least_squares(x, y, torch.ones(100), ridge=10.0)
     assert float(W0[0, 0]) == pytest.approx(3.0, abs=1e-10)
     assert float(b0[0]) == pytest.approx(5.0, abs=1e-10)
-    assert float(W1.abs().sum()) < float(W0.abs().sum())
+    assert float(W1.abs().sum()) < 0.5 * float(W0.abs().sum())  # the slopes shrink ...
+    assert float(b1[0]) == pytest.approx(5.0, abs=1e-10)  # ... the bias does not
 
 
 def test_bad_inputs_raise():

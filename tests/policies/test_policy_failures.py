@@ -172,14 +172,17 @@ def test_a_broken_checkpoint_is_refused_before_anything_is_copied():
 
 
 def test_a_single_option_and_a_partial_load():
-    one = HierarchicalPolicy.create(1, 0, 2, init_std=0.5)
-    other = HierarchicalPolicy.create(1, 0, 2, init_std=2.0)
+    one = HierarchicalPolicy.create(1, 1, 2, init_std=0.5)
+    other = HierarchicalPolicy.create(1, 1, 2, init_std=2.0)
+    one.options[0].weight.data.fill_(0.25)
     sd = other.state_dict()
     sd.pop("options.0.weight")
     one.load_state_dict(sd, strict=False)  # what torch allows: the missing entry is kept
     assert torch.equal(one.options[0].chol, other.options[0].chol)
-    th, opt = one.sample(torch.zeros(4, 0))
-    assert opt.tolist() == [0] * 4 and one.responsibilities(torch.zeros(4, 0), th).eq(1).all()
+    assert bool((one.options[0].weight == 0.25).all())
+    s = torch.zeros(4, 1)
+    th, opt = one.sample(s)
+    assert opt.tolist() == [0] * 4 and bool(one.responsibilities(s, th).eq(1).all())
 
 
 # ---- construction and inputs ------------------------------------------------------------------

@@ -58,6 +58,6 @@ if __name__ == "__main__":
     except KeyboardInterrupt as stop:  # RunInterrupted: the checkpoint is written
         print(f"\ninterrupted: {stop}", file=sys.stderr)
         raise SystemExit(130) from None
-    except (ValueError, FileExistsError, ImportError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except (ValueError, TypeError, OSError, ImportError) as exc:  # OSError: FileExistsError,
+        print(f"error: {exc}", file=sys.stderr)  # a --run-dir that cannot be written
         raise SystemExit(2) from None

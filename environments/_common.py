@@ -11,7 +11,7 @@ and actions give the same trajectory in both.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, TypeVar
 
 import gymnasium as gym
 import numpy as np
@@ -21,7 +21,13 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from hireps_torch.checks import as_finite_f64, as_float, check_count
+from hireps_torch.checks import (
+    as_finite_f64,
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_seed,
+)
 
 
 def check_fields(obj: object, positive: tuple[str, ...], nonnegative: tuple[str, ...]) -> None:
@@ -43,22 +49,50 @@ def check_durations(**values: float) -> None:
             raise ValueError(f"{name} must be finite and > 0, got {value}")
 
 
-def check_state(state: Tensor, width: int) -> None:
-    """A (B, width) state with finite entries (NaN states would give silent NaN physics)."""
-    if state.dim() != 2 or state.shape[1] != width:
-        raise ValueError(f"state must have shape (B, {width}), got {tuple(state.shape)}")
-    as_finite_f64("state", state)
+P = TypeVar("P")
 
 
-def check_scalar_action(action: Tensor, batch: int, what: str) -> Tensor:
+def check_params(params: object, cls: type[P], default: bool = True) -> P:
+    """``params`` if it is a ``cls`` (a task's constants), ``cls()`` for None when
+    ``default``; a ``TypeError`` naming the expected class otherwise."""
+    if params is None and default:
+        return cls()
+    if not isinstance(params, cls):
+        raise TypeError(
+            f"params must be a {cls.__name__}{' (or None: the defaults)' if default else ''}, "
+            f"got {type(params).__name__} {params!r:.60}"
+        )
+    return params
+
+
+class ResetNeeded(gym.error.ResetNeeded, RuntimeError):
+    """``step`` before the first ``reset`` (gymnasium's error, also a ``RuntimeError``)."""
+
+
+def check_state(state: object, width: int) -> Tensor:
+    """A (B, width) state with finite entries (NaN states would give silent NaN physics), as
+    a floating tensor (its dtype kept; bool, integer and array states as float64)."""
+    s = (
+        state
+        if isinstance(state, Tensor) and state.is_floating_point()
+        else as_float_tensor("state", state)
+    )
+    if s.dim() != 2 or s.shape[1] != width:
+        raise ValueError(f"state must have shape (B, {width}), got {tuple(s.shape)}")
+    as_finite_f64("state", s)
+    return s
+
+
+def check_scalar_action(action: object, batch: int, what: str) -> Tensor:
     """Validate a (B,) or (B, 1) action holding one number per system; returns (B,).
 
     Args:
-        action: the action batch.
+        action: the action batch (real numbers: a string, None or a complex value raises a
+            ``TypeError``).
         batch: B.
         what: what one number is, for the error messages (e.g. "desired angle").
     """
-    a = torch.as_tensor(action)
+    a = as_float_tensor("action", action)
     if a.dim() == 2 and a.shape[1] == 1:
         a = a[:, 0]
     if a.shape != (batch,):
@@ -71,6 +105,15 @@ def check_scalar_action(action: Tensor, batch: int, what: str) -> Tensor:
         i = int(bad.nonzero()[0, 0])
         raise ValueError(f"action contains a non-finite {what} at index {i}: {a[i].item()}")
     return a
+
+
+def check_device(device: object) -> torch.device:
+    """``device`` (a ``torch.device`` or its name) as a ``torch.device``; a ``ValueError``
+    naming it otherwise."""
+    try:
+        return torch.device(device)  # type: ignore[call-overload]
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be a torch device or its name, got {device!r}") from None
 
 
 class BatchedTask:
@@ -86,9 +129,9 @@ class BatchedTask:
 
     def __init__(self, batch: int, seed: int = 0, device: str | torch.device = "cpu") -> None:
         self.batch = check_count("batch_size", batch, 1)
-        self.device = torch.device(device)
+        self.device = check_device(device)
         self.gen = torch.Generator()
-        self.gen.manual_seed(check_count("seed", seed, -(2**63)))
+        self.gen.manual_seed(check_seed("seed", seed))
         self.t = torch.zeros(batch, dtype=torch.long, device=self.device)
         self.state = torch.zeros(batch, self.state_dim, dtype=torch.float64, device=self.device)
 
@@ -107,7 +150,7 @@ class BatchedTask:
 
     # ---- shared -----------------------------------------------------------------------------
     def seed(self, seed: int | None) -> None:
-        self.gen.manual_seed(0 if seed is None else check_count("seed", seed, -(2**63)))
+        self.gen.manual_seed(0 if seed is None else check_seed("seed", seed))
 
     def reset(self, mask: Tensor | None = None) -> None:
         """Restart the masked systems (all when ``mask`` is None)."""
@@ -129,7 +172,8 @@ class ScalarActionGymEnv(gym.Env):
 
     ``observation_space``: Box(-obs_high, obs_high) float32; ``action_space``:
     Box(-limit, limit, (1,)) float32. ``info`` holds the float64 state and, after a step, the
-    per-control-step path.
+    per-control-step path. ``step`` before the first ``reset`` raises :class:`ResetNeeded`;
+    ``reset(seed=...)`` takes integers >= 0.
     """
 
     metadata = {"render_modes": []}
@@ -141,6 +185,7 @@ class ScalarActionGymEnv(gym.Env):
         hi = np.asarray(obs_high, dtype=np.float32)
         self.observation_space = gym.spaces.Box(-hi, hi, dtype=np.float32)
         task.reset(torch.zeros(1, dtype=torch.bool))  # a provisional state, no episode yet
+        self._needs_reset = True
 
     def _obs(self) -> np.ndarray:
         return self.task.state[0].numpy().astype(np.float32)
@@ -148,14 +193,19 @@ class ScalarActionGymEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is not None:
+            seed = check_count("seed", seed, 0)  # gymnasium's np_random takes seeds >= 0
         super().reset(seed=seed)
         if seed is not None:
             self.task.seed(seed)
         self.task.reset()
+        self._needs_reset = False
         return self._obs(), {"state": self.task.state[0].numpy().copy()}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        a = torch.as_tensor(np.asarray(action, dtype=np.float64)).reshape(-1)
+        if self._needs_reset:
+            raise ResetNeeded("call reset() before the first step()")
+        a = as_float_tensor("action", action).reshape(-1)
         if a.shape != (1,):
             raise ValueError(
                 f"action must hold one {self.task.action_name}, got shape {tuple(a.shape)}"
@@ -170,7 +220,8 @@ class ScalarActionBatchEnv(EnvBase):
 
     Keys: ``observation`` (B, S) float32, ``state`` (B, S) float64 (exact), ``action`` (B, 1)
     float32 in ±``action_limit``, ``reward`` (B, 1) float32, ``done`` / ``terminated`` /
-    ``truncated`` (B, 1) bool. Partial resets (``_reset`` mask) restart only the masked systems.
+    ``truncated`` (B, 1) bool. Partial resets (``_reset`` mask) restart only the masked systems;
+    ``step`` before the first ``reset`` raises :class:`ResetNeeded`.
     """
 
     def __init__(self, task: BatchedTask) -> None:
@@ -196,6 +247,7 @@ class ScalarActionBatchEnv(EnvBase):
             device=self.device,
         )
         task.reset(torch.zeros(B, dtype=torch.bool))  # a provisional state, no episode yet
+        self._needs_reset = True
 
     def _td(
         self,
@@ -220,10 +272,16 @@ class ScalarActionBatchEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
         self.task.reset(None if tensordict is None else tensordict.get("_reset", None))
+        self._needs_reset = False
         return self._td()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").to(torch.float64)  # checked by the task's physics
+        if self._needs_reset:
+            raise ResetNeeded("call reset() before the first step()")
+        action = tensordict.get("action", None)
+        if action is None:
+            raise ValueError(f"the tensordict holds no 'action' entry: {sorted(tensordict.keys())}")
+        action = action.to(torch.float64)  # checked by the task's physics
         reward, term, trunc, _ = self.task.step(action)
         return self._td(reward, term, trunc)
 

@@ -80,10 +80,11 @@ from environments._common import (
     ScalarActionGymEnv,
     check_durations,
     check_fields,
+    check_params,
     check_scalar_action,
     check_state,
 )
-from hireps_torch.checks import check_count
+from hireps_torch.checks import as_float, check_count, check_generator, check_seed
 
 __all__ = [
     "BallOnBeamBatchEnv",
@@ -98,6 +99,8 @@ __all__ = [
 ]
 
 ENV_ID = "hireps/BallOnBeam-v0"  # registered by ``import environments``
+MAX_STEPS = 10**7
+"""The most control steps per decision and decisions per episode :class:`BeamParams` allows."""
 
 
 @dataclass(frozen=True)
@@ -131,15 +134,27 @@ class BeamParams:
             ),
             nonnegative=("goal", "rolling_resistance", "start_noise", "fall_penalty"),
         )
-        if not 0 <= self.start_position < self.half_length:
-            raise ValueError(
-                f"start_position must be in [0, half_length), got {self.start_position}"
-            )
+        for name in ("start_position", "goal"):
+            if not 0 <= as_float(name, getattr(self, name)) < self.half_length:
+                raise ValueError(
+                    f"{name} must be in [0, half_length = {self.half_length}), got "
+                    f"{getattr(self, name)}"
+                )
         if self.steps_per_decision < 1 or self.decisions_per_episode < 1:
             raise ValueError(
                 f"need dt <= decision_seconds <= episode_seconds, got dt={self.dt}, "
                 f"decision_seconds={self.decision_seconds}, episode_seconds={self.episode_seconds}"
             )
+        for name, count, limit in (
+            ("decision_seconds / dt", self.steps_per_decision, MAX_STEPS),
+            ("episode_seconds / decision_seconds", self.decisions_per_episode, MAX_STEPS),
+        ):
+            if count > limit:
+                raise ValueError(
+                    f"{name} = {count:.3g} steps is more than {limit:.0e}: dt={self.dt}, "
+                    f"decision_seconds={self.decision_seconds}, "
+                    f"episode_seconds={self.episode_seconds}"
+                )
 
     @property
     def steps_per_decision(self) -> int:
@@ -200,7 +215,8 @@ def beam_step(
         it left the beam); path (B, steps_per_decision, 3), the state after each control step
         (held after a fall).
     """
-    check_state(state, 3)
+    state = check_state(state, 3)
+    params = check_params(params, BeamParams, default=False)
     off = state[:, 0].abs() > params.half_length
     if bool(off.any()):
         i = int(off.nonzero()[0, 0])
@@ -224,6 +240,8 @@ def beam_step(
 def sample_start(sides: Tensor, params: BeamParams, generator: torch.Generator | None) -> Tensor:
     """Start states at the given ends (+1 right, -1 left): (n,) -> (n, 3) float64."""
     side = torch.as_tensor(sides, dtype=torch.float64)
+    params = check_params(params, BeamParams, default=False)
+    check_generator("generator", generator)
     noise = torch.randn(side.shape[0], generator=generator, dtype=torch.float64)
     x = (side * params.start_position + params.start_noise * noise).clamp(
         -params.start_position - 0.04, params.start_position + 0.04
@@ -249,7 +267,7 @@ class BeamTask(BatchedTask):
     ) -> None:
         self.params = params
         self.action_limit = params.max_angle
-        self.episodes = torch.zeros(batch, dtype=torch.long)
+        self.episodes = torch.zeros(check_count("batch_size", batch, 1), dtype=torch.long)
         super().__init__(batch, seed, device)
 
     def seed(self, seed: int | None) -> None:
@@ -279,7 +297,7 @@ class BallOnBeamEnv(ScalarActionGymEnv):
     """
 
     def __init__(self, params: BeamParams | None = None):
-        self.params = params or BeamParams()
+        self.params = check_params(params, BeamParams)
         p = self.params
         super().__init__(BeamTask(1, p), np.array([p.half_length + 0.1, np.inf, p.max_angle]))
 
@@ -306,7 +324,7 @@ class BallOnBeamBatchEnv(ScalarActionBatchEnv):
         seed: int = 0,
         device: str | torch.device = "cpu",
     ) -> None:
-        self.params = params or BeamParams()
+        self.params = check_params(params, BeamParams)
         super().__init__(BeamTask(batch_size, self.params, seed, device))
 
 
@@ -352,11 +370,15 @@ def evaluate_beam(
         tolerance: distance to the closer goal (m) that counts as "at the goal".
         seed: seed of the start noise.
     """
-    p = params or BeamParams()
+    p = check_params(params, BeamParams)
     n_episodes = check_count("n_episodes", n_episodes, 1)
     check_durations(hold_seconds=hold_seconds, tolerance=tolerance)
+    if hold_seconds > p.episode_seconds:
+        raise ValueError(
+            f"hold_seconds must be <= episode_seconds = {p.episode_seconds}, got {hold_seconds}"
+        )
     gen = torch.Generator()
-    gen.manual_seed(check_count("seed", seed, -(2**63)))
+    gen.manual_seed(check_seed("seed", seed))
     sides = torch.where(torch.arange(n_episodes) % 2 == 0, 1.0, -1.0)
     state = sample_start(sides, p, gen)
     returns = torch.zeros(n_episodes, dtype=torch.float64)

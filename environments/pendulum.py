@@ -82,10 +82,11 @@ from environments._common import (
     ScalarActionGymEnv,
     check_durations,
     check_fields,
+    check_params,
     check_scalar_action,
     check_state,
 )
-from hireps_torch.checks import check_count
+from hireps_torch.checks import as_float, check_count, check_generator, check_seed
 
 __all__ = [
     "PendulumParams",
@@ -128,10 +129,10 @@ class PendulumParams:
         check_fields(
             self,
             positive=("mass", "length", "dt", "action_limit"),
-            nonnegative=("friction", "max_torque", "kp", "kd", "start_noise"),
+            nonnegative=("friction", "max_torque", "kp", "kd", "start_noise", "gravity"),
         )
         p = self.restart_probability
-        if p is not None and not 0.0 <= p < 1.0:
+        if p is not None and not 0.0 <= as_float("restart_probability", p) < 1.0:
             raise ValueError(f"restart_probability must be in [0, 1), got {p}")
 
     @property
@@ -208,7 +209,8 @@ def pendulum_step(
         next_state (B, 2), reward (B,) summed over the d control steps, and the path
         (B, d, 2) of states after each control step.
     """
-    check_state(state, 2)
+    state = check_state(state, 2)
+    params = check_params(params, PendulumParams, default=False)
     target = check_scalar_action(action, state.shape[0], "desired angle").to(state.dtype)
     target = target.clamp(-params.action_limit, params.action_limit)
     path = []
@@ -257,6 +259,8 @@ def mirror_decisions(
 def sample_start(n: int, params: PendulumParams, generator: torch.Generator | None) -> Tensor:
     """n start states hanging down with a perturbation: (n, 2) float64."""
     n = check_count("n", n, 0)
+    params = check_params(params, PendulumParams, default=False)
+    check_generator("generator", generator)
     noise = torch.randn(n, 2, generator=generator, dtype=torch.float64) * params.start_noise
     return torch.stack([wrap_angle(math.pi + noise[:, 0]), noise[:, 1]], dim=-1)
 
@@ -311,7 +315,7 @@ class PendulumSwingUpEnv(ScalarActionGymEnv):
     """
 
     def __init__(self, params: PendulumParams | None = None, max_decisions: int | None = None):
-        self.params = params or PendulumParams()
+        self.params = check_params(params, PendulumParams)
         super().__init__(PendulumTask(1, self.params, max_decisions), np.array([math.pi, np.inf]))
 
 
@@ -340,7 +344,7 @@ class PendulumSwingUpBatchEnv(ScalarActionBatchEnv):
         seed: int = 0,
         device: str | torch.device = "cpu",
     ) -> None:
-        self.params = params or PendulumParams()
+        self.params = check_params(params, PendulumParams)
         super().__init__(PendulumTask(batch_size, self.params, max_decisions, seed, device))
 
 
@@ -391,12 +395,14 @@ def evaluate_swing_up(
         velocity_tol: |theta'| bound for "upright" (rad/s).
         seed: seed of the start states.
     """
-    p = params or PendulumParams()
+    p = check_params(params, PendulumParams)
     n_rollouts = check_count("n_rollouts", n_rollouts, 1)
     check_durations(seconds=seconds, hold_seconds=hold_seconds)
+    if hold_seconds > seconds:
+        raise ValueError(f"hold_seconds must be <= seconds = {seconds}, got {hold_seconds}")
     check_durations(angle_tol=angle_tol, velocity_tol=velocity_tol)
     gen = torch.Generator()
-    gen.manual_seed(check_count("seed", seed, -(2**63)))
+    gen.manual_seed(check_seed("seed", seed))
     state = sample_start(n_rollouts, p, gen)
     n_decisions = max(1, round(seconds / p.decision_seconds))
     paths = []

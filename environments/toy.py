@@ -29,7 +29,13 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from hireps_torch.checks import as_finite_f64, as_float, as_float_tensor, check_count
+from hireps_torch.checks import (
+    as_finite_f64,
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_generator,
+)
 
 __all__ = ["ContextualTwoGaussians", "TwoGaussians", "two_gaussians_reward"]
 
@@ -65,6 +71,21 @@ def _check_width(width: float) -> None:
         raise ValueError(f"width must be finite and > 0, got {width}")
 
 
+def _check_table(name: str, value: object, shape: tuple[int | None, ...]) -> int:
+    """A finite table of the given shape (None: any size, the same for every None); returns
+    the size of the first dimension."""
+    t = as_float_tensor(name, value)
+    n = t.shape[0] if t.dim() else 0
+    want = tuple(n if d is None else d for d in shape)
+    if tuple(t.shape) != want or n < 1:
+        text = ", ".join("M" if d is None else str(d) for d in shape)
+        text = f"({text},)" if len(shape) == 1 else f"({text})"
+        rule = " with M >= 1" if None in shape else ""
+        raise ValueError(f"{name} must have shape {text}{rule}, got {tuple(t.shape)}")
+    as_finite_f64(name, t)
+    return n
+
+
 @dataclass
 class TwoGaussians:
     """Bimodal 2-D objective (see the module docstring); ``__call__(theta (N, 2)) -> (N,)``."""
@@ -78,6 +99,8 @@ class TwoGaussians:
 
     def __post_init__(self) -> None:
         _check_width(self.width)
+        M = _check_table("modes", self.modes, (None, 2))
+        _check_table("heights", self.heights, (M,))
 
     def __call__(self, theta: Tensor) -> Tensor:
         t = _floats("theta", theta)
@@ -104,25 +127,30 @@ class ContextualTwoGaussians:
 
     def modes(self, context: Tensor) -> Tensor:
         """context: (N, 1) -> bump centres (N, M, 2)."""
-        s = torch.as_tensor(context)
+        s = _floats("context", context)
         if s.dim() != 2 or s.shape[1] != 1:
             raise ValueError(f"context must have shape (N, 1), got {tuple(s.shape)}")
         return self.offsets.to(s.dtype) + s[:, :, None] * self.slope.to(s.dtype)
 
     def __post_init__(self) -> None:
         _check_width(self.width)
-        low, high = self.context_low, self.context_high
+        M = _check_table("offsets", self.offsets, (None, 2))
+        _check_table("slope", self.slope, (2,))
+        _check_table("heights", self.heights, (M,))
+        low = as_float("context_low", self.context_low)
+        high = as_float("context_high", self.context_high)
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise ValueError(f"need finite context_low < context_high, got {low}, {high}")
 
     def sample_contexts(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """(n, 1) contexts uniform in [context_low, context_high]."""
+        check_generator("generator", generator)
         u = torch.rand(check_count("n", n, 0), 1, generator=generator, dtype=torch.float64)
         return self.context_low + (self.context_high - self.context_low) * u
 
     def __call__(self, context: Tensor, theta: Tensor) -> Tensor:
         t = _floats("theta", theta)
-        s = torch.as_tensor(context, dtype=t.dtype)
+        s = as_float_tensor("context", context, t.dtype)
         as_finite_f64("context", s)
         if s.shape[0] != t.shape[0]:
             raise ValueError(f"got {s.shape[0]} contexts for {t.shape[0]} parameter vectors")

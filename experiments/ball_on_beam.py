@@ -23,7 +23,7 @@ from experiments.loop import (
     infinite_horizon_update,
     resume_point,
 )
-from experiments.options import RunOptions, check_options
+from experiments.options import RunOptions, check_fourier_bases, check_options, option_error
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
@@ -110,10 +110,13 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
 
     check_options(
         cfg,
-        counts=("fourier_bases", "fourier_coupling"),
+        counts=("fourier_coupling",),
         positive=("init_std", "max_velocity"),
         nonnegative=("min_variance",),
     )
+    check_fourier_bases(cfg, 3)
+    if cfg.fourier_coupling is not None and cfg.fourier_coupling > 3:
+        raise option_error("fourier_coupling", cfg.fourier_coupling, "in 1..3 (or None)")
     B = cfg.episodes_per_iteration
     iterations = check_budget(
         cfg.episodes, B, n_options=cfg.n_options, eval_episodes=cfg.eval_episodes

@@ -39,11 +39,14 @@ __all__ = [
     "StopRequest",
     "changed_options",
     "load_checkpoint",
+    "read_config",
     "saved_config",
     "stop_on_signals",
 ]
 
 FORMAT = 1
+CHECKPOINT_KEYS = ("algorithm", "rng", "env", "rows", "iteration", "elapsed")
+"""The entries of a checkpoint that a resume reads (besides ``format``)."""
 RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every")
 """Options that may differ between a run and its resumption (they do not change results)."""
 
@@ -108,9 +111,17 @@ class RunState:
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore after everything was built (building consumes random numbers)."""
-        missing = [name for name in ("torch", *self.generators) if name not in state["rng"]]
+        rng = state["rng"]
+        if not isinstance(rng, Mapping):
+            raise ValueError(f"the checkpoint's rng must be a mapping, got {type(rng).__name__}")
+        missing = [name for name in ("torch", *self.generators) if name not in rng]
         if missing:
             raise ValueError(f"the checkpoint has no state for the generators {missing}")
+        for name in ("torch", *self.generators):  # checked before anything is restored
+            try:
+                torch.Generator().set_state(rng[name])
+            except (RuntimeError, TypeError) as exc:
+                raise ValueError(f"the checkpoint's {name!r} generator state: {exc}") from None
         self.algorithm.load_state_dict(state["algorithm"])
         if self.env is not None:
             self.env.load_state_dict(state["env"])
@@ -134,12 +145,32 @@ def load_checkpoint(run_dir: Path) -> CheckpointState | None:
             f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
             "move it away to restart this run from its first iteration"
         ) from exc
+    if not isinstance(ckpt, dict):
+        raise ValueError(f"{path} holds a {type(ckpt).__name__}, not a checkpoint of this code")
     if ckpt.get("format") != FORMAT:
         raise ValueError(
             f"{path} was written by another version of this code (format "
             f"{ckpt.get('format')!r}, expected {FORMAT}); it cannot be resumed exactly"
         )
+    missing = [k for k in CHECKPOINT_KEYS if k not in ckpt]
+    if missing:
+        raise ValueError(f"{path} is not a complete checkpoint: it has no {missing}")
     return ckpt
+
+
+def read_config(run_dir: Path) -> dict[str, Any]:
+    """A run directory's ``config.json`` as a dict; a ``ValueError`` naming the file when it
+    cannot be read or holds no JSON object."""
+    import json
+
+    path = run_dir / "config.json"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path} cannot be read as JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} holds a JSON {type(data).__name__}, not the options of a run")
+    return data
 
 
 def changed_options(saved: Mapping[str, Any], now: Mapping[str, Any]) -> list[str]:
@@ -159,21 +190,19 @@ def changed_options(saved: Mapping[str, Any], now: Mapping[str, Any]) -> list[st
 def saved_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
     """The config a run directory was started with (``config.json``), as a ``config_cls``,
     with ``resume`` set: the defaults for ``--resume RUN_DIR`` on the command line."""
-    import json
-
     path = run_dir / "config.json"
     if not path.is_file():
         raise ValueError(f"--resume {run_dir}: no config.json there; is it a run directory?")
-    data = json.loads(path.read_text())
+    data = read_config(run_dir)
     if data.get("experiment") not in (None, experiment.replace("-", "_")):
         raise ValueError(
             f"--resume {run_dir}: that run is a {data.get('experiment')!r} run, not {experiment!r}"
         )
     fields = {f.name for f in dataclasses.fields(config_cls)}
     values = {k: v for k, v in data.items() if k in fields}
-    for key in ("run_dir", "resume"):
-        if values.get(key) is not None:
-            values[key] = Path(values[key])
+    # the run continues where it is now: a moved or copied run directory, or one named by
+    # another (relative / absolute) path, is resumed in place (run_dir is a run-only option)
+    values["run_dir"] = None
     values["resume"] = run_dir
     return config_cls(**values)
 

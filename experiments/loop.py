@@ -17,7 +17,6 @@ object beyond the shared :class:`RunOptions`.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import repeat
@@ -35,6 +34,7 @@ from experiments.checkpoint import (
     RunState,
     changed_options,
     load_checkpoint,
+    read_config,
     stop_on_signals,
 )
 from experiments.options import RunOptions, config_dict
@@ -78,7 +78,11 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         raise ValueError(f"cannot resume {run_dir}: it holds no config.json (not a run directory)")
     if (run_dir / "summary.json").is_file():
         raise RunFinished(f"{run_dir} already finished (summary.json is there); nothing to resume")
-    saved = json.loads((run_dir / "config.json").read_text())
+    saved = read_config(run_dir)
+    if saved.get("experiment", experiment) != experiment:
+        raise ValueError(
+            f"cannot resume {run_dir}: it is a {saved.get('experiment')!r} run, not {experiment!r}"
+        )
     diff = changed_options(saved, config_dict(experiment, cfg))
     if diff:
         raise ValueError(

@@ -3,13 +3,25 @@
 from __future__ import annotations
 
 import dataclasses
+import numbers
+import os
+import types
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from experiments.rundir import LoggerName, jsonable
 
-__all__ = ["RunOptions", "check_options", "config_dict"]
+__all__ = [
+    "RunOptions",
+    "check_fourier_bases",
+    "check_new_run_dir",
+    "check_options",
+    "check_types",
+    "config_dict",
+    "option_error",
+]
 
 
 @dataclass(frozen=True)
@@ -32,7 +44,11 @@ class RunOptions:
     """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
 
     def check_run_options(self) -> None:
-        """Refuse bad run options before anything is built or written."""
+        """Refuse bad run options before anything is built or written: every option of the
+        type its annotation says (a ``--logger`` among the known ones), then the run options'
+        ranges and a ``--run-dir`` that is a file, a non-empty directory or under a file
+        (nothing there is touched)."""
+        check_types(self)
         if not -(2**62) <= self.seed <= 2**62:
             raise ValueError(f"seed must be an integer in [-2**62, 2**62], got {self.seed}")
         if self.checkpoint_every < 1:
@@ -43,6 +59,68 @@ class RunOptions:
                     f"--resume {self.resume} and --run-dir {self.run_dir} name different "
                     "directories; a run is resumed in its own directory"
                 )
+        if self.resume is None and self.run_dir is not None:
+            check_new_run_dir(Path(self.run_dir))
+
+
+def check_new_run_dir(run_dir: Path) -> None:
+    """A new run's directory must not exist or be empty, and must be creatable: a
+    ``FileExistsError`` for a file or a non-empty directory, a ``ValueError`` naming the
+    file or the unwritable directory in the way (nothing is created or changed here)."""
+    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+        what = "is not empty" if run_dir.is_dir() else "is a file"
+        raise FileExistsError(
+            f"run directory {run_dir} already exists and {what}; pass a new --run-dir, or "
+            "--resume a run (nothing was overwritten)"
+        )
+    parent = run_dir.absolute()
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"--run-dir {run_dir}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"--run-dir {run_dir}: no permission to write in {parent}")
+
+
+def option_error(
+    name: str, value: Any, want: str, error: type[Exception] = ValueError
+) -> Exception:
+    """The error of an option with a bad value: names the option as in the config and as
+    spelled on the command line, what it must be, and the value."""
+    flag = "--" + name.replace("_", "-")
+    return error(f"{name} ({flag}) must be {want}, got {value!r}")
+
+
+def check_types(cfg: Any) -> None:
+    """Every field of the config dataclass ``cfg`` of its annotated type: ``int`` (not a
+    bool or a float), ``float`` (a real number, not a bool), ``bool``, one of a ``Literal``'s
+    values, a ``Path`` (or str), each optionally ``| None``. A ``TypeError`` (a ``ValueError``
+    for a value outside a ``Literal``) names the option and the value."""
+    hints = typing.get_type_hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        _check_type(f.name, getattr(cfg, f.name), hints[f.name])
+
+
+def _check_type(name: str, value: Any, hint: Any) -> None:
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return
+        (hint,) = [a for a in args if a is not type(None)]
+        args = typing.get_args(hint)
+    if typing.get_origin(hint) is typing.Literal:
+        if value not in args or isinstance(value, bool) != isinstance(args[0], bool):
+            raise option_error(name, value, f"one of {', '.join(map(repr, args))}")
+        return
+    ok = {
+        bool: lambda v: isinstance(v, bool),
+        int: lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool),
+        float: lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool),
+        Path: lambda v: isinstance(v, str | os.PathLike),
+    }.get(hint)
+    if ok is not None and not ok(value):
+        want = {bool: "True or False", int: "an integer", float: "a number", Path: "a path"}
+        raise option_error(name, value, want[hint], TypeError)
 
 
 def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
@@ -64,10 +142,8 @@ def check_options(
     spelled on the command line) and the value."""
     import math
 
-    def bad(name: str, value: Any, want: str) -> ValueError:
-        flag = "--" + name.replace("_", "-")
-        return ValueError(f"{name} ({flag}) must be {want}, got {value!r}")
-
+    check_types(cfg)
+    bad = option_error
     for name in counts:
         value = getattr(cfg, name)
         if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
@@ -81,3 +157,14 @@ def check_options(
         ok = math.isfinite(float(value)) and (value > low if strict else value >= low)
         if not ok:
             raise bad(name, value, "finite and > 0" if strict else "finite and >= 0")
+
+
+def check_fourier_bases(cfg: Any, state_dim: int) -> None:
+    """``cfg.fourier_bases`` (bases per dimension of a ``state_dim``-dimensional Fourier
+    basis) >= 2 and small enough for :class:`~hireps_torch.features.FourierFeatures`."""
+    from hireps_torch.features import MAX_FOURIER_TERMS
+
+    n = cfg.fourier_bases
+    if n < 2 or n**state_dim > MAX_FOURIER_TERMS:
+        top = int(round(MAX_FOURIER_TERMS ** (1 / state_dim)))
+        raise option_error("fourier_bases", n, f"an integer in 2..{top} ({state_dim}-D states)")

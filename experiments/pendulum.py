@@ -32,7 +32,7 @@ from experiments.loop import (
     infinite_horizon_update,
     resume_point,
 )
-from experiments.options import RunOptions, check_options
+from experiments.options import RunOptions, check_fourier_bases, check_options, option_error
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy
@@ -104,6 +104,10 @@ class PendulumConfig(RunOptions):
     """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
     eval_rollouts: int = 50
     """Noise-free evaluation rollouts (5 s each) at the end."""
+
+
+MAX_DECISIONS = 10**6
+"""The most decisions one pendulum episode (``episode_seconds``) may hold."""
 
 
 def pendulum_quadratic_features(cfg: PendulumConfig) -> QuadraticFeatures:
@@ -202,10 +206,11 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the swing-up; returns the summary."""
     check_options(
         cfg,
-        counts=("eval_rollouts", "fourier_bases"),
+        counts=("eval_rollouts",),
         positive=("episode_seconds", "init_std", "max_velocity", "kp"),
         nonnegative=("kd", "start_noise", "min_variance"),
     )
+    check_fourier_bases(cfg, 2)
     B = cfg.episodes_per_iteration
     iterations = check_budget(
         cfg.episodes,
@@ -217,6 +222,12 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
     params = PendulumParams(
         steps_per_decision=cfg.steps_per_decision, kp=cfg.kp, kd=cfg.kd, start_noise=cfg.start_noise
     )
+    if cfg.episode_seconds / params.decision_seconds > MAX_DECISIONS:
+        raise option_error(
+            "episode_seconds",
+            cfg.episode_seconds,
+            f"at most {MAX_DECISIONS:.0e} decisions of {params.decision_seconds} s",
+        )
     if cfg.workers > 1 and B % cfg.workers:
         raise ValueError(
             f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})"

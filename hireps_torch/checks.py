@@ -22,10 +22,14 @@ __all__ = [
     "as_float_tensor",
     "check_count",
     "check_finite",
+    "check_float_dtype",
+    "check_generator",
     "check_positive",
     "check_positive_float",
+    "check_seed",
     "check_nonnegative_float",
     "check_state_dict",
+    "check_weights",
 ]
 
 
@@ -36,15 +40,26 @@ def as_f64(name: str, value: Tensor | object) -> Tensor:
     Python numbers and sequences go straight to float64 (``torch.as_tensor(0.2)`` alone would
     round through float32: 0.20000000298); tensors keep their values (a float32 tensor holds
     float32 values already). Complex values are a ``TypeError`` (their imaginary part would
-    be dropped silently)."""
+    be dropped silently). A tensor on another device is copied to the CPU (where the duals
+    are solved); a ``meta`` tensor, which holds no values, is a ``ValueError``."""
     if not isinstance(value, Tensor):
         try:
             value = torch.as_tensor(value, dtype=torch.float64)
         except Exception as exc:
-            raise TypeError(f"{name} must be a tensor, got {type(value).__name__}") from exc
+            raise TypeError(
+                f"{name} must be a tensor or numbers, got {type(value).__name__} {_short(value)}"
+            ) from exc
     if value.is_complex():
         raise TypeError(f"{name} must be real, got a {value.dtype} tensor")
-    return value.detach().to(torch.float64)
+    if value.is_meta:
+        raise ValueError(f"{name} is a meta tensor (no values); pass a tensor with data")
+    return value.detach().to(device="cpu", dtype=torch.float64)
+
+
+def _short(value: object) -> str:
+    """repr of ``value``, cut to 60 characters (for error messages)."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def check_finite(
@@ -114,11 +129,19 @@ def as_float_tensor(
     value: object,
     dtype: torch.dtype = torch.float64,
     device: torch.device | None = None,
+    *,
+    allow_bool: bool = True,
 ) -> Tensor:
     """``value`` (a tensor, number or nested sequence of numbers) as a detached ``dtype``
-    tensor. Bool and integer tensors are converted; complex values, strings and other objects
-    raise a ``TypeError`` naming ``name``; a tensor on another ``device`` (when given) a
-    ``ValueError`` naming both devices. Values are not checked (see :func:`check_finite`)."""
+    tensor. Bool (unless not ``allow_bool``: a setting such as a standard deviation) and
+    integer tensors are converted; complex values, strings and other objects raise a
+    ``TypeError`` naming ``name``; a tensor on another ``device`` (when given) or a ``meta``
+    tensor (no values) a ``ValueError`` naming the device. Values are not checked (see
+    :func:`check_finite`)."""
+    if not allow_bool and (
+        isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool)
+    ):
+        raise TypeError(f"{name} must be a number or a tensor of numbers, got the bool {value!r}")
     if isinstance(value, Tensor):
         t = value.detach()
     else:
@@ -128,16 +151,52 @@ def as_float_tensor(
                 t = torch.as_tensor(value, dtype=torch.float64)
         except Exception as exc:
             raise TypeError(
-                f"{name} must be a tensor of numbers, got {type(value).__name__}"
+                f"{name} must be a tensor of numbers, got {type(value).__name__} {_short(value)}"
             ) from exc
     if t.is_complex() or not (t.is_floating_point() or t.dtype == torch.bool or _is_int(t)):
         raise TypeError(f"{name} must hold real numbers, got dtype {t.dtype}")
+    if t.is_meta and device is None:
+        raise ValueError(f"{name} is a meta tensor (no values); pass a tensor with data")
     if device is not None and t.device != device:
         raise ValueError(
             f"{name} is on device {t.device} but the model is on {device}; move one of them "
             f"(e.g. {name}.to({str(device)!r}))"
         )
     return t.to(dtype)
+
+
+def check_weights(name: str, w: Tensor) -> None:
+    """Sample weights: finite, >= 0 and not all zero (any scale); the error names ``name``
+    and the first bad entry."""
+    check_finite(name, w, "")
+    negative = w < 0
+    if bool(negative.any()):
+        idx = tuple(int(i) for i in negative.nonzero()[0])
+        raise ValueError(
+            f"{name} must be non-negative, got {int(negative.sum())} negative value(s) (first "
+            f"at index {idx}: {w[idx].item()})"
+        )
+    if not bool((w > 0).any()):
+        raise ValueError(
+            f"{name} are all zero (shape {tuple(w.shape)}); they must be non-negative and not "
+            "all zero"
+        )
+
+
+def check_float_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
+    """``dtype`` if it is a floating ``torch.dtype``; a ``TypeError`` naming it otherwise."""
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"{name} must be a floating torch.dtype, got {_short(dtype)}")
+    return dtype
+
+
+def check_generator(name: str, value: object) -> torch.Generator | None:
+    """``value`` if it is a ``torch.Generator`` or None; a ``TypeError`` naming ``name``."""
+    if value is not None and not isinstance(value, torch.Generator):
+        raise TypeError(
+            f"{name} must be a torch.Generator or None, got {type(value).__name__} {_short(value)}"
+        )
+    return value
 
 
 def _is_int(t: Tensor) -> bool:
@@ -160,6 +219,21 @@ def check_count(name: str, value: object, minimum: int = 1) -> int:
     if n < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {n}")
     return int(n)
+
+
+SEED_RANGE = (-(2**63), 2**64 - 1)
+"""The seeds ``torch.Generator.manual_seed`` takes."""
+
+
+def check_seed(name: str, value: object, headroom: int = 0) -> int:
+    """An integer seed that ``torch.Generator.manual_seed`` takes (in [-2**63, 2**64 - 1],
+    less ``headroom`` at the top for seeds derived as ``seed + k``), as an int; a
+    ``TypeError`` / ``ValueError`` naming ``name`` otherwise."""
+    seed = check_count(name, value, SEED_RANGE[0])
+    top = SEED_RANGE[1] - headroom
+    if seed > top:
+        raise ValueError(f"{name} must be an integer in [-2**63, {top}], got {seed}")
+    return seed
 
 
 def check_positive_float(name: str, value: float) -> float:
@@ -197,6 +271,8 @@ def check_state_dict(
     for key, value in state.items():
         if key in expected and not isinstance(value, Tensor):
             raise TypeError(f"{what}: state entry {key!r} must be a tensor, got {type(value)}")
+        if key in expected and value.is_meta:
+            raise ValueError(f"{what}: state entry {key!r} is a meta tensor (no values)")
     wrong = [
         f"{key}: saved {tuple(state[key].shape)}, expected {tuple(ref.shape)}"
         for key, ref in expected.items()

@@ -11,10 +11,11 @@ import itertools
 import math
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import as_float_tensor, check_count
+from hireps_torch.checks import as_float_tensor, check_count, check_finite
 
 __all__ = [
     "ConcatFeatures",
@@ -22,32 +23,51 @@ __all__ = [
     "FourierFeatures",
     "IdentityFeatures",
     "QuadraticFeatures",
+    "check_feature_map",
 ]
 
 
 class FeatureMap(nn.Module):
     """Base of the feature maps: ``(..., in_features) -> (..., out_features)``.
 
-    A state of another width raises a ``ValueError`` naming both widths; bool and integer
-    states are used as float64 (floating states keep their dtype).
+    A state of another width, or with a NaN / inf entry, raises a ``ValueError`` naming it; bool
+    and integer states are used as float64 (floating states keep their dtype).
     """
 
     in_features: int
     out_features: int
 
     def _input(self, x: Tensor) -> Tensor:
-        """x checked for its last dimension, as a floating tensor."""
+        """x checked for its last dimension and finiteness, as a floating tensor."""
         t = x if isinstance(x, Tensor) and x.is_floating_point() else as_float_tensor("x", x)
         if t.dim() < 1 or t.shape[-1] != self.in_features:
             raise ValueError(
                 f"{type(self).__name__} takes states of shape (..., {self.in_features}), got "
                 f"{tuple(t.shape)}"
             )
+        if not t.is_meta:
+            check_finite(f"the states given to {type(self).__name__}", t, "")
         return t
 
     if TYPE_CHECKING:  # nn.Module.__call__ returns Any; a feature map returns a tensor
 
         def __call__(self, x: Tensor) -> Tensor: ...
+
+
+def check_feature_map(name: str, value: object) -> FeatureMap | None:
+    """``value`` if it is None or a feature map (an ``nn.Module`` with integer ``in_features``
+    and ``out_features``, like the maps of this module); a ``TypeError`` naming ``name``."""
+    if value is None:
+        return None
+    widths = (getattr(value, "in_features", None), getattr(value, "out_features", None))
+    if not isinstance(value, nn.Module) or not all(
+        isinstance(w, int) and not isinstance(w, bool) for w in widths
+    ):
+        raise TypeError(
+            f"{name} must be a feature map (an nn.Module with in_features and out_features, "
+            f"e.g. QuadraticFeatures), got {type(value).__name__} {value!r:.60}"
+        )
+    return value  # type: ignore[return-value]
 
 
 class IdentityFeatures(FeatureMap):
@@ -135,8 +155,13 @@ class FourierFeatures(FeatureMap):
         coupling: int | None = None,
     ):
         super().__init__()
-        lo = as_float_tensor("low", low).reshape(-1)
-        hi = as_float_tensor("high", high).reshape(-1)
+        lo = as_float_tensor("low", low)
+        hi = as_float_tensor("high", high)
+        if lo.dim() != 1 or lo.shape != hi.shape:
+            raise ValueError(
+                f"low and high must both have shape (S,), got {tuple(lo.shape)} and "
+                f"{tuple(hi.shape)}"
+            )
         finite = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all())
         if lo.shape != hi.shape or not finite or not bool((hi > lo).all()):
             raise ValueError(
@@ -144,11 +169,14 @@ class FourierFeatures(FeatureMap):
             )
         n_bases = check_count("n_bases", n_bases, 2)
         S = lo.shape[0]
-        per = [False] * S if periodic is None else [bool(p) for p in periodic]
-        if len(per) != S:
-            raise ValueError(f"periodic must have {S} entries, got {periodic}")
+        per = _periodic_flags(periodic, S)
         if coupling is not None and not 1 <= check_count("coupling", coupling, 1) <= S:
             raise ValueError(f"coupling must be in 1..{S} (or None), got {coupling}")
+        if n_bases**S > MAX_FOURIER_TERMS:
+            raise ValueError(
+                f"n_bases ** S = {n_bases}^{S} = {n_bases**S:.3g} frequency vectors exceed "
+                f"{MAX_FOURIER_TERMS:.0e}: use fewer bases or fewer state dimensions"
+            )
         coeffs = torch.tensor(
             list(itertools.product(range(n_bases), repeat=S)), dtype=torch.float64
         )
@@ -172,6 +200,31 @@ class FourierFeatures(FeatureMap):
         return out.to(x.dtype)
 
 
+MAX_FOURIER_TERMS = 10**6
+"""The largest n_bases ** S that :class:`FourierFeatures` enumerates (one row per frequency)."""
+
+
+def _periodic_flags(periodic: object, S: int) -> list[bool]:
+    """``periodic`` (None or S bools) as a list of S bools; a string, a non-bool entry or a
+    wrong count raises naming it."""
+    if periodic is None:
+        return [False] * S
+    if isinstance(periodic, str | bytes):
+        raise TypeError(f"periodic must be {S} bools (or None), got {periodic!r}")
+    try:
+        flags = list(periodic)  # type: ignore[call-overload]
+    except TypeError:
+        raise TypeError(f"periodic must be {S} bools (or None), got {periodic!r}") from None
+    if len(flags) != S:
+        raise ValueError(f"periodic must have {S} entries, got {periodic}")
+    for k, p in enumerate(flags):
+        if isinstance(p, Tensor) and p.dim() == 0 and p.dtype == torch.bool:
+            continue
+        if not isinstance(p, bool | np.bool_):
+            raise TypeError(f"periodic[{k}] must be a bool, got {type(p).__name__} {p!r}")
+    return [bool(p) for p in flags]
+
+
 class ConcatFeatures(FeatureMap):
     """Side-by-side concatenation of feature maps on the same input.
 
@@ -187,6 +240,8 @@ class ConcatFeatures(FeatureMap):
         super().__init__()
         if not maps:
             raise ValueError("ConcatFeatures needs at least one feature map")
+        for k, m in enumerate(maps):
+            check_feature_map(f"maps[{k}]", m)
         dims = sorted({m.in_features for m in maps})
         if len(dims) != 1:
             raise ValueError(f"all maps must share in_features, got {dims}")

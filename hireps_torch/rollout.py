@@ -24,7 +24,7 @@ from torch import Tensor, nn
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase
 
-from hireps_torch.checks import check_count
+from hireps_torch.checks import check_count, check_seed
 from hireps_torch.policies import HierarchicalPolicy
 
 __all__ = [
@@ -50,6 +50,7 @@ class PolicyActor(nn.Module):
 
     def __init__(self, policy: HierarchicalPolicy, deterministic: bool = False) -> None:
         super().__init__()
+        _check_policies([policy])
         self.policy = policy
         self.deterministic = deterministic
 
@@ -65,6 +66,16 @@ class PolicyActor(nn.Module):
             a.to(observation.dtype).reshape(*lead, a.shape[-1]),
             o.reshape(lead),
         )
+
+
+def _check_policies(policies: object) -> None:
+    """``policies`` a non-empty list of :class:`HierarchicalPolicy`; a ``TypeError`` naming
+    the first entry that is not one."""
+    if not isinstance(policies, list | tuple | nn.ModuleList):
+        raise TypeError(f"policies must be a list of HierarchicalPolicy, got {type(policies)}")
+    for k, pol in enumerate(policies):
+        if not isinstance(pol, HierarchicalPolicy):
+            raise TypeError(f"policy {k} must be a HierarchicalPolicy, got {type(pol).__name__}")
 
 
 def policy_module(
@@ -90,6 +101,7 @@ class TimeIndexedActor(nn.Module):
 
     def __init__(self, policies: list[HierarchicalPolicy], deterministic: bool = False) -> None:
         super().__init__()
+        _check_policies(policies)
         dims = {int(p.action_dim) for p in policies}
         if len(policies) < 1 or len(dims) != 1:
             raise ValueError(
@@ -159,6 +171,15 @@ def make_collector(
     """
     num_workers = check_count("num_workers", num_workers, 1)
     frames_per_batch = check_count("frames_per_batch", frames_per_batch, 1)
+    if check_count("total_frames", total_frames, -1) == 0:
+        raise ValueError("total_frames must be -1 (no end) or >= 1, got 0")
+    if not callable(create_env_fn):
+        raise TypeError(
+            f"create_env_fn must be a callable that builds the environment, got "
+            f"{type(create_env_fn).__name__}"
+        )
+    if seed is not None:
+        seed = check_seed("seed", seed)
     collector: Collector | MultiSyncCollector
     if num_workers == 1:
         collector = Collector(
@@ -185,7 +206,7 @@ def make_collector(
             auto_register_policy_transforms=False,
         )
     if seed is not None:
-        collector.set_seed(int(seed))
+        collector.set_seed(seed)
     return collector
 
 

@@ -103,9 +103,9 @@ def assert_same_run(run, reference):
 
 CASES = {
     "bimodal": ({"episodes": 3000, "samples_per_iteration": 100}, 3),
-    "pendulum": ({"episodes": 120, "eval_rollouts": 2}, 2),
-    "ball-on-beam": ({"episodes": 24, "eval_episodes": 2}, 3),
-    "hockey-sequential": ({"episodes": 60, "episodes_per_iteration": 6}, 2),
+    "pendulum": ({"episodes": 120, "episode_seconds": 2.0, "eval_rollouts": 1}, 2),
+    "ball-on-beam": ({"episodes": 15, "eval_episodes": 2}, 2),
+    "hockey-sequential": ({"episodes": 24, "episodes_per_iteration": 4}, 2),
 }
 
 
@@ -170,10 +170,8 @@ def test_resuming_a_finished_run_says_so_and_changes_nothing(tmp_path):
 
 def test_resuming_with_changed_options_is_refused_and_names_them(tmp_path):
     run = tmp_path / "run"
-    code, err = interrupt(
-        ["bimodal", "--episodes", "3000", "--samples-per-iteration", "100"], run, 2
-    )
-    assert code == 130, err
+    in_process("bimodal", run, episodes=400)
+    (run / "summary.json").unlink()  # as if stopped before its end
     before = {p.name: p.read_bytes() for p in run.iterdir()}
     p = train("bimodal", "--resume", str(run), "--epsilon", "0.3", "--seed", "9", "--no-progress")
     assert p.returncode == 2
@@ -213,14 +211,16 @@ def test_an_unreadable_checkpoint_is_named_and_nothing_changes(tmp_path):
     assert {q.name: q.read_bytes() for q in run.iterdir()} == before
 
 
-def test_a_run_with_worker_processes_resumes_with_a_warning(tmp_path):
-    """The environments live in the workers and are not restored: the resumed run finishes,
-    says it is not bit-identical, and logs every iteration exactly once."""
-    args = ["pendulum", "--workers", "2", "--episodes", "80", "--eval-rollouts", "1"]
+def test_a_run_with_worker_processes_resumes_with_a_warning_and_exits_cleanly(tmp_path):
+    """MultiSyncCollector with 2 workers: interrupted, then resumed. The environments live in
+    the workers and are not restored: the resumed run finishes, says it is not
+    bit-identical, logs every iteration exactly once, and both interpreters exit."""
+    args = ["pendulum", "--workers", "2", "--episodes", "80", "--episode-seconds", "2"]
     run = tmp_path / "run"
-    code, err = interrupt(args, run, 2)
+    code, err = interrupt([*args, "--eval-rollouts", "1"], run, 2)
     assert code == 130, err
     resumed = train("pendulum", "--resume", str(run), "--no-progress")
     assert resumed.returncode == 0, resumed.stderr
     assert "not bit-identical" in resumed.stderr
     assert [int(r["iteration"]) for r in rows(run)] == list(range(1, 5))
+    assert (run / "summary.json").is_file()

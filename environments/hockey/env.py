@@ -78,9 +78,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from environments._common import ResetNeeded, check_params
 from environments.hockey.params import HockeyParams
 from environments.hockey.sim import HockeySim, demo_action
-from hireps_torch.checks import as_finite_f64, check_count
+from hireps_torch.checks import as_finite_f64, as_float_tensor, check_count
 
 __all__ = [
     "ENV_ID",
@@ -129,7 +130,7 @@ def clip_action(action: Any, low: Tensor, high: Tensor) -> tuple[Tensor, Tensor]
         ValueError: wrong shape or a non-finite entry (named by index and value).
     """
     n = low.shape[0]
-    a = torch.as_tensor(np.asarray(action, dtype=np.float64))
+    a = as_float_tensor("action", action)
     if a.shape != (n,):
         raise ValueError(
             f"action must have shape ({n},): 7 joint goal positions then 7 goal velocities"
@@ -177,7 +178,7 @@ class RobotHockeyEnv(gym.Env):
         self.frame_every = frame_every if render_mode == "rgb_array" else 0
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.params = params or HockeyParams()
+        self.params = check_params(params, HockeyParams)
         self.render_mode = render_mode
         self.sim = HockeySim(self.params, gui=gui)
         self._low, self._high = _bounds(self.sim, self.params)
@@ -186,6 +187,7 @@ class RobotHockeyEnv(gym.Env):
         self.shot_index = 0
         self._target = np.array(self.params.target_mean, dtype=np.float64)
         self.sim.reset(self._target)
+        self.needs_reset = True  # a provisional state until the first reset()
 
     def demo_action(self) -> np.ndarray:
         """The demonstration's shot as an action: (14,) [goal, goal velocity]."""
@@ -194,14 +196,19 @@ class RobotHockeyEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is not None:
+            seed = check_count("seed", seed, 0)  # gymnasium's np_random takes seeds >= 0
         super().reset(seed=seed)
         p = self.params
         self._target = np.asarray(p.target_mean) + p.target_std * self.np_random.standard_normal(2)
         self.sim.reset(self._target)
         self.shot_index = 0
+        self.needs_reset = False
         return self._target.copy(), {"target_distance": float(np.linalg.norm(self._target))}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.needs_reset:
+            raise ResetNeeded("call reset() before the first step()")
         a, clipped = clip_action(action, self._low, self._high)
         return self.play(a, bool(clipped.any()))
 
@@ -266,11 +273,15 @@ class RobotHockeyEpisodicEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is not None:
+            seed = check_count("seed", seed, 0)
         super().reset(seed=seed)
         return self.inner.reset(seed=seed, options=options)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         n = self.params.n_shots
+        if self.inner.needs_reset:
+            raise ResetNeeded("call reset() before the first step()")
         if self.inner.shot_index != 0:
             raise RuntimeError("the episode already ended: call reset()")
         # the whole action is checked before the first shot is played

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hireps_torch.checks import as_finite_f64
+from hireps_torch.checks import as_finite_f64, as_float, check_count
 
 __all__ = [
     "ArmGeometry",
@@ -89,6 +89,30 @@ class ArmGeometry:
     backswing: float = math.radians(35.0)
     swing_duration: float = 0.5
     demo_points: int = 26
+
+    def __post_init__(self) -> None:
+        positive = (
+            "stick_length",
+            "stick_radius",
+            "blade_height",
+            "puck_x",
+            "swing_radius",
+            "swing_duration",
+        )
+        for name in positive:
+            v = as_float(f"ArmGeometry.{name}", getattr(self, name))
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"ArmGeometry.{name} must be finite and > 0, got {v}")
+        for name in ("stick_pitch", "backswing"):
+            if not math.isfinite(as_float(f"ArmGeometry.{name}", getattr(self, name))):
+                raise ValueError(f"ArmGeometry.{name} must be finite, got {getattr(self, name)}")
+        size = self.blade_size
+        if not isinstance(size, tuple | list) or len(size) != 3:
+            raise ValueError(f"ArmGeometry.blade_size must be 3 numbers, got {size!r}")
+        for k, v in enumerate(size):
+            if not (math.isfinite(as_float(f"ArmGeometry.blade_size[{k}]", v)) and v > 0):
+                raise ValueError(f"ArmGeometry.blade_size must be finite and > 0, got {size}")
+        check_count("ArmGeometry.demo_points", self.demo_points, 2)
 
 
 def _kuka_urdf_path() -> str:

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from environments.hockey.kinematics import ArmGeometry
-from hireps_torch.checks import check_count
+from hireps_torch.checks import as_float, check_count
 
 __all__ = ["HockeyParams"]
 
@@ -92,17 +92,22 @@ class HockeyParams:
             (("joint_margin",), lambda v: finite(v) and 0 <= v < 1.0, "must be in [0, 1) rad"),
             (("min_blade_height",), finite, "must be finite"),
         ]
+        if not isinstance(self.geometry, ArmGeometry):
+            raise TypeError(
+                f"HockeyParams.geometry must be an ArmGeometry, got {type(self.geometry).__name__}"
+            )
         for names, ok, rule in rules:
             for name in names:
-                if not ok(getattr(self, name)):
+                if not ok(as_float(f"HockeyParams.{name}", getattr(self, name))):
                     raise ValueError(f"HockeyParams.{name} {rule}, got {getattr(self, name)}")
-        if not all(math.isfinite(v) for v in self.target_mean) or len(self.target_mean) != 2:
+        mean = _numbers("HockeyParams.target_mean", self.target_mean)
+        if not all(math.isfinite(v) for v in mean) or len(mean) != 2:
             raise ValueError(
                 f"HockeyParams.target_mean must be 2 finite numbers, got {self.target_mean}"
             )
         check_count("HockeyParams.dmp_basis", self.dmp_basis, 2)
         check_count("HockeyParams.n_shots", self.n_shots, 1)
-        zones = list(self.zones)
+        zones = _numbers("HockeyParams.zones", self.zones)
         if len(zones) != 4 or not all(math.isfinite(z) for z in zones) or zones != sorted(zones):
             raise ValueError(
                 f"HockeyParams.zones must be 4 finite increasing edges, got {self.zones}"
@@ -112,3 +117,16 @@ class HockeyParams:
     def control_start(self) -> tuple[float, float]:
         """(x, y) of the control puck's spot: where the demo's blade meets it."""
         return (self.geometry.puck_x, 0.0)
+
+
+def _numbers(name: str, value: object) -> list[float]:
+    """A sequence of numbers as floats; a ``TypeError`` naming ``name`` (and the entry)."""
+    if isinstance(value, str | bytes):
+        raise TypeError(f"{name} must be a sequence of numbers, got {value!r}")
+    try:
+        items = list(value)  # type: ignore[call-overload]
+    except TypeError:
+        raise TypeError(
+            f"{name} must be a sequence of numbers, got {type(value).__name__}"
+        ) from None
+    return [as_float(f"{name}[{k}]", v) for k, v in enumerate(items)]

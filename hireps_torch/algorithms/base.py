@@ -29,6 +29,7 @@ from hireps_torch.checks import (
     check_finite,
     check_nonnegative_float,
     check_positive_float,
+    check_seed,
 )
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
@@ -153,13 +154,13 @@ def seeded_generator(seed: int | None) -> torch.Generator:
     """A CPU generator seeded with ``seed`` (0 when None); a non-integer seed raises a
     ``TypeError`` naming it."""
     gen = torch.Generator()
-    gen.manual_seed(0 if seed is None else check_count("seed", seed, -(2**63)))
+    gen.manual_seed(0 if seed is None else check_seed("seed", seed))
     return gen
 
 
 def next_seed(seed: int | None) -> int | None:
     """The seed of the sampling generator of a ``create``d algorithm: ``seed + 1``."""
-    return None if seed is None else check_count("seed", seed, -(2**63)) + 1
+    return None if seed is None else check_seed("seed", seed, headroom=1) + 1
 
 
 def fresh_policies(
@@ -349,6 +350,10 @@ def check_epsilons(epsilon: object, K: int) -> list[float]:
     """epsilon (one number, a 0-d tensor, or K numbers, e.g. a (K,) tensor) as K floats > 0;
     the error names the bad entry, or the expected and given count."""
     shape = getattr(epsilon, "shape", None)
+    if isinstance(epsilon, str | bytes | Mapping):
+        raise TypeError(
+            f"epsilon must be a float or {K} floats, got {type(epsilon).__name__} {epsilon!r}"
+        )
     if isinstance(epsilon, numbers.Real | bool) or (shape is not None and len(shape) == 0):
         return [check_positive_float("epsilon", epsilon)] * K  # type: ignore[arg-type]
     try:

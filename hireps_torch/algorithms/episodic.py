@@ -46,7 +46,7 @@ from hireps_torch.checks import (
     check_positive_float,
 )
 from hireps_torch.dual import solve_episodic_dual
-from hireps_torch.features import FeatureMap, QuadraticFeatures
+from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
 if TYPE_CHECKING:
@@ -103,6 +103,7 @@ class EpisodicHiREPS(HiREPSBase):
                 f"the policy takes contexts of dimension {policy.context_dim} but context_dim = "
                 f"{context_dim}"
             )
+        check_feature_map("context_features", context_features)
         if context_features is not None and context_features.in_features != context_dim:
             raise ValueError(
                 f"context_features take contexts of dimension {context_features.in_features}, "

@@ -51,7 +51,7 @@ from hireps_torch.checks import (
     check_positive_float,
 )
 from hireps_torch.dual import solve_infinite_horizon_dual
-from hireps_torch.features import FeatureMap
+from hireps_torch.features import FeatureMap, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
 if TYPE_CHECKING:
@@ -103,6 +103,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         if not isinstance(policy, HierarchicalPolicy):
             raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
+        if check_feature_map("value_features", value_features) is None:
+            raise TypeError("value_features must be a feature map (e.g. FourierFeatures)")
         S = value_features.in_features
         if policy.context_dim != S:
             raise ValueError(
@@ -155,6 +157,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
         state_dim = check_count("state_dim", state_dim, 1)
+        if check_feature_map("value_features", value_features) is None:
+            raise TypeError("value_features must be a feature map (e.g. FourierFeatures)")
         if value_features.in_features != state_dim:
             raise ValueError(
                 f"value_features take states of dimension {value_features.in_features}, "
@@ -210,7 +214,13 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             )
         term = None
         if terminated is not None:
-            term = torch.as_tensor(terminated)
+            try:
+                term = torch.as_tensor(terminated, device=torch.device("cpu"))
+            except (TypeError, ValueError, RuntimeError, NotImplementedError):
+                raise TypeError(
+                    f"terminated must be a bool tensor of shape ({N},), got "
+                    f"{type(terminated).__name__} {terminated!r:.60}"
+                ) from None
             if term.shape != (N,) or term.dtype != torch.bool:
                 raise ValueError(
                     f"terminated must be a bool tensor of shape ({N},), got {term.dtype} "

@@ -57,7 +57,7 @@ from hireps_torch.checks import (
     check_finite,
 )
 from hireps_torch.dual import solve_time_indexed_dual
-from hireps_torch.features import FeatureMap, QuadraticFeatures
+from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
 if TYPE_CHECKING:
@@ -127,11 +127,18 @@ class TimeIndexedHiREPS(HiREPSBase):
         prune_threshold: float = 1e-4,
         seed: int | None = None,
     ) -> None:
+        if not isinstance(policies, Sequence) or isinstance(policies, str):
+            raise TypeError(
+                f"policies must be a sequence of K HierarchicalPolicy (one per decision step), "
+                f"got {type(policies).__name__}"
+            )
         K = len(policies)
         if K < 1:
             raise ValueError("policies must hold one policy per decision step (K >= 1), got 0")
         eps = check_epsilons(epsilon, K)
         super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
+        if check_feature_map("value_features", value_features) is None:
+            raise TypeError("value_features must be a feature map (e.g. QuadraticFeatures)")
         S = value_features.in_features
         for k, pol in enumerate(policies):
             if not isinstance(pol, HierarchicalPolicy):
@@ -188,6 +195,7 @@ class TimeIndexedHiREPS(HiREPSBase):
                 (see :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
         K = check_count("K (the number of decision steps)", K, 1)
+        check_feature_map("value_features", value_features)
         context_dim = check_count("context_dim (the state dimension)", context_dim, 1)
         param_dim = check_count("param_dim", param_dim, 1)
         mean = torch.zeros(K, param_dim, dtype=torch.float64)

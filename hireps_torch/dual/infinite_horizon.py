@@ -7,6 +7,7 @@ import math
 
 from torch import Tensor
 
+from hireps_torch.checks import as_float
 from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
 from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
 from hireps_torch.dual.solver import checked_settings, solve_blocks
@@ -65,7 +66,7 @@ def solve_infinite_horizon_dual(
     opts = checked_settings(max_iter)
     R, eps, lr, kap = common_inputs(rewards, epsilon, log_responsibilities, kappa, "rewards")
     N = R.shape[1]
-    g = float(gamma)
+    g = as_float("gamma", gamma)
     if not (math.isfinite(g) and 0.0 < g < 1.0):
         raise ValueError(f"gamma must be in (0, 1), got {gamma}")
     phi = check_features("features", features, N)

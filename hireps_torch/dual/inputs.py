@@ -16,7 +16,7 @@ import warnings
 import torch
 from torch import Tensor
 
-from hireps_torch.checks import as_f64, check_finite, check_positive
+from hireps_torch.checks import as_f64, as_float, check_finite, check_positive
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
 __all__ = [
@@ -39,16 +39,27 @@ def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tens
 
     Rows normalised only to float32 precision (off by up to 1e-4) are renormalised in float64,
     so that the old distribution q p~ sums to 1 and its KL to itself is 0."""
-    if bool(torch.isnan(log_resp).any()) or bool((log_resp == math.inf).any()):
-        raise ValueError(f"{name} contains NaN or +inf")
+    if log_resp.shape[-1] == 0:
+        raise ValueError(
+            f"{name} must have at least one option column, got {tuple(log_resp.shape)}"
+        )
+    bad = torch.isnan(log_resp) | torch.isposinf(log_resp)
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(
+            f"{name} contains NaN or +inf (first at index {idx}: {log_resp[idx].item()})"
+        )
     if bool((log_resp > 1e-6).any()):
         raise ValueError(f"{name} must be log-probabilities (<= 0), max is {log_resp.max().item()}")
     norm = torch.logsumexp(log_resp, dim=-1)
-    worst = (norm.abs()).max().item()
+    off = norm.abs()
+    worst = off.max().item()
     if worst > 1e-4:
+        row = ", ".join(str(int(i)) for i in (off == worst).nonzero()[0])
         raise ValueError(
             f"{name} must be normalised over options (logsumexp over the last dim = 0); "
-            f"worst row is off by {worst:.3g}"
+            f"row [{row}] is off by {worst:.3g}"
+            + (" (every option has probability 0)" if math.isinf(worst) else "")
         )
     if worst > 1e-13:
         log_resp = log_resp - norm.unsqueeze(-1)
@@ -173,7 +184,7 @@ def check_features(name: str, x: Tensor, *lead: int) -> Tensor:
 
 def check_feature_vector(name: str, x: Tensor, F: int) -> Tensor:
     """Check a mean feature vector (F,) such as phi_hat_0."""
-    phi = as_f64(name, x).reshape(-1)
+    phi = as_f64(name, x)
     if phi.shape != (F,):
         raise ValueError(f"{name} must have shape ({F},), got {tuple(phi.shape)}")
     check_finite(name, phi)
@@ -195,9 +206,10 @@ def check_settings(
         raise ValueError(f"max_iter must be an integer >= 1, got {n}")
     tols = []
     for name, value in (("tolerance_grad", tolerance_grad), ("converged_grad", converged_grad)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Real | Tensor):
-            raise TypeError(f"{name} must be a finite number > 0, got {value!r}")
-        t = float(value)  # a tensor with more than one entry raises here
+        try:
+            t = as_float(name, value)
+        except (TypeError, ValueError) as exc:
+            raise type(exc)(f"{name} must be a finite number > 0, got {value!r}") from None
         if not (math.isfinite(t) and t > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         tols.append(t)

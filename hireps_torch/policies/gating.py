@@ -9,7 +9,14 @@ from typing import cast
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import as_float, as_float_tensor, check_count, check_finite
+from hireps_torch.checks import (
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_float_dtype,
+    check_weights,
+)
 from hireps_torch.policies._module import PolicyModule
 
 __all__ = ["ConstantGating", "Gating", "SoftmaxGating"]
@@ -52,17 +59,33 @@ class Gating(PolicyModule):
             raise ValueError(
                 f"targets must have shape ({N}, {self.n_options}), got {tuple(t.shape)}"
             )
-        if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
-            raise ValueError("targets must be finite and non-negative")
-        w = as_float_tensor("sample_weights", sample_weights)
-        if w.shape != (N,) or not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
+        bad = ~torch.isfinite(t) | (t < 0)
+        if bool(bad.any()):
+            i, o = (int(j) for j in bad.nonzero()[0])
             raise ValueError(
-                f"sample_weights must be ({N},), finite and non-negative, got shape "
-                f"{tuple(w.shape)}"
+                f"targets must be finite and non-negative, got {t[i, o].item()} at [{i}, {o}]"
             )
-        if float(w.sum()) <= 0:
-            raise ValueError("sample_weights are all zero")
+        w = as_float_tensor("sample_weights", sample_weights)
+        if w.shape != (N,):
+            raise ValueError(f"sample_weights must have shape ({N},), got {tuple(w.shape)}")
+        check_weights("sample_weights", w)
+        self._check_target_rows(t, w)
         return x, t, w / w.sum()
+
+    def _check_target_rows(self, t: Tensor, w: Tensor) -> None:
+        """Each row with a positive sample weight must be a distribution over the active
+        options (sum 1 to 1e-6; nothing on pruned options): another row sum would act as a
+        hidden sample weight."""
+        sums = t[:, self.active].sum(-1)
+        off = (w > 0) & ((sums - 1.0).abs() > 1e-6)
+        if bool(off.any()):
+            i = int(off.nonzero()[0, 0])
+            pruned = [int(o) for o in (~self.active).nonzero().flatten()]
+            raise ValueError(
+                f"targets must be distributions over the active options (rows summing to 1) "
+                f"where sample_weights > 0: row {i} sums to {sums[i].item():.6g} on the active "
+                f"options" + (f" (pruned: {pruned})" if pruned else "")
+            )
 
     def log_probs(self, features: Tensor) -> Tensor:
         """features: (N, F) -> log pi(o | s): (N, O), -inf for pruned options."""
@@ -116,8 +139,7 @@ class SoftmaxGating(Gating):
         self.l2 = as_float("l2", l2)
         if not (math.isfinite(self.l2) and self.l2 >= 0):
             raise ValueError(f"l2 must be finite and >= 0, got {l2}")
-        if not dtype.is_floating_point:
-            raise TypeError(f"dtype must be a floating dtype, got {dtype}")
+        check_float_dtype(dtype)
         n_options, in_features = self.n_options, self.in_features
         self.weight = nn.Parameter(torch.zeros(n_options, in_features, dtype=dtype), False)
         self.bias = nn.Parameter(torch.zeros(n_options, dtype=dtype), False)
@@ -144,7 +166,8 @@ class SoftmaxGating(Gating):
 
         Args:
             features: (N, F).
-            targets: (N, O) rows are distributions over options (0 on pruned options).
+            targets: (N, O) rows are distributions over options (0 on pruned options; a row
+                with positive sample weight that does not sum to 1 is refused).
             sample_weights: (N,) non-negative, not all zero.
 
         Returns:

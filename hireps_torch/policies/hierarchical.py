@@ -9,14 +9,23 @@ from typing import cast
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import as_float, as_float_tensor, check_count, check_finite
-from hireps_torch.features import FeatureMap, IdentityFeatures
+from hireps_torch.checks import (
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_generator,
+    check_weights,
+)
+from hireps_torch.features import FeatureMap, IdentityFeatures, check_feature_map
+from hireps_torch.policies._build import check_feature_maps, check_gating, initial_means
 from hireps_torch.policies._module import PolicyModule
 from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import (
     LinearGaussian,
     covariance_pseudo_samples,
     initial_std,
+    power_of_two_scaled,
     variance_floor,
 )
 
@@ -53,16 +62,21 @@ class HierarchicalPolicy(PolicyModule):
         policy_features: FeatureMap | None = None,
     ) -> None:
         super().__init__()
-        if len(options) != gating.n_options:
-            raise ValueError(
-                f"gating has {gating.n_options} options but {len(options)} sub-policies were given"
-            )
+        options = list(options)
+        for o, opt in enumerate(options):
+            if not isinstance(opt, LinearGaussian):
+                raise TypeError(f"options[{o}] must be a LinearGaussian, got {type(opt).__name__}")
+        check_gating(gating, len(options))
         dims = {o.action_dim for o in options}
         if len(dims) != 1:
             raise ValueError(f"all options must share action_dim, got {sorted(dims)}")
-        gf = gating_features or IdentityFeatures(gating.in_features)
-        pf = policy_features or IdentityFeatures(options[0].in_features)
-        _check_feature_maps(gating, options, gf, pf)
+        gf = check_feature_map("gating_features", gating_features) or IdentityFeatures(
+            gating.in_features
+        )
+        pf = check_feature_map("policy_features", policy_features) or IdentityFeatures(
+            options[0].in_features
+        )
+        check_feature_maps(gating, options, gf, pf)
         self.gating = gating
         self.options = nn.ModuleList(options)
         self.gating_features = gf
@@ -98,15 +112,18 @@ class HierarchicalPolicy(PolicyModule):
         n_options = check_count("n_options", n_options, 1)
         context_dim = check_count("context_dim", context_dim, 0)
         action_dim = check_count("action_dim", action_dim, 1)
-        gf = gating_features or IdentityFeatures(context_dim)
-        pf = policy_features or IdentityFeatures(context_dim)
+        check_generator("generator", generator)
+        gf = check_feature_map("gating_features", gating_features) or IdentityFeatures(context_dim)
+        if gating is not None:  # checked before the generator draws the option means
+            check_gating(gating, n_options, gf.out_features)
+        pf = check_feature_map("policy_features", policy_features) or IdentityFeatures(context_dim)
         for name, fmap in (("gating_features", gf), ("policy_features", pf)):
             if fmap.in_features != context_dim:
                 raise ValueError(
                     f"{name} take contexts of dimension {fmap.in_features}, not context_dim = "
                     f"{context_dim}"
                 )
-        mean = _initial_means(init_mean, n_options, action_dim)
+        mean = initial_means(init_mean, n_options, action_dim)
         std = initial_std(init_std, action_dim)
         spread = as_float("spread", spread)
         if not (math.isfinite(spread) and spread >= 0):
@@ -220,6 +237,7 @@ class HierarchicalPolicy(PolicyModule):
         Returns:
             theta (N, D) and option (N,) int64 (empty for N = 0).
         """
+        check_generator("generator", generator)
         gf, pf = self._features(context)
         probs = self.gating.probs(gf)
         N = pf.shape[0]
@@ -275,10 +293,17 @@ class HierarchicalPolicy(PolicyModule):
             raise ValueError(
                 f"weights must have shape ({N}, {self.n_options}), got {tuple(w.shape)}"
             )
-        if not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
-            raise ValueError("weights must be finite, non-negative and not all zero")
+        check_weights("weights", w)
+        on_pruned = (w[:, ~self.active] > 0).any(0)
+        if bool(on_pruned.any()):
+            pruned = (~self.active).nonzero().flatten()[on_pruned].tolist()
+            raise ValueError(
+                f"weights put mass on pruned option(s) {pruned}; give them weight 0 (their "
+                "column of the weights must be zero)"
+            )
+        w = power_of_two_scaled(w)
         ws = w.sum(-1)
-        targets = w / ws.clamp_min(1e-300)[:, None]
+        targets = w / torch.where(ws > 0, ws, 1.0)[:, None]  # rows without weight stay 0
         new = {f"gating.{k}": v for k, v in self.gating.fit_parameters(gf, targets, ws).items()}
         total = float(w.sum())
         for o, opt in enumerate(self.sub_policies):
@@ -303,7 +328,8 @@ class HierarchicalPolicy(PolicyModule):
             weights: (N, O) non-negative joint sample-option weights P_io (any scale).
                 Option o is refitted with weights P[:, o]; the gating with targets
                 P_io / sum_o P_io and sample weights sum_o P_io. Options without weight keep
-                their parameters (they are left to pruning).
+                their parameters (they are left to pruning); weight on a pruned option is
+                refused (its column must be 0).
         """
         self.set_parameters(self.fit_parameters(context, theta, weights))
 
@@ -331,38 +357,3 @@ class HierarchicalPolicy(PolicyModule):
         lr = self.log_responsibilities(context, theta)
         p = lr.exp()
         return -(torch.where(p > 0, p * lr, torch.zeros_like(p))).sum(-1).mean()
-
-
-def _initial_means(init_mean: Tensor | None, n_options: int, action_dim: int) -> Tensor:
-    """init_mean (None, (D,) or (O, D)), checked, as float64."""
-    if init_mean is None:
-        return torch.zeros(action_dim, dtype=torch.float64)
-    mean = as_float_tensor("init_mean", init_mean)
-    if mean.shape not in ((action_dim,), (n_options, action_dim)):
-        raise ValueError(
-            f"init_mean must have shape (D,) = ({action_dim},) or (O, D) = "
-            f"({n_options}, {action_dim}), got {tuple(mean.shape)}"
-        )
-    check_finite("init_mean", mean, "")
-    return mean
-
-
-def _check_feature_maps(
-    gating: Gating, options: Sequence[LinearGaussian], gf: FeatureMap, pf: FeatureMap
-) -> None:
-    """The feature maps must take the same contexts and feed the gating and the options."""
-    if gf.in_features != pf.in_features:
-        raise ValueError(
-            f"gating_features take contexts of dimension {gf.in_features} but policy_features "
-            f"of dimension {pf.in_features}"
-        )
-    if gf.out_features != gating.in_features:
-        raise ValueError(
-            f"gating_features give {gf.out_features} features but the gating takes "
-            f"{gating.in_features}"
-        )
-    widths = sorted({o.in_features for o in options})
-    if widths != [pf.out_features]:
-        raise ValueError(
-            f"policy_features give {pf.out_features} features but the options take {widths}"
-        )

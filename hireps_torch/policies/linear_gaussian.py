@@ -13,8 +13,11 @@ from hireps_torch.checks import (
     as_float_tensor,
     check_count,
     check_finite,
+    check_float_dtype,
+    check_generator,
     check_nonnegative_float,
     check_positive,
+    check_weights,
 )
 from hireps_torch.policies._module import PolicyModule
 
@@ -22,6 +25,7 @@ __all__ = [
     "LinearGaussian",
     "covariance_pseudo_samples",
     "initial_std",
+    "power_of_two_scaled",
     "variance_floor",
     "weighted_least_squares",
 ]
@@ -59,10 +63,20 @@ def weighted_least_squares(
     return beta[1:].T.contiguous(), beta[0].contiguous()
 
 
+def power_of_two_scaled(w: Tensor) -> Tensor:
+    """Weights of any scale brought near 1 by an exact power of 2 (the fit is invariant to
+    it), so that weights like 1e-320 or 1e300 neither underflow nor overflow the sums; weights
+    already within 2^-200 .. 2^200 are returned as they are."""
+    top = float(w.max())
+    if 2.0**-200 <= top <= 2.0**200:
+        return w
+    return torch.ldexp(w, torch.tensor(-math.frexp(top)[1], dtype=torch.int64))
+
+
 def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
     """``min_variance`` (a float or a (D,) tensor, finite and > 0) as a (D,) float64 tensor;
     a ``ValueError`` naming it otherwise."""
-    floor = as_float_tensor("min_variance", min_variance).clone()
+    floor = as_float_tensor("min_variance", min_variance, allow_bool=False).clone()
     if floor.dim() == 0:
         floor = floor.expand(action_dim).clone()
     if (
@@ -87,7 +101,7 @@ def covariance_pseudo_samples(covariance_prior: float) -> float:
 
 def initial_std(init_std: float | Tensor, action_dim: int) -> Tensor:
     """``init_std`` (a float or a (D,) tensor, finite and > 0) as a (D,) float64 tensor."""
-    std = as_float_tensor("init_std", init_std)
+    std = as_float_tensor("init_std", init_std, allow_bool=False)
     if std.dim() == 0:
         std = std.expand(action_dim)
     if std.shape != (action_dim,):
@@ -137,8 +151,7 @@ class LinearGaussian(PolicyModule):
         super().__init__()
         action_dim = check_count("action_dim", action_dim, 1)
         in_features = check_count("in_features", in_features, 0)
-        if not dtype.is_floating_point:
-            raise TypeError(f"dtype must be a floating dtype, got {dtype}")
+        check_float_dtype(dtype)
         floor = variance_floor(min_variance, action_dim)
         prior = covariance_pseudo_samples(covariance_prior)
         std = initial_std(init_std, action_dim).to(dtype)
@@ -187,6 +200,7 @@ class LinearGaussian(PolicyModule):
 
     def sample(self, features: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """features: (N, F) -> theta (N, D)."""
+        check_generator("generator", generator)
         mu = self.mean(features)
         noise = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
         return mu + noise @ self.chol.T
@@ -228,8 +242,8 @@ class LinearGaussian(PolicyModule):
         w = as_float_tensor("weights", weights)
         if w.shape != (N,):
             raise ValueError(f"weights must have shape ({N},), got {tuple(w.shape)}")
-        if not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
-            raise ValueError("weights must be finite, non-negative and not all zero")
+        check_weights("weights", w)
+        w = power_of_two_scaled(w)
         r = check_nonnegative_float("ridge", ridge) or 0.0
         overflow = ValueError(
             f"the weighted fit overflows (largest |target| {float(y.abs().max()):.3g}, largest "

@@ -75,7 +75,7 @@ def plot_episode(run: dict[str, Any], out: Path) -> None:
     p = BeamParams()
     cfg = BallOnBeamConfig(seed=run["seed"])
     policy = build_ball_on_beam_policy(cfg)
-    ckpt = torch.load(Path(run["run_dir"]) / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(Path(run["run_dir"]) / "checkpoint.pt")
     policy.load_state_dict(ckpt["algorithm"]["policy"])
     ev = evaluate_beam(lambda s: policy.mean_action(s)[0], p, n_episodes=2, seed=0)
     t = p.dt * torch.arange(1, ev.positions.shape[1] + 1)

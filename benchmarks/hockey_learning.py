@@ -97,10 +97,11 @@ def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
     import matplotlib.pyplot as plt
 
     from environments.hockey import RobotHockeyEnv
+    from experiments.checkpoint import saved_config
     from hireps_torch.algorithms import TimeIndexedHiREPS
 
-    ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
-    cfg = HockeySequentialConfig(**{**ckpt["config"], "run_dir": None})
+    ckpt = torch.load(run_dir / "checkpoint.pt")
+    cfg = saved_config(HockeySequentialConfig, "hockey-sequential", run_dir)
     env = RobotHockeyEnv(render_mode="rgb_array", frame_every=12)
     demo = torch.as_tensor(env.demo_action(), dtype=torch.float64)
     algo = TimeIndexedHiREPS.create(

@@ -61,6 +61,12 @@ class HockeyConfig(RunOptions):
     covariance_prior: float = 0.0
     """Pseudo-samples of the prior that shrinks each option's refit covariance toward the
     previous one (0: plain weighted maximum likelihood)."""
+    mean_prior: float = 0.0
+    """Pseudo-samples of the Gaussian prior that holds each option's mean coefficients (bias
+    and slopes on the target position, on centred and scaled features) near the previous ones
+    (0: weighted least squares; see ``LinearGaussian``). An option fitted from 2-4 effective
+    samples otherwise takes slopes that move its mean by many exploration stds across the
+    start distribution."""
     workers: int = 1
     """Collector worker processes (1: in this process; >1: MultiSyncCollector)."""
 
@@ -114,6 +120,7 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor) -> Algo
         kappa_rel=cfg.kappa_rel,
         min_variance=((cfg.exploration_floor * std) ** 2).clamp_min(cfg.min_variance),
         covariance_prior=cfg.covariance_prior,
+        mean_prior=cfg.mean_prior,
         seed=cfg.seed,
     )
     if sequential:
@@ -133,7 +140,7 @@ def _check(cfg: HockeyConfig) -> int:
     check_options(
         cfg,
         positive=("init_std_position", "init_std_velocity"),
-        nonnegative=("min_variance", "covariance_prior"),
+        nonnegative=("min_variance", "covariance_prior", "mean_prior"),
     )
     B, W = cfg.episodes_per_iteration, cfg.workers
     iterations = check_budget(cfg.episodes, B, n_options=cfg.n_options, workers=W)

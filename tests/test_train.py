@@ -367,6 +367,7 @@ def test_wandb_logger_runs_offline_without_an_account(tmp_path, monkeypatch):
         ("ball-on-beam", {"fourier_bases": 0}, "fourier_bases (--fourier-bases)"),
         ("hockey-sequential", {"init_std_velocity": float("inf")}, "init_std_velocity"),
         ("hockey-episodic", {"covariance_prior": -1.0}, "covariance_prior"),
+        ("hockey-sequential", {"mean_prior": -1.0}, "mean_prior (--mean-prior) must be"),
         ("bimodal", {"checkpoint_every": 0}, "checkpoint_every must be >= 1, got 0"),
         ("bimodal", {"seed": 2**70}, "seed must be an integer in"),
     ],

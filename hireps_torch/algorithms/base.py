@@ -140,6 +140,8 @@ class PolicyKwargs(TypedDict, total=False):
         min_variance: variance floor of the options, float or (D,) (1e-8).
         covariance_prior: pseudo-samples of the prior that shrinks each refit covariance
             toward the previous one (0.0; see :class:`~hireps_torch.policies.LinearGaussian`).
+        mean_prior: pseudo-samples of the prior that holds each refit's mean coefficients
+            near the previous ones (0.0; see :class:`~hireps_torch.policies.LinearGaussian`).
     """
 
     init_std: float | Tensor
@@ -148,6 +150,7 @@ class PolicyKwargs(TypedDict, total=False):
     policy_features: FeatureMap | None
     min_variance: float | Tensor
     covariance_prior: float
+    mean_prior: float
 
 
 def seeded_generator(seed: int | None) -> torch.Generator:

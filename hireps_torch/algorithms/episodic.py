@@ -143,7 +143,7 @@ class EpisodicHiREPS(HiREPSBase):
             kappa_rel: relative entropy bound (None: off).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator).
             **policy_kwargs: ``init_std, spread, gating_features, policy_features,
-                min_variance, covariance_prior`` (see
+                min_variance, covariance_prior, mean_prior`` (see
                 :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
         (policy,) = fresh_policies(
@@ -347,6 +347,7 @@ class REPS(EpisodicHiREPS):
         policy_features: FeatureMap | None = None,
         min_variance: float | Tensor = 1e-8,
         covariance_prior: float = 0.0,
+        mean_prior: float = 0.0,
         seed: int | None = None,
     ) -> REPS:
         """Build REPS with a single linear-Gaussian policy (see :meth:`EpisodicHiREPS.create`)."""
@@ -362,6 +363,7 @@ class REPS(EpisodicHiREPS):
             policy_features=policy_features,
             min_variance=min_variance,
             covariance_prior=covariance_prior,
+            mean_prior=mean_prior,
         )
         assert isinstance(algo, REPS)
         return algo

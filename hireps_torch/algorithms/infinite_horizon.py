@@ -153,7 +153,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             prune_threshold: prior mass below which options are pruned (0: never).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator).
             **policy_kwargs: ``init_std, spread, gating_features, policy_features,
-                min_variance, covariance_prior`` (see
+                min_variance, covariance_prior, mean_prior`` (see
                 :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
         state_dim = check_count("state_dim", state_dim, 1)

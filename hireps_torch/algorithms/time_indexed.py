@@ -191,7 +191,8 @@ class TimeIndexedHiREPS(HiREPSBase):
             value_features: value features phi (the squared expansion of the state by default).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator).
             **policy_kwargs: ``init_std, spread, gating_features`` (the squared expansion of
-                the state by default), ``policy_features, min_variance, covariance_prior``
+                the state by default), ``policy_features, min_variance, covariance_prior,
+                mean_prior``
                 (see :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
         K = check_count("K (the number of decision steps)", K, 1)

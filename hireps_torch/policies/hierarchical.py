@@ -26,6 +26,7 @@ from hireps_torch.policies.linear_gaussian import (
     covariance_pseudo_samples,
     initial_std,
     power_of_two_scaled,
+    pseudo_samples,
     variance_floor,
 )
 
@@ -98,6 +99,7 @@ class HierarchicalPolicy(PolicyModule):
         generator: torch.Generator | None = None,
         gating: Gating | None = None,
         covariance_prior: float = 0.0,
+        mean_prior: float = 0.0,
     ) -> HierarchicalPolicy:
         """Build a mixture of linear-Gaussian options.
 
@@ -106,7 +108,7 @@ class HierarchicalPolicy(PolicyModule):
         ``init_mean`` when it is (O, D), one mean per option (no random spread); covariances
         at ``init_std^2 I``. The gating is ``gating`` when given (e.g. a
         :class:`ConstantGating` on ``gating_features``), else a uniform
-        :class:`SoftmaxGating`. ``covariance_prior`` goes to every option (see
+        :class:`SoftmaxGating`. ``covariance_prior`` and ``mean_prior`` go to every option (see
         :class:`LinearGaussian`).
         """
         n_options = check_count("n_options", n_options, 1)
@@ -130,6 +132,7 @@ class HierarchicalPolicy(PolicyModule):
             raise ValueError(f"spread must be finite and >= 0, got {spread}")
         variance_floor(min_variance, action_dim)  # checked before the generator draws
         covariance_pseudo_samples(covariance_prior)
+        pseudo_samples("mean_prior", mean_prior)
         opts = []
         for o in range(n_options):
             m = (
@@ -148,6 +151,7 @@ class HierarchicalPolicy(PolicyModule):
                     std,
                     min_variance,
                     covariance_prior=covariance_prior,
+                    mean_prior=mean_prior,
                 )
             )
         if gating is None:

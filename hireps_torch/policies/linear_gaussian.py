@@ -25,6 +25,8 @@ __all__ = [
     "LinearGaussian",
     "covariance_pseudo_samples",
     "initial_std",
+    "map_linear_regression",
+    "pseudo_samples",
     "power_of_two_scaled",
     "variance_floor",
     "weighted_least_squares",
@@ -91,12 +93,79 @@ def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
     return floor
 
 
+def pseudo_samples(name: str, value: float) -> float:
+    """A prior's pseudo-sample count (finite and >= 0) as a float; a ``ValueError`` naming
+    ``name``."""
+    prior = as_float(name, value)
+    if not (math.isfinite(prior) and prior >= 0):
+        raise ValueError(f"{name} must be finite and >= 0, got {value}")
+    return prior
+
+
 def covariance_pseudo_samples(covariance_prior: float) -> float:
     """``covariance_prior`` (finite and >= 0) as a float; a ``ValueError`` naming it."""
-    prior = as_float("covariance_prior", covariance_prior)
-    if not (math.isfinite(prior) and prior >= 0):
-        raise ValueError(f"covariance_prior must be finite and >= 0, got {covariance_prior}")
-    return prior
+    return pseudo_samples("covariance_prior", covariance_prior)
+
+
+def map_linear_regression(
+    inputs: Tensor,
+    targets: Tensor,
+    weights: Tensor,
+    prior_weight: Tensor,
+    prior_bias: Tensor,
+    prior_samples: float,
+    ridge: float = 0.0,
+) -> tuple[Tensor, Tensor]:
+    """Weighted linear regression with a Gaussian prior on the coefficients (MAP), in float64.
+
+    The inputs are centred and scaled by their weighted mean ``m`` and standard deviation
+    ``s`` (columns without spread keep ``s = 1``), ``z_i = [1, (x_i - m) / s]``, and the
+    coefficients ``beta`` of ``y ~ beta^T z`` (the mean at the weighted centre and the change
+    per standard deviation of each input) get a prior centred on ``beta_old`` (those of
+    ``prior_weight``, ``prior_bias``) worth ``k = prior_samples`` samples against the
+    data's ``n_eff = 1 / sum_i w_i^2`` (``w`` normalised to sum 1):
+
+        beta = argmin  sum_i w_i ||y_i - beta^T z_i||^2 + (k / n_eff) ||beta - beta_old||^2
+                       + ridge ||W||^2,
+
+    i.e. ``beta = (Z^T W Z + (k / n_eff) I + ridge diag(0, 1 / s^2))^-1 (Z^T W Y + (k / n_eff)
+    beta_old)``. The fit is therefore unchanged by shifting or rescaling an input, an option
+    with few effective samples moves little from where it was, and an input without spread in
+    the samples keeps its old slope (the data say nothing about it). ``k = 0`` is weighted
+    least squares.
+
+    Args:
+        inputs: (N, F) regressors.
+        targets: (N, D).
+        weights: (N,) non-negative sample weights, not all zero.
+        prior_weight: (D, F) slopes the prior is centred on (the current ones).
+        prior_bias: (D,) bias the prior is centred on.
+        prior_samples: k >= 0.
+        ridge: Tikhonov penalty on the slopes W, relative to the weight sum.
+
+    Returns:
+        (weight (D, F), bias (D,)).
+    """
+    x = inputs.to(torch.float64)
+    y = targets.to(torch.float64)
+    w = weights.to(torch.float64)
+    w = w / w.sum()
+    n_eff = 1.0 / (w**2).sum()
+    m = (w[:, None] * x).sum(0)
+    s = (w[:, None] * (x - m) ** 2).sum(0).sqrt()
+    magnitude = x.abs().amax(0) if x.shape[0] else torch.zeros_like(m)
+    s = torch.where(s > 1e-12 * magnitude, s, torch.ones_like(s))
+    Z = torch.cat([torch.ones(x.shape[0], 1, dtype=torch.float64), (x - m) / s], 1)
+    W0 = prior_weight.to(torch.float64)
+    beta0 = torch.cat([(prior_bias.to(torch.float64) + W0 @ m)[None, :], (W0 * s).T], 0)
+    lam = prior_samples / n_eff
+    diag = torch.full((Z.shape[1],), float(lam), dtype=torch.float64)
+    diag[1:] = diag[1:] + ridge / s**2
+    A = Z.T @ (w[:, None] * Z) + torch.diag(diag)
+    B = Z.T @ (w[:, None] * y) + lam * beta0
+    beta = torch.linalg.solve(A, B)
+    W = (beta[1:] / s[:, None]).T.contiguous()
+    return W, (beta[0] - W @ m).contiguous()
 
 
 def initial_std(init_std: float | Tensor, action_dim: int) -> Tensor:
@@ -135,6 +204,12 @@ class LinearGaussian(PolicyModule):
             MAP estimate under an inverse-Wishart-type prior). It keeps exploration from
             collapsing when an option has fewer effective samples than dimensions; 0 (default)
             is plain weighted maximum likelihood.
+        mean_prior: k, pseudo-samples of a Gaussian prior on the mean's coefficients centred
+            on the current ones, on centred and scaled features: the refit is the posterior
+            mode of :func:`map_linear_regression` (a Bayesian linear regression), so an option
+            fitted from a handful of effective samples moves toward the data in proportion
+            ``n_eff / (n_eff + k)`` instead of jumping to an over-fitted slope; 0 (default)
+            is weighted least squares.
         dtype: parameter dtype (float64 by default: parameter spaces are small).
     """
 
@@ -147,6 +222,7 @@ class LinearGaussian(PolicyModule):
         min_variance: float | Tensor = 1e-8,
         dtype: torch.dtype = torch.float64,
         covariance_prior: float = 0.0,
+        mean_prior: float = 0.0,
     ) -> None:
         super().__init__()
         action_dim = check_count("action_dim", action_dim, 1)
@@ -154,6 +230,7 @@ class LinearGaussian(PolicyModule):
         check_float_dtype(dtype)
         floor = variance_floor(min_variance, action_dim)
         prior = covariance_pseudo_samples(covariance_prior)
+        self.mean_prior = pseudo_samples("mean_prior", mean_prior)
         std = initial_std(init_std, action_dim).to(dtype)
         mean = (
             torch.zeros(action_dim, dtype=dtype)
@@ -251,7 +328,10 @@ class LinearGaussian(PolicyModule):
             "parameters / features"
         )
         try:
-            W, b = weighted_least_squares(x, y, w, ridge=r)
+            if self.mean_prior > 0:
+                W, b = map_linear_regression(x, y, w, self.weight, self.bias, self.mean_prior, r)
+            else:
+                W, b = weighted_least_squares(x, y, w, ridge=r)
         except RuntimeError:
             raise overflow from None
         resid = y - (x @ W.T + b)
@@ -279,7 +359,8 @@ class LinearGaussian(PolicyModule):
         """Weighted maximum-likelihood refit of mean and covariance.
 
         The mean is the weighted least-squares fit of ``targets`` on ``[1, inputs]`` (ridge on
-        the slopes); the covariance is the weighted covariance of the residuals
+        the slopes), or its posterior mode under the coefficient prior when ``mean_prior > 0``
+        (:func:`map_linear_regression`); the covariance is the weighted covariance of the residuals
         ``sum_i w_i r_i r_i^T / sum_i w_i``, shrunk toward the current covariance when
         ``covariance_prior > 0``, then floored by ``min_variance`` (see the class docstring).
         Everything is computed (and checked) before the parameters change: a failed fit

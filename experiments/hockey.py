@@ -10,14 +10,15 @@ loop below does not branch on the variant; only the construction does.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import torch
 
 from experiments.checkpoint import RunState
-from experiments.envstate import GymRngState
 from experiments.loop import Run, check_budget, collector_loop, finish_run, resume_point
 from experiments.options import RunOptions, check_options
+from experiments.workers import Backend, EpisodeCollector, make_pool
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
 
 __all__ = ["HockeyConfig", "HockeyEpisodicConfig", "HockeySequentialConfig", "run"]
@@ -68,7 +69,14 @@ class HockeyConfig(RunOptions):
     samples otherwise takes slopes that move its mean by many exploration stds across the
     start distribution."""
     workers: int = 1
-    """Collector worker processes (1: in this process; >1: MultiSyncCollector)."""
+    """Workers that play each iteration's episodes (1 with the local backend: in this
+    process). Episode e draws its start and its noise from (seed, e) alone, so the result
+    does not depend on the number of workers or the backend."""
+    backend: Backend = "local"
+    """local: worker processes on this machine; ray: Ray tasks (pip install -e
+    '.[distributed]'), on a local Ray instance with --workers CPUs or on --ray-address."""
+    ray_address: str | None = None
+    """An existing Ray cluster (HOST:PORT, ray://HOST:PORT or auto) for --backend ray."""
 
 
 @dataclass(frozen=True)
@@ -148,8 +156,10 @@ def _check(cfg: HockeyConfig) -> int:
         raise ValueError(f"episodes_per_iteration must be >= 2, got {B}")
     if not 0.0 <= cfg.exploration_floor < 1.0:
         raise ValueError(f"exploration_floor must be in [0, 1), got {cfg.exploration_floor}")
-    if B % W:
-        raise ValueError(f"episodes_per_iteration ({B}) must be divisible by workers ({W})")
+    if cfg.backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {cfg.backend!r}")
+    if cfg.ray_address is not None and cfg.backend != "ray":
+        raise ValueError(f"--ray-address {cfg.ray_address!r} needs --backend ray")
     return iterations
 
 
@@ -186,7 +196,7 @@ def _update(algo: Algorithm, K: int, zones: tuple[float, float, float, float]) -
 def run(cfg: HockeyConfig) -> dict[str, Any]:
     """Sequential or episodic HiREPS on the simulated robot hockey task; returns the summary."""
     from environments.hockey import ENV_ID, EPISODIC_ENV_ID, HockeyParams, demo_action
-    from hireps_torch.rollout import make_collector, policy_module, time_indexed_module
+    from hireps_torch.rollout import policy_module, time_indexed_module
 
     iterations = _check(cfg)
     sequential = isinstance(cfg, HockeySequentialConfig)
@@ -200,17 +210,18 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     K = len(policies)  # decision steps per episode: 3 shots, or 1 vector of 42 numbers
     env_id = ENV_ID if sequential else EPISODIC_ENV_ID
     B = cfg.episodes_per_iteration
-    collector = make_collector(
-        lambda: _make_env(env_id, sequential),
+    start = 0 if resume is None or resume.checkpoint is None else resume.checkpoint["iteration"]
+    collector = EpisodeCollector(
+        make_pool(partial(_make_env, env_id, sequential), cfg.workers, cfg.backend, cfg.ray_address),
         time_indexed_module(policies) if sequential else policy_module(policies[0]),
-        frames_per_batch=B * K,
-        total_frames=B * K * iterations,
-        num_workers=cfg.workers,
-        reset_at_each_iter=True,
-        seed=cfg.seed + 1,
+        seed=cfg.seed,
+        steps=K,
+        episodes_per_iteration=B,
+        iterations=iterations,
+        start_iteration=int(start),
     )
     label = f"{experiment}/{cfg.n_options}opt"
-    state = RunState(algo, env=GymRngState(collector))
+    state = RunState(algo)  # episode e's randomness comes from (seed, e): no env state
     session = collector_loop(
         collector,
         lambda: Run(experiment, cfg, state, resume),
@@ -222,7 +233,6 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
             "reward": f"{row['average_reward']:.2f}",
             "zone3": f"{row['zone3_share']:.2f}",
         },
-        sync_weights=cfg.workers > 1,
         progress=cfg.progress,
     )
     last = session.rows[-1]

@@ -43,9 +43,9 @@ class PolicyActor(nn.Module):
     """``observation (B, S) -> action (B, A), option (B,)`` for a :class:`HierarchicalPolicy`.
 
     At each call (each decision) an option is drawn from the gating and an action from that
-    option (global torch RNG, so ``torch.manual_seed`` makes runs repeat); with
-    ``deterministic=True`` the mean of the most probable option is returned instead. The
-    action has the observation's dtype.
+    option (from ``self.generator`` when set, else the global torch RNG, so
+    ``torch.manual_seed`` makes runs repeat); with ``deterministic=True`` the mean of the most
+    probable option is returned instead. The action has the observation's dtype.
     """
 
     def __init__(self, policy: HierarchicalPolicy, deterministic: bool = False) -> None:
@@ -53,6 +53,7 @@ class PolicyActor(nn.Module):
         _check_policies([policy])
         self.policy = policy
         self.deterministic = deterministic
+        self.generator: torch.Generator | None = None
 
     @torch.no_grad()
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
@@ -61,7 +62,7 @@ class PolicyActor(nn.Module):
         if self.deterministic:
             a, o = self.policy.mean_action(s)
         else:
-            a, o = self.policy.sample(s)
+            a, o = self.policy.sample(s, self.generator)
         return (
             a.to(observation.dtype).reshape(*lead, a.shape[-1]),
             o.reshape(lead),
@@ -95,8 +96,8 @@ class TimeIndexedActor(nn.Module):
     """``observation (B, S), step_count (B, 1) -> action (B, A), option (B,)`` with one
     :class:`HierarchicalPolicy` per decision step: row b acts with ``policies[step_count[b]]``.
 
-    Sampling and ``deterministic`` as in :class:`PolicyActor`; a step count outside
-    ``[0, K)`` raises a ValueError naming it.
+    Sampling (``generator``) and ``deterministic`` as in :class:`PolicyActor`; a step count
+    outside ``[0, K)`` raises a ValueError naming it.
     """
 
     def __init__(self, policies: list[HierarchicalPolicy], deterministic: bool = False) -> None:
@@ -110,6 +111,7 @@ class TimeIndexedActor(nn.Module):
             )
         self.policies = nn.ModuleList(policies)
         self.deterministic = deterministic
+        self.generator: torch.Generator | None = None
 
     @torch.no_grad()
     def forward(self, observation: Tensor, step_count: Tensor) -> tuple[Tensor, Tensor]:
@@ -127,7 +129,10 @@ class TimeIndexedActor(nn.Module):
         for step in torch.unique(k).tolist():
             rows = k == step
             pol = self.policies[step]
-            out = pol.mean_action(s[rows]) if self.deterministic else pol.sample(s[rows])
+            if self.deterministic:
+                out = pol.mean_action(s[rows])
+            else:
+                out = pol.sample(s[rows], self.generator)
             a[rows], o[rows] = out[0], out[1]
         return a.to(observation.dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
 

@@ -1,0 +1,380 @@
+"""Whole episodes by index: in this process, in local worker processes, or on Ray.
+
+Episode ``e`` of a run with seed ``s`` is played from randomness derived from ``(s, e)``
+alone (:func:`episode_seeds`): the environment's start state is drawn after
+``env.set_seed(env_seed)`` and the policy's option and action noise come from a torch
+generator seeded with ``policy_seed``. Which worker plays an episode, how many workers there
+are and which backend runs them therefore change nothing in the result: a run with 2 Ray
+workers writes the same ``metrics.csv`` as the run in one process.
+
+    pool = make_pool(make_env, workers=2, backend="ray")        # or "local"
+    batch = pool.play(actor, seed=0, episodes=range(30), steps=3)  # (30 * 3,) TensorDict
+    pool.close()
+
+:class:`EpisodeCollector` turns a pool into the iterable of per-iteration batches that
+:func:`experiments.loop.collector_loop` consumes, like a TorchRL collector with
+``reset_at_each_iter=True``.
+
+Backends:
+
+- ``local``: one worker plays in this process; more run in spawned processes
+  (``concurrent.futures``). A worker process that dies breaks the pool: the pool is rebuilt
+  and the iteration's episodes are played again (``max_retries`` times).
+- ``ray``: one Ray task per worker and iteration (``ray.remote(num_cpus=1,
+  max_retries=...)``) on a local Ray instance (``ray.init(num_cpus=workers)``, no dashboard)
+  or on the cluster at ``address``. A task whose worker process dies is re-run by Ray with the
+  same arguments, so its episodes are played again, never lost or counted twice.
+
+Why Ray tasks and not TorchRL's ``RayCollector``: its remote collectors are actors that hold
+their own environment generators (so the episodes depend on the worker that played them) and
+receive the policy weights only at the start of each batch; an actor restarted after a crash
+comes back with its construction-time weights and generators. Tasks carry everything an
+episode depends on in their arguments. Inside a task the episodes are TorchRL rollouts
+(``env.rollout``) of the same TorchRL environment and policy module as everywhere else.
+
+``ray`` is imported only when the ``ray`` backend is used (``pip install -e
+".[distributed]"``).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import socket
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+__all__ = [
+    "Backend",
+    "EpisodeCollector",
+    "EpisodePool",
+    "InProcessPool",
+    "LocalProcessPool",
+    "RayPool",
+    "episode_seeds",
+    "import_ray",
+    "make_pool",
+    "play_episodes",
+    "split_episodes",
+]
+
+Backend = Literal["local", "ray"]
+_TAG = 0x686F636B  # separates these streams from any other use of the run's seed
+
+
+def episode_seeds(seed: int, episode: int) -> tuple[int, int]:
+    """(environment seed in [0, 2**32), policy seed in [0, 2**63)) of episode ``episode`` of
+    a run with ``seed``, from ``numpy.random.SeedSequence`` (independent streams per
+    episode; any integer seed in [-2**62, 2**62])."""
+    if episode < 0:
+        raise ValueError(f"episode must be >= 0, got {episode}")
+    words = np.random.SeedSequence([int(seed) + 2**62, int(episode), _TAG]).generate_state(3)
+    env_seed = int(words[0])
+    policy_seed = (int(words[1]) << 31) ^ int(words[2])
+    return env_seed, policy_seed
+
+
+def _actor_net(actor: Any) -> Any:
+    """The module of a TensorDictModule actor that has a ``generator`` attribute."""
+    net = getattr(actor, "module", actor)
+    if not hasattr(net, "generator"):
+        raise TypeError(
+            f"the actor must be a policy_module / time_indexed_module (a module with a "
+            f"'generator'), got {type(net).__name__}"
+        )
+    return net
+
+
+def play_episodes(
+    env: Any, actor: Any, seed: int, episodes: Sequence[int], steps: int
+) -> TensorDictBase:
+    """Play ``episodes`` (indices) of exactly ``steps`` decisions each with ``actor`` on the
+    TorchRL environment ``env``; episode ``e`` draws from :func:`episode_seeds` ``(seed, e)``.
+
+    Returns:
+        the episodes one after another: a TensorDict of shape ``(len(episodes) * steps,)``
+        with the collector's keys (``observation``, ``action``, ``("next", "reward")``, ...).
+    """
+    net = _actor_net(actor)
+    if len(episodes) == 0:
+        raise ValueError("play_episodes needs at least one episode index")
+    gen = torch.Generator()
+    out = []
+    previous = net.generator
+    net.generator = gen
+    try:
+        for e in episodes:
+            env_seed, policy_seed = episode_seeds(seed, e)
+            env.set_seed(env_seed)
+            gen.manual_seed(policy_seed)
+            td = env.rollout(steps, actor, auto_reset=True, break_when_any_done=True)
+            done = td.get(("next", "done")).reshape(-1)
+            if td.shape[-1] != steps or not bool(done[-1]) or bool(done[:-1].any()):
+                raise RuntimeError(
+                    f"episode {e} did not end after exactly {steps} steps (it ran "
+                    f"{td.shape[-1]}): play_episodes needs fixed-length episodes"
+                )
+            out.append(td)
+    finally:
+        net.generator = previous
+    return torch.cat(out)
+
+
+# ---- what a worker process keeps between calls ------------------------------------------------
+_ENV: dict[str, Any] = {}
+
+
+def _worker_env(make_env: Callable[[], Any], key: str) -> Any:
+    """The environment of run ``key`` in this worker process (built once; a worker that
+    moves on to another run closes the previous run's environment)."""
+    if key not in _ENV:
+        for old in _ENV.values():
+            try:
+                old.close()
+            except Exception:  # pragma: no cover - best effort
+                pass
+        _ENV.clear()
+        _ENV[key] = make_env()
+    return _ENV[key]
+
+
+def _play_chunk(
+    make_env: Callable[[], Any],
+    key: str,
+    actor: Any,
+    seed: int,
+    episodes: Sequence[int],
+    steps: int,
+) -> TensorDictBase:
+    return play_episodes(_worker_env(make_env, key), actor, seed, episodes, steps)
+
+
+def split_episodes(episodes: Sequence[int], parts: int) -> list[list[int]]:
+    """Contiguous, nearly equal chunks (no empty ones) of ``episodes`` for ``parts`` workers."""
+    eps = [int(e) for e in episodes]
+    return [c.tolist() for c in np.array_split(np.asarray(eps, dtype=np.int64), parts) if c.size]
+
+
+# ---- pools ------------------------------------------------------------------------------------
+class EpisodePool(Protocol):
+    """Plays episodes by index; ``close()`` releases its workers."""
+
+    workers: int
+
+    def play(
+        self, actor: Any, seed: int, episodes: Sequence[int], steps: int
+    ) -> TensorDictBase: ...
+
+    def close(self) -> None: ...
+
+
+class InProcessPool:
+    """One worker: this process, with the environment built on the first call."""
+
+    def __init__(self, make_env: Callable[[], Any]) -> None:
+        self.make_env = make_env
+        self.workers = 1
+        self.env: Any = None
+
+    def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
+        if self.env is None:
+            self.env = self.make_env()
+        return play_episodes(self.env, actor, seed, episodes, steps)
+
+    def close(self) -> None:
+        if self.env is not None:
+            self.env.close()
+            self.env = None
+
+
+class LocalProcessPool:
+    """``workers`` spawned processes on this machine; each keeps its environment between
+    iterations. A pool broken by a dead worker is rebuilt and the episodes played again."""
+
+    def __init__(
+        self, make_env: Callable[[], Any], workers: int, max_retries: int = 3
+    ) -> None:
+        self.make_env = make_env
+        self.workers = workers
+        self.max_retries = max_retries
+        self.key = uuid.uuid4().hex
+        self._executor: ProcessPoolExecutor | None = None
+        self.restarts = 0
+
+    def _pool(self) -> ProcessPoolExecutor:
+        if self._executor is None:
+            self._executor = ProcessPoolExecutor(
+                self.workers, mp_context=multiprocessing.get_context("spawn")
+            )
+        return self._executor
+
+    def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
+        chunks = split_episodes(episodes, self.workers)
+        for attempt in range(self.max_retries + 1):
+            pool = self._pool()
+            futures: list[Future[TensorDictBase]] = [
+                pool.submit(_play_chunk, self.make_env, self.key, actor, seed, c, steps)
+                for c in chunks
+            ]
+            try:
+                return torch.cat([f.result() for f in futures])
+            except BrokenProcessPool:
+                self._shutdown()
+                self.restarts += 1
+                if attempt == self.max_retries:
+                    raise RuntimeError(
+                        f"worker processes died {attempt + 1} times while playing episodes "
+                        f"{chunks[0][0]}..{chunks[-1][-1]}; giving up"
+                    ) from None
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _shutdown(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+    def close(self) -> None:
+        self._shutdown()
+
+
+def import_ray() -> Any:
+    """``ray``, or an ImportError that names the extra to install."""
+    try:
+        import ray
+    except ImportError:
+        raise ImportError(
+            "the ray backend needs Ray: pip install -e '.[distributed]' (the 'distributed' "
+            "extra of hireps-torch)"
+        ) from None
+    return ray
+
+
+def check_ray_address(address: str, timeout: float = 5.0) -> None:
+    """A ``ValueError`` naming ``address`` when nothing accepts connections there within
+    ``timeout`` seconds (``ray.init`` itself can wait minutes). ``"auto"`` is passed on."""
+    if address == "auto":
+        return
+    hostport = address.removeprefix("ray://")
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(
+            f"--ray-address must be HOST:PORT, ray://HOST:PORT or 'auto', got {address!r}"
+        )
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout):
+            pass
+    except OSError as exc:
+        raise ValueError(f"cannot reach the Ray cluster at --ray-address {address!r}: {exc}") from None
+
+
+class RayPool:
+    """One Ray task per worker and call, on a local Ray instance with ``workers`` CPUs or on
+    the cluster at ``address``; Ray re-runs a task whose worker died (``max_retries``). A pool
+    that started Ray shuts it down in :meth:`close`."""
+
+    def __init__(
+        self,
+        make_env: Callable[[], Any],
+        workers: int,
+        address: str | None = None,
+        max_retries: int = 3,
+    ) -> None:
+        ray = import_ray()
+        if address is not None:
+            check_ray_address(address)
+        self.make_env = make_env
+        self.workers = workers
+        self.key = uuid.uuid4().hex
+        self._ray = ray
+        self.owns_ray = not ray.is_initialized()
+        if self.owns_ray:
+            if address is None:
+                ray.init(
+                    num_cpus=workers,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    configure_logging=False,
+                )
+            else:
+                try:
+                    ray.init(address=address, include_dashboard=False, log_to_driver=False)
+                except (ConnectionError, RuntimeError) as exc:
+                    raise ValueError(f"cannot join the Ray cluster at {address!r}: {exc}") from None
+        self._task = ray.remote(num_cpus=1, max_retries=max_retries)(_play_chunk)
+
+    def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
+        ray = self._ray
+        actor_ref = ray.put(actor)
+        refs = [
+            self._task.remote(self.make_env, self.key, actor_ref, seed, chunk, steps)
+            for chunk in split_episodes(episodes, self.workers)
+        ]
+        return torch.cat(ray.get(refs))
+
+    def close(self) -> None:
+        if self.owns_ray and self._ray.is_initialized():
+            self._ray.shutdown()
+
+
+def make_pool(
+    make_env: Callable[[], Any],
+    workers: int = 1,
+    backend: Backend = "local",
+    address: str | None = None,
+) -> EpisodePool:
+    """The pool for ``backend`` (see the module docstring); ``address`` only with ``ray``."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if address is not None and backend != "ray":
+        raise ValueError(f"--ray-address {address!r} needs --backend ray (got {backend!r})")
+    if backend == "ray":
+        return RayPool(make_env, workers, address)
+    if workers == 1:
+        return InProcessPool(make_env)
+    return LocalProcessPool(make_env, workers)
+
+
+class EpisodeCollector:
+    """Batches of whole episodes by iteration, for :func:`experiments.loop.collector_loop`.
+
+    Iteration ``i`` (from ``start_iteration`` to ``iterations - 1``) plays episodes
+    ``i * B .. (i + 1) * B - 1`` with the actor as it is then (the pool ships the current
+    policy to its workers every call, so no weight sync is needed). ``shutdown()`` closes the
+    pool.
+    """
+
+    def __init__(
+        self,
+        pool: EpisodePool,
+        actor: Any,
+        *,
+        seed: int,
+        steps: int,
+        episodes_per_iteration: int,
+        iterations: int,
+        start_iteration: int = 0,
+    ) -> None:
+        _actor_net(actor)
+        self.pool = pool
+        self.actor = actor
+        self.seed = seed
+        self.steps = steps
+        self.B = episodes_per_iteration
+        self.iterations = iterations
+        self.start_iteration = start_iteration
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        for it in range(self.start_iteration, self.iterations):
+            episodes = range(it * self.B, (it + 1) * self.B)
+            yield self.pool.play(self.actor, self.seed, episodes, self.steps)
+
+    def shutdown(self) -> None:
+        self.pool.close()

@@ -1,0 +1,260 @@
+"""Episodes by index on worker processes and Ray (experiments/workers.py, issue 15).
+
+The Ray tests start a local Ray instance with 2 CPUs inside a subprocess, so that the test
+also checks that everything exits (a hang fails on the timeout)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+pytest.importorskip("pybullet")
+
+from experiments import hockey  # noqa: E402
+from experiments.workers import (  # noqa: E402
+    InProcessPool,
+    check_ray_address,
+    episode_seeds,
+    import_ray,
+    make_pool,
+    play_episodes,
+    split_episodes,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+TIMEOUT = 240
+
+
+def _run(args: list[str], cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        args, cwd=cwd, env=env, capture_output=True, text=True, timeout=TIMEOUT, check=False
+    )
+
+
+def _ray_processes() -> list[str]:
+    """Command lines of the Ray processes (GCS server, raylet, workers) still running."""
+    found = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            args = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if "/ray/core/src/ray/" in args or args.startswith("ray::"):
+            found.append(args[:120])
+    return found
+
+
+def _assert_ray_gone() -> None:
+    import time
+
+    deadline = time.monotonic() + 20
+    while _ray_processes() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert _ray_processes() == []
+
+
+def _actor_and_env() -> tuple[object, object]:
+    from environments.hockey import ENV_ID, HockeyParams, demo_action
+    from hireps_torch.rollout import time_indexed_module
+
+    cfg = hockey.HockeySequentialConfig(n_options=2, episodes=4, episodes_per_iteration=2)
+    demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
+    algo = hockey._make_algorithm(cfg, 3, demo)
+    return time_indexed_module(list(algo.policies)), hockey._make_env(ENV_ID, True)
+
+
+def test_episode_seeds_are_per_episode_and_repeat():
+    a = [episode_seeds(7, e) for e in range(50)]
+    assert a == [episode_seeds(7, e) for e in range(50)]
+    assert len({s for s, _ in a}) == 50 and len({p for _, p in a}) == 50
+    assert episode_seeds(8, 0) != episode_seeds(7, 0)
+    assert episode_seeds(-(2**62), 0) != episode_seeds(2**62, 0)
+    for env_seed, policy_seed in a:
+        assert 0 <= env_seed < 2**32 and 0 <= policy_seed < 2**63
+    with pytest.raises(ValueError, match="episode must be >= 0, got -1"):
+        episode_seeds(0, -1)
+
+
+def test_split_episodes_covers_every_episode_once_in_order():
+    for n, parts in [(30, 2), (30, 4), (3, 8), (1, 1)]:
+        chunks = split_episodes(range(n), parts)
+        assert [e for c in chunks for e in c] == list(range(n))
+        assert all(c for c in chunks) and len(chunks) == min(n, parts)
+
+
+def test_an_episode_is_the_same_whatever_else_the_worker_played():
+    """Episodes 3..5 played on their own, after 0..2, or in another order of calls give the
+    same steps: the environment carries nothing from one episode to the next."""
+    actor, env = _actor_and_env()
+    try:
+        all_six = play_episodes(env, actor, 11, range(6), 3)
+        later = play_episodes(env, actor, 11, [3, 4, 5], 3)
+        _, fresh = _actor_and_env()
+        alone = play_episodes(fresh, actor, 11, [5], 3)
+        fresh.close()
+    finally:
+        env.close()
+    assert all_six.shape == (18,)
+    for key in ("observation", "action", ("next", "reward"), ("next", "observation")):
+        assert torch.equal(all_six[9:].get(key), later.get(key)), key
+        assert torch.equal(all_six[15:].get(key), alone.get(key)), key
+    assert not torch.equal(all_six[:3].get("observation"), all_six[3:6].get("observation"))
+
+
+def test_play_episodes_refuses_other_episode_lengths_and_no_episodes():
+    actor, env = _actor_and_env()
+    try:
+        with pytest.raises(RuntimeError, match="did not end after exactly 2 steps"):
+            play_episodes(env, actor, 0, [0], 2)
+        with pytest.raises(ValueError, match="at least one episode"):
+            play_episodes(env, actor, 0, [], 3)
+        with pytest.raises(TypeError, match="generator"):
+            play_episodes(env, torch.nn.Linear(2, 2), 0, [0], 3)
+    finally:
+        env.close()
+
+
+def test_bad_backend_options_are_named():
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
+        make_pool(lambda: None, workers=0)
+    with pytest.raises(ValueError, match="backend must be 'local' or 'ray', got 'dask'"):
+        make_pool(lambda: None, backend="dask")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="needs --backend ray"):
+        make_pool(lambda: None, address="127.0.0.1:6379")
+    assert isinstance(make_pool(lambda: None), InProcessPool)
+    with pytest.raises(ValueError, match="must be HOST:PORT"):
+        check_ray_address("nowhere")
+    with pytest.raises(ValueError, match="cannot reach the Ray cluster at --ray-address '127.0.0.1:1'"):
+        check_ray_address("127.0.0.1:1", timeout=2.0)
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (dict(workers=0), "workers must be >= 1, got 0"),
+        (dict(ray_address="127.0.0.1:1"), "needs --backend ray"),
+        (dict(backend="spark"), "backend"),
+    ],
+)
+def test_hockey_refuses_bad_worker_options(tmp_path, options, message):
+    cfg = hockey.HockeySequentialConfig(run_dir=tmp_path / "run", progress=False, **options)
+    with pytest.raises(ValueError, match=message):
+        hockey.run(cfg)
+    assert not (tmp_path / "run").exists()
+
+
+def test_ray_missing_names_the_distributed_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    with pytest.raises(ImportError, match=r"\.\[distributed\]"):
+        import_ray()
+    with pytest.raises(ImportError, match="distributed"):
+        make_pool(lambda: None, workers=2, backend="ray")
+
+
+def test_core_library_and_local_runs_work_without_ray(tmp_path):
+    """With ``ray`` unimportable, the library, the experiments and a local hockey run work
+    (torchrl imports ray on its own when it is installed; nothing of ours needs it)."""
+    code = (
+        "import sys; sys.modules['ray'] = None\n"
+        "import train\n"
+        f"train.main(['hockey-sequential', '--episodes', '4', '--episodes-per-iteration', '2',"
+        f" '--n-options', '2', '--no-progress', '--run-dir', {str(tmp_path / 'run')!r}])\n"
+    )
+    out = _run([sys.executable, "-c", code])
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert (tmp_path / "run" / "summary.json").is_file()
+
+
+TINY = ["--episodes", "12", "--episodes-per-iteration", "6", "--n-options", "2", "--no-progress"]
+
+
+@pytest.mark.slow
+def test_two_ray_workers_write_the_same_metrics_as_one_local_worker(tmp_path):
+    pytest.importorskip("ray")
+    runs = {
+        "local1": ["--workers", "1", "--backend", "local"],
+        "ray2": ["--workers", "2", "--backend", "ray"],
+        "local2": ["--workers", "2", "--backend", "local"],
+    }
+    for name, extra in runs.items():
+        out = _run([sys.executable, "train.py", "hockey-sequential", *TINY, *extra,
+                    "--run-dir", str(tmp_path / name)])
+        assert out.returncode == 0, out.stderr[-3000:]
+    ref = (tmp_path / "local1" / "metrics.csv").read_text()
+    assert len(ref.splitlines()) == 3  # header + 2 iterations
+    assert (tmp_path / "ray2" / "metrics.csv").read_text() == ref
+    assert (tmp_path / "local2" / "metrics.csv").read_text() == ref
+    _assert_ray_gone()
+
+
+def test_unreachable_ray_address_is_a_clear_error(tmp_path):
+    out = _run([sys.executable, "train.py", "hockey-sequential", *TINY, "--backend", "ray",
+                "--ray-address", "127.0.0.1:1", "--run-dir", str(tmp_path / "run")])
+    assert out.returncode == 2
+    assert "127.0.0.1:1" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "run").exists()
+
+
+KILL_SCRIPT = textwrap.dedent(
+    """
+    import os, sys, torch
+    from tensordict.nn import TensorDictModule
+    from environments.hockey import ENV_ID, HockeyParams, demo_action
+    from experiments import hockey
+    from experiments.workers import InProcessPool, make_pool
+    from hireps_torch.rollout import TimeIndexedActor, time_indexed_module
+
+    MARK = sys.argv[2]
+
+    class DieOnce(TimeIndexedActor):
+        # the first decision anywhere kills its worker process (once: it leaves a mark)
+        def forward(self, observation, step_count):
+            if not os.path.exists(MARK):
+                open(MARK, "w").close()
+                os._exit(1)
+            return super().forward(observation, step_count)
+
+    def make_env():
+        return hockey._make_env(ENV_ID, True)
+
+    if __name__ == "__main__":
+        cfg = hockey.HockeySequentialConfig(n_options=2)
+        demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
+        policies = list(hockey._make_algorithm(cfg, 3, demo).policies)
+        dying = TensorDictModule(DieOnce(policies), ["observation", "step_count"],
+                                 ["action", "option"])
+        pool = make_pool(make_env, workers=2, backend=sys.argv[1])
+        try:
+            got = pool.play(dying, 5, range(6), 3)
+        finally:
+            pool.close()
+        assert os.path.exists(MARK), "no worker was killed"
+        ref_pool = InProcessPool(make_env)
+        ref = ref_pool.play(time_indexed_module(policies), 5, range(6), 3)
+        ref_pool.close()
+        assert got.shape == ref.shape == (18,), (got.shape, ref.shape)
+        for key in ("observation", "action", ("next", "reward"), ("next", "observation")):
+            assert torch.equal(got.get(key), ref.get(key)), key
+        print("EPISODES", got.shape[0] // 3)
+    """
+)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["ray", "local"])
+def test_a_worker_killed_mid_iteration_loses_and_duplicates_no_episode(tmp_path, backend):
+    if backend == "ray":
+        pytest.importorskip("ray")
+    script = tmp_path / "kill.py"
+    script.write_text(KILL_SCRIPT)
+    out = _run([sys.executable, str(script), backend, str(tmp_path / "killed")])
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "EPISODES 6" in out.stdout
+    _assert_ray_gone()

@@ -6,6 +6,9 @@ a run directory (default ``runs/<experiment>/<timestamp>``, ``--run-dir`` overri
 ``config.json``, ``metrics.csv`` (one row per iteration), ``checkpoint.pt`` (after every
 iteration and on Ctrl-C), ``learning_curve.png`` and, when it finished, ``summary.json``.
 ``python train.py <experiment> --resume RUN_DIR`` continues an interrupted run exactly.
+``python train.py sweep --experiment E --seeds 0-4 --grid OPTION=V1,V2 [--backend ray]`` runs
+a grid of configurations x seeds (see :mod:`experiments.sweep`); run it again to finish an
+interrupted sweep.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ import tyro
 
 from experiments import EXPERIMENTS, run_experiment
 from experiments.checkpoint import RunFinished, saved_config
+from experiments.sweep import SweepConfig
+from experiments.sweep import main as run_sweep
 
 
 def _resume_dir(argv: list[str]) -> Path | None:
@@ -40,12 +45,14 @@ def parse(argv: list[str]) -> Any:
         default = saved_config(config_cls, argv[0], resume)
         return tyro.cli(config_cls, default=default, args=argv[1:], description=__doc__)
     commands: dict[str, Callable[..., Any]] = {name: c for name, (c, _) in EXPERIMENTS.items()}
+    commands["sweep"] = SweepConfig
     return tyro.extras.subcommand_cli_from_dict(commands, args=argv, description=__doc__)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Parse the command line, run the chosen experiment, print its summary."""
-    summary = run_experiment(parse(sys.argv[1:] if argv is None else argv))
+    cfg = parse(sys.argv[1:] if argv is None else argv)
+    summary = run_sweep(cfg) if isinstance(cfg, SweepConfig) else run_experiment(cfg)
     print(json.dumps({k: v for k, v in summary.items() if k != "options"}, indent=2))
     return summary
 

@@ -47,7 +47,7 @@ __all__ = [
 FORMAT = 1
 CHECKPOINT_KEYS = ("algorithm", "rng", "env", "rows", "iteration", "elapsed")
 """The entries of a checkpoint that a resume reads (besides ``format``)."""
-RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every")
+RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every", "backend", "ray_address")
 """Options that may differ between a run and its resumption (they do not change results)."""
 
 

@@ -211,8 +211,9 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     env_id = ENV_ID if sequential else EPISODIC_ENV_ID
     B = cfg.episodes_per_iteration
     start = 0 if resume is None or resume.checkpoint is None else resume.checkpoint["iteration"]
+    make_env = partial(_make_env, env_id, sequential)
     collector = EpisodeCollector(
-        make_pool(partial(_make_env, env_id, sequential), cfg.workers, cfg.backend, cfg.ray_address),
+        make_pool(make_env, cfg.workers, cfg.backend, cfg.ray_address),
         time_indexed_module(policies) if sequential else policy_module(policies[0]),
         seed=cfg.seed,
         steps=K,

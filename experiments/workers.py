@@ -197,9 +197,7 @@ class LocalProcessPool:
     """``workers`` spawned processes on this machine; each keeps its environment between
     iterations. A pool broken by a dead worker is rebuilt and the episodes played again."""
 
-    def __init__(
-        self, make_env: Callable[[], Any], workers: int, max_retries: int = 3
-    ) -> None:
+    def __init__(self, make_env: Callable[[], Any], workers: int, max_retries: int = 3) -> None:
         self.make_env = make_env
         self.workers = workers
         self.max_retries = max_retries
@@ -270,7 +268,9 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
         with socket.create_connection((host, int(port)), timeout=timeout):
             pass
     except OSError as exc:
-        raise ValueError(f"cannot reach the Ray cluster at --ray-address {address!r}: {exc}") from None
+        raise ValueError(
+            f"cannot reach the Ray cluster at --ray-address {address!r}: {exc}"
+        ) from None
 
 
 class RayPool:

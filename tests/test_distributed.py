@@ -131,7 +131,7 @@ def test_bad_backend_options_are_named():
     assert isinstance(make_pool(lambda: None), InProcessPool)
     with pytest.raises(ValueError, match="must be HOST:PORT"):
         check_ray_address("nowhere")
-    with pytest.raises(ValueError, match="cannot reach the Ray cluster at --ray-address '127.0.0.1:1'"):
+    with pytest.raises(ValueError, match="cannot reach the Ray cluster at --ray-address '127.0.0"):
         check_ray_address("127.0.0.1:1", timeout=2.0)
 
 
@@ -184,8 +184,17 @@ def test_two_ray_workers_write_the_same_metrics_as_one_local_worker(tmp_path):
         "local2": ["--workers", "2", "--backend", "local"],
     }
     for name, extra in runs.items():
-        out = _run([sys.executable, "train.py", "hockey-sequential", *TINY, *extra,
-                    "--run-dir", str(tmp_path / name)])
+        out = _run(
+            [
+                sys.executable,
+                "train.py",
+                "hockey-sequential",
+                *TINY,
+                *extra,
+                "--run-dir",
+                str(tmp_path / name),
+            ]
+        )
         assert out.returncode == 0, out.stderr[-3000:]
     ref = (tmp_path / "local1" / "metrics.csv").read_text()
     assert len(ref.splitlines()) == 3  # header + 2 iterations
@@ -195,8 +204,20 @@ def test_two_ray_workers_write_the_same_metrics_as_one_local_worker(tmp_path):
 
 
 def test_unreachable_ray_address_is_a_clear_error(tmp_path):
-    out = _run([sys.executable, "train.py", "hockey-sequential", *TINY, "--backend", "ray",
-                "--ray-address", "127.0.0.1:1", "--run-dir", str(tmp_path / "run")])
+    out = _run(
+        [
+            sys.executable,
+            "train.py",
+            "hockey-sequential",
+            *TINY,
+            "--backend",
+            "ray",
+            "--ray-address",
+            "127.0.0.1:1",
+            "--run-dir",
+            str(tmp_path / "run"),
+        ]
+    )
     assert out.returncode == 2
     assert "127.0.0.1:1" in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "run").exists()

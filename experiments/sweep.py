@@ -1,0 +1,446 @@
+"""Sweeps: a grid of configurations x seeds, each run an ordinary run directory.
+
+    python train.py sweep --experiment pendulum --seeds 0-4 \\
+        --grid n_options=1,2,5 --grid steps_per_decision=1,5 --set episodes=200 \\
+        --out runs/sweep --backend ray --workers 2
+
+runs every combination of the ``--grid`` values (``--set`` fixes options for all of them) for
+every seed, each in ``OUT/<experiment>/<configuration>/seed<S>`` (the configuration's name is
+its grid values, e.g. ``n_options=5,steps_per_decision=1``; ``default`` without a grid). A
+run that finished (``summary.json``) is not run again and an interrupted one (``config.json``
+there) is resumed from its checkpoint, so running the same command again after a crash or
+Ctrl-C finishes the sweep. At the end: ``OUT/<experiment>/sweep.md`` (per configuration the
+mean, std and per-seed values of the final metric), ``sweep.json`` (every run's summary) and
+``sweep.png`` (the learning curves, mean and +-1 std band over seeds).
+
+Backends: ``local`` runs in this process (``--workers 1``) or in that many spawned processes;
+``ray`` runs one Ray task per run (``num_cpus=1``) on a local Ray instance with ``--workers``
+CPUs or the cluster at ``--ray-address``. Ray tasks fit here and Ray Tune does not need to: a
+sweep is a fixed grid of independent runs that each write their own directory and resume from
+it, with no search, scheduling or early stopping; a task whose worker dies is re-run by Ray
+and resumes the run's checkpoint. Library use: :func:`plan`, :func:`run_sweep`,
+:func:`summarize`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import multiprocessing
+import statistics
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+from experiments.workers import Backend, check_ray_address, import_ray
+
+__all__ = [
+    "SweepConfig",
+    "SweepRun",
+    "main",
+    "parse_grid",
+    "parse_seeds",
+    "plan",
+    "run_one",
+    "run_sweep",
+    "summarize",
+]
+
+METRICS: dict[str, tuple[str, str]] = {
+    "bimodal": ("final_return", "eval_return"),
+    "pendulum": ("success_rate", "average_return"),
+    "ball-on-beam": ("success_rate", "eval_return"),
+    "hockey-sequential": ("final_average_reward", "average_reward"),
+    "hockey-episodic": ("final_average_reward", "average_reward"),
+}
+"""Per experiment: (the summary's final metric in the table, the metrics.csv curve column)."""
+
+RUN_OPTIONS = {"seed", "run_dir", "resume", "progress"}
+"""Options a sweep sets itself (not allowed in --grid or --set)."""
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """A grid of configurations x seeds of one experiment, on local processes or Ray."""
+
+    experiment: str = "bimodal"
+    """The experiment (a train.py subcommand: bimodal, pendulum, ball-on-beam,
+    hockey-sequential, hockey-episodic)."""
+    seeds: str = "0-4"
+    """Seeds: a range 0-4, a list 0,3,7, or both 0-2,9."""
+    grid: tuple[str, ...] = ()
+    """OPTION=V1,V2,... (repeatable): every combination is one configuration."""
+    set: tuple[str, ...] = ()
+    """OPTION=VALUE (repeatable): fixed for every configuration."""
+    out: Path = Path("runs/sweep")
+    """Where the runs and the summary go (runs already there are reused or resumed)."""
+    backend: Backend = "local"
+    """local: this process (--workers 1) or spawned processes; ray: one Ray task per run."""
+    workers: int = 1
+    """Runs at the same time (CPUs of the local Ray instance with --backend ray)."""
+    ray_address: str | None = None
+    """An existing Ray cluster (HOST:PORT, ray://HOST:PORT or auto) for --backend ray."""
+    progress: bool = True
+    """Show a progress bar over the runs."""
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    """One run of a sweep: configuration ``name`` of ``experiment`` with ``options``."""
+
+    experiment: str
+    name: str
+    seed: int
+    options: dict[str, Any] = field(default_factory=dict)
+    run_dir: Path = Path()
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,3,7"``; ``"0-2,9"``. A repeated seed, an empty or
+    reversed range and anything else are a ValueError naming the text."""
+    import re
+
+    seeds: list[int] = []
+    for part in str(text).split(","):
+        m = re.fullmatch(r"\s*(-?\d+)\s*(?:-\s*(-?\d+)\s*)?", part)
+        if m is None or (m[2] is not None and int(m[2]) < int(m[1])):
+            raise ValueError(f"--seeds must look like 0-4, 0,3,7 or 0-2,9, got {text!r}")
+        seeds.extend(range(int(m[1]), int(m[2] if m[2] is not None else m[1]) + 1))
+    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+    if repeated:
+        raise ValueError(f"--seeds {text!r} names seed(s) {repeated} more than once")
+    return seeds
+
+
+def _config_class(experiment: str) -> type:
+    from experiments import EXPERIMENTS
+
+    if experiment not in EXPERIMENTS:
+        raise ValueError(
+            f"unknown experiment {experiment!r}; choose one of {', '.join(EXPERIMENTS)}"
+        )
+    return EXPERIMENTS[experiment][0]
+
+
+def _split(entry: str, what: str) -> tuple[str, str]:
+    key, sep, value = entry.partition("=")
+    key = key.strip().replace("-", "_")
+    if not sep or not key or not value:
+        raise ValueError(f"--{what} entries must look like OPTION=VALUE, got {entry!r}")
+    return key, value
+
+
+def _typed(config_cls: type, assignments: Mapping[str, str]) -> dict[str, Any]:
+    """Option strings -> typed values, parsed by tyro as the command line would parse them
+    (so a sweep accepts exactly what ``train.py <experiment>`` accepts)."""
+    import tyro
+
+    fields = {f.name for f in dataclasses.fields(config_cls)}
+    for key in assignments:
+        if key in RUN_OPTIONS:
+            raise ValueError(f"a sweep sets {key!r} itself; it cannot be in --grid or --set")
+        if key not in fields:
+            raise ValueError(
+                f"{config_cls.__name__} has no option {key!r}; options: {', '.join(sorted(fields))}"
+            )
+    args = [x for key, value in assignments.items() for x in (f"--{key.replace('_', '-')}", value)]
+    try:
+        cfg: Any = tyro.cli(config_cls, args=args, console_outputs=False)
+    except SystemExit:
+        bad = " ".join(args)
+        raise ValueError(f"bad option value(s) for {config_cls.__name__}: {bad}") from None
+    return {key: getattr(cfg, key) for key in assignments}
+
+
+def parse_grid(
+    experiment: str, grid: Sequence[str] = (), fixed: Sequence[str] = ()
+) -> dict[str, dict[str, Any]]:
+    """Configurations of a grid: name -> typed options. ``grid`` entries ``OPTION=V1,V2``,
+    ``fixed`` entries ``OPTION=VALUE``; bad options and values are a ValueError naming them."""
+    config_cls = _config_class(experiment)
+    fixed_pairs = dict(_split(e, "set") for e in fixed)
+    axes: dict[str, list[str]] = {}
+    for entry in grid:
+        key, values = _split(entry, "grid")
+        if key in axes or key in fixed_pairs:
+            raise ValueError(f"option {key!r} appears twice in --grid / --set")
+        axes[key] = [v.strip() for v in values.split(",")]
+        if len(set(axes[key])) != len(axes[key]) or "" in axes[key]:
+            raise ValueError(f"--grid {entry!r}: values must be distinct and non-empty")
+    configs: dict[str, dict[str, Any]] = {}
+    for combo in itertools.product(*axes.values()):
+        chosen = dict(zip(axes, combo, strict=True))
+        name = ",".join(f"{k}={v}" for k, v in chosen.items()) or "default"
+        configs[name] = _typed(config_cls, {**fixed_pairs, **chosen})
+    return configs
+
+
+def plan(
+    experiment: str,
+    configurations: Mapping[str, Mapping[str, Any]],
+    seeds: Sequence[int],
+    out: Path,
+) -> list[SweepRun]:
+    """Every (configuration, seed) as a :class:`SweepRun` writing to
+    ``out/<experiment>/<name>/seed<S>``."""
+    _config_class(experiment)
+    if not seeds:
+        raise ValueError("a sweep needs at least one seed")
+    return [
+        SweepRun(experiment, name, int(s), dict(opts), Path(out) / experiment / name / f"seed{s}")
+        for name, opts in configurations.items()
+        for s in seeds
+    ]
+
+
+def run_one(run: SweepRun) -> dict[str, Any]:
+    """Run, resume or reuse one run of a sweep; returns its ``summary.json`` (plus
+    ``"reused": True`` when it had finished before)."""
+    from experiments import EXPERIMENTS
+    from experiments.checkpoint import saved_config
+
+    config_cls, run_fn = EXPERIMENTS[run.experiment]
+    d = Path(run.run_dir)
+    if (d / "summary.json").is_file():
+        return {**json.loads((d / "summary.json").read_text()), "reused": True}
+    if (d / "config.json").is_file():  # interrupted: continue from its checkpoint
+        cfg = dataclasses.replace(
+            saved_config(config_cls, run.experiment, d), progress=False, run_dir=d, resume=d
+        )
+    else:
+        cfg = config_cls(**run.options, seed=run.seed, run_dir=d, progress=False)
+    summary: dict[str, Any] = run_fn(cfg)
+    return summary
+
+
+def _one_thread(run: SweepRun) -> dict[str, Any]:
+    import torch
+
+    torch.set_num_threads(1)
+    return run_one(run)
+
+
+def _local(
+    runs: Sequence[SweepRun], workers: int, done: Callable[[SweepRun, dict[str, Any]], None]
+) -> None:
+    if workers == 1:
+        for run in runs:
+            done(run, run_one(run))
+        return
+    ctx = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(workers, mp_context=ctx)
+    try:
+        pending: dict[Future[dict[str, Any]], SweepRun] = {
+            pool.submit(_one_thread, r): r for r in runs
+        }
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                done(pending.pop(fut), fut.result())
+    finally:  # an error or Ctrl-C: do not wait for the queued runs
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _ray(
+    runs: Sequence[SweepRun],
+    workers: int,
+    address: str | None,
+    done: Callable[[SweepRun, dict[str, Any]], None],
+) -> None:
+    ray = import_ray()
+    if address is not None:
+        check_ray_address(address)
+    owns = not ray.is_initialized()
+    if owns:
+        if address is None:
+            ray.init(
+                num_cpus=workers,
+                include_dashboard=False,
+                log_to_driver=False,
+                configure_logging=False,
+                runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}},
+            )
+        else:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    task = ray.remote(num_cpus=1, max_retries=2)(_one_thread)
+    try:
+        pending = {task.remote(r): r for r in runs}
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                done(pending.pop(ref), ray.get(ref))
+    except BaseException:
+        for ref in list(locals().get("pending", {})):
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        if owns:
+            ray.shutdown()
+
+
+def run_sweep(
+    runs: Sequence[SweepRun],
+    *,
+    backend: Backend = "local",
+    workers: int = 1,
+    ray_address: str | None = None,
+    progress: bool = True,
+    on_result: Callable[[SweepRun, dict[str, Any]], None] | None = None,
+) -> dict[tuple[str, int], dict[str, Any]]:
+    """Run every run of ``runs`` (finished ones are reused, interrupted ones resumed), in
+    the order given as far as the backend keeps it; ``on_result(run, summary)`` is called as
+    each one ends. Returns ``{(name, seed): summary}``."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if ray_address is not None and backend != "ray":
+        raise ValueError(f"--ray-address {ray_address!r} needs --backend ray")
+    keys = [(r.name, r.seed) for r in runs]
+    if len(set(keys)) != len(keys):
+        raise ValueError("a sweep holds the same (configuration, seed) twice")
+    results: dict[tuple[str, int], dict[str, Any]] = {}
+    bar = tqdm(total=len(runs), desc="sweep", disable=not progress)
+
+    def done(run: SweepRun, summary: dict[str, Any]) -> None:
+        results[(run.name, run.seed)] = summary
+        bar.update(1)
+        if on_result is not None:
+            on_result(run, summary)
+
+    todo = []
+    for run in runs:  # finished runs are read here: no worker (and no Ray) for them
+        if (Path(run.run_dir) / "summary.json").is_file():
+            done(run, run_one(run))
+        else:
+            todo.append(run)
+    try:
+        if todo and backend == "ray":
+            _ray(todo, workers, ray_address, done)
+        elif todo:
+            _local(todo, workers, done)
+    finally:
+        bar.close()
+    return results
+
+
+def _curve(run_dir: Path, column: str) -> tuple[list[float], list[float]]:
+    import csv
+
+    with (run_dir / "metrics.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    return [float(r["episodes"]) for r in rows], [float(r[column]) for r in rows]
+
+
+def _mean_std(xs: Sequence[float]) -> str:
+    if len(xs) == 1:
+        return f"{xs[0]:.3g}"
+    return f"{statistics.mean(xs):.3g} ± {statistics.stdev(xs):.2g}"
+
+
+def summarize(
+    runs: Sequence[SweepRun],
+    results: Mapping[tuple[str, int], Mapping[str, Any]],
+    out: Path,
+    metric: str | None = None,
+    curve: str | None = None,
+) -> str:
+    """Write ``sweep.md`` (table), ``sweep.json`` (summaries) and ``sweep.png`` (bands) to
+    ``out`` and return the table. ``metric`` / ``curve`` default to the experiment's
+    (:data:`METRICS`)."""
+    from experiments.rundir import atomic_write
+
+    if not runs:
+        raise ValueError("nothing to summarize: the sweep has no runs")
+    experiment = runs[0].experiment
+    metric = metric or METRICS[experiment][0]
+    curve = curve or METRICS[experiment][1]
+    names = list(dict.fromkeys(r.name for r in runs))
+    lines = [
+        f"| configuration | seeds | {metric} (mean ± std) | per seed | s/run |",
+        "|---|--:|--:|---|--:|",
+    ]
+    curves: dict[str, list[tuple[list[float], list[float]]]] = {}
+    for name in names:
+        mine = [r for r in runs if r.name == name]
+        vals = [float(results[(r.name, r.seed)][metric]) for r in mine]
+        walls = [float(results[(r.name, r.seed)].get("wall_seconds", float("nan"))) for r in mine]
+        per_seed = ", ".join(f"{r.seed}: {v:.3g}" for r, v in zip(mine, vals, strict=True))
+        lines.append(
+            f"| {name} | {len(mine)} | {_mean_std(vals)} | {per_seed} | "
+            f"{statistics.mean(walls):.1f} |"
+        )
+        curves[name] = [_curve(r.run_dir, curve) for r in mine]
+    table = "\n".join(lines)
+    out.mkdir(parents=True, exist_ok=True)
+    payload = {f"{n}/seed{s}": dict(v) for (n, s), v in results.items()}
+    text = {"sweep.json": json.dumps(payload, indent=1), "sweep.md": table + "\n"}
+    for fname, content in text.items():
+
+        def write(p: Path, c: str = content) -> None:
+            p.write_text(c)
+
+        atomic_write(out / fname, write)
+    _plot(curves, out / "sweep.png", f"{experiment}: {curve} (mean ± std over seeds)")
+    return table
+
+
+Curves = Mapping[str, list[tuple[list[float], list[float]]]]
+
+
+def _plot(curves: Curves, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from experiments.rundir import atomic_write
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, runs in curves.items():
+        n = min(len(y) for _, y in runs)
+        ys = np.array([y[:n] for _, y in runs])
+        x = np.array(runs[0][0][:n])
+        m, s = ys.mean(0), ys.std(0)
+        ax.plot(x, m, label=name)
+        ax.fill_between(x, m - s, m + s, alpha=0.2)
+    ax.set_xlabel("episodes")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=110))
+    plt.close(fig)
+
+
+def main(cfg: SweepConfig) -> dict[str, Any]:
+    """``train.py sweep``: plan, run (reusing and resuming), summarize; returns what it wrote."""
+    if cfg.backend == "ray" and cfg.ray_address is not None:
+        check_ray_address(cfg.ray_address)
+    configurations = parse_grid(cfg.experiment, cfg.grid, cfg.set)
+    runs = plan(cfg.experiment, configurations, parse_seeds(cfg.seeds), cfg.out)
+    reused = sum((r.run_dir / "summary.json").is_file() for r in runs)
+    if cfg.progress and reused:
+        print(f"{reused} of {len(runs)} runs already finished; running the rest", flush=True)
+    results = run_sweep(
+        runs,
+        backend=cfg.backend,
+        workers=cfg.workers,
+        ray_address=cfg.ray_address,
+        progress=cfg.progress,
+    )
+    out = Path(cfg.out) / cfg.experiment
+    table = summarize(runs, results, out)
+    print(table)
+    return {
+        "experiment": cfg.experiment,
+        "runs": len(runs),
+        "reused": reused,
+        "summary": str(out / "sweep.md"),
+        "plot": str(out / "sweep.png"),
+    }

@@ -1,0 +1,211 @@
+"""train.py sweep (experiments/sweep.py): grids, seeds, resumable sweeps on local processes
+and Ray (issue 15)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from experiments.sweep import parse_grid, parse_seeds, plan, run_sweep, summarize
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+
+
+def _sweep(args: list[str], timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "train.py", "sweep", "--no-progress", *args],
+        cwd=ROOT,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+def test_parse_seeds_ranges_lists_and_errors():
+    assert parse_seeds("0-4") == [0, 1, 2, 3, 4]
+    assert parse_seeds("0,3,7") == [0, 3, 7]
+    assert parse_seeds("0-2,9") == [0, 1, 2, 9]
+    assert parse_seeds("-2--1") == [-2, -1]
+    with pytest.raises(ValueError, match=r"seed\(s\) \[1\] more than once"):
+        parse_seeds("0-2,1")
+    for bad in ("", "a", "3-1", "1-", "0,,1"):
+        with pytest.raises(ValueError, match="--seeds must look like"):
+            parse_seeds(bad)
+
+
+def test_parse_grid_gives_every_combination_with_typed_values():
+    configs = parse_grid("pendulum", ["n_options=1,5", "gating=learned,flat"], ["episodes=40"])
+    assert list(configs) == [
+        "n_options=1,gating=learned",
+        "n_options=1,gating=flat",
+        "n_options=5,gating=learned",
+        "n_options=5,gating=flat",
+    ]
+    assert configs["n_options=5,gating=flat"] == {"episodes": 40, "n_options": 5, "gating": "flat"}
+    assert parse_grid("bimodal") == {"default": {}}
+    assert parse_grid("pendulum", ["steps-per-decision=2"]) == {
+        "steps_per_decision=2": {"steps_per_decision": 2}
+    }
+
+
+@pytest.mark.parametrize(
+    ("grid", "fixed", "message"),
+    [
+        (["n_options"], [], "must look like OPTION=VALUE"),
+        (["no_such=1,2"], [], "has no option 'no_such'"),
+        (["seed=1,2"], [], "sets 'seed' itself"),
+        (["n_options=1,x"], [], "bad option value"),
+        (["n_options=1,1"], [], "distinct"),
+        (["n_options=1,2"], ["n_options=3"], "appears twice"),
+    ],
+)
+def test_parse_grid_names_bad_entries(grid, fixed, message):
+    with pytest.raises(ValueError, match=message):
+        parse_grid("pendulum", grid, fixed)
+
+
+def test_unknown_experiment_and_bad_sweep_options(tmp_path):
+    with pytest.raises(ValueError, match="unknown experiment 'tennis'"):
+        parse_grid("tennis")
+    runs = plan("bimodal", {"default": {}}, [0], tmp_path)
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
+        run_sweep(runs, workers=0)
+    with pytest.raises(ValueError, match="needs --backend ray"):
+        run_sweep(runs, ray_address="127.0.0.1:1")
+    with pytest.raises(ValueError, match="same \\(configuration, seed\\) twice"):
+        run_sweep(runs + runs)
+    assert not any(tmp_path.iterdir())
+
+
+def test_an_in_process_sweep_writes_runs_table_and_plot_and_reuses_them(tmp_path):
+    configs = parse_grid("bimodal", ["n_options=1,3"], ["episodes=400"])
+    runs = plan("bimodal", configs, [0, 1], tmp_path)
+    results = run_sweep(runs, progress=False)
+    assert set(results) == {(n, s) for n in configs for s in (0, 1)}
+    for r in runs:
+        assert (r.run_dir / "summary.json").is_file() and (r.run_dir / "metrics.csv").is_file()
+        cfg = json.loads((r.run_dir / "config.json").read_text())
+        assert cfg["seed"] == r.seed and cfg["n_options"] == r.options["n_options"]
+    table = summarize(runs, results, tmp_path / "bimodal")
+    assert table.count("\n") == 3 and "| n_options=3 | 2 |" in table
+    assert (tmp_path / "bimodal" / "sweep.png").stat().st_size > 0
+    stamps = [(r.run_dir / "summary.json").stat().st_mtime_ns for r in runs]
+    again = run_sweep(runs, progress=False)
+    assert all(v.get("reused") for v in again.values())
+    assert stamps == [(r.run_dir / "summary.json").stat().st_mtime_ns for r in runs]
+
+
+def _ray_processes() -> list[str]:
+    found = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            args = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if "/ray/core/src/ray/" in args or args.startswith("ray::"):
+            found.append(args[:120])
+    return found
+
+
+BEAM = [
+    "--experiment",
+    "ball-on-beam",
+    "--seeds",
+    "0-1",
+    "--grid",
+    "n_options=1,2",
+    "--set",
+    "episodes=12",
+]
+
+
+@pytest.mark.slow
+def test_an_interrupted_sweep_finishes_on_ray_and_ends_as_an_uninterrupted_one(tmp_path):
+    """A local sweep stopped by SIGINT inside its first run, then the same sweep on a local
+    Ray instance with 2 CPUs: every run finishes, the interrupted one resumed from its
+    checkpoint ends exactly as a run that was never stopped, a third call reuses all four,
+    and no process is left behind."""
+    pytest.importorskip("ray")
+    out = tmp_path / "sweep"
+    first = out / "ball-on-beam" / "n_options=1" / "seed0"
+    proc = subprocess.Popen(
+        [sys.executable, "train.py", "sweep", "--no-progress", *BEAM, "--out", str(out)],
+        cwd=ROOT,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        metrics = first / "metrics.csv"
+        if metrics.is_file() and len(metrics.read_text().splitlines()) >= 2:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert not (first / "summary.json").exists() and (first / "checkpoint.pt").is_file()
+
+    done = _sweep([*BEAM, "--out", str(out), "--backend", "ray", "--workers", "2"])
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert '"reused": 0' in done.stdout
+    for cfg in ("n_options=1", "n_options=2"):
+        for seed in (0, 1):
+            assert (out / "ball-on-beam" / cfg / f"seed{seed}" / "summary.json").is_file()
+    table = (out / "ball-on-beam" / "sweep.md").read_text()
+    assert "| n_options=1 | 2 |" in table and "| n_options=2 | 2 |" in table
+
+    ref = subprocess.run(
+        [
+            sys.executable,
+            "train.py",
+            "ball-on-beam",
+            "--episodes",
+            "12",
+            "--n-options",
+            "1",
+            "--no-progress",
+            "--run-dir",
+            str(tmp_path / "ref"),
+        ],
+        cwd=ROOT,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert ref.returncode == 0, ref.stderr[-2000:]
+    drop = ("wall_seconds", "seconds")
+
+    def rows(path: Path) -> list[dict[str, str]]:
+        import csv
+
+        with path.open() as f:
+            return [
+                {k: v for k, v in r.items() if not any(d in k for d in drop)}
+                for r in csv.DictReader(f)
+            ]
+
+    assert rows(first / "metrics.csv") == rows(tmp_path / "ref" / "metrics.csv")
+
+    again = _sweep([*BEAM, "--out", str(out), "--backend", "ray", "--workers", "2"])
+    assert again.returncode == 0 and '"reused": 4' in again.stdout
+    deadline = time.monotonic() + 20
+    while _ray_processes() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert _ray_processes() == []

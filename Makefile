@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(PIP) install --upgrade pip
 	# torch first, pinned: the CPU wheel. An unpinned torch pulls the CUDA build (several GB).
 	$(PIP) install torch==2.13.0
-	$(PIP) install -e ".[dev,robot]"
+	$(PIP) install -e ".[dev,robot,distributed]"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -13,18 +13,23 @@ interrupted sweep.
 
 from __future__ import annotations
 
-import json
+import os
 import sys
-from collections.abc import Callable
-from pathlib import Path
-from typing import Any
 
-import tyro
+if any("hockey-" in arg for arg in sys.argv[1:]):  # before torch: see experiments.workers
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
 
-from experiments import EXPERIMENTS, run_experiment
-from experiments.checkpoint import RunFinished, saved_config
-from experiments.sweep import SweepConfig
-from experiments.sweep import main as run_sweep
+import json  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import tyro  # noqa: E402
+
+from experiments import EXPERIMENTS, run_experiment  # noqa: E402
+from experiments.checkpoint import RunFinished, saved_config  # noqa: E402
+from experiments.sweep import SweepConfig  # noqa: E402
+from experiments.sweep import main as run_sweep  # noqa: E402
 
 
 def _resume_dir(argv: list[str]) -> Path | None:

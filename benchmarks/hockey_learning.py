@@ -12,11 +12,18 @@
    ``results.json`` and ``results.md``.
 
     OMP_NUM_THREADS=1 python benchmarks/hockey_learning.py [--seeds 5] [--episodes 1500]
+        [--workers 2] [--backend local|ray] [--ray-address ADDR] [--resume DIR]
+
+The runs are one sweep (:mod:`experiments.sweep`): ``--workers`` at a time, in local
+processes or as Ray tasks; ``--resume DIR`` finishes an interrupted benchmark.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+
+os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # before torch: see experiments.workers
 import statistics
 import sys
 import time
@@ -36,9 +43,9 @@ from benchmarks._common import (  # noqa: E402
     start_benchmark,
     write_results,
 )
-from experiments.hockey import HockeyEpisodicConfig, HockeySequentialConfig  # noqa: E402
-from experiments.hockey import run as run_hockey  # noqa: E402
+from experiments.hockey import HockeySequentialConfig  # noqa: E402
 from experiments.rundir import atomic_write  # noqa: E402
+from experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
 
 
 def time_simulation(n_episodes: int) -> dict[str, float]:
@@ -147,8 +154,14 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=HockeySequentialConfig.episodes)
     ap.add_argument("--timing-episodes", type=int, default=20)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "hockey_benchmark")
+    ap.add_argument("--workers", type=int, default=1, help="runs at the same time")
+    ap.add_argument("--backend", choices=["local", "ray"], default="local")
+    ap.add_argument("--ray-address", default=None, help="an existing Ray cluster (--backend ray)")
+    ap.add_argument(
+        "--resume", type=Path, default=None, help="finish the benchmark written to this folder"
+    )
     args = ap.parse_args()
-    out = start_benchmark(args.out, args.seeds)
+    out = args.resume if args.resume is not None else start_benchmark(args.out, args.seeds)
 
     timing = time_simulation(args.timing_episodes)
     print(
@@ -158,24 +171,42 @@ def main() -> None:
         f"{1000 * timing['seconds_per_episode']:.1f} ms per 3-shot episode",
         flush=True,
     )
-    variants = {"sequential": HockeySequentialConfig, "episodic": HockeyEpisodicConfig}
-    results: dict[str, list[dict[str, Any]]] = {name: [] for name in variants}
+    variants = {"sequential": "hockey-sequential", "episodic": "hockey-episodic"}
+    runs = sorted(
+        (
+            r
+            for name, experiment in variants.items()
+            for r in plan(
+                experiment, {name: {"episodes": args.episodes}}, range(args.seeds), out / "runs"
+            )
+        ),
+        key=lambda r: r.seed,
+    )
+
+    def report(run: SweepRun, summary: dict[str, Any]) -> None:
+        print(
+            f"  {run.name:10s} seed {run.seed}: final average reward "
+            f"{summary['final_average_reward']:5.2f}, zone 3 share "
+            f"{summary['zone3_share']:.2f}, {summary['wall_seconds']:.0f} s",
+            flush=True,
+        )
+
     t_all = time.perf_counter()
-    for seed in range(args.seeds):
-        for name, cls in variants.items():
-            run_dir = out / "runs" / f"{name}_seed{seed}"
-            cfg = cls(seed=seed, episodes=args.episodes, progress=False, run_dir=run_dir)
-            summary = run_hockey(cfg)
-            x, y = read_curve(run_dir, "average_reward")
-            results[name].append(
-                {**summary, "run_dir": str(run_dir), "curve": y, "episodes_axis": x}
-            )
-            print(
-                f"  {name:10s} seed {seed}: final average reward "
-                f"{summary['final_average_reward']:5.2f}, zone 3 share "
-                f"{summary['zone3_share']:.2f}, {summary['wall_seconds']:.0f} s",
-                flush=True,
-            )
+    done = run_sweep(
+        runs,
+        backend=args.backend,
+        workers=args.workers,
+        ray_address=args.ray_address,
+        progress=False,
+        on_result=report,
+    )
+    results: dict[str, list[dict[str, Any]]] = {name: [] for name in variants}
+    for run in sorted(runs, key=lambda r: r.seed):
+        x, y = read_curve(run.run_dir, "average_reward")
+        summary = done[(run.name, run.seed)]
+        results[run.name].append(
+            {**summary, "run_dir": str(run.run_dir), "curve": y, "episodes_axis": x}
+        )
     total = time.perf_counter() - t_all
     lines = [
         f"| variant | seeds | final average reward ({args.episodes} episodes) | zone 3 share "

@@ -4,8 +4,10 @@
    control steps per call) at 20, 200 and 2000 parallel pendulums, next to gymnasium's own
    ``Pendulum-v1`` stepped in a Python loop, measured in the same run (control steps/s).
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
-   (each unique configuration runs once per seed and is shared between figures; ``--jobs``
-   runs in parallel, 2 by default, one per core of the 2-core reference machine):
+   (each unique configuration runs once per seed and is shared between figures), as one sweep
+   (:mod:`experiments.sweep`): ``--workers`` runs at a time, 2 by default, one per core of the
+   2-core reference machine, in local processes or (``--backend ray``) as Ray tasks, on this
+   machine or a cluster (``--ray-address``); ``--out`` of an interrupted ablation resumes it:
 
    - 16a: options 1 / 2 / 5 / 10 (d = 5)
    - 16b: d = 1 / 2 / 5 / 10 (5 options)
@@ -17,17 +19,16 @@ final average return and the success rate per configuration) and one PNG per fig
 curve with a +-1 std band) to ``--out``; prints the table, the wall time of each standard
 run and of the whole ablation.
 
-    OMP_NUM_THREADS=1 python benchmarks/pendulum_ablations.py [--seeds 5] [--jobs 2] [--out DIR]
+    OMP_NUM_THREADS=1 python benchmarks/pendulum_ablations.py [--seeds 5] [--workers 2]
+        [--backend local|ray] [--out DIR]
 """
 
 from __future__ import annotations
 
 import argparse
-import multiprocessing
 import statistics
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +46,8 @@ from benchmarks._common import (  # noqa: E402
 )
 from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
 from experiments.pendulum import PendulumConfig  # noqa: E402
-from experiments.pendulum import run as run_pendulum  # noqa: E402
 from experiments.rundir import atomic_write  # noqa: E402
+from experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "learned-1": {"n_options": 1},
@@ -135,20 +136,6 @@ def plot_figure(name: str, lines: list[tuple[str, str]], results: dict, out: Pat
 SLOWNESS = {"d1": 7.0, "d2": 2.7, "learned-10": 1.4}
 
 
-def _one_thread() -> None:
-    torch.set_num_threads(1)
-
-
-def run_one(key: str, seed: int, episodes: int, run_dir: Path) -> dict[str, Any]:
-    """One ``train.py pendulum`` run of configuration ``key`` (in a worker process)."""
-    cfg = PendulumConfig(
-        seed=seed, episodes=episodes, progress=False, run_dir=run_dir, **CONFIGS[key]
-    )
-    summary = run_pendulum(cfg)
-    x, y = read_curve(run_dir)
-    return {**summary, "curve": y, "episodes_axis": x}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seeds", type=int, default=5)
@@ -156,43 +143,46 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "pendulum_ablations")
     ap.add_argument("--configs", nargs="*", default=list(CONFIGS), help="subset to run")
     ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument("--workers", type=int, default=2, help="runs at the same time, one thread each")
+    ap.add_argument("--backend", choices=["local", "ray"], default="local")
+    ap.add_argument("--ray-address", default=None, help="an existing Ray cluster (--backend ray)")
     ap.add_argument(
-        "--jobs", type=int, default=2, help="runs in parallel, one process (one thread) each"
+        "--resume", type=Path, default=None, help="finish the ablation written to this folder"
     )
     args = ap.parse_args()
-    out = start_benchmark(args.out, args.seeds)
+    out = args.resume if args.resume is not None else start_benchmark(args.out, args.seeds)
     if not args.skip_speed:
         env_speed()
 
     configs = list(dict.fromkeys(args.configs))  # each once: runs write to their own dirs
-    tasks = [(key, seed) for key in configs for seed in range(args.seeds)]
-    done: dict[tuple[str, int], dict[str, Any]] = {}
+    unknown = [k for k in configs if k not in CONFIGS]
+    if unknown:
+        raise SystemExit(f"unknown configurations {unknown}; known: {', '.join(CONFIGS)}")
+    options = {k: {**CONFIGS[k], "episodes": args.episodes} for k in configs}
+    runs = plan("pendulum", options, range(args.seeds), out / "runs")
+    # the slow configurations first, so that the last runs to finish are short ones
+    runs.sort(key=lambda r: -SLOWNESS.get(r.name, 1.0))
+
+    def report(run: SweepRun, summary: dict[str, Any]) -> None:
+        print(
+            f"  {run.name:<13} seed {run.seed}: final average return "
+            f"{summary['final_average_return']:7.1f}, success {summary['success_rate']:.2f}, "
+            f"{summary['wall_seconds']:.1f} s",
+            flush=True,
+        )
+
     t_all = time.perf_counter()
-    # the slow configurations first, so that the last jobs to finish are short ones
-    tasks.sort(key=lambda ks: -SLOWNESS.get(ks[0], 1.0))
-    with ProcessPoolExecutor(
-        args.jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_one_thread
-    ) as pool:
-        futures = {
-            pool.submit(run_one, key, seed, args.episodes, out / "runs" / key / f"seed{seed}"): (
-                key,
-                seed,
-            )
-            for key, seed in tasks
-        }
-        try:
-            for fut in as_completed(futures):
-                key, seed = futures[fut]
-                run = done[(key, seed)] = fut.result()
-                print(
-                    f"  {key:<13} seed {seed}: final average return "
-                    f"{run['final_average_return']:7.1f}, success {run['success_rate']:.2f}, "
-                    f"{run['wall_seconds']:.1f} s",
-                    flush=True,
-                )
-        except BaseException:  # a failed run: do not wait for the queued ones
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
+    done = run_sweep(
+        runs,
+        backend=args.backend,
+        workers=args.workers,
+        ray_address=args.ray_address,
+        progress=False,
+        on_result=report,
+    )
+    for run in runs:
+        x, y = read_curve(run.run_dir)
+        done[(run.name, run.seed)] = {**done[(run.name, run.seed)], "curve": y, "episodes_axis": x}
     total = time.perf_counter() - t_all
     results = {k: [done[(k, s)] for s in range(args.seeds)] for k in configs}
 

@@ -18,7 +18,7 @@ import torch
 from experiments.checkpoint import RunState
 from experiments.loop import Run, check_budget, collector_loop, finish_run, resume_point
 from experiments.options import RunOptions, check_options
-from experiments.workers import Backend, EpisodeCollector, make_pool
+from experiments.workers import Backend, EpisodeCollector, make_pool, reproducible_mkl
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
 
 __all__ = ["HockeyConfig", "HockeyEpisodicConfig", "HockeySequentialConfig", "run"]
@@ -199,6 +199,8 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     from hireps_torch.rollout import policy_module, time_indexed_module
 
     iterations = _check(cfg)
+    # before any arithmetic (see experiments.workers); a warning only matters with workers
+    reproducible_mkl(warn=cfg.workers > 1 or cfg.backend == "ray")
     sequential = isinstance(cfg, HockeySequentialConfig)
     experiment = "hockey_sequential" if sequential else "hockey_episodic"
     resume = resume_point(experiment, cfg)

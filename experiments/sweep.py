@@ -37,7 +37,7 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from experiments.workers import Backend, check_ray_address, import_ray
+from experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
 
 __all__ = [
     "SweepConfig",
@@ -256,6 +256,9 @@ def _ray(
     if address is not None:
         check_ray_address(address)
     owns = not ray.is_initialized()
+    # hockey needs reproducible MKL in every process (experiments.workers); the rest one thread
+    hockey = runs[0].experiment.startswith("hockey")
+    env = RAY_ENV if hockey else {"env_vars": {"OMP_NUM_THREADS": "1"}}
     if owns:
         if address is None:
             ray.init(
@@ -263,10 +266,10 @@ def _ray(
                 include_dashboard=False,
                 log_to_driver=False,
                 configure_logging=False,
-                runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}},
+                runtime_env=env,
             )
         else:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, runtime_env=env)
     task = ray.remote(num_cpus=1, max_retries=2)(_one_thread)
     try:
         pending = {task.remote(r): r for r in runs}

@@ -31,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 240
 
 
-def _run(args: list[str], cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+def _run(args: list[str], cwd: Path = ROOT, **extra_env: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), **extra_env}
     return subprocess.run(
         args, cwd=cwd, env=env, capture_output=True, text=True, timeout=TIMEOUT, check=False
     )
@@ -89,23 +89,72 @@ def test_split_episodes_covers_every_episode_once_in_order():
         assert all(c for c in chunks) and len(chunks) == min(n, parts)
 
 
-def test_an_episode_is_the_same_whatever_else_the_worker_played():
-    """Episodes 3..5 played on their own, after 0..2, or in another order of calls give the
-    same steps: the environment carries nothing from one episode to the next."""
-    actor, env = _actor_and_env()
-    try:
-        all_six = play_episodes(env, actor, 11, range(6), 3)
-        later = play_episodes(env, actor, 11, [3, 4, 5], 3)
-        _, fresh = _actor_and_env()
-        alone = play_episodes(fresh, actor, 11, [5], 3)
-        fresh.close()
-    finally:
-        env.close()
-    assert all_six.shape == (18,)
+HISTORY_SCRIPT = textwrap.dedent(
+    """
+    import os
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+    import torch
+    from environments.hockey import ENV_ID, HockeyParams, demo_action
+    from experiments import hockey
+    from experiments.workers import play_episodes
+    from hireps_torch.algorithms import Experience
+    from hireps_torch.rollout import episodes, time_indexed_module
+
+    cfg = hockey.HockeySequentialConfig()
+    demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
+    torch.manual_seed(0)
+    algo = hockey._make_algorithm(cfg, 3, demo)
+    actor = time_indexed_module(list(algo.policies))
+    env = hockey._make_env(ENV_ID, True)
+    s, a, r, _ = episodes(play_episodes(env, actor, 0, range(30), 3), 3)
+    algo.learn(Experience(states=s, actions=a, rewards=r))  # a policy that hits the pucks
+    first = play_episodes(env, actor, 0, range(30, 40), 3)
+    again = play_episodes(env, actor, 0, range(30, 40), 3)
+    later = play_episodes(env, actor, 0, [37, 38, 39], 3)
+    fresh = play_episodes(hockey._make_env(ENV_ID, True), actor, 0, [39], 3)
     for key in ("observation", "action", ("next", "reward"), ("next", "observation")):
-        assert torch.equal(all_six[9:].get(key), later.get(key)), key
-        assert torch.equal(all_six[15:].get(key), alone.get(key)), key
-    assert not torch.equal(all_six[:3].get("observation"), all_six[3:6].get("observation"))
+        assert torch.equal(first.get(key), again.get(key)), key
+        assert torch.equal(first[21:].get(key), later.get(key)), key
+        assert torch.equal(first[27:].get(key), fresh.get(key)), key
+    assert not torch.equal(first[:3].get("observation"), first[3:6].get("observation"))
+    print("SAME")
+    """
+)
+
+
+def test_an_episode_is_the_same_whatever_else_the_worker_played(tmp_path):
+    """Episodes 30..39 of a learned policy played twice in a row, on their own after other
+    episodes, and on a fresh environment give the same steps, bit for bit: the environment
+    carries nothing from one episode to the next (with reproducible MKL, see
+    experiments.workers; without it these replays differed by up to 4e-3 rad)."""
+    script = tmp_path / "history.py"
+    script.write_text(HISTORY_SCRIPT)
+    out = _run([sys.executable, str(script)])
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "SAME" in out.stdout
+
+
+def test_reproducible_mkl_reports_whether_it_is_in_force():
+    code = (
+        "import os; os.environ.pop('MKL_CBWR', None)\n"
+        "import torch, warnings\n"
+        "torch.ones(3, 3, dtype=torch.float64) @ torch.ones(3, 3, dtype=torch.float64)\n"
+        "from experiments.workers import _mkl_mode, reproducible_mkl\n"
+        "if _mkl_mode() is None: print('NO MKL'); raise SystemExit\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    print(reproducible_mkl(), any('MKL started before' in str(x.message) for x in w))\n"
+    )
+    late = _run([sys.executable, "-c", code])
+    assert late.returncode == 0, late.stderr
+    if "NO MKL" in late.stdout:
+        pytest.skip("torch without MKL")
+    assert late.stdout.split() == ["False", "True"]
+    early = _run(
+        [sys.executable, "-c", "import experiments.workers as w; print(w.reproducible_mkl())"],
+        MKL_CBWR="COMPATIBLE",
+    )
+    assert early.stdout.split() == ["True"], early.stderr
 
 
 def test_play_episodes_refuses_other_episode_lengths_and_no_episodes():
@@ -172,7 +221,7 @@ def test_core_library_and_local_runs_work_without_ray(tmp_path):
     assert (tmp_path / "run" / "summary.json").is_file()
 
 
-TINY = ["--episodes", "12", "--episodes-per-iteration", "6", "--n-options", "2", "--no-progress"]
+TINY = ["--episodes", "36", "--episodes-per-iteration", "6", "--n-options", "2", "--no-progress"]
 
 
 @pytest.mark.slow
@@ -197,7 +246,7 @@ def test_two_ray_workers_write_the_same_metrics_as_one_local_worker(tmp_path):
         )
         assert out.returncode == 0, out.stderr[-3000:]
     ref = (tmp_path / "local1" / "metrics.csv").read_text()
-    assert len(ref.splitlines()) == 3  # header + 2 iterations
+    assert len(ref.splitlines()) == 7  # header + 6 iterations
     assert (tmp_path / "ray2" / "metrics.csv").read_text() == ref
     assert (tmp_path / "local2" / "metrics.csv").read_text() == ref
     _assert_ray_gone()
@@ -225,7 +274,9 @@ def test_unreachable_ray_address_is_a_clear_error(tmp_path):
 
 KILL_SCRIPT = textwrap.dedent(
     """
-    import os, sys, torch
+    import os, sys
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # as train.py does for hockey
+    import torch
     from tensordict.nn import TensorDictModule
     from environments.hockey import ENV_ID, HockeyParams, demo_action
     from experiments import hockey

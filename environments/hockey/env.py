@@ -180,7 +180,7 @@ class RobotHockeyEnv(gym.Env):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.params = check_params(params, HockeyParams)
         self.render_mode = render_mode
-        self.sim = HockeySim(self.params, gui=gui)
+        self.sim = HockeySim(self.params, gui=gui, marks=gui or render_mode is not None)
         self._low, self._high = _bounds(self.sim, self.params)
         self.action_space = gym.spaces.Box(self._low.numpy(), self._high.numpy(), dtype=np.float64)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float64)
@@ -201,6 +201,7 @@ class RobotHockeyEnv(gym.Env):
         super().reset(seed=seed)
         p = self.params
         self._target = np.asarray(p.target_mean) + p.target_std * self.np_random.standard_normal(2)
+        self.sim.new_world()  # an episode's outcome depends on nothing played before it
         self.sim.reset(self._target)
         self.shot_index = 0
         self.needs_reset = False

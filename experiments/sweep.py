@@ -304,6 +304,10 @@ def run_sweep(
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     if ray_address is not None and backend != "ray":
         raise ValueError(f"--ray-address {ray_address!r} needs --backend ray")
+    if ray_address is not None:
+        check_ray_address(ray_address)
+    if backend == "ray":
+        import_ray()  # the extra's name before anything runs
     keys = [(r.name, r.seed) for r in runs]
     if len(set(keys)) != len(keys):
         raise ValueError("a sweep holds the same (configuration, seed) twice")

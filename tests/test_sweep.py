@@ -85,6 +85,8 @@ def test_unknown_experiment_and_bad_sweep_options(tmp_path):
         run_sweep(runs, workers=0)
     with pytest.raises(ValueError, match="needs --backend ray"):
         run_sweep(runs, ray_address="127.0.0.1:1")
+    with pytest.raises(ValueError, match="cannot reach the Ray cluster at --ray-address '127.0"):
+        run_sweep(runs, backend="ray", ray_address="127.0.0.1:1")
     with pytest.raises(ValueError, match="same \\(configuration, seed\\) twice"):
         run_sweep(runs + runs)
     assert not any(tmp_path.iterdir())
@@ -209,3 +211,11 @@ def test_an_interrupted_sweep_finishes_on_ray_and_ends_as_an_uninterrupted_one(t
     while _ray_processes() and time.monotonic() < deadline:
         time.sleep(0.5)
     assert _ray_processes() == []
+
+
+def test_a_ray_sweep_without_ray_names_the_extra(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)
+    runs = plan("bimodal", {"default": {}}, [0], tmp_path)
+    with pytest.raises(ImportError, match="distributed"):
+        run_sweep(runs, backend="ray", workers=2)
+    assert not any(tmp_path.iterdir())

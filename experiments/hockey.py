@@ -213,18 +213,21 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     env_id = ENV_ID if sequential else EPISODIC_ENV_ID
     B = cfg.episodes_per_iteration
     start = 0 if resume is None or resume.checkpoint is None else resume.checkpoint["iteration"]
-    make_env = partial(_make_env, env_id, sequential)
+    actor = time_indexed_module(policies) if sequential else policy_module(policies[0])
+    label = f"{experiment}/{cfg.n_options}opt"
+    state = RunState(algo)  # episode e's randomness comes from (seed, e): no env state
+    # the pool (worker processes, Ray) last, right before the loop that shuts it down
     collector = EpisodeCollector(
-        make_pool(make_env, cfg.workers, cfg.backend, cfg.ray_address),
-        time_indexed_module(policies) if sequential else policy_module(policies[0]),
+        make_pool(
+            partial(_make_env, env_id, sequential), cfg.workers, cfg.backend, cfg.ray_address
+        ),
+        actor,
         seed=cfg.seed,
         steps=K,
         episodes_per_iteration=B,
         iterations=iterations,
         start_iteration=int(start),
     )
-    label = f"{experiment}/{cfg.n_options}opt"
-    state = RunState(algo)  # episode e's randomness comes from (seed, e): no env state
     session = collector_loop(
         collector,
         lambda: Run(experiment, cfg, state, resume),

@@ -29,6 +29,7 @@ import itertools
 import json
 import multiprocessing
 import statistics
+import typing
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -104,14 +105,21 @@ def parse_seeds(text: str) -> list[int]:
     """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,3,7"``; ``"0-2,9"``. A repeated seed, an empty or
     reversed range and anything else are a ValueError naming the text."""
     import re
+    from collections import Counter
 
     seeds: list[int] = []
     for part in str(text).split(","):
-        m = re.fullmatch(r"\s*(-?\d+)\s*(?:-\s*(-?\d+)\s*)?", part)
+        m = re.fullmatch(r"\s*(-?[0-9]+)\s*(?:-\s*(-?[0-9]+)\s*)?", part)
         if m is None or (m[2] is not None and int(m[2]) < int(m[1])):
             raise ValueError(f"--seeds must look like 0-4, 0,3,7 or 0-2,9, got {text!r}")
-        seeds.extend(range(int(m[1]), int(m[2] if m[2] is not None else m[1]) + 1))
-    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+        lo, hi = int(m[1]), int(m[2] if m[2] is not None else m[1])
+        if not -(2**62) <= lo <= hi <= 2**62 or hi - lo >= 100_000:
+            raise ValueError(
+                f"--seeds {text!r}: seeds must lie in [-2**62, 2**62] and a range hold fewer "
+                f"than 100000 seeds, got {part.strip()!r}"
+            )
+        seeds.extend(range(lo, hi + 1))
+    repeated = sorted(s for s, n in Counter(seeds).items() if n > 1)
     if repeated:
         raise ValueError(f"--seeds {text!r} names seed(s) {repeated} more than once")
     return seeds
@@ -148,7 +156,17 @@ def _typed(config_cls: type, assignments: Mapping[str, str]) -> dict[str, Any]:
             raise ValueError(
                 f"{config_cls.__name__} has no option {key!r}; options: {', '.join(sorted(fields))}"
             )
-    args = [x for key, value in assignments.items() for x in (f"--{key.replace('_', '-')}", value)]
+    hints = typing.get_type_hints(config_cls)
+    args = []
+    for key, value in assignments.items():
+        flag = key.replace("_", "-")
+        if hints.get(key) is bool:  # tyro takes booleans as --flag / --no-flag
+            truth = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
+            if value.strip().lower() not in truth:
+                raise ValueError(f"option {key!r} is true or false, got {value!r}")
+            args.append(f"--{flag}" if truth[value.strip().lower()] else f"--no-{flag}")
+        else:
+            args.append(f"--{flag}={value}")
     try:
         cfg: Any = tyro.cli(config_cls, args=args, console_outputs=False)
     except SystemExit:
@@ -163,7 +181,10 @@ def parse_grid(
     """Configurations of a grid: name -> typed options. ``grid`` entries ``OPTION=V1,V2``,
     ``fixed`` entries ``OPTION=VALUE``; bad options and values are a ValueError naming them."""
     config_cls = _config_class(experiment)
-    fixed_pairs = dict(_split(e, "set") for e in fixed)
+    fixed_list = [_split(e, "set") for e in fixed]
+    fixed_pairs = dict(fixed_list)
+    if len(fixed_pairs) != len(fixed_list):
+        raise ValueError(f"an option appears twice in --set: {list(fixed)}")
     axes: dict[str, list[str]] = {}
     for entry in grid:
         key, values = _split(entry, "grid")
@@ -172,10 +193,15 @@ def parse_grid(
         axes[key] = [v.strip() for v in values.split(",")]
         if len(set(axes[key])) != len(axes[key]) or "" in axes[key]:
             raise ValueError(f"--grid {entry!r}: values must be distinct and non-empty")
+    for key, strings in axes.items():  # equal after parsing (0.1 and 1e-1): one configuration
+        typed = [repr(_typed(config_cls, {key: v})[key]) for v in strings]
+        if len(set(typed)) != len(typed):
+            raise ValueError(f"--grid {key}: values {strings} name the same value twice")
     configs: dict[str, dict[str, Any]] = {}
     for combo in itertools.product(*axes.values()):
         chosen = dict(zip(axes, combo, strict=True))
-        name = ",".join(f"{k}={v}" for k, v in chosen.items()) or "default"
+        # the name: sorted keys, so that the order of --grid options does not rename runs
+        name = ",".join(f"{k}={chosen[k]}" for k in sorted(chosen)) or "default"
         configs[name] = _typed(config_cls, {**fixed_pairs, **chosen})
     return configs
 
@@ -206,16 +232,39 @@ def run_one(run: SweepRun) -> dict[str, Any]:
 
     config_cls, run_fn = EXPERIMENTS[run.experiment]
     d = Path(run.run_dir)
-    if (d / "summary.json").is_file():
-        return {**json.loads((d / "summary.json").read_text()), "reused": True}
-    if (d / "config.json").is_file():  # interrupted: continue from its checkpoint
+    cfg = config_cls(**run.options, seed=run.seed, run_dir=d, progress=False)
+    if (d / "config.json").is_file():
+        _check_same_options(run, cfg)
+        if (d / "summary.json").is_file():
+            return {**json.loads((d / "summary.json").read_text()), "reused": True}
+        # interrupted: continue from its checkpoint
         cfg = dataclasses.replace(
             saved_config(config_cls, run.experiment, d), progress=False, run_dir=d, resume=d
         )
-    else:
-        cfg = config_cls(**run.options, seed=run.seed, run_dir=d, progress=False)
+    elif d.exists() and any(d.iterdir()):
+        raise FileExistsError(
+            f"sweep run directory {d} holds files but no config.json (a run stopped before it "
+            "started, or something else was written there); delete it and run the sweep again"
+        )
     summary: dict[str, Any] = run_fn(cfg)
     return summary
+
+
+def _check_same_options(run: SweepRun, cfg: Any) -> None:
+    """A ValueError naming every option in which the run already in ``run.run_dir`` differs
+    from the one the sweep asks for (e.g. another ``--set``): nothing is reused or mixed."""
+    from experiments.checkpoint import changed_options, read_config
+    from experiments.options import config_dict
+
+    saved = read_config(Path(run.run_dir))
+    now = config_dict(str(saved.get("experiment", run.experiment)), cfg)
+    diff = changed_options(saved, now)
+    if diff:
+        raise ValueError(
+            f"{run.run_dir} holds a run with other options than this sweep asks for: "
+            + "; ".join(diff)
+            + " (use another --out, or the same options)"
+        )
 
 
 def _one_thread(run: SweepRun) -> dict[str, Any]:
@@ -228,9 +277,9 @@ def _one_thread(run: SweepRun) -> dict[str, Any]:
 def _local(
     runs: Sequence[SweepRun], workers: int, done: Callable[[SweepRun, dict[str, Any]], None]
 ) -> None:
-    if workers == 1:
+    if workers == 1:  # one thread as in the worker processes: the same sums, the same results
         for run in runs:
-            done(run, run_one(run))
+            done(run, _one_thread(run))
         return
     ctx = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(workers, mp_context=ctx)
@@ -269,7 +318,12 @@ def _ray(
                 runtime_env=env,
             )
         else:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False, runtime_env=env)
+            try:
+                ray.init(
+                    address=address, include_dashboard=False, log_to_driver=False, runtime_env=env
+                )
+            except (ConnectionError, RuntimeError) as exc:
+                raise ValueError(f"cannot join the Ray cluster at {address!r}: {exc}") from None
     task = ray.remote(num_cpus=1, max_retries=2)(_one_thread)
     try:
         pending = {task.remote(r): r for r in runs}

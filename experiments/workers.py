@@ -124,10 +124,6 @@ def reproducible_mkl(warn: bool = True) -> bool:
     return True
 
 
-def _worker_start() -> None:
-    os.environ.setdefault("MKL_CBWR", MKL_MODE)
-
-
 def episode_seeds(seed: int, episode: int) -> tuple[int, int]:
     """(environment seed in [0, 2**32), policy seed in [0, 2**63)) of episode ``episode`` of
     a run with ``seed``, from ``numpy.random.SeedSequence`` (independent streams per
@@ -267,10 +263,11 @@ class LocalProcessPool:
 
     def _pool(self) -> ProcessPoolExecutor:
         if self._executor is None:
+            # a spawned worker starts MKL while it imports torch, before any initializer
+            # could run: it gets the reproducible mode through the environment it inherits
+            os.environ.setdefault("MKL_CBWR", MKL_MODE)
             self._executor = ProcessPoolExecutor(
-                self.workers,
-                mp_context=multiprocessing.get_context("spawn"),
-                initializer=_worker_start,
+                self.workers, mp_context=multiprocessing.get_context("spawn")
             )
         return self._executor
 
@@ -318,10 +315,11 @@ def import_ray() -> Any:
 def check_ray_address(address: str, timeout: float = 5.0) -> None:
     """A ``ValueError`` naming ``address`` when nothing accepts connections there within
     ``timeout`` seconds (``ray.init`` itself can wait minutes). ``"auto"`` is passed on."""
-    if address == "auto":
+    if address.lower() == "auto":
         return
     hostport = address.removeprefix("ray://")
     host, sep, port = hostport.rpartition(":")
+    host = host.removeprefix("[").removesuffix("]")  # [::1]:6379
     if not sep or not host or not port.isdigit():
         raise ValueError(
             f"--ray-address must be HOST:PORT, ray://HOST:PORT or 'auto', got {address!r}"
@@ -359,6 +357,14 @@ class RayPool:
         self.key = uuid.uuid4().hex
         self._ray = ray
         self.owns_ray = not ray.is_initialized()
+        if not self.owns_ray:
+            warnings.warn(
+                "Ray is already running in this process: its session is used as it is "
+                f"(address {address!r} and the workers' MKL_CBWR={MKL_MODE} are not applied; "
+                "episodes can then differ in the last bits between workers)",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         if self.owns_ray:
             if address is None:
                 ray.init(

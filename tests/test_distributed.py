@@ -157,6 +157,20 @@ def test_reproducible_mkl_reports_whether_it_is_in_force():
     assert early.stdout.split() == ["True"], early.stderr
 
 
+def test_every_episode_gets_one_fresh_world():
+    """set_seed and the rollout both reset the env: the world is built once per episode."""
+    actor, env = _actor_and_env()
+    sim = env.base_env._env.unwrapped.sim
+    built = []
+    real = sim.new_world
+    sim.new_world = lambda: (built.append(1), real())[1]
+    try:
+        play_episodes(env, actor, 0, range(4), 3)
+    finally:
+        env.close()
+    assert len(built) == 3  # worlds for episodes 1-3; episode 0 plays in the env's first world
+
+
 def test_play_episodes_refuses_other_episode_lengths_and_no_episodes():
     actor, env = _actor_and_env()
     try:
@@ -180,6 +194,11 @@ def test_bad_backend_options_are_named():
     assert isinstance(make_pool(lambda: None), InProcessPool)
     with pytest.raises(ValueError, match="must be HOST:PORT"):
         check_ray_address("nowhere")
+    check_ray_address("AUTO")  # passed on to ray.init
+    with pytest.raises(
+        ValueError, match="cannot reach the Ray cluster at --ray-address '\\[::1\\]:1'"
+    ):
+        check_ray_address("[::1]:1", timeout=2.0)
     with pytest.raises(ValueError, match="cannot reach the Ray cluster at --ray-address '127.0.0"):
         check_ray_address("127.0.0.1:1", timeout=2.0)
 

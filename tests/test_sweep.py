@@ -41,20 +41,28 @@ def test_parse_seeds_ranges_lists_and_errors():
     assert parse_seeds("-2--1") == [-2, -1]
     with pytest.raises(ValueError, match=r"seed\(s\) \[1\] more than once"):
         parse_seeds("0-2,1")
-    for bad in ("", "a", "3-1", "1-", "0,,1"):
+    for bad in ("", "a", "3-1", "1-", "0,,1", "\u0663"):
         with pytest.raises(ValueError, match="--seeds must look like"):
+            parse_seeds(bad)
+    for bad in ("0-999999", str(2**70)):
+        with pytest.raises(ValueError, match=r"must lie in \[-2\*\*62, 2\*\*62\]"):
             parse_seeds(bad)
 
 
 def test_parse_grid_gives_every_combination_with_typed_values():
     configs = parse_grid("pendulum", ["n_options=1,5", "gating=learned,flat"], ["episodes=40"])
-    assert list(configs) == [
-        "n_options=1,gating=learned",
-        "n_options=1,gating=flat",
-        "n_options=5,gating=learned",
-        "n_options=5,gating=flat",
+    assert list(configs) == [  # keys sorted in the names: --grid order does not rename runs
+        "gating=learned,n_options=1",
+        "gating=flat,n_options=1",
+        "gating=learned,n_options=5",
+        "gating=flat,n_options=5",
     ]
-    assert configs["n_options=5,gating=flat"] == {"episodes": 40, "n_options": 5, "gating": "flat"}
+    assert configs["gating=flat,n_options=5"] == {"episodes": 40, "n_options": 5, "gating": "flat"}
+    assert set(parse_grid("pendulum", ["gating=learned,flat", "n_options=1,5"])) == set(configs)
+    assert parse_grid("bimodal", ["contextual=true,false"]) == {
+        "contextual=true": {"contextual": True},
+        "contextual=false": {"contextual": False},
+    }
     assert parse_grid("bimodal") == {"default": {}}
     assert parse_grid("pendulum", ["steps-per-decision=2"]) == {
         "steps_per_decision=2": {"steps_per_decision": 2}
@@ -70,6 +78,9 @@ def test_parse_grid_gives_every_combination_with_typed_values():
         (["n_options=1,x"], [], "bad option value"),
         (["n_options=1,1"], [], "distinct"),
         (["n_options=1,2"], ["n_options=3"], "appears twice"),
+        ([], ["episodes=10", "episodes=20"], "appears twice in --set"),
+        (["epsilon=0.1,1e-1"], [], "same value twice"),
+        (["mirror_samples=maybe"], [], "true or false"),
     ],
 )
 def test_parse_grid_names_bad_entries(grid, fixed, message):
@@ -219,3 +230,21 @@ def test_a_ray_sweep_without_ray_names_the_extra(tmp_path, monkeypatch):
     with pytest.raises(ImportError, match="distributed"):
         run_sweep(runs, backend="ray", workers=2)
     assert not any(tmp_path.iterdir())
+
+
+def test_a_sweep_refuses_runs_with_other_options_and_unknown_leftovers(tmp_path):
+    """A finished run is reused only with the options it was made with; a directory with
+    files but no config.json is named, not overwritten."""
+    first = plan("bimodal", parse_grid("bimodal", [], ["episodes=400"]), [0], tmp_path)
+    run_sweep(first, progress=False)
+    summary = (first[0].run_dir / "summary.json").read_bytes()
+    other = plan("bimodal", parse_grid("bimodal", [], ["episodes=800"]), [0], tmp_path)
+    with pytest.raises(ValueError, match=r"other options than this sweep asks for: episodes"):
+        run_sweep(other, progress=False)
+    assert (first[0].run_dir / "summary.json").read_bytes() == summary
+    leftover = plan("bimodal", {"default": {}}, [1], tmp_path)
+    leftover[0].run_dir.mkdir(parents=True)
+    (leftover[0].run_dir / ".config.json.x.tmp").write_text("{")
+    with pytest.raises(FileExistsError, match="holds files but no config.json"):
+        run_sweep(leftover, progress=False)
+    assert (leftover[0].run_dir / ".config.json.x.tmp").read_text() == "{"

@@ -201,7 +201,8 @@ class RobotHockeyEnv(gym.Env):
         super().reset(seed=seed)
         p = self.params
         self._target = np.asarray(p.target_mean) + p.target_std * self.np_random.standard_normal(2)
-        self.sim.new_world()  # an episode's outcome depends on nothing played before it
+        if not self.sim.fresh:  # an episode's outcome depends on nothing played before it
+            self.sim.new_world()
         self.sim.reset(self._target)
         self.shot_index = 0
         self.needs_reset = False

@@ -84,6 +84,12 @@ class HockeySim:
 
         self.pb = pb
         self.params = p = params or HockeyParams()
+        n = round(p.geometry.swing_duration / p.sim_dt)
+        if abs(n * p.sim_dt - p.geometry.swing_duration) > 1e-9:
+            raise ValueError(
+                f"sim_dt = {p.sim_dt} must divide the swing duration "
+                f"{p.geometry.swing_duration} into whole steps"
+            )
         self.client = pb.connect(pb.GUI if gui else pb.DIRECT)
         self._closed = False
         cid = self.client
@@ -93,16 +99,11 @@ class HockeySim:
         self.kinematics = arm_kinematics(p.geometry)
         self.dmp = shot_dmp(p)
         self.home = self.dmp.start.clone()  # the arm's pose at the start of every shot
-        n = round(p.geometry.swing_duration / p.sim_dt)
-        if abs(n * p.sim_dt - p.geometry.swing_duration) > 1e-9:
-            raise ValueError(
-                f"sim_dt = {p.sim_dt} must divide the swing duration "
-                f"{p.geometry.swing_duration} into whole steps"
-            )
         self._swing_steps = n
         lo, hi = self.kinematics.lower + p.joint_margin, self.kinematics.upper - p.joint_margin
         self.goal_low, self.goal_high = lo, hi
         self.marks = marks
+        self.fresh = False  # True while the world holds nothing but a new_world() and resets
         self.new_world()
 
     def new_world(self) -> None:
@@ -148,6 +149,7 @@ class HockeySim:
         for _ in range(24):
             pb.stepSimulation(physicsClientId=cid)
         self._clean_state = pb.saveState(physicsClientId=cid)
+        self.fresh = True
 
     def _puck(self, rgba: list[float]) -> int:
         pb, p, cid = self.pb, self.params, self.client
@@ -277,6 +279,7 @@ class HockeySim:
             to its home pose.
         """
         pb, p, cid = self.pb, self.params, self.client
+        self.fresh = False
         q, qd, ok = self.plan(goal, goal_velocity)
         frames: list[np.ndarray] = []
         _, target_xy = self.puck_positions()

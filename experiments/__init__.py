@@ -23,6 +23,7 @@ EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
     "ball-on-beam": (ball_on_beam.BallOnBeamConfig, ball_on_beam.run),
     "hockey-sequential": (hockey.HockeySequentialConfig, hockey.run),
     "hockey-episodic": (hockey.HockeyEpisodicConfig, hockey.run),
+    "hockey-fixed-start": (hockey.HockeyFixedStartConfig, hockey.run),
 }
 
 

@@ -21,7 +21,14 @@ from experiments.options import RunOptions, check_options
 from experiments.workers import Backend, EpisodeCollector, make_pool, reproducible_mkl
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
 
-__all__ = ["HockeyConfig", "HockeyEpisodicConfig", "HockeySequentialConfig", "run"]
+__all__ = [
+    "HockeyConfig",
+    "HockeyEpisodicConfig",
+    "HockeyFixedStartConfig",
+    "HockeySequentialConfig",
+    "hockey_params",
+    "run",
+]
 
 PER_STEP = (
     "eta",
@@ -77,11 +84,30 @@ class HockeyConfig(RunOptions):
     '.[distributed]'), on a local Ray instance with --workers CPUs or on --ray-address."""
     ray_address: str | None = None
     """An existing Ray cluster (HOST:PORT, ray://HOST:PORT or auto) for --backend ray."""
+    start_std: float = 0.1
+    """Std (m) of the target puck's start in x and y (paper Fig 14: 10 cm; 0: a fixed
+    start, the real robot's setting of Fig 15b)."""
+    puck_restitution: float = 0.7
+    """Restitution of the pucks and the blade (Bullet multiplies the two bodies' values)."""
+    floor_friction: float = 0.05
+    """Puck-floor Coulomb friction (ice-like)."""
+    flat_pucks: bool = False
+    """Pucks that cannot tip or roll on their edge (HockeyParams.flat_pucks)."""
 
 
 @dataclass(frozen=True)
 class HockeySequentialConfig(HockeyConfig):
     """Sequential (time-indexed) HiREPS: one 14-dim policy per shot on the target position."""
+
+
+@dataclass(frozen=True)
+class HockeyFixedStartConfig(HockeySequentialConfig):
+    """The real robot's run (paper Fig 15b) in simulation: sequential HiREPS, the target puck
+    always at the same spot, 10 episodes per update, 300 episodes."""
+
+    start_std: float = 0.0
+    episodes_per_iteration: int = 10
+    episodes: int = 300
 
 
 @dataclass(frozen=True)
@@ -148,7 +174,14 @@ def _check(cfg: HockeyConfig) -> int:
     check_options(
         cfg,
         positive=("init_std_position", "init_std_velocity"),
-        nonnegative=("min_variance", "covariance_prior", "mean_prior"),
+        nonnegative=(
+            "min_variance",
+            "covariance_prior",
+            "mean_prior",
+            "start_std",
+            "floor_friction",
+            "puck_restitution",
+        ),
     )
     B, W = cfg.episodes_per_iteration, cfg.workers
     iterations = check_budget(cfg.episodes, B, n_options=cfg.n_options, workers=W)
@@ -156,6 +189,8 @@ def _check(cfg: HockeyConfig) -> int:
         raise ValueError(f"episodes_per_iteration must be >= 2, got {B}")
     if not 0.0 <= cfg.exploration_floor < 1.0:
         raise ValueError(f"exploration_floor must be in [0, 1), got {cfg.exploration_floor}")
+    if not 0.0 <= cfg.puck_restitution <= 1.0:
+        raise ValueError(f"puck_restitution must be in [0, 1], got {cfg.puck_restitution}")
     if cfg.backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {cfg.backend!r}")
     if cfg.ray_address is not None and cfg.backend != "ray":
@@ -163,13 +198,25 @@ def _check(cfg: HockeyConfig) -> int:
     return iterations
 
 
-def _make_env(env_id: str, sequential: bool) -> Any:
+def hockey_params(cfg: HockeyConfig) -> Any:
+    """The task constants of a run: HockeyParams with the config's start and physics."""
+    from environments.hockey import HockeyParams
+
+    return HockeyParams(
+        target_std=cfg.start_std,
+        puck_restitution=cfg.puck_restitution,
+        floor_friction=cfg.floor_friction,
+        flat_pucks=cfg.flat_pucks,
+    )
+
+
+def _make_env(env_id: str, sequential: bool, params: Any = None) -> Any:
     """The gymnasium env through TorchRL; the sequential variant counts its shots."""
     from torchrl.envs import GymEnv, StepCounter, TransformedEnv
 
     import environments  # noqa: F401  (registers the ids in worker processes)
 
-    env = GymEnv(env_id)
+    env = GymEnv(env_id) if params is None else GymEnv(env_id, params=params)
     return TransformedEnv(env, StepCounter()) if sequential else env
 
 
@@ -195,16 +242,22 @@ def _update(algo: Algorithm, K: int, zones: tuple[float, float, float, float]) -
 
 def run(cfg: HockeyConfig) -> dict[str, Any]:
     """Sequential or episodic HiREPS on the simulated robot hockey task; returns the summary."""
-    from environments.hockey import ENV_ID, EPISODIC_ENV_ID, HockeyParams, demo_action
+    from environments.hockey import ENV_ID, EPISODIC_ENV_ID, demo_action
     from hireps_torch.rollout import policy_module, time_indexed_module
 
     iterations = _check(cfg)
     # before any arithmetic (see experiments.workers); a warning only matters with workers
     reproducible_mkl(warn=cfg.workers > 1 or cfg.backend == "ray")
     sequential = isinstance(cfg, HockeySequentialConfig)
-    experiment = "hockey_sequential" if sequential else "hockey_episodic"
+    experiment = (
+        "hockey_fixed_start"
+        if isinstance(cfg, HockeyFixedStartConfig)
+        else "hockey_sequential"
+        if sequential
+        else "hockey_episodic"
+    )
     resume = resume_point(experiment, cfg)
-    params = HockeyParams()
+    params = hockey_params(cfg)
     demo = torch.as_tensor(demo_action(params), dtype=torch.float64)  # the initial mean
     torch.manual_seed(cfg.seed)
     algo = _make_algorithm(cfg, params.n_shots, demo)
@@ -219,7 +272,10 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     # the pool (worker processes, Ray) last, right before the loop that shuts it down
     collector = EpisodeCollector(
         make_pool(
-            partial(_make_env, env_id, sequential), cfg.workers, cfg.backend, cfg.ray_address
+            partial(_make_env, env_id, sequential, params),
+            cfg.workers,
+            cfg.backend,
+            cfg.ray_address,
         ),
         actor,
         seed=cfg.seed,

@@ -58,6 +58,7 @@ METRICS: dict[str, tuple[str, str]] = {
     "ball-on-beam": ("success_rate", "eval_return"),
     "hockey-sequential": ("final_average_reward", "average_reward"),
     "hockey-episodic": ("final_average_reward", "average_reward"),
+    "hockey-fixed-start": ("final_average_reward", "average_reward"),
 }
 """Per experiment: (the summary's final metric in the table, the metrics.csv curve column)."""
 

@@ -23,7 +23,11 @@ class HockeyParams:
         puck_restitution: restitution coefficient of the pucks and the blade (per body; Bullet
             multiplies the coefficients of the two bodies in contact).
         target_mean: mean (x, y) of the target puck at an episode's start (m).
-        target_std: std of the target puck's start in x and in y (m).
+        target_std: std of the target puck's start in x and in y (m; 0: a fixed start, the
+            real robot's setting of Fig 15b).
+        flat_pucks: pucks that cannot tip: their inertia about the horizontal axes is 1e4
+            times a solid cylinder's, so they slide and spin but stay flat (an idealised
+            puck: with the real inertia hard hits tip pucks and fast ones roll on their edge).
         zones: zone edges by distance from the robot base (m): zones 1 and 2 are
             [zones[k-1], zones[k]), zone 3 is [zones[2], zones[3]] (see ``zone_reward``).
         n_shots: shots per episode.
@@ -62,6 +66,7 @@ class HockeyParams:
     max_goal_velocity: float = 10.0
     min_blade_height: float = 0.0
     dmp_basis: int = 15
+    flat_pucks: bool = False
 
     def __post_init__(self) -> None:
         finite = math.isfinite
@@ -71,7 +76,6 @@ class HockeyParams:
                     "puck_radius",
                     "puck_height",
                     "puck_mass",
-                    "target_std",
                     "sim_dt",
                     "follow_through",
                     "shot_time_cap",
@@ -82,7 +86,7 @@ class HockeyParams:
                 lambda v: finite(v) and v > 0,
                 "must be finite and > 0",
             ),
-            (("floor_friction",), lambda v: finite(v) and v >= 0, "must be >= 0"),
+            (("floor_friction", "target_std"), lambda v: finite(v) and v >= 0, "must be >= 0"),
             (("puck_restitution",), lambda v: 0 <= v <= 1, "must be in [0, 1]"),
             (
                 ("position_gain", "velocity_gain"),
@@ -92,6 +96,8 @@ class HockeyParams:
             (("joint_margin",), lambda v: finite(v) and 0 <= v < 1.0, "must be in [0, 1) rad"),
             (("min_blade_height",), finite, "must be finite"),
         ]
+        if not isinstance(self.flat_pucks, bool):
+            raise TypeError(f"HockeyParams.flat_pucks must be a bool, got {self.flat_pucks!r}")
         if not isinstance(self.geometry, ArmGeometry):
             raise TypeError(
                 f"HockeyParams.geometry must be an ArmGeometry, got {type(self.geometry).__name__}"

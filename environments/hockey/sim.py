@@ -177,6 +177,12 @@ class HockeySim:
             angularDamping=0.0,
             physicsClientId=cid,
         )
+        if p.flat_pucks:  # see HockeyParams.flat_pucks
+            r, h, m = p.puck_radius, p.puck_height, p.puck_mass
+            tilt = 1e4 * m * (3 * r * r + h * h) / 12
+            pb.changeDynamics(
+                body, -1, localInertiaDiagonal=[tilt, tilt, m * r * r / 2], physicsClientId=cid
+            )
         return body
 
     def _zone_marks(self) -> None:

@@ -6,9 +6,12 @@
    30 per iteration, 5 options) for ``--seeds`` seeds each; per run the final average reward
    (mean episode reward over the last iteration's 30 samples), the share of those episodes
    ending in zone 3, and the wall time.
+   Also the real robot's setting (Fig 15b, ``train.py hockey-fixed-start``: a fixed start,
+   10 episodes per update, 300 episodes) for the same seeds.
 3. Writes to ``--out``: ``learning_curve.png`` (average reward per episode against episodes,
-   mean and ±1 std band over seeds, both variants), ``episode.png`` (a strip of frames of one
-   noise-free episode of the learned sequential policy, seed 0) and ``episode.gif``,
+   mean and ±1 std band over seeds, both variants), ``fig15b_fixed_start.png``,
+   ``episode.png`` (a strip of frames of one noise-free episode of the learned sequential
+   policy, seed 0) and ``episode.gif``,
    ``results.json`` and ``results.md``.
 
     OMP_NUM_THREADS=1 python benchmarks/hockey_learning.py [--seeds 5] [--episodes 1500]
@@ -74,17 +77,22 @@ def time_simulation(n_episodes: int) -> dict[str, float]:
     }
 
 
-def plot_curves(results: dict[str, list[dict[str, Any]]], out: Path) -> None:
+def plot_curves(
+    results: dict[str, list[dict[str, Any]]],
+    out: Path,
+    name: str = "learning_curve.png",
+    paper: tuple[float, str] = (2.3, "paper, sequential (2.3)"),
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for name, runs in results.items():
-        plot_band(ax, runs[0]["episodes_axis"], [r["curve"] for r in runs], name)
+    for label, runs in results.items():
+        plot_band(ax, runs[0]["episodes_axis"], [r["curve"] for r in runs], label)
     ax.axhline(3.0, color="k", lw=0.8, ls="--", label="optimum (3)")
-    ax.axhline(2.3, color="grey", lw=0.8, ls=":", label="paper, sequential (2.3)")
+    ax.axhline(paper[0], color="grey", lw=0.8, ls=":", label=paper[1])
     ax.set_xlabel("episodes")
     ax.set_ylabel("average reward per episode")
     n = len(next(iter(results.values())))
@@ -92,7 +100,7 @@ def plot_curves(results: dict[str, list[dict[str, Any]]], out: Path) -> None:
     ax.legend(fontsize=8, loc="lower right")
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    atomic_write(out / "learning_curve.png", lambda p: fig.savefig(p, format="png", dpi=110))
+    atomic_write(out / name, lambda p: fig.savefig(p, format="png", dpi=110))
     plt.close(fig)
 
 
@@ -171,14 +179,16 @@ def main() -> None:
         f"{1000 * timing['seconds_per_episode']:.1f} ms per 3-shot episode",
         flush=True,
     )
-    variants = {"sequential": "hockey-sequential", "episodic": "hockey-episodic"}
+    variants = {
+        "sequential": ("hockey-sequential", {"episodes": args.episodes}),
+        "episodic": ("hockey-episodic", {"episodes": args.episodes}),
+        "fixed-start": ("hockey-fixed-start", {}),  # Fig 15b: its own 300 episodes, 10 per update
+    }
     runs = sorted(
         (
             r
-            for name, experiment in variants.items()
-            for r in plan(
-                experiment, {name: {"episodes": args.episodes}}, range(args.seeds), out / "runs"
-            )
+            for name, (experiment, options) in variants.items()
+            for r in plan(experiment, {name: options}, range(args.seeds), out / "runs")
         ),
         key=lambda r: r.seed,
     )
@@ -227,7 +237,13 @@ def main() -> None:
         finals = [r["final_average_reward"] for r in runs]
         print(f"{name}: final average reward per seed " + ", ".join(f"{f:.2f}" for f in finals))
     print(f"all runs: {total:.0f} s")
-    plot_curves(results, out)
+    plot_curves({k: results[k] for k in ("sequential", "episodic")}, out)
+    plot_curves(
+        {"sequential, fixed start, 10 per update": results["fixed-start"]},
+        out,
+        "fig15b_fixed_start.png",
+        (2.5, "paper, real robot by 300 episodes (2.5)"),
+    )
     shown = record_episode(Path(results["sequential"][0]["run_dir"]), out)
     print(f"recorded episode (sequential, seed 0): {shown}")
     write_results(out, {"timing": timing, "runs": results, "episode": shown}, total, table)

@@ -60,6 +60,12 @@ class HockeyConfig(RunOptions):
     """Initial exploration std of the 7 DMP goal positions (rad)."""
     init_std_velocity: float = 0.3
     """Initial exploration std of the 7 DMP goal velocities (rad/s)."""
+    velocity_std_fraction: float = 0.0
+    """If > 0: each joint's goal-velocity std is this fraction of the demo shot's goal velocity
+    of that joint (exploration scaled to the joint's role), at least min_velocity_std;
+    replaces init_std_velocity."""
+    min_velocity_std: float = 0.05
+    """Smallest initial goal-velocity std (rad/s) with velocity_std_fraction."""
     min_variance: float = 1e-6
     """Smallest variance of any parameter (the per-parameter floor is the larger of this and
     the exploration floor)."""
@@ -131,14 +137,15 @@ def _hockey_rows(
     }
 
 
-def _exploration_std(cfg: HockeyConfig, repeats: int) -> torch.Tensor:
-    """(14 * repeats,) initial std: goal positions then goal velocities, per shot."""
-    std = torch.cat(
-        [
-            torch.full((7,), cfg.init_std_position, dtype=torch.float64),
-            torch.full((7,), cfg.init_std_velocity, dtype=torch.float64),
-        ]
-    )
+def _exploration_std(cfg: HockeyConfig, repeats: int, demo: torch.Tensor) -> torch.Tensor:
+    """(14 * repeats,) initial std: goal positions then goal velocities, per shot. With
+    ``velocity_std_fraction`` the goal velocities' std is that fraction of the demo's goal
+    velocity of each joint, at least ``min_velocity_std``."""
+    if cfg.velocity_std_fraction > 0:
+        velocity = (cfg.velocity_std_fraction * demo[7:14].abs()).clamp_min(cfg.min_velocity_std)
+    else:
+        velocity = torch.full((7,), cfg.init_std_velocity, dtype=torch.float64)
+    std = torch.cat([torch.full((7,), cfg.init_std_position, dtype=torch.float64), velocity])
     return std.repeat(repeats)
 
 
@@ -146,7 +153,7 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor) -> Algo
     """Time-indexed HiREPS with one 14-dim policy per shot, or episodic HiREPS over all
     3 x 14 numbers, both starting at the demonstration shot."""
     sequential = isinstance(cfg, HockeySequentialConfig)
-    std = _exploration_std(cfg, 1 if sequential else n_shots)
+    std = _exploration_std(cfg, 1 if sequential else n_shots, demo)
     common: dict[str, Any] = dict(
         n_options=cfg.n_options,
         init_std=std,
@@ -173,11 +180,12 @@ def _check(cfg: HockeyConfig) -> int:
         )
     check_options(
         cfg,
-        positive=("init_std_position", "init_std_velocity"),
+        positive=("init_std_position", "init_std_velocity", "min_velocity_std"),
         nonnegative=(
             "min_variance",
             "covariance_prior",
             "mean_prior",
+            "velocity_std_fraction",
             "start_std",
             "floor_friction",
             "puck_restitution",

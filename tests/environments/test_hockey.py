@@ -285,3 +285,20 @@ def test_the_run_options_reach_the_task_constants():
     preset = HockeyFixedStartConfig()  # paper Fig 15b: fixed start, 10 per update
     assert (preset.start_std, preset.episodes_per_iteration, preset.episodes) == (0.0, 10, 300)
     assert hockey_params(HockeySequentialConfig()) == HockeyParams()  # defaults unchanged
+
+
+def test_goal_velocity_exploration_scaled_to_each_joint():
+    """velocity_std_fraction: each joint's goal-velocity std follows the demo's goal velocity
+    of that joint (joints the demo keeps still get the minimum); 0 keeps one std for all."""
+    from environments.hockey import demo_action
+    from experiments.hockey import HockeySequentialConfig, _exploration_std
+
+    demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
+    cfg = HockeySequentialConfig(velocity_std_fraction=0.2, min_velocity_std=0.04)
+    std = _exploration_std(cfg, 2, demo)
+    expected = (0.2 * demo[7:].abs()).clamp_min(0.04)
+    assert torch.equal(std[7:14], expected) and torch.equal(std[21:28], expected)
+    assert torch.all(std[:7] == cfg.init_std_position)
+    assert std[7:14].max() > 3 * std[7:14].min()  # the wrist moves far faster than the base
+    plain = _exploration_std(HockeySequentialConfig(), 1, demo)
+    assert torch.all(plain[7:] == 0.3)

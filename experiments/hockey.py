@@ -93,12 +93,14 @@ class HockeyConfig(RunOptions):
     start_std: float = 0.1
     """Std (m) of the target puck's start in x and y (paper Fig 14: 10 cm; 0: a fixed
     start, the real robot's setting of Fig 15b)."""
-    puck_restitution: float = 0.7
-    """Restitution of the pucks and the blade (Bullet multiplies the two bodies' values)."""
-    floor_friction: float = 0.05
+    puck_restitution: float = 0.3
+    """Restitution of the pucks and the blade (Bullet multiplies the two bodies' values; the
+    spec sheet in environments/hockey/env.py says why 0.3)."""
+    floor_friction: float = 0.025
     """Puck-floor Coulomb friction (ice-like)."""
-    flat_pucks: bool = False
-    """Pucks that cannot tip or roll on their edge (HockeyParams.flat_pucks)."""
+    flat_pucks: bool = True
+    """Pucks that cannot tip or roll on their edge (HockeyParams.flat_pucks;
+    --no-flat-pucks: solid cylinders)."""
 
 
 @dataclass(frozen=True)

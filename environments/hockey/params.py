@@ -27,7 +27,8 @@ class HockeyParams:
             real robot's setting of Fig 15b).
         flat_pucks: pucks that cannot tip: their inertia about the horizontal axes is 1e4
             times a solid cylinder's, so they slide and spin but stay flat (an idealised
-            puck: with the real inertia hard hits tip pucks and fast ones roll on their edge).
+            puck: with the real inertia hard hits tip pucks and fast ones roll on their edge;
+            False gives the solid cylinder).
         zones: zone edges by distance from the robot base (m): zones 1 and 2 are
             [zones[k-1], zones[k]), zone 3 is [zones[2], zones[3]] (see ``zone_reward``).
         n_shots: shots per episode.
@@ -49,8 +50,8 @@ class HockeyParams:
     puck_radius: float = 0.038
     puck_height: float = 0.025
     puck_mass: float = 0.17
-    floor_friction: float = 0.05
-    puck_restitution: float = 0.7
+    floor_friction: float = 0.025
+    puck_restitution: float = 0.3
     target_mean: tuple[float, float] = (1.1, 0.0)
     target_std: float = 0.1
     zones: tuple[float, float, float, float] = (1.4, 1.8, 2.2, 2.6)
@@ -66,7 +67,7 @@ class HockeyParams:
     max_goal_velocity: float = 10.0
     min_blade_height: float = 0.0
     dmp_basis: int = 15
-    flat_pucks: bool = False
+    flat_pucks: bool = True
 
     def __post_init__(self) -> None:
         finite = math.isfinite

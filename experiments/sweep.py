@@ -34,8 +34,9 @@ from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
+import tyro
 from tqdm.auto import tqdm
 
 from experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
@@ -75,10 +76,11 @@ class SweepConfig:
     hockey-sequential, hockey-episodic)."""
     seeds: str = "0-4"
     """Seeds: a range 0-4, a list 0,3,7, or both 0-2,9."""
-    grid: tuple[str, ...] = ()
-    """OPTION=V1,V2,... (repeatable): every combination is one configuration."""
-    set: tuple[str, ...] = ()
-    """OPTION=VALUE (repeatable): fixed for every configuration."""
+    grid: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """OPTION=V1,V2,... (repeat --grid for more options): every combination is one
+    configuration."""
+    set: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """OPTION=VALUE (repeat --set for more options): fixed for every configuration."""
     out: Path = Path("runs/sweep")
     """Where the runs and the summary go (runs already there are reused or resumed)."""
     backend: Backend = "local"
@@ -147,7 +149,6 @@ def _split(entry: str, what: str) -> tuple[str, str]:
 def _typed(config_cls: type, assignments: Mapping[str, str]) -> dict[str, Any]:
     """Option strings -> typed values, parsed by tyro as the command line would parse them
     (so a sweep accepts exactly what ``train.py <experiment>`` accepts)."""
-    import tyro
 
     fields = {f.name for f in dataclasses.fields(config_cls)}
     for key in assignments:

@@ -248,3 +248,30 @@ def test_a_sweep_refuses_runs_with_other_options_and_unknown_leftovers(tmp_path)
     with pytest.raises(FileExistsError, match="holds files but no config.json"):
         run_sweep(leftover, progress=False)
     assert (leftover[0].run_dir / ".config.json.x.tmp").read_text() == "{"
+
+
+def test_repeated_set_and_grid_flags_all_count():
+    """``--set A --set B`` keeps both (a plain tuple option kept only the last one, which
+    silently dropped options from a sweep)."""
+    import train
+
+    cfg = train.parse(
+        [
+            "sweep",
+            "--experiment",
+            "hockey-sequential",
+            "--set",
+            "flat_pucks=false",
+            "--set",
+            "floor_friction=0.05",
+            "--grid",
+            "n_options=1,2",
+            "--grid",
+            "mean_prior=0,4",
+        ]
+    )
+    assert cfg.set == ("flat_pucks=false", "floor_friction=0.05")
+    assert cfg.grid == ("n_options=1,2", "mean_prior=0,4")
+    configs = parse_grid(cfg.experiment, cfg.grid, cfg.set)
+    assert len(configs) == 4
+    assert all(c["flat_pucks"] is False and c["floor_friction"] == 0.05 for c in configs.values())

@@ -21,9 +21,9 @@ Scene (:class:`~environments.hockey.sim.HockeySim`)
     than 0.2 m; pucks at ~5.4 m/s rolled on their edge for 14 m, an exploit rather than a
     shot), and hard hits tipped pucks (here: 2 of 30 swings up to 2.5x the demo's speed, one
     onto its edge). A fixed-start run (300 episodes,
-    10 per update, 3 seeds) ended at -0.97 +- 1.4 with the old contact and 0.78 +- 0.11 with
-    this one; the 10 cm-start sequential run (1500 episodes, 3 seeds) at -0.25 +- 0.46 and
-    0.46 +- 0.30.
+    10 per update, seeds 0-2) ended at -0.97 +- 1.4 with the old contact and 1.06 +- 0.36 with
+    this one (restitution 0.3 alone: 0.78 +- 0.11, flat pucks alone: 0.49 +- 1.4); the 10
+    cm-start sequential run (1500 episodes) at -0.25 +- 0.46 and 0.35 +- 0.16.
 
 Action (one per shot): 14 numbers, float64
     ``[g_1..g_7, gdot_1..gdot_7]``: the goal positions (rad) and goal velocities (rad/s) of the

@@ -8,8 +8,9 @@ serializable"), so each kind of task gets a small adapter over the collector's e
   generator. When the environments run on
   across iterations (``carry=True``), the collector's carried observation is set to the
   restored states too.
-- :class:`GymRngState`: gymnasium environments that restart every iteration (robot hockey):
-  the ``np_random`` generators that draw the start states.
+
+Robot hockey needs none: its episodes draw everything from (seed, episode index), see
+:mod:`experiments.workers`.
 
 With worker processes the environments live in other processes: their state is not saved,
 and a resumed run continues from fresh environment states (it warns that it is then not
@@ -24,7 +25,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["BatchedTaskState", "GymRngState"]
+__all__ = ["BatchedTaskState"]
 
 
 def _local_env(collector: Any) -> Any | None:
@@ -85,45 +86,3 @@ class BatchedTaskState:
             carrier.set("observation", task.state.to(carrier.get("observation").dtype))
             for key in ("done", "terminated", "truncated"):
                 carrier.set(key, torch.zeros_like(carrier.get(key)))
-
-
-def _gym_envs(collector: Any) -> list[Any]:
-    """The gymnasium environments (outermost unwrapped one and its ``inner`` env, if any)."""
-    env = _local_env(collector)
-    if env is None:
-        return []
-    env = getattr(env, "base_env", env)  # a TransformedEnv
-    gym_env = getattr(env, "_env", None)
-    if gym_env is None:
-        return []
-    out = [gym_env.unwrapped]
-    inner = getattr(gym_env.unwrapped, "inner", None)
-    if inner is not None:
-        out.append(inner)
-    return out
-
-
-class GymRngState:
-    """Adapter for gymnasium environments that are reset at every iteration."""
-
-    def __init__(self, collector: Any) -> None:
-        self.collector = collector
-
-    def state_dict(self) -> dict[str, Any] | None:
-        envs = _gym_envs(self.collector)
-        if not envs:
-            return None
-        return {"np_random": [e.np_random.bit_generator.state for e in envs]}
-
-    def load_state_dict(self, state: Mapping[str, Any] | None) -> None:
-        envs = _gym_envs(self.collector)
-        if not envs or state is None:
-            _warn_not_exact("environments' random generators")
-            return
-        saved = state["np_random"]
-        if len(saved) != len(envs):
-            raise ValueError(
-                f"the checkpoint holds {len(saved)} env generators, expected {len(envs)}"
-            )
-        for env, st in zip(envs, saved, strict=True):
-            env.np_random.bit_generator.state = st

@@ -50,6 +50,7 @@ COMPATIBLE ran 12% slower).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import multiprocessing
 import os
@@ -98,17 +99,33 @@ def _mkl_mode() -> int | None:
     return int(get(1))
 
 
+@contextlib.contextmanager
+def mkl_environment() -> Iterator[None]:
+    """``MKL_CBWR=COMPATIBLE`` in ``os.environ`` inside the block (unless the user chose a
+    mode), for processes started there; the environment is restored afterwards, so the
+    caller's later subprocesses are not affected."""
+    chosen = "MKL_CBWR" in os.environ
+    if not chosen:
+        os.environ["MKL_CBWR"] = MKL_MODE
+    try:
+        yield
+    finally:
+        if not chosen:
+            os.environ.pop("MKL_CBWR", None)
+
+
 def reproducible_mkl(warn: bool = True) -> bool:
-    """Put MKL in ``MKL_CBWR=COMPATIBLE`` (unless the user chose a mode), for this process and
-    the workers it starts. Returns whether this process runs in that mode; with ``warn``,
-    warns when MKL had already started in another mode (arithmetic before this call),
-    because episodes played here may then differ in the last bits from those played by
-    workers."""
-    os.environ.setdefault("MKL_CBWR", MKL_MODE)
-    a = torch.ones(4, 4, dtype=torch.float64)
-    _ = a @ a  # MKL reads MKL_CBWR at its first call
-    mode = _mkl_mode()
-    if mode is None or os.environ["MKL_CBWR"] != MKL_MODE:
+    """Put this process's MKL in ``MKL_CBWR=COMPATIBLE`` (unless the user chose a mode; MKL
+    reads the variable at its first call, so this works only before any arithmetic; the
+    environment is left as it was). Returns whether this process runs in that mode; with
+    ``warn``, warns when MKL had already started in another mode, because episodes played
+    here may then differ in the last bits from those played by workers."""
+    user_mode = os.environ.get("MKL_CBWR", MKL_MODE)
+    with mkl_environment():
+        a = torch.ones(4, 4, dtype=torch.float64)
+        _ = a @ a  # MKL reads MKL_CBWR at its first call
+        mode = _mkl_mode()
+    if mode is None or user_mode != MKL_MODE:
         return False
     if mode == 1:
         if not warn:
@@ -263,9 +280,6 @@ class LocalProcessPool:
 
     def _pool(self) -> ProcessPoolExecutor:
         if self._executor is None:
-            # a spawned worker starts MKL while it imports torch, before any initializer
-            # could run: it gets the reproducible mode through the environment it inherits
-            os.environ.setdefault("MKL_CBWR", MKL_MODE)
             self._executor = ProcessPoolExecutor(
                 self.workers, mp_context=multiprocessing.get_context("spawn")
             )
@@ -275,10 +289,13 @@ class LocalProcessPool:
         chunks = split_episodes(episodes, self.workers)
         for attempt in range(self.max_retries + 1):
             pool = self._pool()
-            futures: list[Future[TensorDictBase]] = [
-                pool.submit(_play_chunk, self.make_env, self.key, actor, seed, c, steps)
-                for c in chunks
-            ]
+            # workers spawn during submit; one starts MKL while it imports torch, before any
+            # initializer could run: it gets the reproducible mode from its environment
+            with mkl_environment():
+                futures: list[Future[TensorDictBase]] = [
+                    pool.submit(_play_chunk, self.make_env, self.key, actor, seed, c, steps)
+                    for c in chunks
+                ]
             try:
                 return torch.cat([f.result() for f in futures])
             except BrokenProcessPool:

@@ -347,3 +347,19 @@ def test_a_worker_killed_mid_iteration_loses_and_duplicates_no_episode(tmp_path,
     assert out.returncode == 0, out.stderr[-3000:]
     assert "EPISODES 6" in out.stdout
     _assert_ray_gone()
+
+
+def test_reproducible_mkl_leaves_the_environment_as_it_was(monkeypatch):
+    """A hockey run in a user's process must not change what its later subprocesses get."""
+    from experiments.workers import mkl_environment, reproducible_mkl
+
+    monkeypatch.delenv("MKL_CBWR", raising=False)
+    reproducible_mkl(warn=False)
+    assert "MKL_CBWR" not in os.environ
+    with mkl_environment():
+        assert os.environ["MKL_CBWR"] == "COMPATIBLE"
+    assert "MKL_CBWR" not in os.environ
+    monkeypatch.setenv("MKL_CBWR", "AVX2")
+    with mkl_environment():
+        assert os.environ["MKL_CBWR"] == "AVX2"  # the user's choice stands
+    assert reproducible_mkl(warn=False) is False and os.environ["MKL_CBWR"] == "AVX2"

@@ -293,6 +293,7 @@ def test_every_experiment_is_registered_with_its_config_and_run():
         "ball-on-beam",
         "hockey-sequential",
         "hockey-episodic",
+        "hockey-fixed-start",
     }
     for name, (config_cls, run) in EXPERIMENTS.items():
         cfg = config_cls()

@@ -73,7 +73,7 @@ class SweepConfig:
 
     experiment: str = "bimodal"
     """The experiment (a train.py subcommand: bimodal, pendulum, ball-on-beam,
-    hockey-sequential, hockey-episodic)."""
+    hockey-sequential, hockey-episodic, hockey-fixed-start)."""
     seeds: str = "0-4"
     """Seeds: a range 0-4, a list 0,3,7, or both 0-2,9."""
     grid: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -126,7 +127,10 @@ class FourierFeatures(FeatureMap):
 
         phi_c(x) = cos(pi c^T u),   c in {0, ..., n_bases - 1}^S,  c != 0,
 
-    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``; ``coupling = k`` keeps only
+    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``. ``n_bases`` may also give
+    one count per dimension, ``c_s in {0, ..., n_bases[s] - 1}`` (prod n_bases - 1 terms); a
+    count of 1 leaves that dimension out of the basis (the map still takes all S
+    dimensions); ``coupling = k`` keeps only
     the terms in which at most k dimensions have a non-zero frequency (k = 1: the
     ``S (n_bases - 1)`` uncoupled terms), for when there are few samples. Dimensions marked
     ``periodic`` (angles with period high - low) use the frequencies 2 pi k / (high - low)
@@ -137,7 +141,8 @@ class FourierFeatures(FeatureMap):
     Args:
         low: (S,) lower corner of the state box.
         high: (S,) upper corner, > low.
-        n_bases: frequencies per dimension, >= 2.
+        n_bases: frequencies per dimension, >= 2; or (S,) counts >= 1 per dimension, at
+            least one of them >= 2.
         periodic: (S,) bools, or None for none.
         coupling: most dimensions one term may couple, in 1..S; None: all (S).
     """
@@ -150,7 +155,7 @@ class FourierFeatures(FeatureMap):
         self,
         low: Tensor | list[float],
         high: Tensor | list[float],
-        n_bases: int = 5,
+        n_bases: int | Sequence[int] = 5,
         periodic: list[bool] | None = None,
         coupling: int | None = None,
     ):
@@ -167,18 +172,22 @@ class FourierFeatures(FeatureMap):
             raise ValueError(
                 f"need finite high > low elementwise with equal shapes, got {lo}, {hi}"
             )
-        n_bases = check_count("n_bases", n_bases, 2)
         S = lo.shape[0]
+        counts = _bases_per_dimension(n_bases, S)
         per = _periodic_flags(periodic, S)
         if coupling is not None and not 1 <= check_count("coupling", coupling, 1) <= S:
             raise ValueError(f"coupling must be in 1..{S} (or None), got {coupling}")
-        if n_bases**S > MAX_FOURIER_TERMS:
+        terms = math.prod(counts)
+        if terms > MAX_FOURIER_TERMS:
             raise ValueError(
-                f"n_bases ** S = {n_bases}^{S} = {n_bases**S:.3g} frequency vectors exceed "
+                f"n_bases ** S = {n_bases}^{S} = {terms:.3g} frequency vectors exceed "
+                f"{MAX_FOURIER_TERMS:.0e}: use fewer bases or fewer state dimensions"
+                if isinstance(n_bases, int)
+                else f"prod(n_bases) = {terms:.3g} frequency vectors (n_bases = {counts}) exceed "
                 f"{MAX_FOURIER_TERMS:.0e}: use fewer bases or fewer state dimensions"
             )
         coeffs = torch.tensor(
-            list(itertools.product(range(n_bases), repeat=S)), dtype=torch.float64
+            list(itertools.product(*(range(n) for n in counts))), dtype=torch.float64
         )
         if coupling is not None:  # the zero row (constant) stays first
             coeffs = coeffs[(coeffs != 0).sum(dim=1) <= coupling]
@@ -202,6 +211,28 @@ class FourierFeatures(FeatureMap):
 
 MAX_FOURIER_TERMS = 10**6
 """The largest n_bases ** S that :class:`FourierFeatures` enumerates (one row per frequency)."""
+
+
+def _bases_per_dimension(n_bases: object, S: int) -> list[int]:
+    """``n_bases`` (one count >= 2 for every dimension, or S counts >= 1 with one >= 2) as a
+    list of S counts; a bad count or a wrong number of them raises naming it."""
+    if not isinstance(n_bases, Sequence | np.ndarray | Tensor) or (
+        isinstance(n_bases, Tensor) and n_bases.dim() == 0
+    ):
+        return [check_count("n_bases", n_bases, 2)] * S
+    if isinstance(n_bases, str | bytes) or (
+        isinstance(n_bases, np.ndarray | Tensor) and n_bases.ndim != 1
+    ):
+        raise TypeError(
+            f"n_bases must be an integer >= 2 or {S} integers >= 1, got "
+            f"{type(n_bases).__name__} {n_bases!r:.60}"
+        )
+    counts = [check_count(f"n_bases[{k}]", n, 1) for k, n in enumerate(n_bases)]
+    if len(counts) != S:
+        raise ValueError(f"n_bases must have {S} entries (one per dimension), got {n_bases}")
+    if max(counts) < 2:
+        raise ValueError(f"at least one entry of n_bases must be >= 2, got {n_bases}")
+    return counts
 
 
 def _periodic_flags(periodic: object, S: int) -> list[bool]:

@@ -103,3 +103,42 @@ def test_feature_maps_check_widths_dtypes_and_arguments():
         FourierFeatures([0.0, 0.0], [1.0, 1.0], coupling=1.5)
     with pytest.raises(TypeError, match="in_features must be an integer"):
         QuadraticFeatures(2.0)
+
+
+def test_fourier_bases_per_dimension_leave_out_a_dimension_with_one_basis():
+    """(4, 4, 1) over 3-D states is the 4-basis map of the first two dimensions: the third
+    changes nothing, and the term count is 4 * 4 * 1 - 1."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(20, 3, generator=g, dtype=torch.float64)
+    three = FourierFeatures([-2.0] * 3, [2.0] * 3, n_bases=(4, 4, 1))
+    two = FourierFeatures([-2.0] * 2, [2.0] * 2, n_bases=4)
+    assert three.in_features == 3 and three.out_features == 15
+    torch.testing.assert_close(three(x), two(x[:, :2]), rtol=0, atol=0)
+    moved = x.clone()
+    moved[:, 2] += 1.0
+    torch.testing.assert_close(three(moved), three(x), rtol=0, atol=0)
+    mixed = FourierFeatures([0.0] * 2, [1.0] * 2, n_bases=(3, 2))
+    assert mixed.out_features == 3 * 2 - 1
+    assert {tuple(c) for c in mixed.coefficients.tolist()} == {
+        (0.0, 1.0),
+        (1.0, 0.0),
+        (1.0, 1.0),
+        (2.0, 0.0),
+        (2.0, 1.0),
+    }
+
+
+@pytest.mark.parametrize(
+    "bases, error, match",
+    [
+        ((1, 1, 1), ValueError, r"at least one entry of n_bases must be >= 2, got \(1, 1, 1\)"),
+        ((4, 4), ValueError, r"n_bases must have 3 entries .*got \(4, 4\)"),
+        ((4, 0, 1), ValueError, r"n_bases\[1\] must be >= 1, got 0"),
+        ((4, 2.0, 1), TypeError, r"n_bases\[1\] must be an integer, got float 2.0"),
+        ("44", TypeError, r"n_bases must be an integer >= 2 or 3 integers >= 1, got str '44'"),
+        (1, ValueError, r"n_bases must be >= 2, got 1"),
+    ],
+)
+def test_bad_bases_per_dimension_are_named(bases, error, match):
+    with pytest.raises(error, match=match):
+        FourierFeatures([0.0] * 3, [1.0] * 3, n_bases=bases)

@@ -905,7 +905,12 @@ OPTION_PROBES = [
         dict(episode_seconds=1e300),
         "episode_seconds .* must be at most 1e\\+06 decisions",
     ),
-    ("beam", dict(fourier_bases=1000), "fourier_bases .* in 2..100 .*got 1000"),
+    ("beam", dict(fourier_bases=1001), r"fourier_bases .* in 2..1000 \(2-D states\).*got 1001"),
+    (
+        "beam",
+        dict(fourier_bases=1000, value_beam_angle=True),
+        r"fourier_bases .* in 2..100 \(3-D states\).*got 1000",
+    ),
     ("beam", dict(fourier_coupling=4), r"fourier_coupling \(--fourier-coupling\) must be in 1..3"),
     ("beam", dict(eval_episodes=1.5), "eval_episodes .* must be an integer, got 1.5"),
     ("hockey", dict(exploration_floor="x"), "exploration_floor .* must be a number, got 'x'"),

@@ -377,3 +377,22 @@ def test_bad_option_values_are_named_before_anything_is_written(tmp_path, name, 
     with pytest.raises(ValueError, match=re.escape(message)):
         in_process(name, tmp_path, "r", **options)
     assert not (tmp_path / "r").exists()
+
+
+def test_ball_on_beam_value_features_couple_position_and_velocity_and_skip_the_angle():
+    """The default value features: 4 x 4 - 1 coupled Fourier terms of (x, x') that do not
+    change with the beam angle; ``value_beam_angle`` brings the angle in."""
+    from experiments.ball_on_beam import BallOnBeamConfig, value_features
+
+    phi = value_features(BallOnBeamConfig())
+    assert phi.in_features == 3 and phi.out_features == 15
+    s = torch.tensor([[0.2, 0.3, 0.0], [0.2, 0.3, 0.1], [-0.2, 0.3, 0.0], [0.2, -0.3, 0.0]])
+    f = phi(s)
+    torch.testing.assert_close(f[0], f[1], rtol=0, atol=0)  # the angle changes nothing
+    # a coupled term: the value can tell a ball rolling toward the centre from one rolling away
+    # even where the uncoupled terms of x and of x' agree (f(x, v) - f(-x, v) - f(x, -v) ...)
+    mixed = f[0] - f[2] - f[3] + phi(torch.tensor([[-0.2, -0.3, 0.0]]))[0]
+    assert float(mixed.abs().max()) > 0.1
+    with_angle = value_features(BallOnBeamConfig(value_beam_angle=True))
+    assert with_angle.out_features == 4**3 - 1
+    assert not torch.equal(with_angle(s)[0], with_angle(s)[1])

@@ -15,7 +15,9 @@
    - 18:  flat policy on the gating features vs 1 vs 5 options
 
 Writes ``results.json`` (every run's curve and summary), ``results.md`` (mean +- std of the
-final average return and the success rate per configuration) and one PNG per figure (mean
+final average return and the final success rate per configuration, the seeds that end with
+success >= 0.9, and per seed the episodes after which the noise-free policy first reached it,
+evaluated every 5 iterations) and one PNG per figure (mean
 curve with a +-1 std band) to ``--out``; prints the table, the wall time of each standard
 run and of the whole ablation.
 
@@ -132,6 +134,13 @@ def plot_figure(name: str, lines: list[tuple[str, str]], results: dict, out: Pat
     plt.close(fig)
 
 
+def _first(summary: dict[str, Any]) -> str:
+    """Episodes to the first evaluation with success >= 0.9 ('-': never; evaluations every
+    ``eval_every`` iterations of the run)."""
+    first = summary.get("episodes_to_success")
+    return "-" if first is None else str(first)
+
+
 # rough run time relative to the standard configuration, to start the slow runs first
 SLOWNESS = {"d1": 7.0, "d2": 2.7, "learned-10": 1.4}
 
@@ -166,7 +175,8 @@ def main() -> None:
     def report(run: SweepRun, summary: dict[str, Any]) -> None:
         print(
             f"  {run.name:<13} seed {run.seed}: final average return "
-            f"{summary['final_average_return']:7.1f}, success {summary['success_rate']:.2f}, "
+            f"{summary['final_average_return']:7.1f}, first success after "
+            f"{_first(summary):>5} episodes, final success {summary['success_rate']:.2f}, "
             f"{summary['wall_seconds']:.1f} s",
             flush=True,
         )
@@ -187,15 +197,16 @@ def main() -> None:
     results = {k: [done[(k, s)] for s in range(args.seeds)] for k in configs}
 
     lines = [
-        "| configuration | final average return | success rate | seeds with success >= 0.9 "
-        "| s/run |",
-        "|---|--:|--:|--:|--:|",
+        "| configuration | final average return | final success rate | seeds ending with "
+        "success >= 0.9 | first success >= 0.9 (episodes, per seed) | s/run |",
+        "|---|--:|--:|--:|---|--:|",
     ]
     for key, runs in results.items():
         succ = [r["success_rate"] for r in runs]
         lines.append(
             f"| {key} | {mean_std([r['final_average_return'] for r in runs])} | "
             f"{mean_std(succ)} | {sum(s >= 0.9 for s in succ)}/{len(succ)} | "
+            f"{', '.join(_first(r) for r in runs)} | "
             f"{statistics.mean(r['wall_seconds'] for r in runs):.1f} |"
         )
     table = "\n".join(lines)

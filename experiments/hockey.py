@@ -75,12 +75,13 @@ class HockeyConfig(RunOptions):
     covariance_prior: float = 0.0
     """Pseudo-samples of the prior that shrinks each option's refit covariance toward the
     previous one (0: plain weighted maximum likelihood)."""
-    mean_prior: float = 0.0
+    mean_prior: float = 4.0
     """Pseudo-samples of the Gaussian prior that holds each option's mean coefficients (bias
     and slopes on the target position, on centred and scaled features) near the previous ones
     (0: weighted least squares; see ``LinearGaussian``). An option fitted from 2-4 effective
     samples otherwise takes slopes that move its mean by many exploration stds across the
-    start distribution."""
+    start distribution; with the aim slopes it keeps the aim from being fitted away
+    (sequential, 5 seeds: 0.62 -> 1.11, benchmarks/README.md)."""
     workers: int = 1
     """Workers that play each iteration's episodes (1 with the local backend: in this
     process). Episode e draws its start and its noise from (seed, e) alone, so the result
@@ -101,6 +102,13 @@ class HockeyConfig(RunOptions):
     flat_pucks: bool = True
     """Pucks that cannot tip or roll on their edge (HockeyParams.flat_pucks;
     --no-flat-pucks: solid cylinders)."""
+    aim_slopes: bool = True
+    """Start every option's mean with the slopes of the kinematic aim mapping
+    (environments/hockey/aim.py): the demo swing turned about the control puck's spot toward
+    the observed target, linearised at the start distribution's mean; the options then aim
+    from the first iteration and learning refines the map (the demo shot misses a target
+    15 cm off its line; sequential, 5 seeds: 0.26 -> 0.62, benchmarks/README.md).
+    --no-aim-slopes: slopes start at zero (the demo shot wherever the target is)."""
 
 
 @dataclass(frozen=True)
@@ -151,9 +159,11 @@ def _exploration_std(cfg: HockeyConfig, repeats: int, demo: torch.Tensor) -> tor
     return std.repeat(repeats)
 
 
-def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor) -> Algorithm:
+def _make_algorithm(
+    cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params: Any
+) -> Algorithm:
     """Time-indexed HiREPS with one 14-dim policy per shot, or episodic HiREPS over all
-    3 x 14 numbers, both starting at the demonstration shot."""
+    3 x 14 numbers, both starting at the demonstration shot (aimed with ``aim_slopes``)."""
     sequential = isinstance(cfg, HockeySequentialConfig)
     std = _exploration_std(cfg, 1 if sequential else n_shots, demo)
     common: dict[str, Any] = dict(
@@ -166,11 +176,34 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor) -> Algo
         mean_prior=cfg.mean_prior,
         seed=cfg.seed,
     )
+    algo: Algorithm
     if sequential:
-        return TimeIndexedHiREPS.create(n_shots, 14, 2, init_mean=demo, **common)
-    return EpisodicHiREPS.create(
-        14 * n_shots, context_dim=2, init_mean=demo.repeat(n_shots), **common
-    )
+        algo = TimeIndexedHiREPS.create(n_shots, 14, 2, init_mean=demo, **common)
+    else:
+        algo = EpisodicHiREPS.create(
+            14 * n_shots, context_dim=2, init_mean=demo.repeat(n_shots), **common
+        )
+    if cfg.aim_slopes:
+        _aim_options(algo, demo, params)
+    return algo
+
+
+def _aim_options(algo: Algorithm, demo: torch.Tensor, params: Any) -> None:
+    """Give every option of every policy the aim mapping's slopes on the target position,
+    linearised at the start mean p0: mean = bias + W (p - p0), keeping each option's mean at
+    p0. A shot that hits the target sends it along the line from the control puck's spot, so
+    the later shots of an episode (and the episodic variant's 3 x 14 numbers, on the start
+    position) need the same turn: every shot gets the same W."""
+    from environments.hockey.aim import aim_slopes
+
+    p0 = torch.tensor(params.target_mean, dtype=torch.float64)
+    W = aim_slopes(demo, p0, params.geometry)  # (14, 2)
+    for policy in algo.policies:
+        slopes = W.repeat(policy.action_dim // 14, 1)
+        with torch.no_grad():
+            for option in policy.sub_policies:
+                option.weight.copy_(slopes)
+                option.bias.sub_(slopes @ p0)
 
 
 def _check(cfg: HockeyConfig) -> int:
@@ -270,7 +303,7 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     params = hockey_params(cfg)
     demo = torch.as_tensor(demo_action(params), dtype=torch.float64)  # the initial mean
     torch.manual_seed(cfg.seed)
-    algo = _make_algorithm(cfg, params.n_shots, demo)
+    algo = _make_algorithm(cfg, params.n_shots, demo, params)
     policies = list(algo.policies)
     K = len(policies)  # decision steps per episode: 3 shots, or 1 vector of 42 numbers
     env_id = ENV_ID if sequential else EPISODIC_ENV_ID

@@ -103,7 +103,12 @@ class PendulumConfig(RunOptions):
     workers: int = 1
     """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
     eval_rollouts: int = 50
-    """Noise-free evaluation rollouts (5 s each) at the end."""
+    """Noise-free evaluation rollouts (5 s each) at the end and every ``eval_every``
+    iterations."""
+    eval_every: int = 5
+    """Evaluate the noise-free policy every this many iterations (columns eval_success_rate
+    and eval_return, nan in the other rows; ~0.1 s each); the summary's episodes_to_success
+    is the first evaluation with success >= 0.9. 0: only at the end."""
 
 
 MAX_DECISIONS = 10**6
@@ -208,7 +213,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         cfg,
         counts=("eval_rollouts",),
         positive=("episode_seconds", "init_std", "max_velocity", "kp"),
-        nonnegative=("kd", "start_noise", "min_variance"),
+        nonnegative=("kd", "start_noise", "min_variance", "eval_every"),
     )
     check_fourier_bases(cfg, 2)
     B = cfg.episodes_per_iteration
@@ -239,14 +244,25 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
     n_opt = cfg.n_options if cfg.gating != "flat" else 1
     label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
     state = RunState(algo, env=BatchedTaskState(collector, carry=not cfg.reset_each_iteration))
+
+    def act(states: torch.Tensor) -> torch.Tensor:
+        return policy.mean_action(states)[0]
+
+    def evaluate() -> Any:
+        return evaluate_swing_up(act, params, n_rollouts=cfg.eval_rollouts, seed=cfg.seed + 777)
+
+    def row(r: torch.Tensor, _: torch.Tensor) -> dict[str, Any]:
+        out = {"average_return": float(r.mean()) / params.steps_per_decision}
+        due = cfg.eval_every > 0 and algo.iteration % cfg.eval_every == 0
+        ev = evaluate() if due else None
+        out["eval_success_rate"] = ev.success_rate if ev is not None else math.nan
+        out["eval_return"] = ev.average_return if ev is not None else math.nan
+        return out
+
     session = collector_loop(
         collector,
         lambda: Run("pendulum", cfg, state, resume),
-        infinite_horizon_update(
-            algo,
-            lambda r, _: {"average_return": float(r.mean()) / params.steps_per_decision},
-            mirror_decisions if cfg.mirror_samples else None,
-        ),
+        infinite_horizon_update(algo, row, mirror_decisions if cfg.mirror_samples else None),
         iterations=iterations,
         episodes_per_iteration=B,
         label=label,
@@ -255,10 +271,10 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         progress=cfg.progress,
     )
 
-    def act(states: torch.Tensor) -> torch.Tensor:
-        return policy.mean_action(states)[0]
-
-    ev = evaluate_swing_up(act, params, n_rollouts=cfg.eval_rollouts, seed=cfg.seed + 777)
+    ev = evaluate()
+    first_success = next(
+        (int(w["episodes"]) for w in session.rows if float(w["eval_success_rate"]) >= 0.9), None
+    )
     return finish_run(
         session,
         curve=("episodes", ["average_return"]),
@@ -274,6 +290,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
             "final_average_return": session.rows[-1]["average_return"],
             "final_return": ev.average_return,
             "success_rate": ev.success_rate,
+            "episodes_to_success": first_success,
             "time_to_upright": ev.time_to_upright,
             "reached_upright_share": ev.reached_share,
             "n_active_options": int(policy.active.sum()),

@@ -66,7 +66,7 @@ def _actor_and_env() -> tuple[object, object]:
 
     cfg = hockey.HockeySequentialConfig(n_options=2, episodes=4, episodes_per_iteration=2)
     demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
-    algo = hockey._make_algorithm(cfg, 3, demo)
+    algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
     return time_indexed_module(list(algo.policies)), hockey._make_env(ENV_ID, True)
 
 
@@ -103,7 +103,7 @@ HISTORY_SCRIPT = textwrap.dedent(
     cfg = hockey.HockeySequentialConfig()
     demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
     torch.manual_seed(0)
-    algo = hockey._make_algorithm(cfg, 3, demo)
+    algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
     actor = time_indexed_module(list(algo.policies))
     env = hockey._make_env(ENV_ID, True)
     s, a, r, _ = episodes(play_episodes(env, actor, 0, range(30), 3), 3)
@@ -316,7 +316,7 @@ KILL_SCRIPT = textwrap.dedent(
     if __name__ == "__main__":
         cfg = hockey.HockeySequentialConfig(n_options=2)
         demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
-        policies = list(hockey._make_algorithm(cfg, 3, demo).policies)
+        policies = list(hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg)).policies)
         dying = TensorDictModule(DieOnce(policies), ["observation", "step_count"],
                                  ["action", "option"])
         pool = make_pool(make_env, workers=2, backend=sys.argv[1])

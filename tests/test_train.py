@@ -396,3 +396,30 @@ def test_ball_on_beam_value_features_couple_position_and_velocity_and_skip_the_a
     with_angle = value_features(BallOnBeamConfig(value_beam_angle=True))
     assert with_angle.out_features == 4**3 - 1
     assert not torch.equal(with_angle(s)[0], with_angle(s)[1])
+
+
+def test_pendulum_evaluates_every_k_iterations_and_reports_the_first_success(tmp_path):
+    """eval_every = 2: evaluation columns filled on iterations 2 and 4 (nan elsewhere), equal
+    to an evaluation of the policy at that point (the last one to the summary's final
+    evaluation, same seed); episodes_to_success is the first row reaching 0.9, or None."""
+    import math
+
+    short = dict(episode_seconds=2.0, eval_rollouts=4, seed=1)
+    metrics, _ = run_in_process(tmp_path, "r", "pendulum", episodes=80, eval_every=2, **short)
+    rows = list(csv.DictReader(metrics.splitlines()))
+    assert [r["iteration"] for r in rows] == ["1", "2", "3", "4"]
+    for r in rows:
+        filled = int(r["iteration"]) % 2 == 0
+        assert math.isnan(float(r["eval_success_rate"])) != filled
+        assert math.isnan(float(r["eval_return"])) != filled
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert float(rows[-1]["eval_success_rate"]) == summary["success_rate"]
+    assert float(rows[-1]["eval_return"]) == summary["final_return"]
+    first = next((int(r["episodes"]) for r in rows if float(r["eval_success_rate"]) >= 0.9), None)
+    assert summary["episodes_to_success"] == first
+    # eval_every = 0: no evaluation during training, the columns stay nan
+    metrics0, _ = run_in_process(tmp_path, "r0", "pendulum", episodes=40, eval_every=0, **short)
+    rows0 = list(csv.DictReader(metrics0.splitlines()))
+    assert all(math.isnan(float(r["eval_success_rate"])) for r in rows0)
+    # the evaluations draw nothing from the training's random streams
+    assert [r["average_return"] for r in rows0] == [r["average_return"] for r in rows[:2]]

@@ -4,6 +4,7 @@
 ``robot`` extra) are only needed when an environment is created.
 """
 
+from environments.hockey.aim import aim_angle, aim_slopes, aimed_shot
 from environments.hockey.env import (
     ENV_ID,
     EPISODIC_ENV_ID,
@@ -26,6 +27,9 @@ __all__ = [
     "RobotHockeyEnv",
     "RobotHockeyEpisodicEnv",
     "ShotResult",
+    "aim_angle",
+    "aim_slopes",
+    "aimed_shot",
     "clip_action",
     "demo_action",
     "demonstration",

@@ -61,7 +61,8 @@ class BallOnBeamConfig(RunOptions):
     velocity depends on where the ball is (rolling toward the goal or away from it): with
     uncoupled terms (1) the value function cannot say so, every velocity looks costly and the
     learned velocity gain grows past the point where the 0.5 s decisions make the loop
-    oscillate (4 of 10 seeds kept success; see benchmarks/README.md)."""
+    oscillate (the old default, 5 uncoupled bases of (x, x', alpha): 4 of 10 seeds kept
+    success; see benchmarks/README.md)."""
     value_beam_angle: bool = False
     """Include the beam angle in the value features. Off: the servo (tau = 0.1 s) reaches the
     commanded angle within the first fifth of a decision, so the angle at a decision is the

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
@@ -80,8 +80,9 @@ class HockeyConfig(RunOptions):
     and slopes on the target position, on centred and scaled features) near the previous ones
     (0: weighted least squares; see ``LinearGaussian``). An option fitted from 2-4 effective
     samples otherwise takes slopes that move its mean by many exploration stds across the
-    start distribution; with the aim slopes it keeps the aim from being fitted away
-    (sequential, 5 seeds: 0.62 -> 1.11, benchmarks/README.md)."""
+    start distribution (with option_features = "aim": on the angle and distance); with the
+    aim slopes it keeps the aim from being fitted away (sequential, 5 seeds: 0.62 -> 1.11,
+    benchmarks/README.md)."""
     workers: int = 1
     """Workers that play each iteration's episodes (1 with the local backend: in this
     process). Episode e draws its start and its noise from (seed, e) alone, so the result
@@ -102,6 +103,10 @@ class HockeyConfig(RunOptions):
     flat_pucks: bool = True
     """Pucks that cannot tip or roll on their edge (HockeyParams.flat_pucks;
     --no-flat-pucks: solid cylinders)."""
+    option_features: Literal["position", "aim"] = "position"
+    """What the options are linear in: position, the target's (x, y); aim, its angle and
+    distance seen from the control puck's spot (environments/hockey/aim.py AimFeatures), so
+    that the aim slopes turn the shot by the right angle at any distance."""
     aim_slopes: bool = True
     """Start every option's mean with the slopes of the kinematic aim mapping
     (environments/hockey/aim.py): the demo swing turned about the control puck's spot toward
@@ -159,9 +164,7 @@ def _exploration_std(cfg: HockeyConfig, repeats: int, demo: torch.Tensor) -> tor
     return std.repeat(repeats)
 
 
-def _make_algorithm(
-    cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params: Any
-) -> Algorithm:
+def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params: Any) -> Algorithm:
     """Time-indexed HiREPS with one 14-dim policy per shot, or episodic HiREPS over all
     3 x 14 numbers, both starting at the demonstration shot (aimed with ``aim_slopes``)."""
     sequential = isinstance(cfg, HockeySequentialConfig)
@@ -176,6 +179,10 @@ def _make_algorithm(
         mean_prior=cfg.mean_prior,
         seed=cfg.seed,
     )
+    if cfg.option_features == "aim":
+        from environments.hockey.aim import AimFeatures
+
+        common["policy_features"] = AimFeatures(params.geometry)
     algo: Algorithm
     if sequential:
         algo = TimeIndexedHiREPS.create(n_shots, 14, 2, init_mean=demo, **common)
@@ -189,21 +196,35 @@ def _make_algorithm(
 
 
 def _aim_options(algo: Algorithm, demo: torch.Tensor, params: Any) -> None:
-    """Give every option of every policy the aim mapping's slopes on the target position,
-    linearised at the start mean p0: mean = bias + W (p - p0), keeping each option's mean at
-    p0. A shot that hits the target sends it along the line from the control puck's spot, so
-    the later shots of an episode (and the episodic variant's 3 x 14 numbers, on the start
-    position) need the same turn: every shot gets the same W."""
-    from environments.hockey.aim import aim_slopes
+    """Give every option of every policy the aim mapping's slopes, linearised at the start
+    mean p0: mean = bias + W (f(p) - f(p0)) on the options' features f (the target position,
+    or with ``option_features = "aim"`` its angle and distance, W then the turn's derivative
+    on the angle and 0 on the distance), keeping each option's mean at p0. A shot that hits
+    the target sends it along the line from the control puck's spot, so the later shots of an
+    episode (and the episodic variant's 3 x 14 numbers, on the start position) need the same
+    turn: every shot gets the same W."""
+    from environments.hockey.aim import AimFeatures, aim_slopes, turn_derivative
+    from hireps_torch.features import IdentityFeatures
 
-    p0 = torch.tensor(params.target_mean, dtype=torch.float64)
-    W = aim_slopes(demo, p0, params.geometry)  # (14, 2)
+    p0 = torch.tensor(params.target_mean, dtype=torch.float64)  # f0: its features
     for policy in algo.policies:
+        f0 = policy.policy_features(p0.reshape(1, 2))[0]
+        if isinstance(policy.policy_features, AimFeatures):
+            # linear in (angle, distance): the turn's derivative on the angle, none on distance
+            d = turn_derivative(demo, float(f0[0]), params.geometry)
+            W = torch.stack([d, torch.zeros_like(d)], dim=-1)
+        elif isinstance(policy.policy_features, IdentityFeatures):
+            W = aim_slopes(demo, p0, params.geometry)  # (14, 2) on (x, y)
+        else:  # pragma: no cover - the experiment builds only the two above
+            raise TypeError(
+                f"aim slopes need options on (x, y) or AimFeatures, got "
+                f"{type(policy.policy_features).__name__}"
+            )
         slopes = W.repeat(policy.action_dim // 14, 1)
         with torch.no_grad():
             for option in policy.sub_policies:
                 option.weight.copy_(slopes)
-                option.bias.sub_(slopes @ p0)
+                option.bias.sub_(slopes @ f0)
 
 
 def _check(cfg: HockeyConfig) -> int:

@@ -108,7 +108,8 @@ class PendulumConfig(RunOptions):
     eval_every: int = 5
     """Evaluate the noise-free policy every this many iterations (columns eval_success_rate
     and eval_return, nan in the other rows; ~0.1 s each); the summary's episodes_to_success
-    is the first evaluation with success >= 0.9. 0: only at the end."""
+    is the first evaluation with success >= 0.9 (the final one included; None: none). 0: only
+    at the end."""
 
 
 MAX_DECISIONS = 10**6
@@ -273,7 +274,8 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
 
     ev = evaluate()
     first_success = next(
-        (int(w["episodes"]) for w in session.rows if float(w["eval_success_rate"]) >= 0.9), None
+        (int(w["episodes"]) for w in session.rows if float(w["eval_success_rate"]) >= 0.9),
+        iterations * B if ev.success_rate >= 0.9 else None,  # seen first by the final one
     )
     return finish_run(
         session,

@@ -177,6 +177,8 @@ class RunWriter:
             step = int(clean.get("iteration", len(self.rows)))
             for key, value in clean.items():
                 if isinstance(value, (bool, int, float)) and key != "iteration":
+                    if isinstance(value, float) and math.isnan(value):
+                        continue  # not measured in this row (e.g. no evaluation)
                     self.logger.log_scalar(key, float(value), step=step)
 
     def checkpoint(self, state: Mapping[str, Any], name: str = "checkpoint.pt") -> None:

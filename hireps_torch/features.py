@@ -130,13 +130,12 @@ class FourierFeatures(FeatureMap):
     all couplings included: ``(..., S) -> (..., n_bases^S - 1)``. ``n_bases`` may also give
     one count per dimension, ``c_s in {0, ..., n_bases[s] - 1}`` (prod n_bases - 1 terms); a
     count of 1 leaves that dimension out of the basis (the map still takes all S
-    dimensions); ``coupling = k`` keeps only
-    the terms in which at most k dimensions have a non-zero frequency (k = 1: the
-    ``S (n_bases - 1)`` uncoupled terms), for when there are few samples. Dimensions marked
-    ``periodic`` (angles with period high - low) use the frequencies 2 pi k / (high - low)
-    instead and both cos and sin of every coupled phase, so the features are continuous across
-    the wrap: ``2 (n_bases^S - 1)`` features then. The constant c = 0 is left out (see the
-    module docstring). The paper's value functions use five bases.
+    dimensions); ``coupling = k`` keeps only the terms in which at most k dimensions have a
+    non-zero frequency (k = 1: the ``sum_s (n_bases[s] - 1)`` uncoupled terms), for when
+    there are few samples. Dimensions marked ``periodic`` (angles with period high - low) use
+    the frequencies 2 pi k / (high - low) instead and both cos and sin of every coupled
+    phase, so the features are continuous across the wrap: twice the terms then. The constant
+    c = 0 is left out (see the module docstring). The paper's value functions use five bases.
 
     Args:
         low: (S,) lower corner of the state box.
@@ -210,7 +209,8 @@ class FourierFeatures(FeatureMap):
 
 
 MAX_FOURIER_TERMS = 10**6
-"""The largest n_bases ** S that :class:`FourierFeatures` enumerates (one row per frequency)."""
+"""The most frequency vectors (n_bases ** S, or the product of the per-dimension counts) that
+:class:`FourierFeatures` enumerates (one row per frequency)."""
 
 
 def _bases_per_dimension(n_bases: object, S: int) -> list[int]:

@@ -417,9 +417,13 @@ def test_pendulum_evaluates_every_k_iterations_and_reports_the_first_success(tmp
     assert float(rows[-1]["eval_return"]) == summary["final_return"]
     first = next((int(r["episodes"]) for r in rows if float(r["eval_success_rate"]) >= 0.9), None)
     assert summary["episodes_to_success"] == first
-    # eval_every = 0: no evaluation during training, the columns stay nan
-    metrics0, _ = run_in_process(tmp_path, "r0", "pendulum", episodes=40, eval_every=0, **short)
-    rows0 = list(csv.DictReader(metrics0.splitlines()))
-    assert all(math.isnan(float(r["eval_success_rate"])) for r in rows0)
-    # the evaluations draw nothing from the training's random streams
-    assert [r["average_return"] for r in rows0] == [r["average_return"] for r in rows[:2]]
+    # eval_every = 0: no evaluation during training, the columns stay nan; and evaluating
+    # after every iteration (1) draws nothing from the training's random streams
+    runs = {}
+    for k in (0, 1):
+        text, _ = run_in_process(tmp_path, f"e{k}", "pendulum", episodes=80, eval_every=k, **short)
+        runs[k] = list(csv.DictReader(text.splitlines()))
+    assert all(math.isnan(float(r["eval_success_rate"])) for r in runs[0])
+    assert not any(math.isnan(float(r["eval_success_rate"])) for r in runs[1])
+    for key in ("average_return", "eta", "kl", "effective_sample_size"):
+        assert [r[key] for r in runs[0]] == [r[key] for r in runs[1]] == [r[key] for r in rows]

@@ -4,7 +4,13 @@
 ``robot`` extra) are only needed when an environment is created.
 """
 
-from environments.hockey.aim import aim_angle, aim_slopes, aimed_shot
+from environments.hockey.aim import (
+    AimFeatures,
+    aim_angle,
+    aim_slopes,
+    aimed_shot,
+    turn_derivative,
+)
 from environments.hockey.env import (
     ENV_ID,
     EPISODIC_ENV_ID,
@@ -19,6 +25,7 @@ from environments.hockey.sim import HockeySim, ShotResult, demo_action, shot_dmp
 
 __all__ = [
     "ENV_ID",
+    "AimFeatures",
     "EPISODIC_ENV_ID",
     "ArmGeometry",
     "ArmKinematics",
@@ -34,5 +41,6 @@ __all__ = [
     "demo_action",
     "demonstration",
     "shot_dmp",
+    "turn_derivative",
     "zone_reward",
 ]

@@ -106,8 +106,22 @@ def test_bad_aim_inputs_are_named(demo):
         aim_angle(torch.tensor([0.5, 0.1]))
     with pytest.raises(ValueError, match=r"target must have shape \(2,\)"):
         aim_slopes(demo, torch.tensor([1.1, 0.0, 0.0]))
-    with pytest.raises(ValueError, match="step must be finite and > 0, got 0"):
+    with pytest.raises(ValueError, match=r"step must be in \(0, 0.5\] rad, got 0"):
         aim_slopes(demo, torch.tensor([1.1, 0.0]), step=0)
+    with pytest.raises(ValueError, match=r"step must be in \(0, 0.5\] rad, got 5.0"):
+        aim_slopes(demo, torch.tensor([1.1, 0.0]), step=5.0)
+    with pytest.raises(TypeError, match="phi must be a number .*got the bool True"):
+        aimed_shot(demo, True)
+    with pytest.raises(ValueError, match=r"q must have shape \(7,\), got \(6,\)"):
+        blade_twist(demo[:6], demo[7:])
+    with pytest.raises(ValueError, match=r"qdot must have shape \(7,\)"):
+        blade_twist(demo[:7], demo[7:13])
+    with pytest.raises(RuntimeError, match="cannot be turned by phi = 3.0 rad"):
+        aimed_shot(demo, 3.0)
+    with pytest.raises(TypeError, match="geometry must be an ArmGeometry, got str"):
+        aim_angle(torch.tensor([1.1, 0.0]), "x")
+    with pytest.raises(ValueError, match="phi must be finite, got nan"):
+        rotation_z(float("nan"))
 
 
 @pytest.mark.parametrize("variant", ["sequential", "episodic"])
@@ -130,3 +144,42 @@ def test_aim_slopes_option_start_keeps_the_means_at_the_start_mean(demo, variant
             torch.testing.assert_close(o_aim.weight, W.repeat(a.action_dim // 14, 1))
             torch.testing.assert_close(o_aim.mean(p0), o_plain.mean(p0), rtol=0, atol=1e-12)
             assert float(o_plain.weight.abs().max()) == 0.0
+
+
+def test_aim_features_are_the_angle_and_distance_from_the_puck_spot():
+    from environments.hockey.aim import AimFeatures
+
+    f = AimFeatures(ArmGeometry())
+    p = torch.tensor([[1.1, 0.0], [1.2, 0.65], [0.55, -0.3]], dtype=torch.float64)
+    expected = torch.tensor(
+        [[0.0, 0.55], [math.atan2(0.65, 0.65), math.hypot(0.65, 0.65)], [-math.pi / 2, 0.3]],
+        dtype=torch.float64,
+    )
+    torch.testing.assert_close(f(p), expected)
+    with pytest.raises(ValueError, match=r"takes states of shape \(\.\.\., 2\)"):
+        f(torch.zeros(3, 3))
+
+
+def test_options_on_aim_features_turn_by_the_angle_at_any_distance(demo):
+    """option_features = "aim": each option's mean is the demo shot plus the turn's derivative
+    times the target's aim angle, the same first-order aim near the start mean and twice as
+    far out (where slopes on (x, y) fitted at the start mean over-turn)."""
+    from environments.hockey.aim import turn_derivative
+    from experiments import hockey
+
+    params = HockeyParams()
+    algo = hockey._make_algorithm(
+        hockey.HockeySequentialConfig(seed=2, option_features="aim"), 3, demo, params
+    )
+    plain = hockey._make_algorithm(
+        hockey.HockeySequentialConfig(seed=2, aim_slopes=False), 3, demo, params
+    )
+    d = turn_derivative(demo)
+    for x in (1.1, 1.65):
+        p = torch.tensor([[x, 0.1]], dtype=torch.float64)
+        phi = aim_angle(p[0])
+        for a, b in zip(algo.policies, plain.policies, strict=True):
+            for o_aim, o_plain in zip(a.sub_policies, b.sub_policies, strict=True):
+                expected = o_plain.mean(p)[0] + d * phi  # plain: the same bias, no slopes
+                aimed = o_aim.mean(a.policy_features(p))[0]
+                torch.testing.assert_close(aimed, expected, rtol=0, atol=1e-12)

@@ -103,10 +103,13 @@ class HockeyConfig(RunOptions):
     flat_pucks: bool = True
     """Pucks that cannot tip or roll on their edge (HockeyParams.flat_pucks;
     --no-flat-pucks: solid cylinders)."""
-    option_features: Literal["position", "aim"] = "position"
-    """What the options are linear in: position, the target's (x, y); aim, its angle and
-    distance seen from the control puck's spot (environments/hockey/aim.py AimFeatures), so
-    that the aim slopes turn the shot by the right angle at any distance."""
+    option_features: Literal["position", "aim"] = "aim"
+    """What the options are linear in: aim, the target's angle and distance seen from the
+    control puck's spot (environments/hockey/aim.py AimFeatures), so that the aim slopes turn
+    the shot by the right angle at any distance (a hit moves the target along the angle, out
+    in distance); position, its (x, y), where slopes fitted at the start mean over-turn for a
+    target further out (sequential, 5 seeds: 1.11 with position, 2.29 with aim;
+    benchmarks/README.md)."""
     aim_slopes: bool = True
     """Start every option's mean with the slopes of the kinematic aim mapping
     (environments/hockey/aim.py): the demo swing turned about the control puck's spot toward

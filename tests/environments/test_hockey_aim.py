@@ -126,9 +126,9 @@ def test_bad_aim_inputs_are_named(demo):
 
 @pytest.mark.parametrize("variant", ["sequential", "episodic"])
 def test_aim_slopes_option_start_keeps_the_means_at_the_start_mean(demo, variant):
-    """aim_slopes (the default): every option's slopes are the mapping's (stacked per shot),
-    and at the start mean every option's mean is what it is without them
-    (--no-aim-slopes)."""
+    """aim_slopes (the default) with options on (x, y): every option's slopes are the
+    mapping's (stacked per shot), and at the start mean every option's mean is what it is
+    without them (--no-aim-slopes)."""
     from experiments import hockey
 
     Config = (
@@ -137,8 +137,10 @@ def test_aim_slopes_option_start_keeps_the_means_at_the_start_mean(demo, variant
     params = HockeyParams()
     p0 = torch.tensor([params.target_mean], dtype=torch.float64)
     W = aim_slopes(demo, p0[0])
-    plain = hockey._make_algorithm(Config(seed=3, aim_slopes=False), 3, demo, params)
-    aimed = hockey._make_algorithm(Config(seed=3), 3, demo, params)  # the default
+    plain = hockey._make_algorithm(
+        Config(seed=3, aim_slopes=False, option_features="position"), 3, demo, params
+    )
+    aimed = hockey._make_algorithm(Config(seed=3, option_features="position"), 3, demo, params)
     for a, b in zip(plain.policies, aimed.policies, strict=True):
         for o_plain, o_aim in zip(a.sub_policies, b.sub_policies, strict=True):
             torch.testing.assert_close(o_aim.weight, W.repeat(a.action_dim // 14, 1))
@@ -161,16 +163,14 @@ def test_aim_features_are_the_angle_and_distance_from_the_puck_spot():
 
 
 def test_options_on_aim_features_turn_by_the_angle_at_any_distance(demo):
-    """option_features = "aim": each option's mean is the demo shot plus the turn's derivative
-    times the target's aim angle, the same first-order aim near the start mean and twice as
-    far out (where slopes on (x, y) fitted at the start mean over-turn)."""
+    """option_features = "aim" (the default): each option's mean is the demo shot plus the
+    turn's derivative times the target's aim angle, the same first-order aim near the start
+    mean and twice as far out (where slopes on (x, y) fitted at the start mean over-turn)."""
     from environments.hockey.aim import turn_derivative
     from experiments import hockey
 
     params = HockeyParams()
-    algo = hockey._make_algorithm(
-        hockey.HockeySequentialConfig(seed=2, option_features="aim"), 3, demo, params
-    )
+    algo = hockey._make_algorithm(hockey.HockeySequentialConfig(seed=2), 3, demo, params)
     plain = hockey._make_algorithm(
         hockey.HockeySequentialConfig(seed=2, aim_slopes=False), 3, demo, params
     )

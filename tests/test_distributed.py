@@ -106,16 +106,16 @@ HISTORY_SCRIPT = textwrap.dedent(
     algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
     actor = time_indexed_module(list(algo.policies))
     env = hockey._make_env(ENV_ID, True)
-    s, a, r, _ = episodes(play_episodes(env, actor, 0, range(30), 3), 3)
+    s, a, r, _ = episodes(play_episodes(env, actor, 0, range(12), 3), 3)
     algo.learn(Experience(states=s, actions=a, rewards=r))  # a policy that hits the pucks
-    first = play_episodes(env, actor, 0, range(30, 40), 3)
-    again = play_episodes(env, actor, 0, range(30, 40), 3)
-    later = play_episodes(env, actor, 0, [37, 38, 39], 3)
-    fresh = play_episodes(hockey._make_env(ENV_ID, True), actor, 0, [39], 3)
+    first = play_episodes(env, actor, 0, range(12, 18), 3)
+    again = play_episodes(env, actor, 0, range(12, 18), 3)
+    later = play_episodes(env, actor, 0, [15, 16, 17], 3)
+    fresh = play_episodes(hockey._make_env(ENV_ID, True), actor, 0, [17], 3)
     for key in ("observation", "action", ("next", "reward"), ("next", "observation")):
         assert torch.equal(first.get(key), again.get(key)), key
-        assert torch.equal(first[21:].get(key), later.get(key)), key
-        assert torch.equal(first[27:].get(key), fresh.get(key)), key
+        assert torch.equal(first[9:].get(key), later.get(key)), key
+        assert torch.equal(first[15:].get(key), fresh.get(key)), key
     assert not torch.equal(first[:3].get("observation"), first[3:6].get("observation"))
     print("SAME")
     """
@@ -123,7 +123,7 @@ HISTORY_SCRIPT = textwrap.dedent(
 
 
 def test_an_episode_is_the_same_whatever_else_the_worker_played(tmp_path):
-    """Episodes 30..39 of a learned policy played twice in a row, on their own after other
+    """Episodes 12..17 of a learned policy played twice in a row, on their own after other
     episodes, and on a fresh environment give the same steps, bit for bit: the environment
     carries nothing from one episode to the next (with reproducible MKL, see
     experiments.workers; without it these replays differed by up to 4e-3 rad)."""
@@ -240,7 +240,7 @@ def test_core_library_and_local_runs_work_without_ray(tmp_path):
     assert (tmp_path / "run" / "summary.json").is_file()
 
 
-TINY = ["--episodes", "36", "--episodes-per-iteration", "6", "--n-options", "2", "--no-progress"]
+TINY = ["--episodes", "12", "--episodes-per-iteration", "4", "--n-options", "2", "--no-progress"]
 
 
 @pytest.mark.slow
@@ -264,7 +264,7 @@ def test_two_ray_workers_write_the_same_metrics_as_one_local_worker(tmp_path):
         )
         assert out.returncode == 0, out.stderr[-3000:]
     ref = (tmp_path / "local1" / "metrics.csv").read_text()
-    assert len(ref.splitlines()) == 7  # header + 6 iterations
+    assert len(ref.splitlines()) == 4  # header + 3 iterations
     assert (tmp_path / "ray2" / "metrics.csv").read_text() == ref
     _assert_ray_gone()
 
@@ -321,14 +321,14 @@ KILL_SCRIPT = textwrap.dedent(
                                  ["action", "option"])
         pool = make_pool(make_env, workers=2, backend=sys.argv[1])
         try:
-            got = pool.play(dying, 5, range(6), 3)
+            got = pool.play(dying, 5, range(4), 3)
         finally:
             pool.close()
         assert os.path.exists(MARK), "no worker was killed"
         ref_pool = InProcessPool(make_env)
-        ref = ref_pool.play(time_indexed_module(policies), 5, range(6), 3)
+        ref = ref_pool.play(time_indexed_module(policies), 5, range(4), 3)
         ref_pool.close()
-        assert got.shape == ref.shape == (18,), (got.shape, ref.shape)
+        assert got.shape == ref.shape == (12,), (got.shape, ref.shape)
         for key in ("observation", "action", ("next", "reward"), ("next", "observation")):
             assert torch.equal(got.get(key), ref.get(key)), key
         print("EPISODES", got.shape[0] // 3)
@@ -345,7 +345,7 @@ def test_a_worker_killed_mid_iteration_loses_and_duplicates_no_episode(tmp_path,
     script.write_text(KILL_SCRIPT)
     out = _run([sys.executable, str(script), backend, str(tmp_path / "killed")])
     assert out.returncode == 0, out.stderr[-3000:]
-    assert "EPISODES 6" in out.stdout
+    assert "EPISODES 4" in out.stdout
     _assert_ray_gone()
 
 

@@ -120,7 +120,7 @@ CASES = {
     "bimodal": ({"episodes": 3000, "samples_per_iteration": 100}, 3),
     "pendulum": ({"episodes": 120, "episode_seconds": 2.0, "eval_rollouts": 1}, 2),
     "ball-on-beam": ({"episodes": 15, "eval_episodes": 2}, 2),
-    "hockey-sequential": ({"episodes": 24, "episodes_per_iteration": 4}, 2),
+    "hockey-sequential": ({"episodes": 12, "episodes_per_iteration": 3}, 2),
 }
 
 

@@ -216,7 +216,7 @@ def test_an_interrupted_sweep_finishes_on_ray_and_ends_as_an_uninterrupted_one(t
 
     assert rows(first / "metrics.csv") == rows(tmp_path / "ref" / "metrics.csv")
 
-    again = _sweep([*BEAM, "--out", str(out), "--backend", "ray", "--workers", "2"])
+    again = _sweep([*BEAM, "--out", str(out)])  # local backend: reuse needs no Ray
     assert again.returncode == 0 and '"reused": 4' in again.stdout
     deadline = time.monotonic() + 20
     while _ray_processes() and time.monotonic() < deadline:

@@ -188,12 +188,12 @@ def test_hockey_sequential_subprocess_writes_the_run_directory(tmp_path):
     run = tmp_path / "run"
     p = train(
         "hockey-sequential",
-        *("--episodes", "60"),  # two iterations of the paper's 30 episodes
+        *("--episodes", "40", "--episodes-per-iteration", "20"),  # two iterations
         *("--run-dir", str(run), "--no-progress"),
     )
     assert p.returncode == 0, p.stderr
     summary = check_run_dir(run, keys=("final_average_reward", "zone3_share"))
-    assert summary["experiment"] == "hockey_sequential" and summary["episodes"] == 60
+    assert summary["experiment"] == "hockey_sequential" and summary["episodes"] == 40
     assert 0.0 <= summary["zone3_share"] <= 1.0
     assert -10.0 < summary["final_average_reward"] <= 3.0
     rows = list(csv.DictReader((run / "metrics.csv").open()))
@@ -210,8 +210,8 @@ def test_hockey_same_seed_same_run(tmp_path):
 
     def run(name, cls, seed):
         cfg = cls(
-            episodes=10,
-            episodes_per_iteration=5,
+            episodes=6,
+            episodes_per_iteration=3,
             seed=seed,
             progress=False,
             run_dir=tmp_path / name,

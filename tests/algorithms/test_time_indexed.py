@@ -366,11 +366,11 @@ def test_too_few_episodes_for_the_chained_features_keep_the_kl_bound():
     # met; the solver must then relax them (warning) rather than let the weights collapse
     # onto one episode (KL = log 10 = 2.3 against epsilon = 1 before the fix). The KL bound
     # holds by construction, and a solve that is not converged says so with a warning.
-    # All 20 problems (before the final eta search, seeds 1, 4, 5, 6, 8 and 16 broke the
-    # bound: 1.03, 1.0008, 1.007, 1.07 on one CPU, 1.004, 1.004; 4, 7 and 16 stopped short
-    # without a warning).
+    # Before the final eta search, seeds 1, 4, 5, 6, 8 and 16 broke the bound (1.03, 1.0008,
+    # 1.007, 1.07 on one CPU, 1.004, 1.004) and 4, 7 and 16 stopped short without a warning;
+    # those seeds and seed 0 (each solve takes ~1 s: the ridge fallback re-solves).
     q = QuadraticFeatures(2)
-    for seed in range(20):
+    for seed in (0, 1, 4, 5, 6, 7, 8, 16):
         gen = torch.Generator().manual_seed(seed)
         s = torch.randn(10, 3, 2, generator=gen, dtype=torch.float64)
         s = s + torch.tensor([1.5, 0.0], dtype=torch.float64)

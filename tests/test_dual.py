@@ -44,13 +44,14 @@ def test_two_samples_closed_form():
 
 
 # ---- gradient vs finite differences ---------------------------------------------------------
-def make_problem(gen, K=2, N=40, O=3, P=4, xi_on=True):
-    R = torch.randn(K, N, generator=gen, dtype=torch.float64)
-    lr = torch.log_softmax(torch.randn(K, N, O, generator=gen, dtype=torch.float64), -1)
-    D = torch.randn(K, N, P, generator=gen, dtype=torch.float64) if P else None
-    c = torch.randn(P, generator=gen, dtype=torch.float64) if P else None
-    eps = torch.linspace(0.3, 0.7, K, dtype=torch.float64)
-    kap = torch.linspace(0.5, 0.6, K, dtype=torch.float64)
+def make_problem(gen, K=2, N=40, O=3, P=4, xi_on=True, S=2):
+    """S independent random problems (the population form DualProblem holds)."""
+    R = torch.randn(S, K, N, generator=gen, dtype=torch.float64)
+    lr = torch.log_softmax(torch.randn(S, K, N, O, generator=gen, dtype=torch.float64), -1)
+    D = torch.randn(S, K, N, P, generator=gen, dtype=torch.float64) if P else None
+    c = torch.randn(S, P, generator=gen, dtype=torch.float64) if P else None
+    eps = torch.linspace(0.3, 0.7, K, dtype=torch.float64).repeat(S, 1)
+    kap = torch.linspace(0.5, 0.6, K, dtype=torch.float64).repeat(S, 1)
     prob = DualProblem(R, D, c, lr, eps, kap)
     prob.xi_on[:] = xi_on
     return prob
@@ -58,16 +59,22 @@ def make_problem(gen, K=2, N=40, O=3, P=4, xi_on=True):
 
 @pytest.mark.parametrize("O,P,xi_on", [(1, 0, False), (3, 4, False), (3, 4, True), (2, 0, True)])
 def test_dual_gradient_matches_finite_differences(gen, O, P, xi_on):
+    # each problem's gradient is the derivative of its own dual (and of no other's)
     prob = make_problem(gen, O=O, P=P, xi_on=xi_on)
-    x = 0.5 * torch.randn(2 * prob.K + prob.P, generator=gen, dtype=torch.float64)
+    x = 0.5 * torch.randn(prob.S, 2 * prob.K + prob.P, generator=gen, dtype=torch.float64)
     _, grad = prob.value_and_grad(x)
     h = 1e-6
-    fd = torch.zeros_like(x)
-    for j in range(x.shape[0]):
-        e = torch.zeros_like(x)
-        e[j] = h
-        fd[j] = (prob.value_and_grad(x + e)[0] - prob.value_and_grad(x - e)[0]) / (2 * h)
-    assert torch.allclose(grad, fd, atol=1e-7, rtol=1e-6)
+    fd = torch.zeros(prob.S, *x.shape, dtype=torch.float64)  # d g_s / d x_tj
+    for t in range(prob.S):
+        for j in range(x.shape[1]):
+            e = torch.zeros_like(x)
+            e[t, j] = h
+            fd[:, t, j] = (prob.value_and_grad(x + e)[0] - prob.value_and_grad(x - e)[0]) / (2 * h)
+    own = torch.stack([fd[s, s] for s in range(prob.S)])
+    assert torch.allclose(grad, own, atol=1e-7, rtol=1e-6)
+    for s in range(prob.S):
+        others = torch.cat([fd[s, :s], fd[s, s + 1 :]])
+        assert float(others.abs().max()) == 0.0
 
 
 def test_curvature_matches_finite_difference_hessian_at_optimum(gen):
@@ -80,39 +87,39 @@ def test_curvature_matches_finite_difference_hessian_at_optimum(gen):
     Rs = (R - R.mean()) / (R - R.mean()).std()
     D = -(phi - phi.mean(0))[None]
     prob = DualProblem(
-        Rs[None],
-        D,
+        Rs[None, None],
+        D[None],
         None,
-        lr[None],
-        torch.tensor([0.5], dtype=torch.float64),
-        torch.tensor([0.6 * mean_entropy(lr)], dtype=torch.float64),
+        lr[None, None],
+        torch.tensor([[0.5]], dtype=torch.float64),
+        torch.tensor([[0.6 * mean_entropy(lr)]], dtype=torch.float64),
     )
     prob.xi_on[:] = True
     scale = float((R - R.mean()).std())
     x = torch.cat(
         [torch.tensor([math.log(sol.eta / scale), math.log(sol.xi / scale)]), sol.v / scale]
-    ).to(torch.float64)
+    ).to(torch.float64)[None]
     H = torch.zeros(4, 4, dtype=torch.float64)
     h = 1e-5
     for j in range(4):
-        e = torch.zeros(4, dtype=torch.float64)
-        e[j] = h
-        H[:, j] = (prob.value_and_grad(x + e)[1] - prob.value_and_grad(x - e)[1]) / (2 * h)
-    assert torch.allclose(prob.curvature(x), H, atol=1e-5, rtol=1e-4)
+        e = torch.zeros(1, 4, dtype=torch.float64)
+        e[0, j] = h
+        H[:, j] = (prob.value_and_grad(x + e)[1] - prob.value_and_grad(x - e)[1])[0] / (2 * h)
+    assert torch.allclose(prob.curvature(x)[0], H, atol=1e-5, rtol=1e-4)
 
 
 def test_dual_derivatives_are_the_constraint_residuals(gen):
     # dg/d(eta) = eps - KL and dg/d(xi) = kappa - cross-entropy: the optimum sits on the bounds.
-    prob = make_problem(gen, K=1, N=50, O=3, P=0)
-    x = torch.tensor([0.3, -0.5], dtype=torch.float64)
+    prob = make_problem(gen, K=1, N=50, O=3, P=0, S=1)
+    x = torch.tensor([[0.3, -0.5]], dtype=torch.float64)
     _, grad = prob.value_and_grad(x)
     w, _, _ = prob.weights(x)
     lr = prob.lr
     kl = float((w * (torch.log(w) - lr + math.log(50))).sum())
     ce = float(-(w * lr).sum())
     eta, xi = math.exp(0.3), math.exp(-0.5)
-    assert float(grad[0]) / eta == pytest.approx(float(prob.eps[0]) - kl, abs=1e-10)
-    assert float(grad[1]) / xi == pytest.approx(float(prob.kappa[0]) - ce, abs=1e-10)
+    assert float(grad[0, 0]) / eta == pytest.approx(float(prob.eps[0, 0]) - kl, abs=1e-10)
+    assert float(grad[0, 1]) / xi == pytest.approx(float(prob.kappa[0, 0]) - ce, abs=1e-10)
 
 
 # ---- constraint satisfaction ----------------------------------------------------------------

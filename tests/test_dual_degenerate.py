@@ -816,7 +816,8 @@ def test_a_numerically_failed_solve_keeps_the_old_distribution(monkeypatch):
     def broken(self):
         self.x = torch.full_like(self.x, math.nan)
         nan = torch.full_like(self.prob.lr, math.nan)
-        return block_solver._End(False, torch.tensor(math.nan, dtype=F64), nan), None
+        end = block_solver._End(torch.tensor([False]), torch.tensor([math.nan], dtype=F64), nan)
+        return end, [None]
 
     monkeypatch.setattr(block_solver.BlockSolver, "run", broken)
     gen = torch.Generator().manual_seed(27)

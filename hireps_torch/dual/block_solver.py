@@ -16,6 +16,13 @@ held at a floor (:func:`eta_floor`), lifted off it at every phase start if the K
 there (:meth:`BlockSolver.unstick`), and a solve that LBFGS leaves short of its tolerance gets
 Newton steps with the exact curvature (:meth:`BlockSolver.polish`). None of this changes a solve
 that LBFGS completes with every eta above its floor.
+
+The solver holds a population of S independent problems (:class:`DualProblem`): each phase
+runs one LBFGS call over the problems that need it, every decision (a KKT phase, a resumed
+LBFGS, the ridge fallback, Newton steps) is taken per problem, and a phase run for some
+problems leaves the others exactly as they were. A solve ends with Newton steps on every
+converged problem, which take its gradient from LBFGS's tolerance to round-off: a problem's
+solution then does not depend on which other problems shared the LBFGS call.
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ _LOG_ETA_FLOOR = -10.0  # eta_k >= e^-10 of block k's return spread: see eta_flo
 
 
 def eta_floor(st: Standardised) -> Tensor:
-    """(K,) lower clamp of log eta per block (standardised units): e^-10 of the block's own
+    """(S, K) lower clamp of log eta per block (standardised units): e^-10 of the block's own
     return spread, or of the common spread for a block whose returns do not vary (all 0, say),
     and never below ``LOG_ETA_MIN``.
 
@@ -48,7 +55,6 @@ def eta_floor(st: Standardised) -> Tensor:
     within float64's reach (at e^-30 it did not: such solves stalled with the constraints
     off) and the block's KL stays below epsilon.
     """
-    assert st.reward_spread is not None
     spread = st.reward_spread.clamp(max=1.0)
     rel = torch.where(spread > 1e-13, spread, torch.ones_like(spread))
     return (_LOG_ETA_FLOOR + rel.log()).clamp_min(LOG_ETA_MIN)
@@ -65,17 +71,23 @@ class LbfgsSettings:
     converged_grad: float = 1e-6
 
 
-class _End(NamedTuple):
-    """Where a solve ended: gradient tolerance met, dual value, weights (K, N, O)."""
+_REFINE_GRAD = 1e-13  # the Newton refinement's target (standardised gradient)
+_CHUNK = 25  # LBFGS iterations between re-whitenings (see BlockSolver.phase)
 
-    converged: bool
+
+class _End(NamedTuple):
+    """Where the solves ended: gradient tolerance met (S,), dual values (S,), weights
+    (S, K, N, O)."""
+
+    converged: Tensor
     value: Tensor
     weights: Tensor
 
 
 class _Whitened:
-    """The dual in the coordinates z of x = x0 + L^-T z (x = x0 + z when L is None), as the
-    closure LBFGS evaluates: with L L^T the curvature at x0 the Hessian in z is ~I there."""
+    """The duals in the coordinates z of x = x0 + L^-T z (x = x0 + z when L is None), as the
+    closure LBFGS evaluates (the sum of the S duals): with L L^T the curvature at x0 the
+    Hessian in z is ~I there."""
 
     def __init__(self, prob: DualProblem, x0: Tensor, L: Tensor | None) -> None:
         self.prob, self.x0, self.L = prob, x0, L
@@ -84,20 +96,23 @@ class _Whitened:
     def x(self) -> Tensor:
         if self.L is None:
             return self.x0 + self.z
-        step: Tensor = torch.linalg.solve_triangular(self.L.T, self.z[:, None], upper=True)
-        return self.x0 + step[:, 0]
+        step: Tensor = torch.linalg.solve_triangular(
+            self.L.transpose(1, 2), self.z[..., None], upper=True
+        )
+        return self.x0 + step[..., 0]
 
     def __call__(self) -> Tensor:
         g, grad = self.prob.value_and_grad(self.x())
         if self.L is not None:
-            grad = torch.linalg.solve_triangular(self.L, grad[:, None], upper=False)[:, 0]
+            grad = torch.linalg.solve_triangular(self.L, grad[..., None], upper=False)[..., 0]
         self.z.grad = grad
-        return g
+        return g.sum()
 
 
 class BlockSolver:
-    """LBFGS on one standardised problem; ``x`` holds the current point, ``iterations`` the
-    LBFGS iterations of all phases so far."""
+    """LBFGS on S standardised problems; ``x`` (S, n) holds the current points,
+    ``iterations`` the LBFGS iterations of all phases so far (shared LBFGS calls counted
+    once)."""
 
     def __init__(
         self,
@@ -107,70 +122,92 @@ class BlockSolver:
         kappa: Tensor,
         settings: LbfgsSettings,
     ) -> None:
-        self.bounded = torch.isfinite(kappa)  # blocks with an entropy bound
+        self.bounded = torch.isfinite(kappa)  # (S, K) blocks with an entropy bound
         kap = torch.where(self.bounded, kappa, 0.0)
         self.prob = DualProblem(st.returns, st.D, st.c, log_resp, eps, kap)
-        self.entropy_bound = self.prob.multi and bool(self.bounded.any())
+        self.entropy_bound = self.bounded.any(-1) & self.prob.multi  # (S,)
         self.settings = settings
         self.prob.log_eta_min = eta_floor(st)
         self.x = self.prob.start()
         self.iterations = 0
         self.informative = st.informative
-        if not st.informative:  # the projection solve: R = 0 and eta held at 1
-            self.prob.eta_on[:] = False
-            self.x[: self.prob.K] = 0.0
+        flat = ~st.informative  # the projection solve: R = 0 and eta held at 1
+        self.prob.eta_on[flat] = False
+        self.x[:, : self.prob.K] = torch.where(flat[:, None], 0.0, self.x[:, : self.prob.K])
+        g, _, P = self.prob.evaluate(self.x)
+        self.end = _End(torch.zeros_like(flat), g, P)
 
-    def old_distribution(self) -> _End | None:
-        """The old distribution q p~ (computed exactly) if it meets the entropy and feature
-        constraints, else None."""
+    def _set(self, mask: Tensor, converged: Tensor, value: Tensor, weights: Tensor) -> None:
+        """Overwrite the ends of the problems in ``mask`` (S,) (the arguments are (S, ...))."""
+        e = self.end
+        self.end = _End(
+            torch.where(mask, converged, e.converged),
+            torch.where(mask, value, e.value),
+            torch.where(mask[:, None, None, None], weights, e.weights),
+        )
+
+    def old_distribution(self) -> Tensor:
+        """(S,) the problems whose old distribution q p~ (computed exactly) meets the entropy
+        and feature constraints (their ends are set to it)."""
         prob, K = self.prob, self.prob.K
         w = prob.lr.exp() / prob.N
-        w = w / w.sum(dim=(1, 2), keepdim=True)
+        w = w / w.sum(dim=(-2, -1), keepdim=True)
         ce = block_cross_entropy(w, prob.lr)
-        if bool((self.bounded & (ce > prob.kappa + 1e-6)).any()):
-            return None
+        ok = ~(self.bounded & (ce > prob.kappa + 1e-6)).any(-1)
         g, grad, _ = prob.evaluate(self.x)  # x: v = 0, xi off
-        if prob.P and float(grad[2 * K :].abs().max()) > self.settings.converged_grad:
-            return None
-        return _End(True, g, w)
+        if prob.P:
+            ok &= grad[:, 2 * K :].abs().amax(-1) <= self.settings.converged_grad
+        self._set(ok, torch.ones_like(ok), g, w)
+        return ok
 
-    def run(self) -> tuple[_End, str | None]:
+    def run(self) -> tuple[_End, list[str | None]]:
         """Solve; relax the feature constraints to a penalty where they cannot be met (the
-        second item is then the warning text)."""
+        problem's text in the second item is then the warning)."""
         prob = self.prob
         x_start = self.x.clone()
-        old = None if self.informative else self.old_distribution()
-        if old is not None:
-            return old, None
-        end = self.solve()
+        texts: list[str | None] = [None] * prob.S
+        todo = ~self.informative
+        if bool(todo.any()):
+            todo = ~(todo & self.old_distribution())
+        else:
+            todo = torch.ones_like(todo)
+        if not bool(todo.any()):
+            return self.end, texts
+        self.solve(todo)
+        if not prob.P:
+            return self.end, texts
         # An unconverged solve that broke the KL bound ran off the same way, only more slowly
         # (the projection solve does not bound the KL: the safeguard after it does).
-        ran_off = self.informative and not end.converged and self.breaks_kl(end.weights)
-        conflict = bool(prob.P) and prob.shows_conflict(self.x, end.value)
-        if not (prob.P and (ran_off or conflict)):
-            return end, None
-        end, kl_kept = self.relax(x_start)
-        why = (
-            "the feature constraints cannot be met within the KL bound"
-            if conflict
-            else "the solve broke the KL bound before converging"
-        )
-        kept = (
-            "the KL bound is kept"
-            if kl_kept
-            else "the KL bound, still broken (far too few samples for the features?), is "
-            "enforced by raising eta"
-        )
-        text = (
-            f"{why} epsilon = {prob.eps.tolist()} (too few samples for the {prob.P} features?): "
-            f"they are relaxed to a quadratic penalty (ridge {prob.ridge:g} on the "
-            f"standardised value weights) and {kept}; see feature_error and kl"
-        )
-        return end._replace(converged=False), text
+        ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
+        conflict = prob.shows_conflict(self.x, self.end.value)
+        need = todo & (ran_off | conflict)
+        if not bool(need.any()):
+            return self.end, texts
+        kept = self.relax(x_start, need)
+        for s in need.nonzero().flatten().tolist():
+            why = (
+                "the feature constraints cannot be met within the KL bound"
+                if bool(conflict[s])
+                else "the solve broke the KL bound before converging"
+            )
+            how = (
+                "the KL bound is kept"
+                if bool(kept[s])
+                else "the KL bound, still broken (far too few samples for the features?), is "
+                "enforced by raising eta"
+            )
+            texts[s] = (
+                f"{why} epsilon = {prob.eps[s].tolist()} (too few samples for the {prob.P} "
+                f"features?): they are relaxed to a quadratic penalty (ridge "
+                f"{float(prob.ridge[s]):g} on the standardised value weights) and {how}; see "
+                "feature_error and kl"
+            )
+        self._set(need, torch.zeros_like(need), self.end.value, self.end.weights)
+        return self.end, texts
 
-    def relax(self, x_start: Tensor) -> tuple[_End, bool]:
-        """Re-solve from x_start with a ridge on v, stronger while the KL bound stays broken;
-        returns the last solve and whether it kept the KL bound.
+    def relax(self, x_start: Tensor, need: Tensor) -> Tensor:
+        """Re-solve the problems in ``need`` from x_start with a ridge on v, stronger while the
+        KL bound stays broken; returns (S,) whether each kept the KL bound.
 
         No distribution within the KL bound meets the feature constraints: either none at all
         does (c lies outside the convex hull of the rows of -D, typical of few samples against
@@ -180,168 +217,270 @@ class BlockSolver:
         closest distribution that meets them, can collapse onto a single sample and wreck the
         policy).
         """
+        pending, kept = need.clone(), torch.zeros_like(need)
         for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
-            self.prob.ridge = factor * _CONFLICT_RIDGE
-            self.x = x_start.clone()
-            end = self.solve()
-            if not self.breaks_kl(end.weights):
-                return end, True
-        return end, False
+            self.prob.ridge = torch.where(pending, factor * _CONFLICT_RIDGE, self.prob.ridge)
+            self.x = torch.where(pending[:, None], x_start, self.x)
+            self.solve(pending)
+            ok = pending & ~self.breaks_kl(self.end.weights)
+            kept |= ok
+            pending &= ~ok
+            if not bool(pending.any()):
+                break
+        return kept
 
-    def breaks_kl(self, w: Tensor) -> bool:
-        """Whether weights (K, N, O) exceed some block's KL bound (beyond round-off)."""
-        return bool((block_kl(w, self.prob.lr) > 1.01 * self.prob.eps + 1e-3).any())
+    def breaks_kl(self, w: Tensor) -> Tensor:
+        """(S,) whether weights (S, K, N, O) exceed some block's KL bound (beyond round-off)."""
+        return (block_kl(w, self.prob.lr) > 1.01 * self.prob.eps + 1e-3).any(-1)
 
-    def solve(self) -> _End:
-        """The LBFGS phases of one solve: the entropy bound's KKT phases, then up to two
-        resumes of a stalled LBFGS, then Newton steps if it still stopped short."""
-        end = self.entropy_kkt() if self.entropy_bound else self.phase()
+    def solve(self, mask: Tensor) -> None:
+        """The LBFGS phases of the problems in ``mask`` (S,): the entropy bound's KKT phases,
+        then up to two resumes of a stalled LBFGS, then Newton steps where it still stopped
+        short, and the Newton refinement of those that converged."""
+        kkt = mask & self.entropy_bound
+        if bool(kkt.any()):
+            self.entropy_kkt(kkt)
+        if bool((mask & ~kkt).any()):
+            self.phase(mask & ~kkt)
         for _ in range(2):
             # a stalled LBFGS (its preconditioner, the curvature at the phase's start, gone
             # stale) resumes with the curvature where it stopped
-            if end.converged or not bool(torch.isfinite(self.x).all()):
+            again = mask & ~self.end.converged & self._finite()
+            if not bool(again.any()):
                 break
-            end = self.phase()
-        if self.entropy_bound:
+            self.phase(again)
+        if bool(kkt.any()):
             # the log-space gradient hides a violated bound when xi ~0: check it directly
-            ce = block_cross_entropy(end.weights, self.prob.lr)
-            kap, bounded = self.prob.kappa, self.bounded
-            met = bool((ce[bounded] <= kap[bounded] + 1e-6).all())
-            end = end._replace(converged=end.converged and met)
-        if not end.converged and bool(torch.isfinite(self.x).all()):
-            end = self.polish(end)
-        return end
+            ce = block_cross_entropy(self.end.weights, self.prob.lr)
+            met = (~self.bounded | (ce <= self.prob.kappa + 1e-6)).all(-1)
+            e = self.end
+            self.end = e._replace(converged=torch.where(kkt, e.converged & met, e.converged))
+        short = mask & ~self.end.converged & self._finite()
+        if bool(short.any()):
+            self.polish(short)
+        done = mask & self.end.converged
+        if bool(done.any()):
+            self.newton(done, steps=2, target=_REFINE_GRAD)
 
-    def polish(self, end: _End, steps: int = 8) -> _End:
+    def _finite(self) -> Tensor:
+        """(S,) problems whose point and dual value are finite (the others ran off: the
+        ridge fallback of :meth:`run` takes them)."""
+        return torch.isfinite(self.x).all(-1) & torch.isfinite(self.end.value)
+
+    def polish(self, mask: Tensor, steps: int = 8) -> None:
         """Newton steps with the exact curvature (:meth:`DualProblem.curvature`, the Hessian
-        near the optimum) on the moving coordinates, each halved until it shrinks the merit
-        (largest gradient entry or entropy-bound excess). LBFGS stops where the dual is flat to
-        round-off in value but not yet in gradient (v-curvature ~1/eta with a block at its eta
-        floor, where xi is tiny too); Newton steps need only the gradient to be accurate. A
-        bound left violated first gets the xi that meets it (eta, v held)."""
+        near the optimum) on the moving coordinates of the problems in ``mask``, each halved
+        until it shrinks the merit (largest gradient entry or entropy-bound excess). LBFGS
+        stops where the dual is flat to round-off in value but not yet in gradient
+        (v-curvature ~1/eta with a block at its eta floor, where xi is tiny too); Newton steps
+        need only the gradient to be accurate. A bound left violated first gets the xi that
+        meets it (eta, v held). A problem that ends no better than LBFGS left it is put back."""
         prob, K = self.prob, self.prob.K
-        x0, merit0 = self.x.clone(), self._merit(prob.evaluate(self.x)[1], end.weights)
-        over = prob.xi_on & (self._excess(end.weights) > 0)
+        x0, end0 = self.x.clone(), self.end
+        merit0 = self._merit(prob.evaluate(self.x)[1], self.end.weights)
+        over = mask[:, None] & prob.xi_on & (self._excess(self.end.weights) > 0)
         if bool(over.any()):
             log_xi = prob.log_xi_meeting_bound(self.x)
-            self.x[K : 2 * K] = torch.where(over, log_xi, self.x[K : 2 * K])
+            self.x[:, K : 2 * K] = torch.where(over, log_xi, self.x[:, K : 2 * K])
         # an eta still sinking just above its floor (KL below epsilon) belongs there: hold it
         _, grad, _ = prob.evaluate(self.x)
-        sinking = prob.eta_free(self.x) & (grad[:K] > 0) & (self.x[:K] < prob.log_eta_min + 2.0)
-        self.x[:K] = torch.where(sinking, prob.log_eta_min, self.x[:K])
-        self.unstick()
+        low = self.x[:, :K] < prob.log_eta_min + 2.0
+        sinking = mask[:, None] & prob.eta_free(self.x) & (grad[:, :K] > 0) & low
+        self.x[:, :K] = torch.where(sinking, prob.log_eta_min, self.x[:, :K])
+        self.unstick(mask)
+        best = self.newton(mask, steps, self.settings.converged_grad)
+        worse = mask & (best > merit0)  # no better than LBFGS left it
+        self.x = torch.where(worse[:, None], x0, self.x)
+        e = self.end
+        self._set(mask & ~worse, best <= self.settings.converged_grad, e.value, e.weights)
+        self._set(worse, end0.converged, end0.value, end0.weights)
+
+    def newton(self, mask: Tensor, steps: int, target: float) -> Tensor:
+        """Up to ``steps`` damped Newton steps on the problems in ``mask`` (S,) until their
+        merit is at most ``target``; each step is halved until it shrinks the merit (a problem
+        whose step does not is left where it is). Returns the merits (S,); the ends of the
+        problems that moved are updated (their ``converged`` is left to the caller)."""
+        prob, K = self.prob, self.prob.K
         g, grad, P = prob.evaluate(self.x)
         best = self._merit(grad, P)
+        active = mask & torch.isfinite(self.x).all(-1)
         for _ in range(steps):
-            if best <= self.settings.converged_grad:
+            active &= best > target
+            if not bool(active.any()):
                 break
-            m = torch.cat([prob.eta_free(self.x), prob.xi_on & prob.multi, torch.ones(prob.P)])
-            m = m.bool()
+            moving = torch.cat(
+                [
+                    prob.eta_free(self.x),
+                    prob.xi_on & prob.multi,
+                    torch.ones(prob.S, prob.P, dtype=torch.bool, device=self.x.device),
+                ],
+                -1,
+            )
             H = prob.curvature(self.x, raw=True)
             # the exact Hessian in log eta, log xi adds the log-space gradient on the diagonal
-            H.diagonal()[: 2 * K] += grad[: 2 * K]
-            step = _newton_step(H[m][:, m], grad[m])
-            if step is None:
-                break
+            H.diagonal(dim1=1, dim2=2)[:, : 2 * K] += grad[:, : 2 * K]
+            step, ok = _newton_step(H, grad, moving)
+            active &= ok
+            improved = torch.zeros_like(active)
             for t in 0.5 ** torch.arange(10.0):
-                x = self.x.clone()
-                x[m] = x[m] + t * step
-                g_t, grad_t, P_t = prob.evaluate(x)
-                merit = self._merit(grad_t, P_t)
-                if merit < best:
-                    self.x, g, grad, P, best = x, g_t, grad_t, P_t, merit
+                trying = active & ~improved
+                if not bool(trying.any()):
                     break
-            else:
-                break
-        if best > merit0:  # no better than LBFGS left it
-            self.x = x0
-            return end
-        return _End(best <= self.settings.converged_grad, g, P)
+                x = torch.where(trying[:, None], self.x + float(t) * step, self.x)
+                g_t, grad_t, P_t = prob.evaluate(x)
+                acc = trying & (self._merit(grad_t, P_t) < best)
+                self.x = torch.where(acc[:, None], x, self.x)
+                g = torch.where(acc, g_t, g)
+                grad = torch.where(acc[:, None], grad_t, grad)
+                P = torch.where(acc[:, None, None, None], P_t, P)
+                best = torch.where(acc, self._merit(grad_t, P_t), best)
+                improved |= acc
+            active &= improved
+        self._set(mask, self.end.converged, g, P)
+        return best
 
     def _excess(self, P: Tensor) -> Tensor:
-        """(K,) how far each bounded block's cross-entropy exceeds kappa (<= 0: met)."""
+        """(S, K) how far each bounded block's cross-entropy exceeds kappa (<= 0: met)."""
         ce = block_cross_entropy(P, self.prob.lr)
         return torch.where(self.bounded, ce - self.prob.kappa, -1.0)
 
-    def _merit(self, grad: Tensor, P: Tensor) -> float:
-        """Largest gradient entry, or entropy-bound excess where the bound is on."""
-        excess = self._excess(P) if self.entropy_bound else grad.new_zeros(1)
-        return max(float(grad.abs().max()), float(excess.max()))
+    def _merit(self, grad: Tensor, P: Tensor) -> Tensor:
+        """(S,) largest gradient entry, or entropy-bound excess where the bound is on."""
+        m = grad.abs().amax(-1)
+        excess = self._excess(P).amax(-1)
+        return torch.where(self.entropy_bound, torch.maximum(m, excess), m)
 
-    def entropy_kkt(self) -> _End:
-        """KKT for xi >= 0: solve with xi free; where xi ends ~0 with the bound slack, switch
-        it off and re-solve (then xi = 0 exactly and the bound holds as inequality)."""
+    def entropy_kkt(self, mask: Tensor) -> None:
+        """KKT for xi >= 0 on the problems in ``mask``: solve with xi free; where xi ends ~0
+        with the bound slack, switch it off and re-solve (then xi = 0 exactly and the bound
+        holds as inequality)."""
         prob, K = self.prob, self.prob.K
-        prob.xi_on[:] = self.bounded
-        end = self.phase()
+        prob.xi_on = torch.where(mask[:, None], self.bounded, prob.xi_on)
+        self.phase(mask)
         for _ in range(3):
             # In log space the dual is nearly flat in xi below the xi that meets the bound (the
             # xi-gradient xi (kappa - CE) vanishes with xi): a line search can jump there and
             # LBFGS stops with xi ~0 and the bound violated. Restart from the xi that meets the
             # bound with the rest held fixed.
-            ce = block_cross_entropy(end.weights, prob.lr)
-            stuck = prob.xi_on & (ce > prob.kappa + 1e-6)
+            ce = block_cross_entropy(self.end.weights, prob.lr)
+            stuck = mask[:, None] & prob.xi_on & (ce > prob.kappa + 1e-6)
             if not bool(stuck.any()):
                 break
             log_xi = prob.log_xi_meeting_bound(self.x)
-            self.x[K : 2 * K] = torch.where(stuck, log_xi, self.x[K : 2 * K])
-            end = self.phase()
-        ce = block_cross_entropy(end.weights, prob.lr)
-        slack = (self.x[K : 2 * K].exp() < 1e-6) & (ce <= prob.kappa + 1e-9)
+            self.x[:, K : 2 * K] = torch.where(stuck, log_xi, self.x[:, K : 2 * K])
+            self.phase(stuck.any(-1))
+        # the bound is slack where the weights without xi (eta and v held) meet it: the KKT
+        # test that needs no threshold on xi, which LBFGS leaves anywhere below ~1e-5 when the
+        # bound is slack (its log-space gradient xi (kappa - CE) vanishes with xi)
+        _, eta, _, v = prob.unpack(self.x)
+        P0, _, _ = prob.weights_at(eta, torch.zeros_like(eta), v)
+        ce0 = block_cross_entropy(P0, prob.lr)
+        slack = mask[:, None] & prob.xi_on & (ce0 <= prob.kappa)
         if bool(slack.any()):
             prob.xi_on &= ~slack
-            end = self.phase()
-        return end
+            self.phase(slack.any(-1))
 
-    def unstick(self) -> None:
-        """Lift each eta held at its floor whose KL bound is broken there (the dual falls as
-        that eta grows, but the clamp hides its gradient) to where the KL meets epsilon."""
+    def unstick(self, mask: Tensor) -> None:
+        """Lift each eta of the problems in ``mask`` held at its floor whose KL bound is broken
+        there (the dual falls as that eta grows, but the clamp hides its gradient) to where the
+        KL meets epsilon."""
         prob, K = self.prob, self.prob.K
-        low = (self.x[:K] <= prob.log_eta_min) & prob.eta_on
-        if not bool(low.any()) or not bool(torch.isfinite(self.x).all()):
+        finite = torch.isfinite(self.x).all(-1)
+        low = (mask & finite)[:, None] & (self.x[:, :K] <= prob.log_eta_min) & prob.eta_on
+        if not bool(low.any()):
             return
-        _, eta, xi, v = prob.unpack(self.x)
+        _, eta, xi, v = prob.unpack(torch.where(finite[:, None], self.x, 0.0))
         lifted, moved = enforce_kl(prob, eta, xi, v)
-        self.x[:K] = torch.where(low & moved, lifted.log(), self.x[:K])
+        self.x[:, :K] = torch.where(low & moved, lifted.log(), self.x[:, :K])
 
-    def phase(self) -> _End:
-        """One LBFGS solve from x. With options, LBFGS runs in whitened coordinates (see
-        :class:`_Whitened`), which saves iterations: the xi direction is badly scaled against
-        eta and v otherwise (measured: with one option the plain problem is as well scaled)."""
-        self.unstick()
-        x0 = self.x.clone()
+    def phase(self, mask: Tensor) -> None:
+        """One LBFGS phase over the problems in ``mask`` (S,): at most ``max_iter`` iterations,
+        run as LBFGS calls of at most ``_CHUNK`` iterations, each on the problems not yet
+        converged and whitened by their curvature where it starts (see :class:`_Whitened`);
+        a call that stops on its own (converged, or stalled) ends the phase.
+
+        Re-whitening matters for a population: one LBFGS call over S problems shares its
+        history (20 pairs) among all of them, so it captures their curvature only while each
+        problem's Hessian in the whitened coordinates stays near I. Measured on 100 episodic
+        duals (N = 30, 3 options, entropy bound, 4 features): one call of 300 iterations left
+        all 100 short of the tolerance; calls of 25 re-whitened ones converged them all in
+        fewer iterations in total. A single problem that converges within 25 iterations is
+        solved exactly as before.
+        """
+        self.unstick(mask)
+        left, evals, todo = self.settings.max_iter, self.settings.max_iter * 5 // 4, mask.clone()
+        while True:  # torch's budgets for one call: max_iter iterations, 1.25 x evaluations
+            used, spent, stalled = self._lbfgs(todo, min(left, _CHUNK), min(evals, _CHUNK * 5 // 4))
+            left, evals = left - used, evals - spent
+            todo &= ~self.end.converged & self._finite()
+            if left <= 0 or evals <= 0 or stalled or not bool(todo.any()):
+                return
+
+    def _lbfgs(self, mask: Tensor, max_iter: int, max_eval: int) -> tuple[int, int, bool]:
+        """One LBFGS call from x over the problems in ``mask`` (S,); returns its iterations,
+        its evaluations and whether it stopped on its own (converged or stalled) before either
+        budget ran out.
+        With options, LBFGS runs in whitened coordinates (see :class:`_Whitened`), which saves
+        iterations: the xi direction is badly scaled against eta and v otherwise (measured:
+        with one option the plain problem is as well scaled)."""
+        every = bool(mask.all())
+        idx = mask.nonzero().flatten()
+        prob = self.prob if every else self.prob.take(idx)
+        x0 = self.x.clone() if every else self.x[idx]
         L: Tensor | None = None
-        if self.prob.multi:
-            try:
-                L = torch.linalg.cholesky(self.prob.curvature(x0))
-            except RuntimeError:
-                pass
-        objective = _Whitened(self.prob, x0, L)
+        if prob.multi:
+            L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
+            eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
+            L = torch.where((info == 0)[:, None, None], L, eye)  # no whitening where it fails
+        objective = _Whitened(prob, x0, L)
         opt = torch.optim.LBFGS(
             [objective.z],
             lr=1.0,
-            max_iter=self.settings.max_iter,
+            max_iter=max_iter,
+            max_eval=max_eval,
             tolerance_grad=self.settings.tolerance_grad,
             tolerance_change=1e-15,
             history_size=20,
             line_search_fn="strong_wolfe",
         )
-        opt.step(objective)  # type: ignore[no-untyped-call,unused-ignore]  # untyped in torch
-        self.iterations += int(opt.state[objective.z].get("n_iter", 0))
-        self.x = objective.x()
-        g, grad, P = self.prob.evaluate(self.x)
-        return _End(float(grad.abs().max()) <= self.settings.converged_grad, g, P)
+        try:
+            opt.step(objective)  # type: ignore[no-untyped-call,unused-ignore]  # untyped in torch
+        except IndexError:
+            # torch's strong-Wolfe search fails this way when the duals turn non-finite inside
+            # its bracket (a dual running off): the parameters are back where the search began
+            pass
+        state = opt.state[objective.z]
+        used, spent = int(state.get("n_iter", 0)), int(state.get("func_evals", 0))
+        stalled = used < max_iter and spent < max_eval
+        self.iterations += used
+        x = objective.x()
+        g, grad, P = prob.evaluate(x)
+        conv = grad.abs().amax(-1) <= self.settings.converged_grad
+        if every:
+            self.x = x
+            self._set(mask, conv, g, P)
+            return used, spent, stalled
+        self.x[idx] = x
+        e = self.end
+        cs, gs, ws = e.converged.clone(), e.value.clone(), e.weights.clone()
+        cs[idx], gs[idx], ws[idx] = conv, g, P
+        self.end = _End(cs, gs, ws)
+        return used, spent, stalled
 
 
-def _newton_step(H: Tensor, grad: Tensor) -> Tensor | None:
-    """-H^-1 grad with H scaled to unit diagonal first (the curvature of a block held near its
-    eta floor is tiny, not flat); None where H is singular."""
-    d = H.diagonal()
+def _newton_step(H: Tensor, grad: Tensor, moving: Tensor) -> tuple[Tensor, Tensor]:
+    """(-H^-1 grad on the ``moving`` coordinates, 0 elsewhere (S, n); (S,) whether H was
+    regular) for Hessians H (S, n, n), scaled to unit diagonal first (the curvature of a block
+    held near its eta floor is tiny, not flat)."""
+    n = H.shape[-1]
+    eye = torch.eye(n, dtype=H.dtype, device=H.device)
+    both = moving[:, :, None] & moving[:, None, :]
+    Hm = torch.where(both, H, eye)
+    g = torch.where(moving, grad, 0.0)
+    d = Hm.diagonal(dim1=1, dim2=2)
     scale = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
-    Hs = scale[:, None] * H * scale[None, :]
-    Hs = Hs + 1e-12 * torch.eye(Hs.shape[0], dtype=Hs.dtype)
-    try:
-        step: Tensor = -scale * torch.linalg.solve(Hs, scale * grad)
-    except RuntimeError:
-        return None
-    return step
+    Hs = scale[:, :, None] * Hm * scale[:, None, :] + 1e-12 * eye
+    sol, info = torch.linalg.solve_ex(Hs, (scale * g)[..., None])
+    ok = (info == 0) & torch.isfinite(sol).all(dim=(1, 2))
+    step = torch.where(ok[:, None], -scale * sol[..., 0], 0.0)
+    return torch.where(moving, step, 0.0), ok

@@ -11,6 +11,9 @@ the constraints they carry hold for every distribution or for none (``fixed_resi
 This keeps the problem well conditioned when the features explain most of the returns (a
 converging policy) and when they are nearly collinear.
 
+Every quantity is per problem of a population of S independent duals (leading dimension S):
+one problem's conditioning never depends on another's.
+
 Why both matter: scaled by the returns, eta is ~1e-5 once the features explain most of them and
 the v-curvature ~1/eta, and collinear features (phi = [s, s^2] with s in a narrow range) or
 blocks with very different eta make it ill-conditioned besides; LBFGS then stalls or runs off.
@@ -45,28 +48,31 @@ _INFORMATIVE_RTOL = 1e-13  # Bellman residual spread below this of the returns: 
 
 @dataclass(frozen=True)
 class Standardised:
-    """A K-block dual in standardised units: v = v0 + scale * T u, and the solver sees
+    """S K-block duals in standardised units: v = v0 + scale * T u, and the solver sees
 
         R_s = (R + D v0 - offset) / scale,    D_s = D T,    c_s = T^T c.
 
     Attributes:
-        residuals: (K, N) Bellman errors at v0, centred per block (R_s times ``scale``).
-        D: (K, N, Q) whitened features D_s (Q <= P identified directions), or None without
-            features or when no direction is identified.
-        c: (Q,) whitened linear term c_s, or None.
-        v0: (P,) value start in the caller's feature units.
-        T: (P, Q) whitening map, or None without features.
-        offset: (K, 1) the block means taken out of the Bellman errors.
-        scale: their common spread.
-        informative: whether the returns carry information beyond what the features fix
+        residuals: (S, K, N) Bellman errors at v0, centred per block (R_s times ``scale``).
+        D: (S, K, N, P) whitened features D_s, or None without features. Directions a
+            problem's samples do not identify are zero columns of its D_s (u is inert along
+            them).
+        c: (S, P) whitened linear term c_s, or None.
+        v0: (S, P) value start in the caller's feature units.
+        T: (S, P, P) whitening map, or None without features.
+        offset: (S, K, 1) the block means taken out of the Bellman errors.
+        scale: (S,) the common spread of each problem's Bellman errors.
+        informative: (S,) whether the returns carry information beyond what the features fix
             (``scale`` above 1e-13 of the largest |return|, i.e. above round-off); if not, the
             solver looks for the closest distribution that meets the constraints.
-        level: what the centring took out of the dual value (caller's units).
-        dropped: feature directions without spread in the samples (a constant column, all-zero
-            or collinear features), left out of the solve: v along them is unidentifiable.
-        fixed_residual: the constraint residual along the dropped directions, relative to the
-            size of its terms; it does not depend on the weights (0: met by every distribution).
-        reward_spread: (K,) spread of each block's returns (before v0) over ``scale``: the
+        level: (S,) what the centring took out of the dual value (caller's units).
+        dropped: (S,) feature directions without spread in the samples (a constant column,
+            all-zero or collinear features), left out of the solve: v is unidentifiable along
+            them.
+        fixed_residual: (S,) the constraint residual along the dropped directions, relative to
+            the size of its terms; it does not depend on the weights (0: met by every
+            distribution).
+        reward_spread: (S, K) spread of each block's returns (before v0) over ``scale``: the
             temperature scale of a block whose returns vary, 0 for one whose returns do not.
     """
 
@@ -76,69 +82,76 @@ class Standardised:
     v0: Tensor
     T: Tensor | None
     offset: Tensor
-    scale: float
-    informative: bool
-    level: float
-    dropped: int = 0
-    fixed_residual: float = 0.0
-    reward_spread: Tensor | None = None
+    scale: Tensor
+    informative: Tensor
+    level: Tensor
+    dropped: Tensor
+    fixed_residual: Tensor
+    reward_spread: Tensor
 
     @property
     def returns(self) -> Tensor:
-        """(K, N) standardised returns R_s (zeros when the returns carry no information)."""
-        if not self.informative:
-            return torch.zeros_like(self.residuals)
-        return self.residuals / self.scale
+        """(S, K, N) standardised returns R_s (zeros where the returns carry no
+        information)."""
+        r = self.residuals / self.scale[:, None, None]
+        return torch.where(self.informative[:, None, None], r, torch.zeros_like(r))
 
     def value(self, u: Tensor) -> Tensor:
-        """The caller's v (P,) of the standardised u."""
-        return self.v0 + self.scale * (self.T @ u) if self.T is not None else u.clone()
+        """The caller's v (S, P) of the standardised u (S, P)."""
+        if self.T is None:
+            return u.clone()
+        return self.v0 + self.scale[:, None] * torch.einsum("spq,sq->sp", self.T, u)
 
-    def dual_value(self, g: Tensor) -> float:
-        """The caller's dual value of the standardised one: every term scales with the return
-        scale; the centring adds back the block means."""
-        return float(g) * self.scale + self.level
+    def dual_value(self, g: Tensor) -> Tensor:
+        """The caller's dual values (S,) of the standardised ones: every term scales with the
+        return scale; the centring adds back the block means."""
+        return g * self.scale + self.level
 
 
 def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> Standardised:
-    """Standardise the dual of returns R (K, N), features D (K, N, P), linear term c (P,) and
-    KL bounds eps (K,) (all float64).
+    """Standardise S duals of returns R (S, K, N), features D (S, K, N, P), linear terms c
+    (S, P) and KL bounds eps (S, K) (all float64), each problem on its own.
 
-    The returns are centred per block and divided by one common spread (the blocks are coupled
-    through v). v0 is the small-epsilon solution (without c; see :func:`value_start`) and T
-    whitens the curvature of the dual in v at the start, sum_k Cov(D_k) / eta_k, on the
-    directions the centred features identify (:func:`identified_basis`; the others are dropped).
+    The returns are centred per block and divided by one common spread per problem (the
+    blocks are coupled through v). v0 is the small-epsilon solution (without c; see
+    :func:`value_start`) and T whitens the curvature of the dual in v at the start,
+    sum_k Cov(D_k) / eta_k, on the directions the centred features identify
+    (:func:`identified_basis`; the others are dropped).
     """
-    K, N = R.shape
-    resid = R - R.mean(dim=1, keepdim=True)
+    S, K, N = R.shape
+    resid = R - R.mean(dim=-1, keepdim=True)
     T = None  # v = v0 + scale * T u (v0 and T in the caller's feature units)
     Ds = cs = None
-    v0 = torch.zeros(0 if D is None else D.shape[-1], dtype=torch.float64)
-    magnitude = float(R.abs().max())
-    floor = _SPREAD_RTOL * magnitude if magnitude > 0 else 1.0
-    dropped, fixed = 0, 0.0
-    if D is not None and D.shape[-1] > 0:
-        col = column_scales(D)
-        Dc = (D - D.mean(dim=1, keepdim=True)) / col  # per-block centred, unit columns
+    P = 0 if D is None else D.shape[-1]
+    v0 = R.new_zeros(S, P)
+    magnitude = R.abs().amax(dim=(1, 2))
+    floor = torch.where(magnitude > 0, _SPREAD_RTOL * magnitude, torch.ones_like(magnitude))
+    dropped = torch.zeros(S, dtype=torch.long, device=R.device)
+    fixed = R.new_zeros(S)
+    if D is not None and P > 0:
+        col = column_scales(D)  # (S, P)
+        Dc = (D - D.mean(dim=2, keepdim=True)) / col[:, None, None, :]
         B = identified_basis(Dc)
-        Dr = Dc if B is None else Dc @ B
+        Dr = Dc if B is None else Dc @ B[:, None]
         if c is None:
             y = value_start(resid, Dr, eps, floor)
-            v0 = (y if B is None else B @ y) / col
-            resid = resid + D @ v0
+            v0 = (y if B is None else torch.einsum("spq,sq->sp", B, y)) / col
+            resid = resid + torch.einsum("sknp,sp->skn", D, v0)
         # block weights 1 / eta_k at the start (KL ≈ Var(delta_k) / (2 eta_k^2) = eps_k)
-        spread = (resid - resid.mean(dim=1, keepdim=True)).std(dim=1).clamp_min(floor)
+        spread = (resid - resid.mean(dim=-1, keepdim=True)).std(dim=-1)
+        spread = torch.maximum(spread, floor[:, None])
         weight = (2.0 * eps).sqrt() / spread
-        Tr = whitening(Dr, weight / weight.max())
-        T = (Tr if B is None else B @ Tr) / col[:, None]
-        if T.shape[1] > 0:
-            Ds = D @ T
-            cs = None if c is None else T.T @ c
+        Tr = whitening(Dr, weight / weight.amax(dim=-1, keepdim=True))
+        T = (Tr if B is None else B @ Tr) / col[:, :, None]
+        Ds = torch.einsum("sknp,spq->sknq", D, T)
+        cs = None if c is None else torch.einsum("sp,spq->sq", c, T)
         if B is not None:
-            dropped, fixed = D.shape[-1] - B.shape[1], fixed_residual(D, c, col, B)
-    offset = resid.mean(dim=1, keepdim=True)
+            dropped = P - (B.abs().amax(dim=1) > 0).sum(-1)
+            fixed = fixed_residual(D, c, col, B)
+    offset = resid.mean(dim=-1, keepdim=True)
     resid = resid - offset
-    scale = float(resid.std()) if resid.numel() > 1 else 1.0
+    scale = resid.reshape(S, -1).std(dim=-1) if K * N > 1 else R.new_ones(S)
+    spread_r = R.std(dim=-1)
     return Standardised(
         residuals=resid,
         D=Ds,
@@ -148,70 +161,78 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
         offset=offset,
         scale=scale,
         informative=scale > _INFORMATIVE_RTOL * magnitude,
-        level=float(R.mean(dim=1).sum() + offset.sum()),
+        level=R.mean(dim=-1).sum(-1) + offset.sum(dim=(1, 2)),
         dropped=dropped,
         fixed_residual=fixed,
-        reward_spread=R.std(dim=1) / scale if scale > 0 else torch.zeros(K, dtype=R.dtype),
+        reward_spread=torch.where(
+            scale[:, None] > 0, spread_r / scale[:, None], torch.zeros_like(spread_r)
+        ),
     )
 
 
 def column_scales(D: Tensor) -> Tensor:
-    """(P,) spread of each feature column of D (K, N, P) over all blocks and samples; a column
-    constant to round-off (spread below 1e-14 of its magnitude, ~45 units in the last place:
-    also phi + 1e15 with phi ~ 1, of which float64 keeps 3 bits) gets its magnitude (1 if
-    zero), so that its centred values stay at round-off level instead of being blown up."""
-    flat = D.reshape(-1, D.shape[-1])
-    col = flat.std(dim=0)
-    mag = flat.abs().amax(dim=0)
+    """(S, P) spread of each feature column of D (S, K, N, P) over all blocks and samples; a
+    column constant to round-off (spread below 1e-14 of its magnitude, ~45 units in the last
+    place: also phi + 1e15 with phi ~ 1, of which float64 keeps 3 bits) gets its magnitude (1
+    if zero), so that its centred values stay at round-off level instead of being blown up."""
+    flat = D.reshape(D.shape[0], -1, D.shape[-1])
+    col = flat.std(dim=1)
+    mag = flat.abs().amax(dim=1)
     constant = ~(col > _CONSTANT_RTOL * mag)
     return torch.where(constant, torch.where(mag > 0, mag, torch.ones_like(mag)), col)
 
 
 def identified_basis(Dc: Tensor) -> Tensor | None:
-    """(P, Q) orthonormal basis of the directions that the centred, unit-column features Dc
-    (K, N, P) identify, or None when all P are. A direction counts when its singular value
-    exceeds 1e-12 of the largest one and of sqrt(K N), the norm of a unit-spread column (so
-    that features that are all round-off identify nothing).
+    """(S, P, P) orthonormal bases of the directions that each problem's centred, unit-column
+    features Dc (S, K, N, P) identify, as columns (the columns of directions not identified
+    are 0), or None when every problem identifies all P. A direction counts when its singular
+    value exceeds 1e-12 of the largest one and of sqrt(K N), the norm of a unit-spread column
+    (so that features that are all round-off identify nothing).
 
     Along a direction n outside it D_k n is the same for every sample of block k: it does not
     move the weights, v is unidentifiable along it (a constant column next to the
     normalisation), and its constraint holds for every distribution or for none (see
     :func:`fixed_residual`).
     """
-    K, N, P = Dc.shape
-    _, S, Vh = torch.linalg.svd(Dc.reshape(K * N, P), full_matrices=False)
-    top = float(S.max()) if S.numel() else 0.0
-    keep = S > _RANK_RTOL * max(top, math.sqrt(K * N))
-    if int(keep.sum()) == P:
+    S, K, N, P = Dc.shape
+    _, sv, Vh = torch.linalg.svd(Dc.reshape(S, K * N, P), full_matrices=False)
+    m = sv.shape[-1]
+    top = sv.amax(dim=-1, keepdim=True) if m else sv.new_zeros(S, 1)
+    keep = sv > _RANK_RTOL * top.clamp_min(math.sqrt(K * N))
+    if m == P and bool(keep.all()):
         return None
-    basis: Tensor = Vh[keep].T.contiguous()
+    basis = Dc.new_zeros(S, P, P)
+    basis[:, :, :m] = Vh.transpose(1, 2) * keep[:, None, :]
     return basis
 
 
-def fixed_residual(D: Tensor, c: Tensor | None, col: Tensor, B: Tensor) -> float:
-    """The feature-constraint residual c + sum_k w_k^T D_k along the directions outside B (in
-    the unit-column coordinates y = col * v), relative to the size of its terms.
+def fixed_residual(D: Tensor, c: Tensor | None, col: Tensor, B: Tensor) -> Tensor:
+    """(S,) the feature-constraint residual c + sum_k w_k^T D_k along the directions outside
+    each problem's B (in the unit-column coordinates y = col * v), relative to the size of
+    its terms.
 
     Along those directions D_k is constant over samples, so the residual is c + sum_k mean_i
     D_k for every w (weights of a block sum to 1): 0 when the constraint holds trivially (a
     constant feature the data keep), else no reweighting can meet it.
     """
-    means = D.mean(dim=1) / col  # (K, P)
+    means = D.mean(dim=2) / col[:, None, :]  # (S, K, P)
     lin = torch.zeros_like(col) if c is None else c / col
-    null = torch.eye(col.shape[0], dtype=torch.float64) - B @ B.T
-    resid = null @ (lin + means.sum(0))
-    size = float((lin.abs() + (D.abs().mean(dim=1) / col).sum(0)).max())
-    return float(resid.abs().max()) / size if size > 0 else 0.0
+    eye = torch.eye(col.shape[-1], dtype=col.dtype, device=col.device)
+    null = eye - B @ B.transpose(1, 2)
+    resid = torch.einsum("spq,sq->sp", null, lin + means.sum(1))
+    size = (lin.abs() + (D.abs().mean(dim=2) / col[:, None, :]).sum(1)).amax(dim=-1)
+    worst = resid.abs().amax(dim=-1)
+    return torch.where(size > 0, worst / torch.where(size > 0, size, 1.0), 0.0)
 
 
-def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: float, rounds: int = 30) -> Tensor:
-    """Small-epsilon value multipliers (the solver's start when c = 0).
+def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: Tensor, rounds: int = 30) -> Tensor:
+    """(S, P) small-epsilon value multipliers (the solver's start when c = 0).
 
     Args:
-        Rc: (K, N) returns centred per block.
-        Dc: (K, N, P) features centred per block.
-        eps: (K,) KL bounds.
-        floor: smallest residual spread taken seriously.
+        Rc: (S, K, N) returns centred per block.
+        Dc: (S, K, N, P) features centred per block.
+        eps: (S, K) KL bounds.
+        floor: (S,) smallest residual spread taken seriously.
         rounds: most reweighting rounds with several blocks.
 
     For small epsilon w_ki ≈ (1 + (delta_ki - mean_i delta_k) / eta_k) / N, so the feature
@@ -220,43 +241,56 @@ def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: float, rounds: int =
     KL_k ≈ Var(delta_k) / (2 eta_k^2) = eps_k ties each eta_k to its block's residual spread.
     One block: plain least squares. Several: iterate the weights (a block that the features fit
     closely gets a small eta and dominates its part of v; an unweighted fit spoils it and leaves
-    the optimum far from the start).
+    the optimum far from the start). Each problem stops reweighting when its weights settle.
     """
-    K, N, P = Dc.shape
-    weight = torch.ones(K, dtype=torch.float64)
-    v = torch.zeros(P, dtype=torch.float64)
+    S, K, N, P = Dc.shape
+    weight = Rc.new_ones(S, K)
+    v = Rc.new_zeros(S, P)
     if P == 0:
         return v
     for _ in range(rounds if K > 1 else 1):
-        root = weight.sqrt()[:, None]
-        A = (root[:, :, None] * Dc).reshape(K * N, P)
-        b = (root * Rc).reshape(K * N, 1)
-        v = -torch.linalg.lstsq(A, b, driver="gelsd").solution.squeeze(1)
-        spread = (Rc + Dc @ v).std(dim=1).clamp_min(floor)
-        new = (2.0 * eps).sqrt() / spread
-        new = new / new.max()
-        if bool(((new - weight).abs() <= 1e-3 * weight).all()):
+        root = weight.sqrt()[..., None]
+        A = (root[..., None] * Dc).reshape(S, K * N, P)
+        b = (root * Rc).reshape(S, K * N, 1)
+        v = -_lstsq(A, b)
+        spread = (Rc + torch.einsum("sknp,sp->skn", Dc, v)).std(dim=-1)
+        new = (2.0 * eps).sqrt() / torch.maximum(spread, floor[:, None])
+        new = new / new.amax(dim=-1, keepdim=True)
+        settled = ((new - weight).abs() <= 1e-3 * weight).all(dim=-1)
+        if bool(settled.all()):
             break
-        weight = new
+        weight = torch.where(settled[:, None], weight, new)
     return v
 
 
+def _lstsq(A: Tensor, b: Tensor) -> Tensor:
+    """(S, P) minimum-norm least-squares solutions of A (S, M, P) x = b (S, M, 1) (LAPACK's
+    gelsd on the CPU; an SVD elsewhere, where gelsd is not available)."""
+    if A.device.type == "cpu":
+        x: Tensor = torch.linalg.lstsq(A, b, driver="gelsd").solution
+    else:
+        x = torch.linalg.pinv(A, rtol=1e-12) @ b
+    return x.squeeze(-1)
+
+
 def whitening(Dc: Tensor, weight: Tensor) -> Tensor:
-    """(P, P) map T with T^T (sum_k weight_k Dc_k^T Dc_k / N) T = I on the identified
-    directions, from (K, N, P) centred features and (K,) block weights. Directions without
+    """(S, P, P) maps T with T^T (sum_k weight_k Dc_k^T Dc_k / N) T = I on the identified
+    directions, from (S, K, N, P) centred features and (S, K) block weights. Directions without
     spread (a constant feature, collinear columns) keep the largest direction's scale."""
-    K, N, P = Dc.shape
+    S, K, N, P = Dc.shape
+    eye = torch.eye(P, dtype=Dc.dtype, device=Dc.device).expand(S, P, P).clone()
     if P == 0:
-        return torch.zeros(0, 0, dtype=torch.float64)
-    A = (weight.sqrt()[:, None, None] * Dc).reshape(K * N, P) / math.sqrt(N)
-    _, S, Vh = torch.linalg.svd(A, full_matrices=False)
-    top = float(S.max()) if S.numel() else 0.0
-    if not top > 0:  # no spread at all (the caller drops such directions first)
-        return torch.eye(P, dtype=torch.float64)
-    inv = torch.where(S > 1e-8 * top, 1.0 / S.clamp_min(1e-300), 1.0 / top)
-    T = torch.eye(P, dtype=torch.float64)
-    T[:, : S.shape[0]] = Vh.T * inv
-    if S.shape[0] < P:  # fewer rows than features: complete the basis
-        Q = torch.linalg.qr(torch.cat([Vh.T, torch.eye(P, dtype=torch.float64)], 1)).Q
-        T[:, S.shape[0] :] = Q[:, S.shape[0] : P] / top
-    return T
+        return eye
+    A = (weight.sqrt()[..., None, None] * Dc).reshape(S, K * N, P) / math.sqrt(N)
+    _, sv, Vh = torch.linalg.svd(A, full_matrices=False)
+    m = sv.shape[-1]
+    top = sv.amax(dim=-1, keepdim=True)
+    flat = ~(top > 0)  # no spread at all (the caller drops such directions first)
+    top = torch.where(flat, 1.0, top)
+    inv = torch.where(sv > 1e-8 * top, 1.0 / sv.clamp_min(1e-300), 1.0 / top)
+    T = eye.clone()
+    T[:, :, :m] = Vh.transpose(1, 2) * inv[:, None, :]
+    if m < P:  # fewer rows than features: complete the basis
+        Q = torch.linalg.qr(torch.cat([Vh.transpose(1, 2), eye], -1)).Q
+        T[:, :, m:] = Q[:, :, m:P] / top[:, :, None]
+    return torch.where(flat[:, :, None], eye, T)

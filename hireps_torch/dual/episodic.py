@@ -7,7 +7,7 @@ from torch import Tensor
 
 from hireps_torch.dual.inputs import centred, check_features, common_inputs
 from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
-from hireps_torch.dual.solver import checked_settings, solve_blocks
+from hireps_torch.dual.solver import checked_settings, population_of_one, solve_blocks
 
 __all__ = ["solve_episodic_dual"]
 
@@ -60,6 +60,6 @@ def solve_episodic_dual(
         phi = check_features("context_features", context_features, N)
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
         D = -centred(phi).unsqueeze(0)
-    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
+    sol = solve_blocks(*population_of_one(R, lr, eps, D, None, kap), opts, stacklevel=3).problem(0)
     warn_if_collapsed(sol, eps)
     return block_solution(sol, 0, sol.v)

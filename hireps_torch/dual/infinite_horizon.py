@@ -10,7 +10,7 @@ from torch import Tensor
 from hireps_torch.checks import as_float
 from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
 from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
-from hireps_torch.dual.solver import checked_settings, solve_blocks
+from hireps_torch.dual.solver import checked_settings, population_of_one, solve_blocks
 
 __all__ = ["solve_infinite_horizon_dual"]
 
@@ -79,6 +79,6 @@ def solve_infinite_horizon_dual(
     phi0 = check_feature_vector("initial_features", initial_features, phi.shape[1])
     D = (g * phi_next - phi).unsqueeze(0)
     c = (1.0 - g) * phi0
-    sol = solve_blocks(R, lr, eps, D, c, kap, opts, stacklevel=3)
+    sol = solve_blocks(*population_of_one(R, lr, eps, D, c, kap), opts, stacklevel=3).problem(0)
     warn_if_collapsed(sol, eps)
     return block_solution(sol, 0, sol.v)

@@ -16,6 +16,8 @@ in the whitened units of :mod:`~hireps_torch.dual.conditioning`, i.e. in feature
     CE_k <= kappa_k + 1e-6 max(kappa_k, 1 nat)               entropy bound
     |c_s + sum_k w_k^T D_s,k| <= converged_grad (1e-6)       feature constraints
     constraint residual along directions without spread <= 1e-6 of its terms
+
+Everything here works per block of a population of S problems: tensors have a leading (S, K).
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ _LOG_T_RANGE = (-30.0, 30.0)  # tilt exponents t = xi / eta searched by reachabl
 
 
 def enforce_kl(prob: DualProblem, eta: Tensor, xi: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
-    """(eta (K,), moved (K,) bool): eta raised, per block and with xi and v held, until the
+    """(eta (S, K), moved (S, K) bool): eta raised, per block and with xi and v held, until the
     realised KL is at most epsilon, where it exceeded epsilon (1 + KL_RTOL); else unchanged.
 
     Bisection in log eta: the bracket's top is doubled until it keeps the bound, then 80
@@ -81,17 +83,17 @@ def enforce_kl(prob: DualProblem, eta: Tensor, xi: Tensor, v: Tensor) -> tuple[T
 
 
 def _tilt(lr: Tensor, log_t: Tensor) -> tuple[Tensor, Tensor]:
-    """(KL (K,), CE (K,)) of P_k ∝ p~_k^(1 + t_k) / N, t = exp(log_t) (K,)."""
-    z = (1.0 + log_t.exp())[:, None, None] * lr
-    P = torch.softmax(z.reshape(lr.shape[0], -1), dim=1).reshape(lr.shape)
+    """(KL, CE) per block (S, K) of P_k ∝ p~_k^(1 + t_k) / N, t = exp(log_t) (S, K)."""
+    z = (1.0 + log_t.exp())[..., None, None] * lr
+    flat = z.reshape(*lr.shape[:-2], -1)
+    P = torch.softmax(flat, dim=-1).reshape(lr.shape)
     return block_kl(P, lr), block_cross_entropy(P, lr)
 
 
 def _bisect_log_t(lr: Tensor, target: Tensor, use_kl: bool) -> Tensor:
-    """(K,) log t where the tilt's KL (rising in t) or CE (falling) meets ``target``."""
-    K = lr.shape[0]
-    lo = torch.full((K,), _LOG_T_RANGE[0], dtype=torch.float64)
-    hi = torch.full((K,), _LOG_T_RANGE[1], dtype=torch.float64)
+    """(S, K) log t where the tilt's KL (rising in t) or CE (falling) meets ``target``."""
+    lo = torch.full_like(target, _LOG_T_RANGE[0])
+    hi = torch.full_like(target, _LOG_T_RANGE[1])
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         kl, ce = _tilt(lr, mid)
@@ -109,20 +111,19 @@ def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Ten
     constraint); the bound is reachable iff that tilt's KL is <= epsilon.
 
     Args:
-        lr: (K, N, O) log responsibilities (log 0 floored).
-        eps: (K,) KL bounds.
-        kappa: (K,) entropy bounds (inf: none).
+        lr: (S, K, N, O) log responsibilities (log 0 floored).
+        eps: (S, K) KL bounds.
+        kappa: (S, K) entropy bounds (inf: none).
 
     Returns:
-        (kappa to solve with (K,), unreachable (K,) bool, best (K,)): where unreachable, kappa
-        is relaxed to the cross-entropy of the tilt that spends half the KL budget (half of
-        what the steepest tilt spends, if less), and ``best`` is the lowest cross-entropy any
-        tilt within epsilon reaches.
+        (kappa to solve with (S, K), unreachable (S, K) bool, best (S, K)): where unreachable,
+        kappa is relaxed to the cross-entropy of the tilt that spends half the KL budget (half
+        of what the steepest tilt spends, if less), and ``best`` is the lowest cross-entropy
+        any tilt within epsilon reaches.
     """
-    K = lr.shape[0]
-    zero = torch.full((K,), -math.inf, dtype=torch.float64)
+    zero = torch.full_like(eps, -math.inf)
     _, ce0 = _tilt(lr, zero)
-    top = torch.full((K,), _LOG_T_RANGE[1], dtype=torch.float64)
+    top = torch.full_like(eps, _LOG_T_RANGE[1])
     kl_top, ce_top = _tilt(lr, top)
     need = torch.isfinite(kappa) & (ce0 > kappa)
     if not bool(need.any()):
@@ -139,14 +140,14 @@ def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Ten
 
 
 def entropy_slack(kappa: Tensor) -> Tensor:
-    """(K,) how far the cross-entropy may exceed kappa: 1e-6 of max(kappa, 1 nat)."""
+    """How far the cross-entropy may exceed kappa: 1e-6 of max(kappa, 1 nat)."""
     return ENTROPY_RTOL * kappa.clamp_min(1.0)
 
 
 @dataclass(frozen=True)
 class Verdict:
-    """The end of a solve: converged, and if not, what failed (``parts``) and whether a
-    constraint is infeasible (then the warning is an InfeasibleConstraintsWarning)."""
+    """The end of one problem's solve: converged, and if not, what failed (``parts``) and
+    whether a constraint is infeasible (then the warning is an InfeasibleConstraintsWarning)."""
 
     converged: bool
     infeasible: bool
@@ -157,51 +158,59 @@ def judge(
     prob: DualProblem,
     P: Tensor,
     kappa: Tensor,
-    optimal: bool,
-    fixed_residual: float,
+    optimal: Tensor,
+    fixed_residual: Tensor,
     converged_grad: float,
-) -> Verdict:
-    """Check the KL bound, the entropy bound (the caller's kappa (K,), inf: none), the feature
-    constraints and optimality (``optimal``: LBFGS met its gradient tolerance) at weights P."""
-    parts: list[str] = []
-    infeasible = False
+) -> list[Verdict]:
+    """One :class:`Verdict` per problem: check the KL bound, the entropy bound (the caller's
+    kappa (S, K), inf: none), the feature constraints and optimality (``optimal`` (S,): LBFGS
+    met its gradient tolerance) at weights P (S, K, N, O)."""
     kl = block_kl(P, prob.lr)
     over = kl > prob.eps * (1.0 + KL_RTOL)
-    if bool(over.any()):
-        parts.append(
-            f"the KL bound is broken: KL = {_fmt(kl[over])} > epsilon {_fmt(prob.eps[over])}"
-        )
     ce = block_cross_entropy(P, prob.lr)
-    bad_ce = torch.isfinite(kappa) & (ce > kappa + entropy_slack(kappa))
-    if prob.multi and bool(bad_ce.any()):
-        parts.append(
-            f"the entropy bound is violated: cross-entropy {_fmt(ce[bad_ce])} > kappa "
-            f"{_fmt(kappa[bad_ce])} (tolerance 1e-6 of max(kappa, 1))"
-        )
+    bad_ce = torch.isfinite(kappa) & (ce > kappa + entropy_slack(kappa)) & prob.multi
+    worst = torch.zeros(prob.S, dtype=P.dtype, device=P.device)
     if prob.P:
         assert prob.D is not None
-        resid = torch.einsum("kn,knp->p", P.sum(-1), prob.D)
+        resid = torch.einsum("skn,sknp->sp", P.sum(-1), prob.D)
         if prob.c is not None:
             resid = resid + prob.c
-        worst = float(resid.abs().max())
-        if worst > converged_grad:
+        worst = resid.abs().amax(dim=-1)
+    bad_f = worst > converged_grad
+    fixed_bad = fixed_residual > FIXED_RTOL
+    failing = over.any(-1) | bad_ce.any(-1) | bad_f | fixed_bad | ~optimal
+    verdicts = [Verdict(True, False, ())] * prob.S
+    for s in failing.nonzero().flatten().tolist():  # text only for the problems that failed
+        parts: list[str] = []
+        if bool(over[s].any()):
+            o = over[s]
             parts.append(
-                f"the feature constraints are off by {worst:.3g} feature spreads "
+                f"the KL bound is broken: KL = {_fmt(kl[s][o])} > epsilon {_fmt(prob.eps[s][o])}"
+            )
+        if bool(bad_ce[s].any()):
+            b = bad_ce[s]
+            parts.append(
+                f"the entropy bound is violated: cross-entropy {_fmt(ce[s][b])} > kappa "
+                f"{_fmt(kappa[s][b])} (tolerance 1e-6 of max(kappa, 1))"
+            )
+        if bool(bad_f[s]):
+            parts.append(
+                f"the feature constraints are off by {float(worst[s]):.3g} feature spreads "
                 f"(tolerance {converged_grad:g}; see feature_error)"
             )
-    if fixed_residual > FIXED_RTOL:
-        infeasible = True
-        parts.append(
-            "the constraint along feature directions without spread in the samples (a constant "
-            f"feature) is off by {fixed_residual:.3g} of its terms: no reweighting can meet it "
-            "(are the initial features consistent with the samples?)"
-        )
-    if not optimal and not parts:
-        parts.append(
-            f"the solver stopped before the optimum (gradient above {converged_grad:g}); "
-            f"KL = {_fmt(kl)} against epsilon {_fmt(prob.eps)}"
-        )
-    return Verdict(not parts and optimal, infeasible, tuple(parts))
+        if bool(fixed_bad[s]):
+            parts.append(
+                "the constraint along feature directions without spread in the samples (a "
+                f"constant feature) is off by {float(fixed_residual[s]):.3g} of its terms: no "
+                "reweighting can meet it (are the initial features consistent with the samples?)"
+            )
+        if not bool(optimal[s]) and not parts:
+            parts.append(
+                f"the solver stopped before the optimum (gradient above {converged_grad:g}); "
+                f"KL = {_fmt(kl[s])} against epsilon {_fmt(prob.eps[s])}"
+            )
+        verdicts[s] = Verdict(False, bool(fixed_bad[s]), tuple(parts))
+    return verdicts
 
 
 def _fmt(x: Tensor) -> str:

@@ -28,6 +28,7 @@ __all__ = [
     "DualConvergenceWarning",
     "DualSolution",
     "InfeasibleConstraintsWarning",
+    "PopulationDualSolution",
     "RepsDualSolution",
     "TimeIndexedDualSolution",
     "block_cross_entropy",
@@ -83,6 +84,63 @@ class RepsDualSolution:
     dual_value: float
     converged: bool
     iterations: int
+
+
+@dataclass(frozen=True)
+class PopulationDualSolution:
+    """Solutions of S independent K-block duals solved together (the population form of
+    :class:`RepsDualSolution`; every field has a leading S).
+
+    Attributes:
+        eta: (S, K) temperatures, caller's return units (inf without return information).
+        xi: (S, K) entropy-bound multipliers.
+        v: (S, P) value-function / feature multipliers, caller's feature units.
+        weights: (S, K, N, O) new sample-option distributions; each block sums to 1.
+        kl: (S, K) realised KL, at most epsilon (1 + 1e-6).
+        cross_entropy: (S, K) realised E_P[-log p~].
+        effective_sample_size: (S, K) 1 / sum_i w_ki^2.
+        feature_error: (S,) max abs violation of each problem's feature constraints.
+        dual_value: (S,) dual values at the optima.
+        converged: (S,) bool, per problem as :attr:`RepsDualSolution.converged`.
+        iterations: LBFGS iterations of all phases (a call shared by several problems counts
+            once).
+    """
+
+    eta: Tensor
+    xi: Tensor
+    v: Tensor
+    weights: Tensor
+    kl: Tensor
+    cross_entropy: Tensor
+    effective_sample_size: Tensor
+    feature_error: Tensor
+    dual_value: Tensor
+    converged: Tensor
+    iterations: int
+
+    @property
+    def sample_weights(self) -> Tensor:
+        """(S, K, N) weights summed over options (the weights of a flat policy)."""
+        return self.weights.sum(-1)
+
+    def problem(self, s: int) -> RepsDualSolution:
+        """Problem s as a :class:`RepsDualSolution`."""
+        S = self.eta.shape[0]
+        if not -S <= s < S:
+            raise ValueError(f"problem must be in [0, {S}), got {s}")
+        return RepsDualSolution(
+            eta=self.eta[s],
+            xi=self.xi[s],
+            v=self.v[s],
+            weights=self.weights[s],
+            kl=self.kl[s],
+            cross_entropy=self.cross_entropy[s],
+            effective_sample_size=self.effective_sample_size[s],
+            feature_error=float(self.feature_error[s]),
+            dual_value=float(self.dual_value[s]),
+            converged=bool(self.converged[s]),
+            iterations=self.iterations,
+        )
 
 
 @dataclass(frozen=True)
@@ -190,15 +248,15 @@ def block_solution(
 
 
 def block_kl(w: Tensor, log_resp: Tensor) -> Tensor:
-    """(K,) KL(P_k || q p~_k) of weights (K, N, O) against the old distribution."""
-    logq = log_resp - math.log(w.shape[1])
+    """(..., K) KL(P_k || q p~_k) of weights (..., K, N, O) against the old distribution."""
+    logq = log_resp - math.log(w.shape[-2])
     logw = torch.log(w.clamp_min(1e-300))
-    return torch.where(w > 0, w * (logw - logq), torch.zeros_like(w)).sum(dim=(1, 2))
+    return torch.where(w > 0, w * (logw - logq), torch.zeros_like(w)).sum(dim=(-2, -1))
 
 
 def block_cross_entropy(w: Tensor, log_resp: Tensor) -> Tensor:
-    """(K,) E_P_k[-log p~_k] of weights (K, N, O)."""
-    return -(w * log_resp).sum(dim=(1, 2))
+    """(..., K) E_P_k[-log p~_k] of weights (..., K, N, O)."""
+    return -(w * log_resp).sum(dim=(-2, -1))
 
 
 def finish(
@@ -209,27 +267,28 @@ def finish(
     v: Tensor,
     D: Tensor | None,
     c: Tensor | None,
-    dual_value: float,
-    converged: bool,
+    dual_value: Tensor,
+    converged: Tensor,
     iterations: int,
-) -> RepsDualSolution:
-    """The :class:`RepsDualSolution` of weights w (K, N, O) with its diagnostics (KL,
-    cross-entropy, effective sample size, feature error); all inputs float64."""
-    ws = w.sum(-1)  # (K, N)
-    feat_err = 0.0
+) -> PopulationDualSolution:
+    """The :class:`PopulationDualSolution` of weights w (S, K, N, O) with its diagnostics (KL,
+    cross-entropy, effective sample size, feature error); all inputs float64 with a leading
+    S (D (S, K, N, P), c (S, P))."""
+    ws = w.sum(-1)  # (S, K, N)
+    feat_err = w.new_zeros(w.shape[0])
     if D is not None and D.shape[-1] > 0:
-        grad_v = torch.einsum("kn,knp->p", ws, D)
+        grad_v = torch.einsum("skn,sknp->sp", ws, D)
         if c is not None:
             grad_v = grad_v + c
-        feat_err = float(grad_v.abs().max())
-    return RepsDualSolution(
+        feat_err = grad_v.abs().amax(-1)
+    return PopulationDualSolution(
         eta=eta,
         xi=xi,
         v=v,
         weights=w,
         kl=block_kl(w, log_resp),
         cross_entropy=block_cross_entropy(w, log_resp),
-        effective_sample_size=1.0 / (ws**2).sum(dim=1),
+        effective_sample_size=1.0 / (ws**2).sum(dim=-1),
         feature_error=feat_err,
         dual_value=dual_value,
         converged=converged,

@@ -33,11 +33,18 @@ from hireps_torch.dual.safeguards import Verdict, enforce_kl, judge, reachable_k
 from hireps_torch.dual.solutions import (
     DualConvergenceWarning,
     InfeasibleConstraintsWarning,
+    PopulationDualSolution,
     RepsDualSolution,
     finish,
 )
 
-__all__ = ["LbfgsSettings", "checked_settings", "solve_blocks", "solve_reps_dual"]
+__all__ = [
+    "LbfgsSettings",
+    "checked_settings",
+    "population_of_one",
+    "solve_blocks",
+    "solve_reps_dual",
+]
 
 
 def solve_reps_dual(
@@ -83,7 +90,28 @@ def solve_reps_dual(
     """
     opts = checked_settings(max_iter, tolerance_grad, converged_grad)
     Rt, lr, eps, Dt, ct, kap = check_blocks(R, log_resp, epsilon, D, c, kappa)
-    return solve_blocks(Rt, lr, eps, Dt, ct, kap, opts, stacklevel=3)
+    sol = solve_blocks(*population_of_one(Rt, lr, eps, Dt, ct, kap), opts, stacklevel=3)
+    return sol.problem(0)
+
+
+def population_of_one(
+    R: Tensor,
+    log_resp: Tensor,
+    eps: Tensor,
+    D: Tensor | None,
+    c: Tensor | None,
+    kappa: Tensor | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+    """One problem's checked inputs (R (K, N), ...) with a leading population dimension of 1,
+    as :func:`solve_blocks` takes them."""
+    return (
+        R[None],
+        log_resp[None],
+        eps[None],
+        None if D is None else D[None],
+        None if c is None else c[None],
+        None if kappa is None else kappa[None],
+    )
 
 
 def checked_settings(
@@ -103,22 +131,26 @@ def solve_blocks(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
-) -> RepsDualSolution:
-    """:func:`solve_reps_dual` on float64 inputs that the caller has already checked (the
-    wrappers, :func:`solve_reps_dual`); its warning is attributed ``stacklevel`` frames up
-    (2: the caller of this function)."""
-    K = R.shape[0]
+) -> PopulationDualSolution:
+    """:func:`solve_reps_dual` on a population of S problems in float64 that the caller has
+    already checked: R (S, K, N), log_resp (S, K, N, O), eps (S, K), D (S, K, N, P), c (S, P),
+    kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged on its
+    own; the LBFGS phases of problems that need the same phase share one LBFGS call. Warnings
+    (one per problem that did not converge, prefixed "problem s" when S > 1) are attributed
+    ``stacklevel`` frames up (2: the caller of this function)."""
+    S, K = R.shape[:2]
     if log_resp.shape[-1] > 1 and (kappa is None or not bool(torch.isfinite(kappa).any())):
         return _factorised(R, log_resp, eps, D, c, settings, stacklevel + 1)
-    r_scale, f_scale = float(_pow2_scale(R.abs().max())), _pow2_scale(_column_max(D))
+    r_scale = _pow2_scale(R.abs().amax(dim=(1, 2)))  # (S,)
+    f_scale = _pow2_scale(_column_max(D, S, R))  # (S, P)
     st = standardise(
-        R * r_scale,
-        None if D is None else D * f_scale,
+        R * r_scale[:, None, None],
+        None if D is None else D * f_scale[:, None, None, :],
         None if c is None else c * f_scale,
         eps,
     )
-    kap = torch.full((K,), math.inf, dtype=torch.float64) if kappa is None else kappa
-    kap_solve, unreachable, best = kap, torch.zeros(K, dtype=torch.bool), kap
+    kap = torch.full_like(eps, math.inf) if kappa is None else kappa
+    kap_solve, unreachable, best = kap, torch.zeros_like(eps, dtype=torch.bool), kap
     if log_resp.shape[-1] > 1:
         kap_solve, unreachable, best = reachable_kappa(log_resp, eps, kap)
     solver = BlockSolver(st, log_resp, eps, kap_solve, settings)
@@ -127,32 +159,42 @@ def solve_blocks(
     _, eta_s, xi_s, u = prob.unpack(solver.x)
     eta_s, moved = enforce_kl(prob, eta_s, xi_s, u)
     P, g = end.weights, end.value
-    if bool(moved.any()):
-        P, g = prob.weights_at(eta_s, xi_s, u)[0], prob.value_at(eta_s, xi_s, u)
-    notes = [] if relaxed is None else [relaxed]
-    failed = not (bool(torch.isfinite(P).all()) and bool(torch.isfinite(g)))
-    if failed:  # never seen; should the solve fail numerically, keep the old distribution
-        P = log_resp.exp() / R.shape[1]
-        P, st = P / P.sum(dim=(1, 2), keepdim=True), replace(st, informative=False)
-        notes.append("the solve failed numerically: the old distribution is kept")
-    optimal = end.converged and not failed
-    verdict = judge(prob, P, kap, optimal, st.fixed_residual, settings.converged_grad)
-    if bool(unreachable.any()):
-        notes.append(_unreachable_text(kap, kap_solve, best, unreachable, eps))
-    if bool(moved.any()):
-        notes.append(f"the KL bound was enforced after the solve on block(s) {_where(moved)}")
-    _warn(verdict, notes, bool(unreachable.any()) or relaxed is not None, stacklevel + 1)
+    rows = moved.any(-1)
+    if bool(rows.any()):
+        P = torch.where(rows[:, None, None, None], prob.weights_at(eta_s, xi_s, u)[0], P)
+        g = torch.where(rows, prob.value_at(eta_s, xi_s, u), g)
+    failed = ~(torch.isfinite(P).all(dim=(1, 2, 3)) & torch.isfinite(g))
+    if bool(failed.any()):  # never seen; should a solve fail numerically, keep the old one
+        old = log_resp.exp() / R.shape[-1]
+        old = old / old.sum(dim=(-2, -1), keepdim=True)
+        P = torch.where(failed[:, None, None, None], old, P)
+        st = replace(st, informative=st.informative & ~failed)
+    optimal = end.converged & ~failed
+    verdicts = judge(prob, P, kap, optimal, st.fixed_residual, settings.converged_grad)
+    for s, verdict in enumerate(verdicts):
+        notes = [] if relaxed[s] is None else [str(relaxed[s])]
+        if bool(failed[s]):
+            notes.append("the solve failed numerically: the old distribution is kept")
+        if bool(unreachable[s].any()):
+            notes.append(_unreachable_text(kap[s], kap_solve[s], best[s], unreachable[s], eps[s]))
+        if bool(moved[s].any()):
+            notes.append(
+                f"the KL bound was enforced after the solve on block(s) {_where(moved[s])}"
+            )
+        infeasible = bool(unreachable[s].any()) or relaxed[s] is not None
+        _warn(verdict, notes, infeasible, f"problem {s}: " if S > 1 else "", stacklevel + 1)
     eta, xi, v, dual = _caller_units(st, eta_s, xi_s, u, g)
+    converged = torch.tensor([vd.converged for vd in verdicts], device=R.device)
     return finish(
         P,
         log_resp,
-        eta / r_scale,
-        xi / r_scale,
-        v * f_scale / r_scale,
+        eta / r_scale[:, None],
+        xi / r_scale[:, None],
+        v * f_scale / r_scale[:, None],
         D,
         c,
         dual / r_scale,
-        verdict.converged,
+        converged,
         solver.iterations,
     )
 
@@ -165,14 +207,14 @@ def _factorised(
     c: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int,
-) -> RepsDualSolution:
+) -> PopulationDualSolution:
     """Without an entropy bound (xi = 0) the options enter the dual only through
     sum_o p~_io: P_io = w_i p~_io, with w the one-option solution. Solving that is exact and O
     times cheaper (e.g. 100 hard-gated options); KL(P || q p~) = KL(w || q)."""
     row = torch.logsumexp(log_resp, dim=-1, keepdim=True)
     one = solve_blocks(R, row, eps, D, c, None, settings, stacklevel + 1)
     w = one.weights * torch.exp(log_resp - row)
-    w = w / w.sum(dim=(1, 2), keepdim=True)
+    w = w / w.sum(dim=(-2, -1), keepdim=True)
     return finish(
         w, log_resp, one.eta, one.xi, one.v, D, c, one.dual_value, one.converged, one.iterations
     )
@@ -180,22 +222,30 @@ def _factorised(
 
 def _caller_units(
     st: Standardised, eta_s: Tensor, xi_s: Tensor, u: Tensor, g: Tensor
-) -> tuple[Tensor, Tensor, Tensor, float]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """(eta, xi, v, dual value) in the (power-of-2 scaled) caller's units. Without return
     information eta is inf (the returns do not shape the weights), xi inf where the entropy
     bound tilted them (xi / eta stays finite), v = v0 (the values the features fix), and the
     dual value is the primal value, the mean return."""
-    if not st.informative:
+    flat = ~st.informative
+    eta = eta_s * st.scale[:, None]
+    xi = xi_s * st.scale[:, None]
+    v = st.value(u)
+    dual = st.dual_value(g)
+    if bool(flat.any()):
         inf = torch.full_like(eta_s, math.inf)
-        return inf, torch.where(xi_s > 0, inf, 0.0), st.v0.clone(), st.level
-    return eta_s * st.scale, xi_s * st.scale, st.value(u), st.dual_value(g)
+        eta = torch.where(flat[:, None], inf, eta)
+        xi = torch.where(flat[:, None], torch.where(xi_s > 0, inf, 0.0), xi)
+        v = torch.where(flat[:, None], st.v0, v)
+        dual = torch.where(flat, st.level, dual)
+    return eta, xi, v, dual
 
 
-def _column_max(D: Tensor | None) -> Tensor:
-    """(P,) largest |entry| of each column of D (K, N, P); empty without features."""
+def _column_max(D: Tensor | None, S: int, like: Tensor) -> Tensor:
+    """(S, P) largest |entry| of each column of D (S, K, N, P); (S, 0) without features."""
     if D is None:
-        return torch.zeros(0, dtype=torch.float64)
-    return D.abs().amax(dim=(0, 1))
+        return like.new_zeros(S, 0)
+    return D.abs().amax(dim=(1, 2))
 
 
 def _pow2_scale(m: Tensor) -> Tensor:
@@ -207,16 +257,19 @@ def _pow2_scale(m: Tensor) -> Tensor:
     return torch.pow(2.0, half) * torch.pow(2.0, -e - half)
 
 
-def _warn(verdict: Verdict, notes: list[str], infeasible: bool, stacklevel: int) -> None:
-    """One warning for everything the solve could not deliver (none when it converged: the
-    KL safeguard then only corrected round-off)."""
+def _warn(
+    verdict: Verdict, notes: list[str], infeasible: bool, prefix: str, stacklevel: int
+) -> None:
+    """One warning for everything a problem's solve could not deliver (none when it
+    converged: the KL safeguard then only corrected round-off)."""
     if verdict.converged and not infeasible:
         return
     parts = list(notes) + list(verdict.parts)
     category: type[RuntimeWarning] = (
         InfeasibleConstraintsWarning if infeasible or verdict.infeasible else DualConvergenceWarning
     )
-    warnings.warn("the dual did not converge: " + "; ".join(parts), category, stacklevel=stacklevel)
+    text = prefix + "the dual did not converge: " + "; ".join(parts)
+    warnings.warn(text, category, stacklevel=stacklevel)
 
 
 def _unreachable_text(

@@ -37,7 +37,7 @@ from hireps_torch.dual.inputs import (
     common_inputs,
 )
 from hireps_torch.dual.solutions import TimeIndexedDualSolution, warn_if_collapsed
-from hireps_torch.dual.solver import checked_settings, solve_blocks
+from hireps_torch.dual.solver import checked_settings, population_of_one, solve_blocks
 
 __all__ = ["solve_time_indexed_dual"]
 
@@ -96,7 +96,7 @@ def solve_time_indexed_dual(
     if initial_features is not None:
         phi1 = check_feature_vector("initial_features", initial_features, F)
     D = _chained_map(phi, phi1)
-    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
+    sol = solve_blocks(*population_of_one(R, lr, eps, D, None, kap), opts, stacklevel=3).problem(0)
     warn_if_collapsed(sol, eps)
     return TimeIndexedDualSolution(
         eta=sol.eta,

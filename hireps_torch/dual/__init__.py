@@ -31,6 +31,11 @@ c = (1 - gamma) phi_hat_0) and time-indexed (one block per decision step, D_k v 
 v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k), c = [phi_hat_1, 0, ..]; see
 :func:`solve_time_indexed_dual`) duals reuse one solver, :func:`solve_reps_dual`.
 
+A population of S independent duals (``population=True`` in the wrappers: every input with a
+leading S) is solved together: one LBFGS call per phase over the stacked parameters (the sum of
+the duals is separable, so its minimiser is the S minimisers), each problem scaled,
+standardised, safeguarded and judged on its own (:class:`PopulationDualSolution`).
+
 Modules, in reading order:
 
 - :mod:`~hireps_torch.dual.episodic`, :mod:`~hireps_torch.dual.infinite_horizon`,
@@ -58,6 +63,7 @@ from hireps_torch.dual.solutions import (
     DualConvergenceWarning,
     DualSolution,
     InfeasibleConstraintsWarning,
+    PopulationDualSolution,
     RepsDualSolution,
     TimeIndexedDualSolution,
 )
@@ -69,6 +75,7 @@ __all__ = [
     "DualConvergenceWarning",
     "DualSolution",
     "InfeasibleConstraintsWarning",
+    "PopulationDualSolution",
     "RepsDualSolution",
     "TimeIndexedDualSolution",
     "solve_episodic_dual",

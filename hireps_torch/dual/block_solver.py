@@ -73,6 +73,7 @@ class LbfgsSettings:
 
 _REFINE_GRAD = 1e-13  # the Newton refinement's target (standardised gradient)
 _CHUNK = 25  # LBFGS iterations between re-whitenings (see BlockSolver.phase)
+_RUNOFF = 1.0e6  # a dual this far below its start (standardised units) is running off
 
 
 class _End(NamedTuple):
@@ -89,8 +90,8 @@ class _Whitened:
     closure LBFGS evaluates (the sum of the S duals): with L L^T the curvature at x0 the
     Hessian in z is ~I there."""
 
-    def __init__(self, prob: DualProblem, x0: Tensor, L: Tensor | None) -> None:
-        self.prob, self.x0, self.L = prob, x0, L
+    def __init__(self, prob: DualProblem, x0: Tensor, L: Tensor | None, floor: Tensor) -> None:
+        self.prob, self.x0, self.L, self.floor = prob, x0, L, floor
         self.z = torch.zeros_like(x0)
 
     def x(self) -> Tensor:
@@ -103,6 +104,12 @@ class _Whitened:
 
     def __call__(self) -> Tensor:
         g, grad = self.prob.value_and_grad(self.x())
+        # below its floor a dual running off to -infinity counts only logarithmically, so that
+        # it cannot drag the line search, which all problems of the call share, with it (the
+        # transform is monotone and C1: the problem itself still runs off, and is caught)
+        below = (self.floor - g).clamp_min(0.0)
+        g = torch.where(below > 0, self.floor - torch.log1p(below), g)
+        grad = grad / (1.0 + below)[:, None]
         if self.L is not None:
             grad = torch.linalg.solve_triangular(self.L, grad[..., None], upper=False)[..., 0]
         self.z.grad = grad
@@ -136,6 +143,10 @@ class BlockSolver:
         self.x[:, : self.prob.K] = torch.where(flat[:, None], 0.0, self.x[:, : self.prob.K])
         g, _, P = self.prob.evaluate(self.x)
         self.end = _End(torch.zeros_like(flat), g, P)
+        # below this a dual is running off to -infinity (its feature constraints cannot be met
+        # within the KL bound): at the optimum of a bounded dual the value is within a few
+        # return spreads of its start (standardised units)
+        self.floor = g - _RUNOFF
 
     def _set(self, mask: Tensor, converged: Tensor, value: Tensor, weights: Tensor) -> None:
         """Overwrite the ends of the problems in ``mask`` (S,) (the arguments are (S, ...))."""
@@ -173,14 +184,30 @@ class BlockSolver:
             todo = torch.ones_like(todo)
         if not bool(todo.any()):
             return self.end, texts
-        self.solve(todo)
+        need, conflict = torch.zeros_like(todo), torch.zeros_like(todo)
         if not prob.P:
+            self.solve(todo)
             return self.end, texts
-        # An unconverged solve that broke the KL bound ran off the same way, only more slowly
-        # (the projection solve does not bound the KL: the safeguard after it does).
-        ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
-        conflict = prob.shows_conflict(self.x, self.end.value)
-        need = todo & (ran_off | conflict)
+        # A dual running off to -infinity can drag the LBFGS call it shares (one line search
+        # for all): the problems it flagged are solved again without it, and each problem
+        # flagged in a shared call is solved again alone before it counts as a conflict.
+        suspects = torch.zeros_like(todo)
+        while bool(todo.any()):
+            now, clash = self._solve_and_detect(todo, x_start)
+            if int(todo.sum()) == 1:
+                need |= now
+                conflict |= clash
+                break
+            suspects |= now
+            todo &= ~now
+            if not bool(now.any()):
+                break
+        for s in suspects.nonzero().flatten().tolist():
+            alone = torch.zeros_like(todo)
+            alone[s] = True
+            now, clash = self._solve_and_detect(alone, x_start)
+            need |= now
+            conflict |= clash
         if not bool(need.any()):
             return self.end, texts
         kept = self.relax(x_start, need)
@@ -204,6 +231,19 @@ class BlockSolver:
             )
         self._set(need, torch.zeros_like(need), self.end.value, self.end.weights)
         return self.end, texts
+
+    def _solve_and_detect(self, todo: Tensor, x_start: Tensor) -> tuple[Tensor, Tensor]:
+        """Solve the problems in ``todo`` from x_start; returns (S,) masks of those that ran off
+        or broke the KL bound before converging, and of those that showed a conflict."""
+        prob = self.prob
+        self.x = torch.where(todo[:, None], x_start, self.x)
+        self.solve(todo)
+        # An unconverged solve that broke the KL bound ran off the same way, only more slowly
+        # (the projection solve does not bound the KL: the safeguard after it does).
+        ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
+        sunk = ~(self.end.value > self.floor + 0.5 * _RUNOFF)  # on its way to -infinity
+        clash = todo & (prob.shows_conflict(self.x, self.end.value) | sunk)
+        return clash | (todo & ran_off), clash
 
     def relax(self, x_start: Tensor, need: Tensor) -> Tensor:
         """Re-solve the problems in ``need`` from x_start with a ridge on v, stronger while the
@@ -432,7 +472,8 @@ class BlockSolver:
             L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
             eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
             L = torch.where((info == 0)[:, None, None], L, eye)  # no whitening where it fails
-        objective = _Whitened(prob, x0, L)
+        floor = self.floor if every else self.floor[idx]
+        objective = _Whitened(prob, x0, L, floor)
         opt = torch.optim.LBFGS(
             [objective.z],
             lr=1.0,

@@ -3,13 +3,46 @@
 
 from __future__ import annotations
 
+from typing import Literal, overload
+
 from torch import Tensor
 
 from hireps_torch.dual.inputs import centred, check_features, common_inputs
-from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
-from hireps_torch.dual.solver import checked_settings, population_of_one, solve_blocks
+from hireps_torch.dual.solutions import (
+    DualSolution,
+    PopulationDualSolution,
+    block_solution,
+    warn_if_collapsed,
+)
+from hireps_torch.dual.solver import checked_settings, solve_blocks
 
 __all__ = ["solve_episodic_dual"]
+
+
+@overload
+def solve_episodic_dual(
+    returns: Tensor,
+    *,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    context_features: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+    population: Literal[False] = False,
+) -> DualSolution: ...
+
+
+@overload
+def solve_episodic_dual(
+    returns: Tensor,
+    *,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    context_features: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+    population: Literal[True],
+) -> PopulationDualSolution: ...
 
 
 def solve_episodic_dual(
@@ -20,26 +53,34 @@ def solve_episodic_dual(
     context_features: Tensor | None = None,
     kappa: float | None = None,
     max_iter: int = 300,
-) -> DualSolution:
+    population: bool = False,
+) -> DualSolution | PopulationDualSolution:
     """Solve the episodic / contextual HiREPS dual and return the new sample weights.
 
     Args:
-        returns: (N,) return of each sample, N >= 2.
+        returns: (N,) return of each sample, N >= 2; (S, N) with ``population``.
         epsilon: KL bound, > 0. Values >= log N let the weights collapse onto one sample
             (a :class:`~hireps_torch.dual.DegenerateWeightsWarning` is issued).
         log_responsibilities: (N, O) log p~(o | s_i, theta_i) of the old policy, rows
-            normalised over options; None means one option (REPS).
-        context_features: (N, F) context features phi(s_i) whose mean must be kept; None means
-            no context (plain episodic). Directions without spread in the samples (a constant
-            column, all contexts equal, all-zero features; spread below 1e-14 of the column's
-            magnitude) carry a constraint every distribution meets: they are dropped from the
-            solve (v is unidentifiable along them).
+            normalised over options ((S, N, O) with ``population``); None means one option
+            (REPS).
+        context_features: (N, F) context features phi(s_i) whose mean must be kept ((S, N, F)
+            with ``population``); None means no context (plain episodic). Directions without
+            spread in the samples (a constant column, all contexts equal, all-zero features;
+            spread below 1e-14 of the column's magnitude) carry a constraint every
+            distribution meets: they are dropped from the solve (v is unidentifiable along
+            them).
         kappa: absolute bound on the expected option cross-entropy E_P[-log p~], >= 0;
             None (or inf) means no entropy bound (xi = 0). A bound that no distribution within
             the KL bound meets (kappa = 0 with soft responsibilities, say) is relaxed to what
             half the KL budget reaches, with an
             :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.
         max_iter: LBFGS iterations per phase, an integer >= 1.
+        population: the inputs hold S independent problems along a leading dimension; they
+            are solved together (one LBFGS call per phase, each problem conditioned, judged
+            and warned about on its own) and a
+            :class:`~hireps_torch.dual.PopulationDualSolution` (K = 1) is returned. Each
+            problem's solution is its solution alone, to round-off.
 
     Returns:
         :class:`~hireps_torch.dual.DualSolution` with weights (N, O) summing to 1 and
@@ -53,13 +94,19 @@ def solve_episodic_dual(
             epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
     opts = checked_settings(max_iter)
-    R, eps, lr, kap = common_inputs(returns, epsilon, log_responsibilities, kappa)
-    N = R.shape[1]
+    R, eps, lr, kap = common_inputs(
+        returns, epsilon, log_responsibilities, kappa, population=population
+    )
+    S, _, N = R.shape
     D = None
     if context_features is not None:
-        phi = check_features("context_features", context_features, N)
+        lead = (S, N) if population else (N,)
+        phi = check_features("context_features", context_features, *lead, population=population)
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
-        D = -centred(phi).unsqueeze(0)
-    sol = solve_blocks(*population_of_one(R, lr, eps, D, None, kap), opts, stacklevel=3).problem(0)
+        D = -centred(phi).reshape(S, 1, N, -1)
+    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
     warn_if_collapsed(sol, eps)
-    return block_solution(sol, 0, sol.v)
+    if population:
+        return sol
+    one = sol.problem(0)
+    return block_solution(one, 0, one.v)

@@ -4,15 +4,53 @@ restart probability 1 - gamma."""
 from __future__ import annotations
 
 import math
+from typing import Literal, overload
 
 from torch import Tensor
 
 from hireps_torch.checks import as_float
 from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
-from hireps_torch.dual.solutions import DualSolution, block_solution, warn_if_collapsed
-from hireps_torch.dual.solver import checked_settings, population_of_one, solve_blocks
+from hireps_torch.dual.solutions import (
+    DualSolution,
+    PopulationDualSolution,
+    block_solution,
+    warn_if_collapsed,
+)
+from hireps_torch.dual.solver import checked_settings, solve_blocks
 
 __all__ = ["solve_infinite_horizon_dual"]
+
+
+@overload
+def solve_infinite_horizon_dual(
+    rewards: Tensor,
+    features: Tensor,
+    next_features: Tensor,
+    initial_features: Tensor,
+    *,
+    gamma: float,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+    population: Literal[False] = False,
+) -> DualSolution: ...
+
+
+@overload
+def solve_infinite_horizon_dual(
+    rewards: Tensor,
+    features: Tensor,
+    next_features: Tensor,
+    initial_features: Tensor,
+    *,
+    gamma: float,
+    epsilon: float,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | None = None,
+    max_iter: int = 300,
+    population: Literal[True],
+) -> PopulationDualSolution: ...
 
 
 def solve_infinite_horizon_dual(
@@ -26,7 +64,8 @@ def solve_infinite_horizon_dual(
     log_responsibilities: Tensor | None = None,
     kappa: float | None = None,
     max_iter: int = 300,
-) -> DualSolution:
+    population: bool = False,
+) -> DualSolution | PopulationDualSolution:
     """Solve the stationary (infinite-horizon) HiREPS dual with restart probability 1 - gamma.
 
     Samples are transitions (s_i, a_i, r_i, s'_i) of the restart process. The new
@@ -54,6 +93,10 @@ def solve_infinite_horizon_dual(
         kappa: absolute bound on the option cross-entropy or None (see
             :func:`~hireps_torch.dual.solve_episodic_dual` for one that cannot be met).
         max_iter: LBFGS iterations per phase, an integer >= 1.
+        population: the inputs hold S independent problems along a leading dimension
+            (rewards (S, N), features (S, N, F), initial_features (F,) or (S, F), ...), solved
+            together; a :class:`~hireps_torch.dual.PopulationDualSolution` is returned (see
+            :func:`~hireps_torch.dual.solve_episodic_dual`).
 
     Returns:
         :class:`~hireps_torch.dual.DualSolution`; ``v`` holds the value-function weights (F,);
@@ -64,21 +107,28 @@ def solve_infinite_horizon_dual(
             epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
     opts = checked_settings(max_iter)
-    R, eps, lr, kap = common_inputs(rewards, epsilon, log_responsibilities, kappa, "rewards")
-    N = R.shape[1]
+    R, eps, lr, kap = common_inputs(
+        rewards, epsilon, log_responsibilities, kappa, "rewards", population=population
+    )
+    S, _, N = R.shape
     g = as_float("gamma", gamma)
     if not (math.isfinite(g) and 0.0 < g < 1.0):
         raise ValueError(f"gamma must be in (0, 1), got {gamma}")
-    phi = check_features("features", features, N)
-    phi_next = check_features("next_features", next_features, N)
+    lead = (S, N) if population else (N,)
+    phi = check_features("features", features, *lead, population=population)
+    phi_next = check_features("next_features", next_features, *lead, population=population)
     if phi_next.shape != phi.shape:
         raise ValueError(
             f"next_features must have the shape of features {tuple(phi.shape)}, got "
             f"{tuple(phi_next.shape)}"
         )
-    phi0 = check_feature_vector("initial_features", initial_features, phi.shape[1])
-    D = (g * phi_next - phi).unsqueeze(0)
-    c = (1.0 - g) * phi0
-    sol = solve_blocks(*population_of_one(R, lr, eps, D, c, kap), opts, stacklevel=3).problem(0)
+    F = phi.shape[-1]
+    phi0 = check_feature_vector("initial_features", initial_features, F, S if population else None)
+    D = (g * phi_next - phi).reshape(S, 1, N, F)
+    c = ((1.0 - g) * phi0).reshape(S, F)
+    sol = solve_blocks(R, lr, eps, D, c, kap, opts, stacklevel=3)
     warn_if_collapsed(sol, eps)
-    return block_solution(sol, 0, sol.v)
+    if population:
+        return sol
+    one = sol.problem(0)
+    return block_solution(one, 0, one.v)

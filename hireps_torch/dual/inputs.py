@@ -82,9 +82,10 @@ def per_block(name: str, value: float | Tensor, K: int) -> Tensor:
     return t
 
 
-def _shape_text(lead: tuple[int, ...], last: str) -> str:
-    """'(N, K, F) = (60, 3, F)' for lead (60, 3) and last 'F'."""
-    names = ["N", "K"][: len(lead)] + [last]
+def _shape_text(lead: tuple[int, ...], last: str, population: bool = False) -> str:
+    """'(N, K, F) = (60, 3, F)' for lead (60, 3) and last 'F' ('(S, N, F) = ...' with a
+    population dimension first)."""
+    names = (["S"] if population else []) + ["N", "K"][: len(lead) - population] + [last]
     return f"({', '.join(names)}) = ({', '.join([*map(str, lead), last])})"
 
 
@@ -96,29 +97,36 @@ def common_inputs(
     name: str = "returns",
     *,
     per_step: bool = False,
+    population: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-    """Validate the inputs every wrapper shares and return them block-major for the solver.
+    """Validate the inputs every wrapper shares and return them block-major for the solver,
+    with a leading population dimension S (1 for one problem).
 
     Warns (at the wrapper's caller) with a
     :class:`~hireps_torch.dual.DegenerateWeightsWarning` where epsilon >= log N.
 
     Args:
-        returns: (N,) returns, or (N, K) rewards of K decision steps when ``per_step``.
-        epsilon: KL bound, > 0: a float or (K,).
-        log_responsibilities: (N, O), or (N, K, O) when ``per_step``; None means one option.
+        returns: (N,) returns, or (N, K) rewards of K decision steps when ``per_step``; with
+            ``population``, one more leading dimension S (S independent problems).
+        epsilon: KL bound, > 0: a float or (K,) (the same for every problem).
+        log_responsibilities: (N, O), or (N, K, O) when ``per_step``, after the same leading S
+            as ``returns``; None means one option.
         kappa: entropy bound, >= 0 (inf: no bound on that block): None, a float or (K,).
         name: what the error messages call ``returns``.
         per_step: whether the returns are per decision step (the time-indexed dual).
+        population: whether the inputs carry a leading population dimension S.
 
     Returns:
-        R (K, N), epsilon (K,), log p~ (K, N, O) with log 0 floored, kappa (K,) or None.
+        R (S, K, N), epsilon (S, K), log p~ (S, K, N, O) with log 0 floored, kappa (S, K) or
+        None.
     """
     R = as_f64(name, returns)
-    if R.dim() != (2 if per_step else 1):
-        raise ValueError(
-            f"{name} must have shape ({'N, K' if per_step else 'N,'}), got {tuple(R.shape)}"
-        )
-    N = R.shape[0]
+    dims = ("S, " if population else "") + ("N, K" if per_step else "N,")
+    if R.dim() != (2 if per_step else 1) + int(population):
+        raise ValueError(f"{name} must have shape ({dims}), got {tuple(R.shape)}")
+    if population and R.shape[0] < 1:
+        raise ValueError(f"{name}: a population needs S >= 1 problems, got {tuple(R.shape)}")
+    N = R.shape[int(population)]
     if N < 2:
         raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
     if R.numel() == 0:
@@ -126,11 +134,13 @@ def common_inputs(
             f"{name} must hold at least one decision step (K >= 1), got shape {tuple(R.shape)}"
         )
     check_finite(name, R)
-    R = R.reshape(N, -1).T.contiguous()
-    K = R.shape[0]
+    S = R.shape[0] if population else 1
+    lead = tuple(int(d) for d in R.shape)
+    R = R.reshape(S, N, -1).transpose(1, 2).contiguous()
+    K = R.shape[1]
     eps, kap = check_bounds(epsilon, kappa, K, N, stacklevel=4)
-    lr = _log_responsibilities(log_responsibilities, (N, K) if per_step else (N,), K)
-    return R, eps, lr, kap
+    lr = _log_responsibilities(log_responsibilities, lead, S, K, population)
+    return R, eps.expand(S, K), lr, None if kap is None else kap.expand(S, K)
 
 
 def check_bounds(
@@ -160,33 +170,44 @@ def check_bounds(
     return eps, kap
 
 
-def _log_responsibilities(x: Tensor | None, lead: tuple[int, ...], K: int) -> Tensor:
-    """Checked (*lead, O) log-responsibilities as (K, N, O); zeros (K, N, 1) for None."""
-    N = lead[0]
+def _log_responsibilities(
+    x: Tensor | None, lead: tuple[int, ...], S: int, K: int, population: bool
+) -> Tensor:
+    """Checked (*lead, O) log-responsibilities as (S, K, N, O); zeros (S, K, N, 1) for None."""
+    N = lead[int(population)]
     if x is None:
-        return torch.zeros(K, N, 1, dtype=torch.float64)
+        return torch.zeros(S, K, N, 1, dtype=torch.float64)
     lr = as_f64("log_responsibilities", x)
     if lr.dim() != len(lead) + 1 or tuple(lr.shape[:-1]) != lead:
         raise ValueError(
-            f"log_responsibilities must have shape {_shape_text(lead, 'O')}, got {tuple(lr.shape)}"
+            f"log_responsibilities must have shape {_shape_text(lead, 'O', population)}, got "
+            f"{tuple(lr.shape)}"
         )
-    return check_log_resp(lr).reshape(N, K, -1).transpose(0, 1).contiguous()
+    return check_log_resp(lr).reshape(S, N, K, -1).transpose(1, 2).contiguous()
 
 
-def check_features(name: str, x: Tensor, *lead: int) -> Tensor:
-    """Check features of shape (*lead, F): (N, F), or (N, K, F) per decision step."""
+def check_features(name: str, x: Tensor, *lead: int, population: bool = False) -> Tensor:
+    """Check features of shape (*lead, F): (N, F), or (N, K, F) per decision step, after a
+    leading S for a population (then ``lead`` starts with S)."""
     phi = as_f64(name, x)
     if phi.dim() != len(lead) + 1 or tuple(phi.shape[:-1]) != lead:
-        raise ValueError(f"{name} must have shape {_shape_text(lead, 'F')}, got {tuple(phi.shape)}")
+        raise ValueError(
+            f"{name} must have shape {_shape_text(lead, 'F', population)}, got {tuple(phi.shape)}"
+        )
     check_finite(name, phi)
     return phi
 
 
-def check_feature_vector(name: str, x: Tensor, F: int) -> Tensor:
-    """Check a mean feature vector (F,) such as phi_hat_0."""
+def check_feature_vector(name: str, x: Tensor, F: int, S: int | None = None) -> Tensor:
+    """Check a mean feature vector (F,) such as phi_hat_0, or (S, F) for a population (S
+    given; one (F,) vector is then shared by every problem and returned as (S, F))."""
     phi = as_f64(name, x)
-    if phi.shape != (F,):
-        raise ValueError(f"{name} must have shape ({F},), got {tuple(phi.shape)}")
+    if S is not None and phi.shape == (F,):
+        phi = phi.expand(S, F)
+    shape = (F,) if S is None else (S, F)
+    if phi.shape != shape:
+        text = f"({F},)" if S is None else f"({F},) or ({S}, {F})"
+        raise ValueError(f"{name} must have shape {text}, got {tuple(phi.shape)}")
     check_finite(name, phi)
     return phi
 
@@ -253,11 +274,11 @@ def check_blocks(
 
 
 def centred(phi: Tensor) -> Tensor:
-    """phi (N, F) minus its mean over samples, with the columns that are constant to round-off
-    (spread below 1e-14 of their magnitude) exactly 0: centring would leave them as round-off
-    noise that no longer shows the magnitude it came from, and the solver would take that
-    noise for a feature."""
-    out = phi - phi.mean(dim=0, keepdim=True)
-    spread = phi.amax(dim=0) - phi.amin(dim=0)
-    constant = spread <= 1e-14 * phi.abs().amax(dim=0)
+    """phi (..., N, F) minus its mean over samples, with the columns that are constant to
+    round-off (spread below 1e-14 of their magnitude) exactly 0: centring would leave them as
+    round-off noise that no longer shows the magnitude it came from, and the solver would
+    take that noise for a feature."""
+    out = phi - phi.mean(dim=-2, keepdim=True)
+    spread = phi.amax(dim=-2, keepdim=True) - phi.amin(dim=-2, keepdim=True)
+    constant = spread <= 1e-14 * phi.abs().amax(dim=-2, keepdim=True)
     return torch.where(constant, torch.zeros_like(out), out)

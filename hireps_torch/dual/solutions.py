@@ -296,16 +296,18 @@ def finish(
     )
 
 
-def warn_if_collapsed(sol: RepsDualSolution, epsilon: Tensor) -> None:
-    """Warn (at the wrapper's caller) when a block's weights sit on ~one sample."""
-    K, N, _ = sol.weights.shape
+def warn_if_collapsed(sol: PopulationDualSolution, epsilon: Tensor) -> None:
+    """Warn (at the wrapper's caller) when a block's weights sit on ~one sample (epsilon
+    (S, K))."""
+    S, K, N, _ = sol.weights.shape
     ess = sol.effective_sample_size
-    bad = ((ess < 1.5) & sol.eta.isfinite()).nonzero().flatten().tolist()
+    bad = ((ess < 1.5) & sol.eta.isfinite()).nonzero().tolist()
     if bad:
         which = ", ".join(
-            ("" if K == 1 else f"step {k}: ")
-            + f"~{float(ess[k]):.2f} effective samples (epsilon = {float(epsilon[k]):.4g})"
-            for k in bad
+            ("" if S == 1 else f"problem {s}, ")
+            + ("" if K == 1 else f"step {k}: ")
+            + f"~{float(ess[s, k]):.2f} effective samples (epsilon = {float(epsilon[s, k]):.4g})"
+            for s, k in bad
         )
         warnings.warn(
             f"the weights collapsed onto {which} with N = {N}; the refit will rely on its "

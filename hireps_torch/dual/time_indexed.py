@@ -27,6 +27,8 @@ c = 0), as in the episodic dual: the same dual value, weights and residuals.
 
 from __future__ import annotations
 
+from typing import Literal, overload
+
 import torch
 from torch import Tensor
 
@@ -36,10 +38,42 @@ from hireps_torch.dual.inputs import (
     check_features,
     common_inputs,
 )
-from hireps_torch.dual.solutions import TimeIndexedDualSolution, warn_if_collapsed
-from hireps_torch.dual.solver import checked_settings, population_of_one, solve_blocks
+from hireps_torch.dual.solutions import (
+    PopulationDualSolution,
+    TimeIndexedDualSolution,
+    warn_if_collapsed,
+)
+from hireps_torch.dual.solver import checked_settings, solve_blocks
 
 __all__ = ["solve_time_indexed_dual"]
+
+
+@overload
+def solve_time_indexed_dual(
+    rewards: Tensor,
+    features: Tensor,
+    *,
+    epsilon: float | Tensor,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | Tensor | None = None,
+    initial_features: Tensor | None = None,
+    max_iter: int = 300,
+    population: Literal[False] = False,
+) -> TimeIndexedDualSolution: ...
+
+
+@overload
+def solve_time_indexed_dual(
+    rewards: Tensor,
+    features: Tensor,
+    *,
+    epsilon: float | Tensor,
+    log_responsibilities: Tensor | None = None,
+    kappa: float | Tensor | None = None,
+    initial_features: Tensor | None = None,
+    max_iter: int = 300,
+    population: Literal[True],
+) -> PopulationDualSolution: ...
 
 
 def solve_time_indexed_dual(
@@ -51,7 +85,8 @@ def solve_time_indexed_dual(
     kappa: float | Tensor | None = None,
     initial_features: Tensor | None = None,
     max_iter: int = 300,
-) -> TimeIndexedDualSolution:
+    population: bool = False,
+) -> TimeIndexedDualSolution | PopulationDualSolution:
     """Solve the time-indexed HiREPS dual (the module docstring): one distribution per
     decision step k = 1..K.
 
@@ -72,6 +107,10 @@ def solve_time_indexed_dual(
         initial_features: (F,) mean features of the start distribution, phi_hat_1; by default
             the sample mean of ``features[:, 0]`` (then uniform weights are feasible).
         max_iter: LBFGS iterations per phase, an integer >= 1.
+        population: the inputs hold S independent problems along a leading dimension
+            (rewards (S, N, K), features (S, N, K, F), initial_features (F,) or (S, F), ...),
+            solved together; a :class:`~hireps_torch.dual.PopulationDualSolution` is returned
+            (its v is (S, K F): step k's weights are v[:, k F : (k + 1) F]).
 
     Returns:
         :class:`~hireps_torch.dual.TimeIndexedDualSolution`; ``weights`` (K, N, O), each step
@@ -87,44 +126,55 @@ def solve_time_indexed_dual(
     """
     opts = checked_settings(max_iter)
     R, eps, lr, kap = common_inputs(
-        rewards, epsilon, log_responsibilities, kappa, "rewards", per_step=True
+        rewards,
+        epsilon,
+        log_responsibilities,
+        kappa,
+        "rewards",
+        per_step=True,
+        population=population,
     )
-    K, N = R.shape
-    phi = check_features("features", features, N, K).transpose(0, 1)  # (K, N, F)
+    S, K, N = R.shape
+    lead = (S, N, K) if population else (N, K)
+    phi = check_features("features", features, *lead, population=population)
+    phi = phi.reshape(S, N, K, -1).transpose(1, 2)  # (S, K, N, F)
     F = phi.shape[-1]
     phi1 = None
     if initial_features is not None:
-        phi1 = check_feature_vector("initial_features", initial_features, F)
+        phi1 = check_feature_vector("initial_features", initial_features, F, S)
     D = _chained_map(phi, phi1)
-    sol = solve_blocks(*population_of_one(R, lr, eps, D, None, kap), opts, stacklevel=3).problem(0)
+    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
     warn_if_collapsed(sol, eps)
+    if population:
+        return sol
+    one = sol.problem(0)
     return TimeIndexedDualSolution(
-        eta=sol.eta,
-        xi=sol.xi,
-        v=sol.v.reshape(K, F),
-        weights=sol.weights,
-        sample_weights=sol.weights.sum(-1),
-        kl=sol.kl,
-        cross_entropy=sol.cross_entropy,
-        effective_sample_size=sol.effective_sample_size,
-        feature_error=sol.feature_error,
-        dual_value=sol.dual_value,
-        converged=sol.converged,
-        iterations=sol.iterations,
+        eta=one.eta,
+        xi=one.xi,
+        v=one.v.reshape(K, F),
+        weights=one.weights,
+        sample_weights=one.weights.sum(-1),
+        kl=one.kl,
+        cross_entropy=one.cross_entropy,
+        effective_sample_size=one.effective_sample_size,
+        feature_error=one.feature_error,
+        dual_value=one.dual_value,
+        converged=one.converged,
+        iterations=one.iterations,
     )
 
 
 def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:
-    """D (K, N, K F) of features phi (K, N, F): block k holds -phi(s_k,i) in slot k and
-    phi(s_{k+1},i) in slot k + 1, and block 1 also phi_hat_1 in slot 1 (the sample mean when
-    ``phi1`` is None: then constant columns are exactly 0 there)."""
-    K, N, F = phi.shape
-    D = torch.zeros(K, N, K, F, dtype=torch.float64)
+    """D (S, K, N, K F) of features phi (S, K, N, F): block k holds -phi(s_k,i) in slot k and
+    phi(s_{k+1},i) in slot k + 1, and block 1 also phi_hat_1 (S, F) in slot 1 (the sample mean
+    when ``phi1`` is None: then constant columns are exactly 0 there)."""
+    S, K, N, F = phi.shape
+    D = torch.zeros(S, K, N, K, F, dtype=torch.float64)
     steps = torch.arange(K)
-    D[steps, :, steps] = -phi
-    D[steps[:-1], :, steps[1:]] = phi[1:]
+    D[:, steps, :, steps] = -phi.transpose(0, 1)
+    D[:, steps[:-1], :, steps[1:]] = phi[:, 1:].transpose(0, 1)
     if phi1 is None:
-        D[0, :, 0] = -centred(phi[0])  # = phi_hat_1 - phi(s_1)
+        D[:, 0, :, 0] = -centred(phi[:, 0])  # = phi_hat_1 - phi(s_1)
     else:
-        D[0, :, 0] += phi1
-    return D.reshape(K, N, K * F)
+        D[:, 0, :, 0] += phi1[:, None, :]
+    return D.reshape(S, K, N, K * F)

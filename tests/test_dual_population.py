@@ -1,0 +1,239 @@
+"""Populations of duals (``population=True``): S independent problems solved together equal S
+separate solves, share nothing, and keep every promise per problem."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from hireps_torch.dual import (
+    InfeasibleConstraintsWarning,
+    PopulationDualSolution,
+    solve_episodic_dual,
+    solve_infinite_horizon_dual,
+    solve_time_indexed_dual,
+)
+
+F64 = torch.float64
+S = 5
+
+
+def randn(gen, *shape):
+    return torch.randn(*shape, generator=gen, dtype=F64)
+
+
+def soft(gen, *shape):
+    return torch.log_softmax(2.0 * randn(gen, *shape), -1)
+
+
+def entropy(lr):
+    return float(-(lr.exp() * lr).sum(-1).mean())
+
+
+def episodic_case(gen, options, context):
+    R = randn(gen, S, 30)
+    kw = {"epsilon": 0.5}
+    if options:
+        lr = soft(gen, S, 30, 3)
+        kw |= {"log_responsibilities": lr, "kappa": 0.8 * entropy(lr)}
+    if context:
+        kw["context_features"] = randn(gen, S, 30, 3)
+    return solve_episodic_dual, (R,), kw
+
+
+def infinite_horizon_case(gen, options, context):
+    phi, phi_next = randn(gen, S, 40, 4), randn(gen, S, 40, 4)
+    kw = {"epsilon": 0.5, "gamma": 0.9}
+    if options:
+        lr = soft(gen, S, 40, 3)
+        kw |= {"log_responsibilities": lr, "kappa": 0.8 * entropy(lr)}
+    phi0 = phi.mean(1) if context else phi.mean((0, 1))  # per problem, or one shared (F,)
+    return solve_infinite_horizon_dual, (randn(gen, S, 40), phi, phi_next, phi0), kw
+
+
+def time_indexed_case(gen, options, context):
+    R = randn(gen, S, 30, 3)
+    kw = {"epsilon": torch.tensor([0.5, 0.7, 0.9], dtype=F64)}
+    if options:
+        lr = soft(gen, S, 30, 3, 2)
+        kw |= {"log_responsibilities": lr, "kappa": 0.8 * entropy(lr)}
+    return solve_time_indexed_dual, (R, randn(gen, S, 30, 3, 2 if context else 1)), kw
+
+
+CASES = {
+    "episodic": episodic_case,
+    "infinite_horizon": infinite_horizon_case,
+    "time_indexed": time_indexed_case,
+}
+
+
+def one(x, s, shared_vector=False):
+    """Problem s of a population input (a tensor with a leading S, or anything else)."""
+    if isinstance(x, torch.Tensor) and x.dim() >= 2 and x.shape[0] == S:
+        return x[s]
+    return x
+
+
+def separate(fn, args, kw, s):
+    return fn(*(one(a, s) for a in args), **{k: one(v, s) for k, v in kw.items()})
+
+
+@pytest.mark.parametrize("options", [False, True])
+@pytest.mark.parametrize("context", [False, True])
+@pytest.mark.parametrize("variant", list(CASES))
+def test_a_population_equals_separate_solves(variant, options, context):
+    gen = torch.Generator().manual_seed(3)
+    fn, args, kw = CASES[variant](gen, options, context)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every problem here converges: no warning at all
+        pop = fn(*args, **kw, population=True)
+        singles = [separate(fn, args, kw, s) for s in range(S)]
+    assert isinstance(pop, PopulationDualSolution)
+    K = pop.eta.shape[1]
+    assert pop.converged.shape == (S,) and bool(pop.converged.all())
+    assert pop.kl.shape == pop.eta.shape == pop.xi.shape == pop.effective_sample_size.shape
+    for s, sol in enumerate(singles):
+        w = sol.weights if K > 1 else sol.weights[None]
+        assert torch.allclose(pop.weights[s], w, rtol=0, atol=1e-10), s
+        eta = torch.as_tensor(sol.eta, dtype=F64).reshape(K)
+        assert torch.allclose(pop.eta[s], eta, rtol=1e-8, atol=0), (s, pop.eta[s], eta)
+        kl = torch.as_tensor(sol.kl, dtype=F64).reshape(K)
+        assert torch.allclose(pop.kl[s], kl, rtol=0, atol=1e-9), s
+        xi = torch.as_tensor(sol.xi, dtype=F64).reshape(K)
+        assert torch.allclose(pop.xi[s], xi, rtol=1e-6, atol=1e-10), (s, pop.xi[s], xi)
+        assert torch.allclose(pop.v[s], sol.v.reshape(-1), rtol=1e-7, atol=1e-9), s
+        assert float(pop.kl[s].max()) <= 0.9 * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("variant", list(CASES))
+def test_copies_of_one_problem_get_the_same_solution(variant):
+    gen = torch.Generator().manual_seed(4)
+    fn, args, kw = CASES[variant](gen, True, True)
+
+    def copies(x):
+        return x[:1].expand(S, *x.shape[1:]).clone() if isinstance(x, torch.Tensor) else x
+
+    args = tuple(copies(a) if a.dim() >= 2 else a for a in args)
+    kw = {
+        k: copies(v) if isinstance(v, torch.Tensor) and v.dim() >= 2 else v for k, v in kw.items()
+    }
+    pop = fn(*args, **kw, population=True)
+    for field in ("weights", "eta", "xi", "v", "kl", "dual_value"):
+        value = getattr(pop, field)
+        assert torch.equal(value, value[:1].expand_as(value)), field
+
+
+def test_a_fallback_in_one_problem_leaves_the_others_alone():
+    # problem 1's start features lie far outside what its transitions can reach: its feature
+    # constraints cannot be met within the KL bound and it is re-solved with a ridge; the
+    # others are not touched
+    gen = torch.Generator().manual_seed(5)
+    phi, phi_next = randn(gen, 3, 40, 2), randn(gen, 3, 40, 2)
+    phi0 = (phi - 0.9 * phi_next).mean(1) / 0.1  # met by the uniform weights
+    phi0[1] = 50.0
+    lr = soft(gen, 3, 40, 2)
+    R = randn(gen, 3, 40)
+    kw = {"gamma": 0.9, "epsilon": 0.3, "log_responsibilities": lr}
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        pop = solve_infinite_horizon_dual(R, phi, phi_next, phi0, population=True, **kw)
+    texts = [str(r.message) for r in record if issubclass(r.category, RuntimeWarning)]
+    assert texts and all(t.startswith("problem 1: ") for t in texts), texts
+    assert "cannot be met within the KL bound" in texts[0]
+    assert pop.converged.tolist() == [True, False, True]
+    assert bool((pop.kl <= 0.3 * (1 + 1e-6)).all())
+    for s in (0, 2):
+        alone = solve_infinite_horizon_dual(
+            R[s], phi[s], phi_next[s], phi0[s], **{**kw, "log_responsibilities": lr[s]}
+        )
+        assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-10)
+        assert float(pop.eta[s, 0]) == pytest.approx(alone.eta, rel=1e-8)
+
+
+def test_a_population_of_one_is_the_single_solve():
+    gen = torch.Generator().manual_seed(6)
+    R, lr, phi = randn(gen, 1, 20), soft(gen, 1, 20, 3), randn(gen, 1, 20, 2)
+    kw = {"epsilon": 0.4, "kappa": 0.8 * entropy(lr)}
+    pop = solve_episodic_dual(
+        R, log_responsibilities=lr, context_features=phi, population=True, **kw
+    )
+    alone = solve_episodic_dual(R[0], log_responsibilities=lr[0], context_features=phi[0], **kw)
+    assert torch.equal(pop.weights[0, 0], alone.weights)
+    assert float(pop.eta[0, 0]) == alone.eta and bool(pop.converged[0]) == alone.converged
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (
+            lambda: solve_episodic_dual(torch.zeros(10), epsilon=0.5, population=True),
+            r"returns must have shape \(S, N,\), got \(10,\)",
+        ),
+        (
+            lambda: solve_episodic_dual(torch.zeros(3, 10), epsilon=0.5),
+            r"returns must have shape \(N,\), got \(3, 10\)",
+        ),
+        (
+            lambda: solve_episodic_dual(
+                torch.zeros(3, 10),
+                epsilon=0.5,
+                population=True,
+                log_responsibilities=torch.zeros(2, 10, 1),
+            ),
+            r"log_responsibilities must have shape \(S, N, O\) = \(3, 10, O\), got \(2, 10, 1\)",
+        ),
+        (
+            lambda: solve_episodic_dual(
+                torch.zeros(3, 10),
+                epsilon=0.5,
+                population=True,
+                context_features=torch.zeros(10, 2),
+            ),
+            r"context_features must have shape \(S, N, F\) = \(3, 10, F\), got \(10, 2\)",
+        ),
+        (
+            lambda: solve_infinite_horizon_dual(
+                torch.zeros(3, 10),
+                torch.zeros(3, 10, 2),
+                torch.zeros(3, 10, 2),
+                torch.zeros(2, 2),
+                gamma=0.9,
+                epsilon=0.5,
+                population=True,
+            ),
+            r"initial_features must have shape \(2,\) or \(3, 2\), got \(2, 2\)",
+        ),
+        (
+            lambda: solve_time_indexed_dual(
+                torch.zeros(3, 10, 2), torch.zeros(3, 10, 3, 1), epsilon=0.5, population=True
+            ),
+            r"features must have shape \(S, N, K, F\) = \(3, 10, 2, F\), got \(3, 10, 3, 1\)",
+        ),
+        (
+            lambda: solve_episodic_dual(
+                torch.tensor([[0.0, 1.0], [0.0, math.nan]]), epsilon=0.5, population=True
+            ),
+            r"returns",
+        ),
+    ],
+)
+def test_bad_population_inputs_name_the_value(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+def test_an_entropy_bound_out_of_reach_is_relaxed_in_its_own_problem_only():
+    gen = torch.Generator().manual_seed(7)
+    R, lr = randn(gen, 3, 30), soft(gen, 3, 30, 3)
+    lr[2] = torch.log_softmax(0.01 * randn(gen, 30, 3), -1)  # nearly uniform: CE ~ log 3
+    with pytest.warns(InfeasibleConstraintsWarning, match=r"^problem 2: .*entropy bound"):
+        pop = solve_episodic_dual(
+            R, epsilon=0.05, log_responsibilities=lr, kappa=0.3, population=True
+        )
+    assert not bool(pop.converged[2])
+    for s in (0, 1):
+        alone = solve_episodic_dual(R[s], epsilon=0.05, log_responsibilities=lr[s], kappa=0.3)
+        assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-10)

@@ -131,6 +131,8 @@ def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Ten
     t_meet = _bisect_log_t(lr, torch.where(need, kappa, 0.0), use_kl=False)
     kl_meet, _ = _tilt(lr, t_meet)
     unreachable = need & ((ce_top > kappa) | (kl_meet > eps))
+    if not bool(unreachable.any()):  # (``best`` is only read where a bound is unreachable)
+        return kappa, unreachable, ce0
     budget = torch.minimum(eps, kl_top)
     t_full = _bisect_log_t(lr, budget, use_kl=True)
     _, best = _tilt(lr, t_full)

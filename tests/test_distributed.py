@@ -122,6 +122,7 @@ HISTORY_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_an_episode_is_the_same_whatever_else_the_worker_played(tmp_path):
     """Episodes 12..17 of a learned policy played twice in a row, on their own after other
     episodes, and on a fresh environment give the same steps, bit for bit: the environment
@@ -134,6 +135,7 @@ def test_an_episode_is_the_same_whatever_else_the_worker_played(tmp_path):
     assert "SAME" in out.stdout
 
 
+@pytest.mark.slow
 def test_reproducible_mkl_reports_whether_it_is_in_force():
     code = (
         "import os; os.environ.pop('MKL_CBWR', None)\n"

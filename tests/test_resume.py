@@ -122,9 +122,12 @@ CASES = {
     "ball-on-beam": ({"episodes": 15, "eval_episodes": 2}, 2),
     "hockey-sequential": ({"episodes": 12, "episodes_per_iteration": 3}, 2),
 }
+SLOW = {"hockey-sequential"}  # three pybullet processes: in make test-slow
 
 
-@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in CASES]
+)
 def test_interrupted_and_resumed_run_equals_the_uninterrupted_run(tmp_path, name):
     """SIGINT to a train.py subprocess mid-run, then --resume: byte-identical ending."""
     if name.startswith("hockey"):
@@ -237,6 +240,7 @@ def test_an_unreadable_checkpoint_is_named_and_nothing_changes(tmp_path):
     assert {q.name: q.read_bytes() for q in run.iterdir()} == before
 
 
+@pytest.mark.slow
 def test_a_run_with_worker_processes_resumes_with_a_warning_and_exits_cleanly(tmp_path):
     """MultiSyncCollector with 2 workers: interrupted, then resumed. The environments live in
     the workers and are not restored: the resumed run finishes, says it is not

@@ -183,6 +183,7 @@ def test_ball_on_beam_same_seed_same_run(tmp_path):
     assert runs[2] != runs[0]
 
 
+@pytest.mark.slow
 def test_hockey_sequential_subprocess_writes_the_run_directory(tmp_path):
     pytest.importorskip("pybullet")
     run = tmp_path / "run"

@@ -141,7 +141,9 @@ def solve_time_indexed_dual(
     F = phi.shape[-1]
     phi1 = None
     if initial_features is not None:
-        phi1 = check_feature_vector("initial_features", initial_features, F, S)
+        phi1 = check_feature_vector(
+            "initial_features", initial_features, F, S if population else None
+        ).reshape(S, F)
     D = _chained_map(phi, phi1)
     sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
     warn_if_collapsed(sol, eps)

@@ -144,7 +144,6 @@ def test_collapsing_epsilon_warns_and_keeps_policy_finite():
     assert float(torch.linalg.eigvalsh(pol.covariance).min()) >= 1e-6 * (1 - 1e-9)
 
 
-@pytest.mark.slow
 def test_hireps_keeps_both_modes_reps_picks_one():
     """Two-Gaussians task at train.py's defaults: HiREPS (10 options, kappa_rel 0.8) converges
     with one option on each mode in most seeds (measured 17/20 in benchmarks/bimodal_modes.py);
@@ -171,7 +170,6 @@ def test_hireps_keeps_both_modes_reps_picks_one():
         assert modes_covered(option_summary(algo, task), task) == 1
 
 
-@pytest.mark.slow
 def test_contextual_hireps_tracks_a_solution_family():
     task = ContextualTwoGaussians(width=1.0)
     algo = EpisodicHiREPS.create(

@@ -19,6 +19,7 @@ benchmarks/README.md).
 from __future__ import annotations
 
 import argparse
+import functools
 import platform
 import statistics
 import sys
@@ -78,34 +79,17 @@ def main() -> None:
     )
     for O in (1, 5):
         R, phi, lr, kappa = population(max(sizes), N, O)
-        kw = {"epsilon": eps, "kappa": kappa}
-        lr_kw = lr if O > 1 else None
-
-        def one(s: int) -> object:
-            return solve_episodic_dual(
-                R[s],
-                log_responsibilities=None if lr_kw is None else lr_kw[s],
-                context_features=phi[s],
-                **kw,
-            )
-
-        t_one = timed(lambda: one(0), args.repeats * 3)
+        lrs = lr if O > 1 else None
+        t_one = timed(
+            functools.partial(solve, R[:1], phi[:1], lrs, eps, kappa, 0), args.repeats * 3
+        )
         for S in sizes:
-
-            def together(S: int = S) -> object:
-                return solve_episodic_dual(
-                    R[:S],
-                    log_responsibilities=None if lr_kw is None else lr_kw[:S],
-                    context_features=phi[:S],
-                    population=True,
-                    **kw,
-                )
-
+            together = functools.partial(solve, R[:S], phi[:S], lrs, eps, kappa, None)
             t_pop = timed(together, args.repeats)
             pop = together()
             n_ref = min(S, 100)  # separate solves and scipy on at most 100 problems
             t0 = time.perf_counter()
-            singles = [one(s) for s in range(n_ref)]
+            singles = [solve(R, phi, lrs, eps, kappa, s) for s in range(n_ref)]
             t_sep = (time.perf_counter() - t0) / n_ref
             scipy_dual(R[0].numpy(), phi[0].numpy(), lr[0].numpy(), eps, kappa)  # warm-up
             t0 = time.perf_counter()
@@ -120,6 +104,26 @@ def main() -> None:
                 f"{t_pop / S * 1e3:>11.3f} {t_scipy * 1e3:>12.3f} {t_pop / S / t_scipy:>7.2f} "
                 f"{t_sep * 1e3:>15.3f} {dw:>9.1e} {float(pop.converged.double().mean()):>6.2f}"
             )
+
+
+def solve(R, phi, lr, eps, kappa, s):  # type: ignore[no-untyped-def]
+    """Problem s alone (a DualSolution), or all of them as a population when s is None."""
+    if s is None:
+        return solve_episodic_dual(
+            R,
+            epsilon=eps,
+            kappa=kappa,
+            log_responsibilities=None if lr is None else lr[: len(R)],
+            context_features=phi,
+            population=True,
+        )
+    return solve_episodic_dual(
+        R[s],
+        epsilon=eps,
+        kappa=kappa,
+        log_responsibilities=None if lr is None else lr[s],
+        context_features=phi[s],
+    )
 
 
 if __name__ == "__main__":

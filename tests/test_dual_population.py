@@ -237,3 +237,50 @@ def test_an_entropy_bound_out_of_reach_is_relaxed_in_its_own_problem_only():
     for s in (0, 1):
         alone = solve_episodic_dual(R[s], epsilon=0.05, log_responsibilities=lr[s], kappa=0.3)
         assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-10)
+
+
+def test_population_must_be_a_bool():
+    with pytest.raises(TypeError, match="population must be True or False, got 'yes'"):
+        solve_episodic_dual(torch.zeros(3, 10), epsilon=0.5, population="yes")
+
+
+def test_a_run_off_is_detected_per_problem():
+    # problem 0 sits at its eta floor with a small residual (no conflict); problem 1's v ran
+    # past V_MAX: only problem 1 is flagged, whatever problem 0 does
+    from hireps_torch.dual.problem import V_MAX, DualProblem
+
+    gen = torch.Generator().manual_seed(8)
+    R, D = randn(gen, 2, 1, 20), randn(gen, 2, 1, 20, 2)
+    D[0] = 0.0  # problem 0's feature constraint holds for any weights: residual 0
+    prob = DualProblem(
+        R,
+        D,
+        None,
+        torch.zeros(2, 1, 20, 1, dtype=F64),
+        torch.full((2, 1), 0.5, dtype=F64),
+        torch.zeros(2, 1, dtype=F64),
+    )
+    x = torch.zeros(2, 4, dtype=F64)
+    x[0, 0] = prob.log_eta_min[0, 0] - 1.0
+    x[1, 2] = 2 * V_MAX
+    g, _ = prob.value_and_grad(x)
+    assert prob.shows_conflict(x, g).tolist() == [False, True]
+
+
+def test_unconverged_problems_are_solved_again_alone():
+    # one LBFGS iteration per phase: no problem converges within it; each is solved again
+    # alone and ends where its own solve ends (up to round-off of the shared conditioning)
+    gen = torch.Generator().manual_seed(9)
+    R, lr, phi = randn(gen, 3, 40), soft(gen, 3, 40, 3), randn(gen, 3, 40, 2)
+    kw = {"epsilon": 0.5, "kappa": 0.8 * entropy(lr), "max_iter": 1}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pop = solve_episodic_dual(
+            R, log_responsibilities=lr, context_features=phi, population=True, **kw
+        )
+        for s in range(3):
+            alone = solve_episodic_dual(
+                R[s], log_responsibilities=lr[s], context_features=phi[s], **kw
+            )
+            assert bool(pop.converged[s]) == alone.converged
+            assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-8), s

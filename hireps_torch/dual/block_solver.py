@@ -22,7 +22,9 @@ runs one LBFGS call over the problems that need it, every decision (a KKT phase,
 LBFGS, the ridge fallback, Newton steps) is taken per problem, and a phase run for some
 problems leaves the others exactly as they were. A solve ends with Newton steps on every
 converged problem, which take its gradient from LBFGS's tolerance to round-off: a problem's
-solution then does not depend on which other problems shared the LBFGS call.
+solution then does not depend on which other problems shared the LBFGS call. A problem that a
+shared call leaves unconverged, or flags as a conflict, is solved again alone, and the ridge
+fallback runs for each problem alone.
 """
 
 from __future__ import annotations
@@ -187,11 +189,15 @@ class BlockSolver:
         need, conflict = torch.zeros_like(todo), torch.zeros_like(todo)
         if not prob.P:
             self.solve(todo)
+            if int(todo.sum()) > 1:  # see below: an unconverged problem is solved again alone
+                for s in (todo & ~self.end.converged).nonzero().flatten().tolist():
+                    self.x = torch.where(_only(s, todo)[:, None], x_start, self.x)
+                    self.solve(_only(s, todo))
             return self.end, texts
         # A dual running off to -infinity can drag the LBFGS call it shares (one line search
         # for all): the problems it flagged are solved again without it, and each problem
         # flagged in a shared call is solved again alone before it counts as a conflict.
-        suspects = torch.zeros_like(todo)
+        suspects, first = torch.zeros_like(todo), todo.clone()
         while bool(todo.any()):
             now, clash = self._solve_and_detect(todo, x_start)
             if int(todo.sum()) == 1:
@@ -202,10 +208,12 @@ class BlockSolver:
             todo &= ~now
             if not bool(now.any()):
                 break
+        # A problem that a shared call left unconverged ends where the shared line searches
+        # left it: it is solved again alone, so that its answer is its own.
+        if int(first.sum()) > 1:
+            suspects |= first & ~self.end.converged & ~need
         for s in suspects.nonzero().flatten().tolist():
-            alone = torch.zeros_like(todo)
-            alone[s] = True
-            now, clash = self._solve_and_detect(alone, x_start)
+            now, clash = self._solve_and_detect(_only(s, todo), x_start)
             need |= now
             conflict |= clash
         if not bool(need.any()):
@@ -257,16 +265,16 @@ class BlockSolver:
         closest distribution that meets them, can collapse onto a single sample and wreck the
         policy).
         """
-        pending, kept = need.clone(), torch.zeros_like(need)
-        for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
-            self.prob.ridge = torch.where(pending, factor * _CONFLICT_RIDGE, self.prob.ridge)
-            self.x = torch.where(pending[:, None], x_start, self.x)
-            self.solve(pending)
-            ok = pending & ~self.breaks_kl(self.end.weights)
-            kept |= ok
-            pending &= ~ok
-            if not bool(pending.any()):
-                break
+        kept = torch.zeros_like(need)
+        for s in need.nonzero().flatten().tolist():  # each alone: its answer is its own
+            pending = _only(s, need)
+            for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
+                self.prob.ridge = torch.where(pending, factor * _CONFLICT_RIDGE, self.prob.ridge)
+                self.x = torch.where(pending[:, None], x_start, self.x)
+                self.solve(pending)
+                if not bool(self.breaks_kl(self.end.weights)[s]):
+                    kept[s] = True
+                    break
         return kept
 
     def breaks_kl(self, w: Tensor) -> Tensor:
@@ -507,6 +515,13 @@ class BlockSolver:
         cs[idx], gs[idx], ws[idx] = conv, g, P
         self.end = _End(cs, gs, ws)
         return used, spent, stalled
+
+
+def _only(s: int, like: Tensor) -> Tensor:
+    """(S,) mask of problem s alone."""
+    mask = torch.zeros_like(like)
+    mask[s] = True
+    return mask
 
 
 def _newton_step(H: Tensor, grad: Tensor, moving: Tensor) -> tuple[Tensor, Tensor]:

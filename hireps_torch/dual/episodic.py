@@ -79,8 +79,10 @@ def solve_episodic_dual(
         population: the inputs hold S independent problems along a leading dimension; they
             are solved together (one LBFGS call per phase, each problem conditioned, judged
             and warned about on its own) and a
-            :class:`~hireps_torch.dual.PopulationDualSolution` (K = 1) is returned. Each
-            problem's solution is its solution alone, to round-off.
+            :class:`~hireps_torch.dual.PopulationDualSolution` (K = 1) is returned. A problem
+            that converges gets its solution alone, to round-off (~1e-13); one that does not
+            (it warns) is solved again alone from its own start, and its answer can differ
+            from a solo solve by what the unconverged solver makes of round-off.
 
     Returns:
         :class:`~hireps_torch.dual.DualSolution` with weights (N, O) summing to 1 and

@@ -120,6 +120,8 @@ def common_inputs(
         R (S, K, N), epsilon (S, K), log p~ (S, K, N, O) with log 0 floored, kappa (S, K) or
         None.
     """
+    if not isinstance(population, bool):
+        raise TypeError(f"population must be True or False, got {population!r}")
     R = as_f64(name, returns)
     dims = ("S, " if population else "") + ("N, K" if per_step else "N,")
     if R.dim() != (2 if per_step else 1) + int(population):

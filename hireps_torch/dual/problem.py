@@ -255,9 +255,8 @@ class DualProblem:
         bad = ~(torch.isfinite(x).all(-1) & torch.isfinite(g))
         bad |= (x[:, :K] >= LOG_ETA_MAX).any(-1)
         low = (x[:, :K] <= self.log_eta_min).any(-1)
-        if bool((low & ~bad).any()):  # v grows as eta shrinks: the residual tells
-            resid = self.evaluate(torch.nan_to_num(x))[1][:, 2 * K :].abs().amax(-1)
-            bad |= low & (resid > 1e-3)
-        else:
-            bad |= (x[:, 2 * K :].abs() >= V_MAX).any(-1) & ~low
-        return bad
+        # per problem: at its eta floor the residual tells (v grows as eta shrinks), else |v|
+        resid = self.evaluate(torch.nan_to_num(x))[1][:, 2 * K :].abs().amax(-1)
+        ran = (x[:, 2 * K :].abs() >= V_MAX).any(-1)
+        flagged: Tensor = bad | torch.where(low, resid > 1e-3, ran)
+        return flagged

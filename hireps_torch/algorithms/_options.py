@@ -33,12 +33,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor
 
-from hireps_torch.dual import DualSolution
+from hireps_torch.dual import DualSolution, PopulationDualSolution
 from hireps_torch.policies import HierarchicalPolicy
 
 
@@ -176,7 +176,7 @@ def apply_refit(
     if refit.values is not None:
         policy.set_parameters(refit.values)
         if policy.n_options > 1 and prune_threshold > 0:
-            pruned = policy.prune(context, prune_threshold)
+            pruned = cast(list[int], policy.prune(context, prune_threshold))
     sol, bound = refit.sol, refit.bound
     prior = policy.gating.probs(policy.gating_features(context)).mean(0)
     ent = torch.stack([o.entropy() for o in policy.sub_policies])
@@ -222,3 +222,150 @@ def stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Tens
         [math.inf if b.kappa is None else b.kappa for b in bounds], dtype=torch.float64
     )
     return log_resp, kappa
+
+
+# ---- populations ----------------------------------------------------------------------------
+# The same steps for a population of S policies (HierarchicalPolicy.stack): every member's
+# dual is solved in one call, its refit computed in one batched call per option, and a member
+# whose returns carry no information is left exactly as it is, whatever the others do.
+
+
+@dataclass(frozen=True)
+class PopulationBound:
+    """:class:`OptionBound` of each member of a population.
+
+    Attributes:
+        log_responsibilities: (S, N, O) log p~ (-inf on a member's pruned options), or None
+            when every member has one active option.
+        option_entropy: (S,) mean entropy of each member's responsibilities.
+        kappa: (S,) absolute entropy bounds (inf: none for that member), or None.
+    """
+
+    log_responsibilities: Tensor | None
+    option_entropy: Tensor
+    kappa: Tensor | None
+
+    def member(self, s: int, active: Tensor) -> OptionBound:
+        """Member s's bound as :func:`option_bound` returns it (its active columns)."""
+        lr = self.log_responsibilities
+        if lr is None or int(active[s].sum()) < 2:
+            return OptionBound(None, 0.0, None)
+        kappa = None if self.kappa is None else float(self.kappa[s])
+        return OptionBound(lr[s][:, active[s]], float(self.option_entropy[s]), kappa)
+
+
+def population_bound(
+    policy: HierarchicalPolicy, context: Tensor, theta: Tensor, kappa_rel: float | None
+) -> PopulationBound:
+    """:func:`option_bound` of every member: context (S, N, C), theta (S, N, D)."""
+    S = context.shape[0]
+    several = policy.active.sum(-1) >= 2
+    if not bool(several.any()):
+        return PopulationBound(None, torch.zeros(S, dtype=torch.float64), None)
+    lr = policy.log_responsibilities(context, theta)
+    p = lr.exp()
+    entropy = -(torch.where(p > 0, p * lr, 0.0)).sum(-1).mean(-1)
+    entropy = torch.where(several, entropy, 0.0)
+    kappa = None
+    if kappa_rel is not None:
+        kappa = torch.where(several, kappa_rel * entropy, math.inf)
+    return PopulationBound(lr, entropy, kappa)
+
+
+@dataclass(frozen=True)
+class PopulationRefit:
+    """A computed (not yet applied) update of a population.
+
+    Attributes:
+        values: the new values of the members with information (the others' entries are
+            their current ones), or None when no member has any.
+        informed: (S,) bool, the members whose weights carry information.
+        weights: (S, N, O) the dual's weights on all options (0 on pruned ones).
+        sol: the population's dual solution (block ``block``).
+        bound: what :func:`population_bound` returned.
+        block: the dual's block of this policy (the time-indexed step; 0 otherwise).
+    """
+
+    values: dict[str, Tensor] | None
+    informed: Tensor
+    weights: Tensor
+    sol: PopulationDualSolution
+    bound: PopulationBound
+    block: int = 0
+
+
+def plan_population_refit(
+    policy: HierarchicalPolicy,
+    context: Tensor,
+    theta: Tensor,
+    sol: PopulationDualSolution,
+    bound: PopulationBound,
+    block: int = 0,
+) -> PopulationRefit:
+    """:func:`plan_refit` of every member (nothing changes): context (S, N, C), theta
+    (S, N, D), the dual's block ``block`` of each member."""
+    w = sol.weights[:, block]
+    S, N = w.shape[:2]
+    if not bool(torch.isfinite(w).all()):
+        s = int((~torch.isfinite(w)).flatten(1).any(1).nonzero()[0, 0])
+        raise ValueError(
+            f"member {s}: the dual returned non-finite weights (eta = "
+            f"{float(sol.eta[s, block])}, converged = {bool(sol.converged[s])}); the policy is "
+            "left unchanged"
+        )
+    active = policy.active
+    if w.shape[-1] == policy.n_options:
+        weights = w
+    else:  # one active option in every member: the dual had one column
+        weights = torch.where(active, w, 0.0)
+    uniform = torch.where(active, 1.0 / N, 0.0)[:, None].expand(S, N, -1)
+    lr = bound.log_responsibilities
+    old = uniform if lr is None else lr.exp() / N
+    flat = ((weights - old).abs() <= UNIFORM_RTOL * old).flatten(1).all(1)
+    informed = ~(torch.isinf(sol.eta[:, block]) | flat)
+    if not bool(informed.any()):
+        return PopulationRefit(None, informed, weights, sol, bound, block)
+    safe = torch.where(informed[:, None, None], weights, old)  # the others' fits are discarded
+    new = policy.fit_parameters(context, theta, safe)
+    current = policy.state_dict()
+    values = {
+        k: torch.where(informed.view(-1, *[1] * (v.dim() - 1)), v, current[k])
+        for k, v in new.items()
+    }
+    return PopulationRefit(values, informed, weights, sol, bound, block)
+
+
+def apply_population_refit(
+    policy: HierarchicalPolicy, context: Tensor, refit: PopulationRefit, prune_threshold: float
+) -> dict[str, list[Any]]:
+    """:func:`apply_refit` of every member: the diagnostics as lists of S entries (member
+    s's are those :func:`apply_refit` reports for it alone)."""
+    S = refit.informed.shape[0]
+    pruned: list[list[int]] = [[] for _ in range(S)]
+    if refit.values is not None:
+        policy.set_parameters(refit.values)
+        if policy.n_options > 1 and prune_threshold > 0:
+            before = policy.active.clone()
+            found = cast(list[list[int]], policy.prune(context, prune_threshold))
+            policy.gating.active.copy_(torch.where(refit.informed[:, None], policy.active, before))
+            pruned = [p if bool(refit.informed[s]) else [] for s, p in enumerate(found)]
+    sol, bound, k = refit.sol, refit.bound, refit.block
+    prior = policy.gating.probs(policy.gating_features(context)).mean(-2)
+    ent = torch.stack([o.entropy() for o in policy.sub_policies], -1)
+    kappa = bound.kappa if bound.kappa is not None else torch.full((S,), math.inf)
+    return {
+        "eta": sol.eta[:, k].tolist(),
+        "xi": sol.xi[:, k].tolist(),
+        "kappa": [math.nan if math.isinf(x) else x for x in kappa.tolist()],
+        "kl": sol.kl[:, k].tolist(),
+        "cross_entropy": sol.cross_entropy[:, k].tolist(),
+        "effective_sample_size": sol.effective_sample_size[:, k].tolist(),
+        "option_entropy": bound.option_entropy.tolist(),
+        "policy_entropy": (prior * ent).sum(-1).tolist(),
+        "n_active_options": policy.active.sum(-1).tolist(),
+        "pruned": pruned,
+        "refitted": refit.informed.tolist(),
+        "dual_converged": sol.converged.tolist(),
+        "dual_iterations": [sol.iterations] * S,
+        "feature_error": sol.feature_error.tolist(),
+    }

@@ -49,7 +49,9 @@ __all__ = [
     "check_prune_threshold",
     "check_saved_values",
     "fresh_policies",
+    "member_policies",
     "next_seed",
+    "population_seeds",
     "seeded_generator",
 ]
 
@@ -161,6 +163,39 @@ def seeded_generator(seed: int | None) -> torch.Generator:
     return gen
 
 
+def population_seeds(seed: object, population: int | None) -> list[int] | None:
+    """The members' seeds of a population: ``seed`` a sequence of distinct integers, as many
+    as ``population`` when that is given too (None with a population: 0 .. S-1); None when
+    there is no population (``seed`` one integer or None). A ``ValueError`` / ``TypeError``
+    names the size that does not match or the repeated seed."""
+    if population is not None:
+        population = check_count("population", population, 1)
+    many = isinstance(seed, Sequence) and not isinstance(seed, str | bytes)
+    if not many:
+        if population is None:
+            return None  # one seed (checked where it is used)
+        if seed is not None:
+            raise ValueError(
+                f"a population of {population} takes one seed per member (e.g. seed="
+                f"{list(range(population))}), got the single seed {seed!r}"
+            )
+        return list(range(population))
+    assert isinstance(seed, Sequence)
+    seeds = [check_seed(f"seed[{s}]", x, headroom=1) for s, x in enumerate(seed)]
+    if not seeds:
+        raise ValueError("a population needs at least one seed, got an empty sequence")
+    if population is not None and len(seeds) != population:
+        raise ValueError(
+            f"population = {population} does not match the {len(seeds)} seeds given ({seeds})"
+        )
+    repeated = sorted({x for x in seeds if seeds.count(x) > 1})
+    if repeated:
+        raise ValueError(
+            f"seed {repeated[0]} is repeated in {seeds}: members with one seed would be copies"
+        )
+    return seeds
+
+
 def next_seed(seed: int | None) -> int | None:
     """The seed of the sampling generator of a ``create``d algorithm: ``seed + 1``."""
     return None if seed is None else check_seed("seed", seed, headroom=1) + 1
@@ -201,6 +236,31 @@ def fresh_policies(
     ]
 
 
+def member_policies(
+    seed: int | Sequence[int] | None,
+    population: int | None,
+    means: Sequence[Tensor | None],
+    n_options: int,
+    state_dim: int,
+    action_dim: int,
+    **policy_kwargs: Unpack[PolicyKwargs],
+) -> tuple[list[HierarchicalPolicy], int | list[int] | None]:
+    """What a ``create`` method builds: :func:`fresh_policies` and the sampling seed
+    (:func:`next_seed`), or for a population (``seed`` a sequence, or ``population`` given;
+    :func:`population_seeds`) each member's, the policies stacked member by member
+    (:meth:`HierarchicalPolicy.stack`) and one sampling seed per member."""
+    seeds = population_seeds(seed, population)
+    if seeds is None:
+        one = None if seed is None else check_seed("seed", seed)
+        policies = fresh_policies(means, n_options, state_dim, action_dim, one, **policy_kwargs)
+        return policies, next_seed(one)
+    members = [
+        fresh_policies(means, n_options, state_dim, action_dim, s, **policy_kwargs) for s in seeds
+    ]
+    stacked = [HierarchicalPolicy.stack([m[k] for m in members]) for k in range(len(means))]
+    return stacked, [s + 1 for s in seeds]
+
+
 def check_step(step: int, n_steps: int) -> int:
     """``step`` as an int in [0, n_steps); a ValueError naming the range otherwise."""
     try:
@@ -236,19 +296,22 @@ def check_experience(
     *,
     transitions: bool,
     algorithm: str,
+    population: int | None = None,
 ) -> int:
     """Check the shapes of ``experience`` for an algorithm with K = ``n_steps`` steps.
 
     States (N, K, S), actions (N, K, D), rewards (N, K); with ``transitions`` next_states
-    (N, K, S) and optionally terminated (N, K) bool, which must be None otherwise. The values
-    are checked by the update itself. Returns N.
+    (N, K, S) and optionally terminated (N, K) bool, which must be None otherwise; a
+    population of P puts P in front of every shape. The values are checked by the update
+    itself. Returns N.
     """
     if not isinstance(experience, Experience):
         raise TypeError(f"learn takes an Experience, got {type(experience).__name__}")
-    rewards = _check_shape("rewards", experience.rewards, ("N", n_steps))
-    N = rewards.shape[0]
-    _check_shape("states", experience.states, (N, n_steps, state_dim))
-    _check_shape("actions", experience.actions, (N, n_steps, action_dim))
+    lead: tuple[int | str, ...] = () if population is None else (population,)
+    rewards = _check_shape("rewards", experience.rewards, (*lead, "N", n_steps))
+    N = rewards.shape[len(lead)]
+    _check_shape("states", experience.states, (*lead, N, n_steps, state_dim))
+    _check_shape("actions", experience.actions, (*lead, N, n_steps, action_dim))
     if not transitions:
         for name in ("next_states", "terminated"):
             if getattr(experience, name) is not None:
@@ -258,10 +321,11 @@ def check_experience(
                 )
         return N
     if experience.next_states is None:
-        raise ValueError(f"{algorithm} needs experience.next_states ({N}, {n_steps}, {state_dim})")
-    _check_shape("next_states", experience.next_states, (N, n_steps, state_dim))
+        shape = ", ".join(map(str, (*lead, N, n_steps, state_dim)))
+        raise ValueError(f"{algorithm} needs experience.next_states ({shape})")
+    _check_shape("next_states", experience.next_states, (*lead, N, n_steps, state_dim))
     if experience.terminated is not None:
-        term = _check_shape("terminated", experience.terminated, (N, n_steps))
+        term = _check_shape("terminated", experience.terminated, (*lead, N, n_steps))
         if term.dtype != torch.bool:
             raise ValueError(f"experience.terminated must be a bool tensor, got {term.dtype}")
     return N
@@ -296,7 +360,7 @@ def check_state_keys(state: object, required: set[str], algorithm: str) -> Mappi
 class _Shared:
     """The checked shared entries of a checkpoint."""
 
-    generator: Tensor | None
+    generator: Any
     iteration: int
     kappa_rel: float | None
 
@@ -311,18 +375,30 @@ class HiREPSBase:
     """
 
     def __init__(
-        self, *, kappa_rel: float | None, prune_threshold: float, seed: int | None
+        self,
+        *,
+        kappa_rel: float | None,
+        prune_threshold: float,
+        seed: int | Sequence[int] | None,
+        population: int | None = None,
     ) -> None:
         self.kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
         self.prune_threshold = check_prune_threshold(prune_threshold)
-        self.generator = seeded_generator(seed)
+        seeds = population_seeds(seed, population)
+        self.population = population
+        self.generator: torch.Generator | list[torch.Generator] = (
+            seeded_generator(seed)  # type: ignore[arg-type]
+            if seeds is None
+            else [seeded_generator(s) for s in seeds]
+        )
         self.iteration = 0
 
     def _state(self, **learned: Any) -> dict[str, Any]:
         """A checkpoint: ``learned`` (the variant's entries) and the shared entries."""
+        gen = self.generator
         return {
             **learned,
-            "generator": self.generator.get_state(),
+            "generator": [g.get_state() for g in gen] if isinstance(gen, list) else gen.get_state(),
             "iteration": self.iteration,
             "kappa_rel": self.kappa_rel,
         }
@@ -331,8 +407,17 @@ class HiREPSBase:
         """The shared entries of :meth:`_state`, checked (nothing is set)."""
         gen = state.get("generator")
         if gen is not None:
+            ours = self.generator
+            many = isinstance(gen, list | tuple)
+            if many != isinstance(ours, list) or (isinstance(ours, list) and len(gen) != len(ours)):
+                size = len(ours) if isinstance(ours, list) else None
+                raise ValueError(
+                    f"the state's generators ({len(gen) if many else 'one'}) do not fit this "
+                    f"algorithm's ({size or 'one'}): a checkpoint of another population size"
+                )
             try:
-                torch.Generator().set_state(gen)
+                for g in gen if many else [gen]:
+                    torch.Generator().set_state(g)
             except (RuntimeError, TypeError) as exc:
                 msg = f"the state's generator is not a CPU generator state: {exc}"
                 raise ValueError(msg) from None
@@ -344,7 +429,11 @@ class HiREPSBase:
         """Set what :meth:`_check_shared` returned (a checkpoint without a generator, as the
         infinite-horizon variant wrote before it had one, keeps the current one)."""
         if shared.generator is not None:
-            self.generator.set_state(shared.generator)
+            if isinstance(self.generator, list):
+                for g, state in zip(self.generator, shared.generator, strict=True):
+                    g.set_state(state)
+            else:
+                self.generator.set_state(shared.generator)
         self.iteration = shared.iteration
         self.kappa_rel = shared.kappa_rel
 

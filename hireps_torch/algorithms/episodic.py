@@ -21,13 +21,20 @@ REPS (Peters et al. 2010) is the same loop with one option and no entropy bound:
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import apply_refit, option_bound, plan_refit
+from hireps_torch.algorithms._options import (
+    apply_population_refit,
+    apply_refit,
+    option_bound,
+    plan_population_refit,
+    plan_refit,
+    population_bound,
+)
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
@@ -35,8 +42,7 @@ from hireps_torch.algorithms.base import (
     check_experience,
     check_state_keys,
     check_step,
-    fresh_policies,
-    next_seed,
+    member_policies,
 )
 from hireps_torch.checks import (
     as_finite_f64,
@@ -91,13 +97,18 @@ class EpisodicHiREPS(HiREPSBase):
         context_dim: int = 0,
         context_features: FeatureMap | None = None,
         prune_threshold: float = 1e-4,
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
-        super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
-        context_dim = check_count("context_dim", context_dim, 0)
         if not isinstance(policy, HierarchicalPolicy):
             raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
+        super().__init__(
+            kappa_rel=kappa_rel,
+            prune_threshold=prune_threshold,
+            seed=seed,
+            population=policy.population,
+        )
+        context_dim = check_count("context_dim", context_dim, 0)
         if policy.context_dim != context_dim:
             raise ValueError(
                 f"the policy takes contexts of dimension {policy.context_dim} but context_dim = "
@@ -125,7 +136,8 @@ class EpisodicHiREPS(HiREPSBase):
         init_mean: Tensor | None = None,
         epsilon: float = 1.0,
         kappa_rel: float | None = 0.9,
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
+        population: int | None = None,
         **policy_kwargs: Unpack[PolicyKwargs],
     ) -> EpisodicHiREPS:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
@@ -141,20 +153,28 @@ class EpisodicHiREPS(HiREPSBase):
             init_mean: (D,) or (O, D) initial option means; zeros by default.
             epsilon: KL bound.
             kappa_rel: relative entropy bound (None: off).
-            seed: seeds the initial option means (and, as seed + 1, the sampling generator).
+            seed: seeds the initial option means (and, as seed + 1, the sampling generator);
+                a sequence of S distinct seeds builds a population (below).
+            population: S, a population of S independent runs in one algorithm, member s
+                the algorithm ``create`` builds with ``seed[s]`` (default seeds 0 .. S-1).
+                Every input and output then has a leading S: ``ask`` returns (S, N, D),
+                ``tell`` takes contexts (S, N, C), params (S, N, D) and returns (S, N), and
+                its diagnostics hold one entry per member; the S duals are solved in one call
+                and every member's samples come from its own generator, so member s draws
+                and learns what it would alone (to round-off).
             **policy_kwargs: ``init_std, spread, gating_features, policy_features,
                 min_variance, covariance_prior, mean_prior`` (see
                 :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
         """
-        (policy,) = fresh_policies(
-            [init_mean], n_options, context_dim, param_dim, seed, **policy_kwargs
+        policy, sampling = member_policies(
+            seed, population, [init_mean], n_options, context_dim, param_dim, **policy_kwargs
         )
         return cls(
-            policy,
+            policy[0],
             epsilon=epsilon,
             kappa_rel=kappa_rel,
             context_dim=context_dim,
-            seed=next_seed(seed),
+            seed=sampling,
         )
 
     # ---- input handling ---------------------------------------------------------------------
@@ -170,8 +190,10 @@ class EpisodicHiREPS(HiREPSBase):
             count = n if contexts is None else check_count("the number of samples", contexts, 1)
             if count is None or count < 1:
                 raise ValueError(f"the number of samples must be >= 1, got {count}")
-            return torch.zeros(count, 0, dtype=torch.float64)
+            return torch.zeros(*self.policy.batch_shape, count, 0, dtype=torch.float64)
         c = as_float_tensor("contexts", contexts, device=torch.device("cpu"))
+        if self.population is not None:
+            return self._population_contexts(c)
         if c.dim() == 1 and self.context_dim == 1:
             c = c[:, None]
         if c.dim() != 2 or c.shape[1] != self.context_dim:
@@ -187,6 +209,43 @@ class EpisodicHiREPS(HiREPSBase):
             raise ValueError(f"contexts must hold at least one context, got {tuple(c.shape)}")
         as_finite_f64("contexts", c)
         return c
+
+    def _population_contexts(self, c: Tensor) -> Tensor:
+        """A population's contexts (S, N, C), N >= 1, checked."""
+        S, C = self.population, self.context_dim
+        if c.dim() != 3 or c.shape[0] != S or c.shape[2] != C or c.shape[1] < 1:
+            raise ValueError(
+                f"contexts must have shape (S, N, C) = ({S}, N, {C}) with N >= 1 (one row of "
+                f"contexts per member of the population), got {tuple(c.shape)}"
+            )
+        as_finite_f64("contexts", c)
+        return c
+
+    def _population_samples(
+        self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Checked float64 contexts (S, N, C), params (S, N, D) and returns (S, N)."""
+        S, D = self.population, self.policy.action_dim
+        cpu = torch.device("cpu")
+        theta = as_float_tensor("params", params, device=cpu)
+        R = as_float_tensor("returns", returns, device=cpu)
+        if R.dim() != 2 or R.shape[0] != S:
+            raise ValueError(
+                f"returns must have shape (S, N) = ({S}, N) (one row per member of the "
+                f"population), got {tuple(R.shape)}"
+            )
+        N = R.shape[1]
+        if theta.shape != (S, N, D):
+            raise ValueError(
+                f"params must have shape ({S}, {N}, {D}) to match returns {tuple(R.shape)}, got "
+                f"{tuple(theta.shape)}"
+            )
+        check_finite("returns", R)
+        as_finite_f64("params", theta)
+        c = self._contexts(contexts, n=N)
+        if c.shape[1] != N:
+            raise ValueError(f"got {c.shape[1]} contexts per member for {N} params and returns")
+        return c, theta, R
 
     def _samples(
         self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
@@ -222,10 +281,10 @@ class EpisodicHiREPS(HiREPSBase):
 
         Args:
             contexts: (N, S) contexts, or the number of samples N >= 1 when there is no
-                context.
+                context; a population: (S, N, C) or the count.
 
         Returns:
-            theta: (N, D) float64.
+            theta: (N, D) float64 ((S, N, D) for a population).
         """
         c = self._contexts(contexts)
         theta, _ = self.policy.sample(c, self.generator)
@@ -259,6 +318,8 @@ class EpisodicHiREPS(HiREPSBase):
             and the policy was left as it is), ``mean_return, max_return, dual_converged,
             dual_iterations, feature_error, iteration``.
         """
+        if self.population is not None:
+            return self._population_tell(*self._population_samples(contexts, params, returns))
         c, theta, R = self._samples(contexts, params, returns)
         bound = option_bound(self.policy, c, theta, self.kappa_rel)
         phi = self.context_features(c) if self.context_features is not None else None
@@ -277,6 +338,28 @@ class EpisodicHiREPS(HiREPSBase):
             **report,
             "mean_return": float(R.mean()),
             "max_return": float(R.max()),
+        }
+
+    def _population_tell(self, c: Tensor, theta: Tensor, R: Tensor) -> dict[str, Any]:
+        """:meth:`tell` of a population: one dual call for all members, one batched refit."""
+        bound = population_bound(self.policy, c, theta, self.kappa_rel)
+        phi = self.context_features(c) if self.context_features is not None else None
+        sol = solve_episodic_dual(
+            R,
+            epsilon=self.epsilon,
+            log_responsibilities=bound.log_responsibilities,
+            context_features=phi,
+            kappa=bound.kappa,
+            population=True,
+        )
+        refit = plan_population_refit(self.policy, c, theta, sol, bound)
+        report = apply_population_refit(self.policy, c, refit, self.prune_threshold)
+        self.iteration += 1
+        return {
+            "iteration": [self.iteration] * R.shape[0],
+            **report,
+            "mean_return": R.mean(-1).tolist(),
+            "max_return": R.amax(-1).tolist(),
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------
@@ -299,9 +382,17 @@ class EpisodicHiREPS(HiREPSBase):
         """:meth:`tell` from contexts (N, 1, S), parameters (N, 1, D) and returns (N, 1)."""
         name = type(self).__name__
         D = self.policy.action_dim
-        check_experience(experience, 1, self.context_dim, D, transitions=False, algorithm=name)
+        check_experience(
+            experience,
+            1,
+            self.context_dim,
+            D,
+            transitions=False,
+            algorithm=name,
+            population=self.population,
+        )
         e = experience
-        return self.tell(e.states[:, 0], e.actions[:, 0], e.rewards[:, 0])
+        return self.tell(e.states[..., 0, :], e.actions[..., 0, :], e.rewards[..., 0])
 
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -24,13 +24,20 @@ One option and ``kappa_rel=None`` give infinite-horizon REPS (Peters et al. 2010
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import apply_refit, option_bound, plan_refit
+from hireps_torch.algorithms._options import (
+    apply_population_refit,
+    apply_refit,
+    option_bound,
+    plan_population_refit,
+    plan_refit,
+    population_bound,
+)
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
@@ -39,8 +46,7 @@ from hireps_torch.algorithms.base import (
     check_saved_values,
     check_state_keys,
     check_step,
-    fresh_policies,
-    next_seed,
+    member_policies,
 )
 from hireps_torch.checks import (
     as_finite_f64,
@@ -96,13 +102,18 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         epsilon: float = 0.5,
         kappa_rel: float | None = 0.9,
         prune_threshold: float = 1e-4,
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
         self.gamma = _check_gamma(gamma)
-        super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         if not isinstance(policy, HierarchicalPolicy):
             raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
+        super().__init__(
+            kappa_rel=kappa_rel,
+            prune_threshold=prune_threshold,
+            seed=seed,
+            population=policy.population,
+        )
         if check_feature_map("value_features", value_features) is None:
             raise TypeError("value_features must be a feature map (e.g. FourierFeatures)")
         S = value_features.in_features
@@ -113,9 +124,11 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             )
         self.policy = policy
         self.value_features = value_features
-        s0 = self._states(initial_states, "initial_states")
+        s0 = self._states(initial_states, "initial_states", population=False)
         self.initial_features = value_features(s0).mean(0)
-        self.value_weights = torch.zeros(value_features.out_features, dtype=torch.float64)
+        self.value_weights = torch.zeros(
+            *policy.batch_shape, value_features.out_features, dtype=torch.float64
+        )
 
     @classmethod
     def create(
@@ -131,7 +144,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         epsilon: float = 0.5,
         kappa_rel: float | None = 0.9,
         prune_threshold: float = 1e-4,
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
+        population: int | None = None,
         **policy_kwargs: Unpack[PolicyKwargs],
     ) -> InfiniteHorizonHiREPS:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
@@ -151,7 +165,12 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             epsilon: KL bound.
             kappa_rel: relative entropy bound (None: off).
             prune_threshold: prior mass below which options are pruned (0: never).
-            seed: seeds the initial option means (and, as seed + 1, the sampling generator).
+            seed: seeds the initial option means (and, as seed + 1, the sampling generator);
+                a sequence of S distinct seeds builds a population.
+            population: S, a population of S independent runs in one algorithm (see
+                :meth:`EpisodicHiREPS.create`): states, actions, rewards and next states
+                with a leading S, one dual call and one batched refit per update; the start
+                distribution's ``initial_states`` are shared.
             **policy_kwargs: ``init_std, spread, gating_features, policy_features,
                 min_variance, covariance_prior, mean_prior`` (see
                 :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
@@ -164,23 +183,27 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 f"value_features take states of dimension {value_features.in_features}, "
                 f"not state_dim = {state_dim}"
             )
-        (policy,) = fresh_policies(
-            [init_mean], n_options, state_dim, action_dim, seed, **policy_kwargs
+        policy, sampling = member_policies(
+            seed, population, [init_mean], n_options, state_dim, action_dim, **policy_kwargs
         )
         return cls(
-            policy,
+            policy[0],
             value_features,
             initial_states,
             gamma=gamma,
             epsilon=epsilon,
             kappa_rel=kappa_rel,
             prune_threshold=prune_threshold,
-            seed=next_seed(seed),
+            seed=sampling,
         )
 
     def value(self, states: Tensor) -> Tensor:
-        """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,)."""
-        return self.value_features(self._states(states)) @ self.value_weights
+        """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,) (a
+        population: (S, N, S_dim) -> (S, N))."""
+        phi = self.value_features(self._states(states))
+        if self.population is None:
+            return phi @ self.value_weights
+        return (phi @ self.value_weights[..., None])[..., 0]
 
     def _transitions(
         self,
@@ -193,18 +216,19 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         """Checked float64 states, actions, rewards (exactly (N,)), next states and the
         optional (N,) bool terminated flags of :meth:`update`."""
         s = self._states(states)
-        N, A = s.shape[0], self.policy.action_dim
+        N, A = s.shape[-2], self.policy.action_dim
+        lead = self.policy.batch_shape
         if N < 2:
             raise ValueError(f"the update needs at least 2 decisions, got states {tuple(s.shape)}")
         a = as_float_tensor("actions", actions, device=torch.device("cpu"))
-        if a.shape != (N, A):
-            raise ValueError(f"actions must have shape ({N}, {A}), got {tuple(a.shape)}")
+        if a.shape != (*lead, N, A):
+            raise ValueError(f"actions must have shape {(*lead, N, A)}, got {tuple(a.shape)}")
         as_finite_f64("actions", a)
         R = as_float_tensor("rewards", rewards, device=torch.device("cpu"))
-        if R.shape != (N,):
+        if R.shape != (*lead, N):
             raise ValueError(
-                f"rewards must have shape ({N},) (one per decision of states {tuple(s.shape)}), "
-                f"got {tuple(R.shape)}"
+                f"rewards must have shape {(*lead, N)} (one per decision of states "
+                f"{tuple(s.shape)}), got {tuple(R.shape)}"
             )
         check_finite("rewards", R)
         s_next = self._states(next_states, "next_states")
@@ -221,9 +245,9 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                     f"terminated must be a bool tensor of shape ({N},), got "
                     f"{type(terminated).__name__} {terminated!r:.60}"
                 ) from None
-            if term.shape != (N,) or term.dtype != torch.bool:
+            if term.shape != (*lead, N) or term.dtype != torch.bool:
                 raise ValueError(
-                    f"terminated must be a bool tensor of shape ({N},), got {term.dtype} "
+                    f"terminated must be a bool tensor of shape {(*lead, N)}, got {term.dtype} "
                     f"{tuple(term.shape)}"
                 )
         return s, a, R, s_next, term
@@ -261,7 +285,9 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         s, a, R, s_next, term = self._transitions(states, actions, rewards, next_states, terminated)
         next_features = self.value_features(s_next)
         if term is not None:
-            next_features = torch.where(term[:, None], self.initial_features, next_features)
+            next_features = torch.where(term[..., None], self.initial_features, next_features)
+        if self.population is not None:
+            return self._population_update(s, a, R, next_features)
         bound = option_bound(self.policy, s, a, self.kappa_rel)
         sol = solve_infinite_horizon_dual(
             R,
@@ -279,19 +305,45 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         self.iteration += 1
         return {"iteration": self.iteration, **report, "mean_reward": float(R.mean())}
 
+    def _population_update(
+        self, s: Tensor, a: Tensor, R: Tensor, next_features: Tensor
+    ) -> dict[str, Any]:
+        """:meth:`update` of a population: one dual call for all members, one batched refit."""
+        bound = population_bound(self.policy, s, a, self.kappa_rel)
+        sol = solve_infinite_horizon_dual(
+            R,
+            self.value_features(s),
+            next_features,
+            self.initial_features,
+            gamma=self.gamma,
+            epsilon=self.epsilon,
+            log_responsibilities=bound.log_responsibilities,
+            kappa=bound.kappa,
+            population=True,
+        )
+        refit = plan_population_refit(self.policy, s, a, sol, bound)
+        self.value_weights = sol.v.clone()
+        report = apply_population_refit(self.policy, s, refit, self.prune_threshold)
+        self.iteration += 1
+        S = R.shape[0]
+        return {"iteration": [self.iteration] * S, **report, "mean_reward": R.mean(-1).tolist()}
+
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     @property
     def policies(self) -> tuple[HierarchicalPolicy]:
         """The one policy, as the interface's one-entry sequence."""
         return (self.policy,)
 
-    def _states(self, states: Tensor, name: str = "states") -> Tensor:
-        """States (N, S), N >= 1, as checked float64."""
+    def _states(self, states: Tensor, name: str = "states", *, population: bool = True) -> Tensor:
+        """States ([S,] N, S_dim), N >= 1, as checked float64 (the population's leading S
+        unless ``population`` is False)."""
         S = self.value_features.in_features
         s = as_float_tensor(name, states, device=torch.device("cpu"))
-        if s.dim() != 2 or s.shape[1] != S:
-            raise ValueError(f"{name} must have shape (N, {S}), got {tuple(s.shape)}")
-        if s.shape[0] < 1:
+        lead = self.policy.batch_shape if population else ()
+        if s.dim() != 2 + len(lead) or s.shape[:-2] != lead or s.shape[-1] != S:
+            shape = ", ".join(map(str, (*lead, "N", S)))
+            raise ValueError(f"{name} must have shape ({shape}), got {tuple(s.shape)}")
+        if s.shape[-2] < 1:
             raise ValueError(f"{name} must hold at least one state, got {tuple(s.shape)}")
         as_finite_f64(name, s)
         return s
@@ -314,12 +366,18 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         rewards (N, 1) and optionally terminated (N, 1)."""
         S, A = self.value_features.in_features, self.policy.action_dim
         name = type(self).__name__
-        check_experience(experience, 1, S, A, transitions=True, algorithm=name)
+        check_experience(
+            experience, 1, S, A, transitions=True, algorithm=name, population=self.population
+        )
         e = experience
         assert e.next_states is not None  # checked above
-        term = None if e.terminated is None else e.terminated[:, 0]
+        term = None if e.terminated is None else e.terminated[..., 0]
         return self.update(
-            e.states[:, 0], e.actions[:, 0], e.rewards[:, 0], e.next_states[:, 0], term
+            e.states[..., 0, :],
+            e.actions[..., 0, :],
+            e.rewards[..., 0],
+            e.next_states[..., 0, :],
+            term,
         )
 
     # ---- checkpointing ----------------------------------------------------------------------

@@ -39,7 +39,7 @@ def solve_episodic_dual(
     epsilon: float,
     log_responsibilities: Tensor | None = None,
     context_features: Tensor | None = None,
-    kappa: float | None = None,
+    kappa: float | Tensor | None = None,
     max_iter: int = 300,
     population: Literal[True],
 ) -> PopulationDualSolution: ...
@@ -51,7 +51,7 @@ def solve_episodic_dual(
     epsilon: float,
     log_responsibilities: Tensor | None = None,
     context_features: Tensor | None = None,
-    kappa: float | None = None,
+    kappa: float | Tensor | None = None,
     max_iter: int = 300,
     population: bool = False,
 ) -> DualSolution | PopulationDualSolution:
@@ -71,7 +71,8 @@ def solve_episodic_dual(
             distribution meets: they are dropped from the solve (v is unidentifiable along
             them).
         kappa: absolute bound on the expected option cross-entropy E_P[-log p~], >= 0;
-            None (or inf) means no entropy bound (xi = 0). A bound that no distribution within
+            None (or inf) means no entropy bound (xi = 0); with ``population`` one float for
+            all problems or an (S,) tensor, one per problem. A bound that no distribution within
             the KL bound meets (kappa = 0 with soft responsibilities, say) is relaxed to what
             half the KL budget reaches, with an
             :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.

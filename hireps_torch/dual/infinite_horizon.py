@@ -47,7 +47,7 @@ def solve_infinite_horizon_dual(
     gamma: float,
     epsilon: float,
     log_responsibilities: Tensor | None = None,
-    kappa: float | None = None,
+    kappa: float | Tensor | None = None,
     max_iter: int = 300,
     population: Literal[True],
 ) -> PopulationDualSolution: ...
@@ -62,7 +62,7 @@ def solve_infinite_horizon_dual(
     gamma: float,
     epsilon: float,
     log_responsibilities: Tensor | None = None,
-    kappa: float | None = None,
+    kappa: float | Tensor | None = None,
     max_iter: int = 300,
     population: bool = False,
 ) -> DualSolution | PopulationDualSolution:
@@ -91,7 +91,8 @@ def solve_infinite_horizon_dual(
         epsilon: KL bound, > 0.
         log_responsibilities: (N, O) log p~(o | s_i, a_i) or None (one option).
         kappa: absolute bound on the option cross-entropy or None (see
-            :func:`~hireps_torch.dual.solve_episodic_dual` for one that cannot be met).
+            :func:`~hireps_torch.dual.solve_episodic_dual` for one that cannot be met); with
+            ``population`` also an (S,) tensor, one per problem.
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension
             (rewards (S, N), features (S, N, F), initial_features (F,) or (S, F), ...), solved

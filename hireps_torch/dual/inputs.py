@@ -111,7 +111,8 @@ def common_inputs(
         epsilon: KL bound, > 0: a float or (K,) (the same for every problem).
         log_responsibilities: (N, O), or (N, K, O) when ``per_step``, after the same leading S
             as ``returns``; None means one option.
-        kappa: entropy bound, >= 0 (inf: no bound on that block): None, a float or (K,).
+        kappa: entropy bound, >= 0 (inf: no bound on that block): None, a float or (K,); with
+            ``population`` also one per problem, (S, K) or (S,) for one block.
         name: what the error messages call ``returns``.
         per_step: whether the returns are per decision step (the time-indexed dual).
         population: whether the inputs carry a leading population dimension S.
@@ -140,9 +141,20 @@ def common_inputs(
     lead = tuple(int(d) for d in R.shape)
     R = R.reshape(S, N, -1).transpose(1, 2).contiguous()
     K = R.shape[1]
-    eps, kap = check_bounds(epsilon, kappa, K, N, stacklevel=4)
+    per_problem = population and isinstance(kappa, Tensor) and _per_problem(kappa, S, K)
+    eps, kap = check_bounds(epsilon, None if per_problem else kappa, K, N, stacklevel=4)
+    if per_problem:
+        kap = as_f64("kappa", kappa).reshape(S, K)
+        if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
+            raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
     lr = _log_responsibilities(log_responsibilities, lead, S, K, population)
     return R, eps.expand(S, K), lr, None if kap is None else kap.expand(S, K)
+
+
+def _per_problem(kappa: Tensor, S: int, K: int) -> bool:
+    """Whether a population's ``kappa`` holds one bound per problem: (S, K), or (S,) for
+    one block (K = 1)."""
+    return kappa.shape == (S, K) or (K == 1 and kappa.shape == (S,))
 
 
 def check_bounds(

@@ -102,8 +102,9 @@ def solve_time_indexed_dual(
         log_responsibilities: (N, K, O) log p~_k(o | s_k,i, theta_k,i) of each step's old
             policy, normalised over options (-inf for options a step does not have); None
             means one option per step.
-        kappa: absolute bound on each step's option cross-entropy, >= 0: one float or (K,);
-            inf leaves that step unbounded; None means no bound (xi = 0).
+        kappa: absolute bound on each step's option cross-entropy, >= 0: one float or (K,)
+            (with ``population`` also (S, K), one row per problem); inf leaves that step
+            unbounded; None means no bound (xi = 0).
         initial_features: (F,) mean features of the start distribution, phi_hat_1; by default
             the sample mean of ``features[:, 0]`` (then uniform weights are feasible).
         max_iter: LBFGS iterations per phase, an integer >= 1.

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import cast
 
 import torch
@@ -18,6 +19,7 @@ from hireps_torch.checks import (
     check_weights,
 )
 from hireps_torch.policies._module import PolicyModule
+from hireps_torch.policies._population import batch_text, check_members
 
 __all__ = ["ConstantGating", "Gating", "SoftmaxGating"]
 
@@ -32,6 +34,8 @@ class Gating(PolicyModule):
     """
 
     active: Tensor
+    population: int | None = None
+    """S for a population of S gatings stacked by :meth:`stack`; None for one gating."""
 
     def __init__(self, in_features: int, n_options: int) -> None:
         super().__init__()
@@ -39,11 +43,67 @@ class Gating(PolicyModule):
         self.in_features = check_count("in_features", in_features, 0)
         self.register_buffer("active", torch.ones(self.n_options, dtype=torch.bool))
 
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """() for one gating, (S,) for a population."""
+        return () if self.population is None else (self.population,)
+
+    _stacked: tuple[str, ...] = ("active",)
+    """The parameters and buffers that a population stacks along its leading S."""
+
+    @classmethod
+    def stack(cls, members: Sequence[Gating]) -> Gating:
+        """A population of S gatings of the same kind (the members' parameters and ``active``
+        masks stacked along a leading S; inputs and outputs then carry it too: features
+        (S, N, F) -> (S, N, O)). The members must share the kind, ``in_features``,
+        ``n_options`` and their settings; they are copied, not shared."""
+        items: list[Gating] = check_members("members", members, Gating)
+        first = items[0]
+        for s, m in enumerate(items[1:], 1):
+            if type(m) is not type(first):
+                raise TypeError(
+                    f"members[{s}] is a {type(m).__name__} but members[0] a "
+                    f"{type(first).__name__}: a population holds one kind"
+                )
+            for what in ("in_features", "n_options", *first._settings()):
+                if getattr(m, what) != getattr(first, what):
+                    raise ValueError(
+                        f"members[{s}].{what} = {getattr(m, what)} but members[0].{what} = "
+                        f"{getattr(first, what)}: a population shares it"
+                    )
+        out = copy.deepcopy(first)
+        out.population = len(items)
+        with torch.no_grad():
+            for name in first._stacked:
+                value = torch.stack([getattr(m, name) for m in items])
+                _replace(out, name, value)
+        return out
+
+    def member(self, s: int) -> Gating:
+        """Member ``s`` of a population as an ordinary gating (a copy)."""
+        if self.population is None:
+            raise ValueError("member() takes a member of a population; this is one gating")
+        index = check_count("s", s, 0)
+        if index >= self.population:
+            raise ValueError(f"member s must be in [0, {self.population}), got {index}")
+        out = copy.deepcopy(self)
+        out.population = None
+        with torch.no_grad():
+            for name in self._stacked:
+                _replace(out, name, getattr(self, name)[index].clone())
+        return out
+
+    def _settings(self) -> tuple[str, ...]:
+        """Attributes the members of a population must share."""
+        return ()
+
     def _features(self, features: Tensor) -> Tensor:
         x = as_float_tensor("gating features", features, device=self.active.device)
-        if x.dim() != 2 or x.shape[1] != self.in_features:
+        lead = self.batch_shape
+        if x.dim() != 2 + len(lead) or x.shape[:-2] != lead or x.shape[-1] != self.in_features:
             raise ValueError(
-                f"gating features must have shape (N, {self.in_features}), got {tuple(x.shape)}"
+                f"gating features must have shape ({batch_text(self.population)}N, "
+                f"{self.in_features}), got {tuple(x.shape)}"
             )
         check_finite("gating features", x, "")
         return x
@@ -51,48 +111,57 @@ class Gating(PolicyModule):
     def _fit_inputs(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Checked float64 features (N, F), targets (N, O) and normalised weights (N,)."""
+        """Checked float64 features ([S,] N, F), targets ([S,] N, O) and weights ([S,] N)
+        normalised to sum 1 (for each member)."""
         x = self._features(features)
-        N = x.shape[0]
+        N = x.shape[-2]
+        lead = self.batch_shape
         t = as_float_tensor("targets", targets)
-        if t.shape != (N, self.n_options):
+        if t.shape != (*lead, N, self.n_options):
             raise ValueError(
-                f"targets must have shape ({N}, {self.n_options}), got {tuple(t.shape)}"
+                f"targets must have shape {(*lead, N, self.n_options)}, got {tuple(t.shape)}"
             )
         bad = ~torch.isfinite(t) | (t < 0)
         if bool(bad.any()):
-            i, o = (int(j) for j in bad.nonzero()[0])
+            at = [int(j) for j in bad.nonzero()[0]]
             raise ValueError(
-                f"targets must be finite and non-negative, got {t[i, o].item()} at [{i}, {o}]"
+                f"targets must be finite and non-negative, got {t[tuple(at)].item()} at {at}"
             )
         w = as_float_tensor("sample_weights", sample_weights)
-        if w.shape != (N,):
-            raise ValueError(f"sample_weights must have shape ({N},), got {tuple(w.shape)}")
+        if w.shape != (*lead, N):
+            raise ValueError(f"sample_weights must have shape {(*lead, N)}, got {tuple(w.shape)}")
         check_weights("sample_weights", w)
+        empty = ~(w > 0).any(-1)
+        if bool(empty.any()):
+            s = int(empty.nonzero()[0, 0])
+            raise ValueError(f"sample_weights[{s}] are all zero (member {s} of the population)")
         self._check_target_rows(t, w)
-        return x, t, w / w.sum()
+        return x, t, w / w.sum(-1, keepdim=True)
 
     def _check_target_rows(self, t: Tensor, w: Tensor) -> None:
         """Each row with a positive sample weight must be a distribution over the active
         options (sum 1 to 1e-6; nothing on pruned options): another row sum would act as a
         hidden sample weight."""
-        sums = t[:, self.active].sum(-1)
+        active = self.active.unsqueeze(-2)
+        sums = torch.where(active, t, 0.0).sum(-1)
         off = (w > 0) & ((sums - 1.0).abs() > 1e-6)
         if bool(off.any()):
-            i = int(off.nonzero()[0, 0])
-            pruned = [int(o) for o in (~self.active).nonzero().flatten()]
+            at = [int(j) for j in off.nonzero()[0]]
+            row = at[-1] if self.population is None else tuple(at)
+            mask = self.active if self.population is None else self.active[at[0]]
+            pruned = [int(o) for o in (~mask).nonzero().flatten()]
             raise ValueError(
                 f"targets must be distributions over the active options (rows summing to 1) "
-                f"where sample_weights > 0: row {i} sums to {sums[i].item():.6g} on the active "
-                f"options" + (f" (pruned: {pruned})" if pruned else "")
+                f"where sample_weights > 0: row {row} sums to {sums[tuple(at)].item():.6g} on "
+                f"the active options" + (f" (pruned: {pruned})" if pruned else "")
             )
 
     def log_probs(self, features: Tensor) -> Tensor:
-        """features: (N, F) -> log pi(o | s): (N, O), -inf for pruned options."""
+        """features: ([S,] N, F) -> log pi(o | s): ([S,] N, O), -inf for pruned options."""
         raise NotImplementedError
 
     def probs(self, features: Tensor) -> Tensor:
-        """features: (N, F) -> pi(o | s): (N, O)."""
+        """features: ([S,] N, F) -> pi(o | s): ([S,] N, O)."""
         return self.log_probs(features).exp()
 
     def fit_parameters(
@@ -113,7 +182,7 @@ class Gating(PolicyModule):
     def check_state(self, state: Mapping[str, Tensor]) -> None:
         """A loaded ``active`` mask must keep at least one option."""
         active = state.get("active")
-        if active is not None and not bool(active.any()):
+        if active is not None and not bool(active.any(-1).all()):
             raise ValueError("active: a state with every option pruned cannot be loaded")
 
 
@@ -127,8 +196,8 @@ class SoftmaxGating(Gating):
     Args:
         in_features: F (0 gives a context-free prior over options).
         n_options: O.
-        l2: L2 penalty on the weights in :meth:`weighted_fit` (keeps the logistic fit finite on
-            separable data).
+        l2: L2 penalty on the weights and biases in :meth:`weighted_fit` (keeps the logistic fit
+            finite on separable data and where an option gets no target mass).
         dtype: parameter dtype.
     """
 
@@ -144,14 +213,19 @@ class SoftmaxGating(Gating):
         self.weight = nn.Parameter(torch.zeros(n_options, in_features, dtype=dtype), False)
         self.bias = nn.Parameter(torch.zeros(n_options, dtype=dtype), False)
 
+    _stacked = ("active", "weight", "bias")
+
+    def _settings(self) -> tuple[str, ...]:
+        return ("l2",)
+
     def _features(self, features: Tensor) -> Tensor:
         return super()._features(features).to(self.bias.dtype)
 
     def log_probs(self, features: Tensor) -> Tensor:
-        """features: (N, F) -> log pi(o | s): (N, O), -inf for pruned options."""
+        """features: ([S,] N, F) -> log pi(o | s): ([S,] N, O), -inf for pruned options."""
         x = self._features(features)
-        logits = x @ self.weight.T + self.bias
-        logits = logits.masked_fill(~self.active, float("-inf"))
+        logits = x @ self.weight.mT + self.bias.unsqueeze(-2)
+        logits = logits.masked_fill(~self.active.unsqueeze(-2), float("-inf"))
         return torch.log_softmax(logits, dim=-1)
 
     @torch.no_grad()
@@ -160,8 +234,10 @@ class SoftmaxGating(Gating):
     ) -> dict[str, Tensor]:
         """Weighted multinomial logistic regression onto soft targets (the gating unchanged).
 
-        Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 ||weight||^2``
-        over the active options. Without features (F = 0) this has the closed form
+        Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 (||weight||^2 +
+        ||bias||^2)`` over the active options: LBFGS, then Newton steps to its minimiser at
+        round-off (:data:`NEWTON_GTOL`), so a population's members (one LBFGS call for all) get
+        what they get alone. Without features (F = 0) this has the closed form
         ``pi(o) = sum_i w_i t_io / sum_i w_i``, which is used directly.
 
         Args:
@@ -173,34 +249,39 @@ class SoftmaxGating(Gating):
         Returns:
             ``{"weight": (O, F), "bias": (O,)}``, the new values (pruned options' rows kept).
         """
-        x, t_all, w = self._fit_inputs(features, targets, sample_weights)
+        x, t, w = self._fit_inputs(features, targets, sample_weights)
         x = x.to(torch.float64)
         max_iter = check_count("max_iter", max_iter, 1)
         act = self.active
-        t = t_all[:, act]
-        weight, bias = self.weight.detach().clone(), self.bias.detach().clone()
         if self.in_features == 0:
-            prior = (w[:, None] * t).sum(0).clamp_min(1e-300)
-            logp = torch.log(prior / prior.sum())
-            bias[act] = (logp - logp.mean()).to(self.bias.dtype)
-            return {"bias": bias}
-        Wp, bp = self._logistic_regression(x, t, w, max_iter)
-        if not (bool(torch.isfinite(Wp).all()) and bool(torch.isfinite(bp).all())):
+            prior = torch.where(act, (w[..., None] * t).sum(-2).clamp_min(1e-300), 0.0)
+            logp = torch.log(prior / prior.sum(-1, keepdim=True))
+            centred = logp - _active_mean(torch.where(act, logp, 0.0), act)
+            return {"bias": torch.where(act, centred.to(self.bias.dtype), self.bias)}
+        start_w, start_b = self._logistic_regression(x, t, w, max_iter)
+        Wp, bp = _newton_polish(x, t, w, start_w, start_b, act, self.l2)
+        bad = ~(torch.isfinite(Wp).flatten(-2).all(-1) & torch.isfinite(bp).all(-1))
+        if bool(bad.any()):
+            who = "" if self.population is None else f"member {int(bad.nonzero()[0, 0])}: "
             raise ValueError(
-                "the gating fit is not finite (gating features up to "
+                f"{who}the gating fit is not finite (gating features up to "
                 f"{float(x.abs().max()):.3g}): rescale the gating features"
             )
-        weight[act] = Wp.to(self.weight.dtype)
-        bias[act] = (bp - bp.mean()).to(self.bias.dtype)
-        return {"weight": weight, "bias": bias}
+        centred = bp - _active_mean(torch.where(act, bp, 0.0), act)
+        return {
+            "weight": torch.where(act[..., None], Wp.to(self.weight.dtype), self.weight),
+            "bias": torch.where(act, centred.to(self.bias.dtype), self.bias),
+        }
 
     def _logistic_regression(
         self, x: Tensor, t: Tensor, w: Tensor, max_iter: int
     ) -> tuple[Tensor, Tensor]:
-        """LBFGS on the weighted cross-entropy from the current active parameters."""
+        """LBFGS on the weighted cross-entropy from the current parameters (of every member
+        of a population in one call: their losses add up and do not interact); the pruned
+        options are masked out of the loss and keep their values."""
         act = self.active
-        Wp = self.weight[act].to(torch.float64).clone().requires_grad_(True)
-        bp = self.bias[act].to(torch.float64).clone().requires_grad_(True)
+        Wp = self.weight.to(torch.float64).clone().requires_grad_(True)
+        bp = self.bias.to(torch.float64).clone().requires_grad_(True)
         opt = torch.optim.LBFGS(
             [Wp, bp],
             lr=1.0,
@@ -213,8 +294,7 @@ class SoftmaxGating(Gating):
 
         def closure() -> Tensor:
             opt.zero_grad()
-            logp = torch.log_softmax(x @ Wp.T + bp, dim=-1)
-            loss = -(w[:, None] * t * logp).sum() + 0.5 * self.l2 * (Wp**2).sum()
+            loss = _cross_entropy(x, t, w, Wp, bp, act, self.l2).sum()
             torch.autograd.backward(loss)  # loss.backward(), typed
             return loss
 
@@ -223,6 +303,80 @@ class SoftmaxGating(Gating):
         with torch.enable_grad():
             step(closure)
         return Wp.detach(), bp.detach()
+
+
+NEWTON_GTOL = 1e-12
+"""The gating fit ends with Newton steps until the largest gradient entry of the (weight-sum
+normalised) cross-entropy is below this, so that it is its minimiser to round-off (LBFGS alone
+stops on its change tolerance with gradients of ~1e-7, parameters ~1e-6 from it)."""
+
+
+def _cross_entropy(
+    x: Tensor, t: Tensor, w: Tensor, W: Tensor, b: Tensor, active: Tensor, l2: float
+) -> Tensor:
+    """The gating fit's loss ([S]): sum_i w_i sum_o t_io (-log pi(o | x_i)) + l2/2 (||W||^2 +
+    ||b||^2) over the active options."""
+    keep = active.unsqueeze(-2)
+    logits = (x @ W.mT + b.unsqueeze(-2)).masked_fill(~keep, float("-inf"))
+    logp = torch.log_softmax(logits, dim=-1)
+    fit = torch.where(keep, w[..., None] * t * logp, 0.0).sum((-2, -1))
+    squares = torch.where(active[..., None], W**2, 0.0).sum((-2, -1))
+    return -fit + 0.5 * l2 * (squares + torch.where(active, b**2, 0.0).sum(-1))
+
+
+def _newton_polish(
+    x: Tensor, t: Tensor, w: Tensor, W: Tensor, b: Tensor, active: Tensor, l2: float
+) -> tuple[Tensor, Tensor]:
+    """Newton steps (halved until the loss does not rise) on the gating's cross-entropy from
+    (W (..., O, F), b (..., O)) until the gradient is below :data:`NEWTON_GTOL`, each member of
+    a population on its own (a converged member stops). Pruned options are held fixed; a
+    member whose Newton system fails keeps its start."""
+    X = torch.cat([torch.ones(*x.shape[:-1], 1, dtype=torch.float64), x], -1)  # (.., N, F+1)
+    theta = torch.cat([b[..., None], W], -1)  # (..., O, F+1)
+    O, F1 = theta.shape[-2:]
+    pen = torch.full((F1,), l2, dtype=torch.float64)
+    keep = active[..., None].expand_as(theta).flatten(-2)  # (..., P)
+
+    def loss_of(th: Tensor) -> Tensor:
+        return _cross_entropy(x, t, w, th[..., 1:], th[..., 0], active, l2)
+
+    loss = loss_of(theta)
+    running = torch.ones(theta.shape[:-2], dtype=torch.bool)
+    for _ in range(10):
+        logits = (X @ theta.mT).masked_fill(~active.unsqueeze(-2), float("-inf"))
+        p = torch.softmax(logits, dim=-1)  # (..., N, O)
+        g = (w[..., None] * (p - t)).mT @ X + pen * theta  # (..., O, F+1)
+        g = torch.where(active[..., None], g, 0.0).flatten(-2)
+        running &= g.abs().amax(-1) > NEWTON_GTOL
+        if not bool(running.any()):
+            break
+        wp = w[..., None] * p
+        outer = torch.einsum("...na,...nb->...nab", X, X)
+        diag = torch.einsum("...no,...nab->...oab", wp, outer)
+        cross = torch.einsum("...no,...nq,...nab->...oaqb", wp, p, outer)
+        H = -cross
+        eye = torch.eye(O, dtype=torch.bool)
+        H = H + torch.where(eye[:, None, :, None], diag[..., :, :, None, :], 0.0)
+        H = H + torch.diag_embed(pen.repeat(O)).view(O, F1, O, F1)
+        H = H.reshape(*H.shape[:-4], O * F1, O * F1)
+        H = torch.where(keep[..., :, None] & keep[..., None, :], H, 0.0)
+        H = H + torch.diag_embed((~keep).to(torch.float64))
+        step, info = torch.linalg.solve_ex(H, g)
+        running &= (info == 0) & torch.isfinite(step).all(-1)
+        step = torch.where(running[..., None], step, 0.0).view(theta.shape)
+        moved = torch.zeros_like(running)
+        for _halving in range(30):
+            trial = theta - step
+            new_loss = loss_of(trial)
+            ok = running & ~moved & (new_loss <= loss + 1e-13 * (1.0 + loss.abs()))
+            theta = torch.where(ok[..., None, None], trial, theta)
+            loss = torch.where(ok, new_loss, loss)
+            moved |= ok
+            if bool((moved | ~running).all()):
+                break
+            step = 0.5 * step
+        running &= moved
+    return theta[..., 1:].contiguous(), theta[..., 0].contiguous()
 
 
 class ConstantGating(Gating):
@@ -246,6 +400,8 @@ class ConstantGating(Gating):
         super().__init__(c.shape[1], c.shape[0])
         self.register_buffer("centroids", c)
 
+    _stacked = ("active", "centroids")
+
     @classmethod
     def from_kmeans(cls, points: Tensor, n_options: int, seed: int = 0) -> ConstantGating:
         """k-means (scipy's ``kmeans2``, k-means++ start) of points (M, F) into O centroids."""
@@ -265,14 +421,12 @@ class ConstantGating(Gating):
         return cls(torch.from_numpy(centroids))
 
     def log_probs(self, features: Tensor) -> Tensor:
-        """features: (N, F) -> (N, O) with 0 at the nearest centroid and -inf elsewhere."""
+        """features: ([S,] N, F) -> ([S,] N, O) with 0 at the nearest centroid and -inf
+        elsewhere."""
         x = self._features(features)
         nearest = torch.cdist(x, self.centroids.to(x.dtype)).argmin(dim=-1)
-        out = torch.full(
-            (x.shape[0], self.n_options), float("-inf"), dtype=x.dtype, device=x.device
-        )
-        out[torch.arange(x.shape[0], device=x.device), nearest] = 0.0
-        return out
+        out = torch.full((*x.shape[:-1], self.n_options), float("-inf"), dtype=x.dtype)
+        return out.to(x.device).scatter_(-1, nearest[..., None], 0.0)
 
     def fit_parameters(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
@@ -280,3 +434,16 @@ class ConstantGating(Gating):
         """Constant gating: nothing to fit (the inputs are checked all the same)."""
         self._fit_inputs(features, targets, sample_weights)
         return {}
+
+
+def _active_mean(values: Tensor, active: Tensor) -> Tensor:
+    """Mean of ``values`` (S, O) over each member's active options (zeros elsewhere): (S, 1)."""
+    return values.sum(-1, keepdim=True) / active.sum(-1, keepdim=True)
+
+
+def _replace(module: nn.Module, name: str, value: Tensor) -> None:
+    """Replace the parameter or buffer ``name`` of ``module`` by ``value`` (another shape)."""
+    if name in module._parameters:
+        setattr(module, name, nn.Parameter(value, requires_grad=False))
+    else:
+        module.register_buffer(name, value)

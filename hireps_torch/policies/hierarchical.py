@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from typing import cast
@@ -20,6 +21,12 @@ from hireps_torch.checks import (
 from hireps_torch.features import FeatureMap, IdentityFeatures, check_feature_map
 from hireps_torch.policies._build import check_feature_maps, check_gating, initial_means
 from hireps_torch.policies._module import PolicyModule
+from hireps_torch.policies._population import (
+    Generators,
+    batch_text,
+    check_members,
+    check_population_generators,
+)
 from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import (
     LinearGaussian,
@@ -158,7 +165,58 @@ class HierarchicalPolicy(PolicyModule):
             gating = SoftmaxGating(gf.out_features, n_options)
         return cls(gating, opts, gf, pf)
 
+    @classmethod
+    def stack(cls, members: Sequence[HierarchicalPolicy]) -> HierarchicalPolicy:
+        """A population of S policies: gatings and options stacked along a leading S
+        (:meth:`Gating.stack`, :meth:`LinearGaussian.stack`); every input and output then
+        carries it (contexts (S, N, C), theta (S, N, D), weights (S, N, O)) and member s
+        computes what ``members[s]`` would, to round-off. The members must share the number of
+        options, the action dimension and the feature maps (same kind and values); they are
+        copied, not shared."""
+        items: list[HierarchicalPolicy] = check_members("members", members, cls)
+        first = items[0]
+        for s, m in enumerate(items[1:], 1):
+            if m.n_options != first.n_options:
+                raise ValueError(
+                    f"members[{s}] has {m.n_options} options but members[0] {first.n_options}"
+                )
+            for name in ("gating_features", "policy_features"):
+                if not _same_map(getattr(m, name), getattr(first, name)):
+                    raise ValueError(
+                        f"members[{s}].{name} differ from members[0]'s: a population shares "
+                        "its feature maps"
+                    )
+        gating = type(first.gating).stack([m.gating for m in items])
+        options = [
+            LinearGaussian.stack([m.sub_policies[o] for m in items]) for o in range(first.n_options)
+        ]
+        return cls(
+            gating,
+            options,
+            copy.deepcopy(first.gating_features),
+            copy.deepcopy(first.policy_features),
+        )
+
+    def member(self, s: int) -> HierarchicalPolicy:
+        """Member ``s`` of a population as an ordinary policy (a copy)."""
+        return type(self)(
+            self.gating.member(s),
+            [o.member(s) for o in self.sub_policies],
+            copy.deepcopy(self.gating_features),
+            copy.deepcopy(self.policy_features),
+        )
+
     # ---- helpers ----------------------------------------------------------------------------
+    @property
+    def population(self) -> int | None:
+        """S for a population of S policies (:meth:`stack`); None for one policy."""
+        return self.gating.population
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """() for one policy, (S,) for a population."""
+        return self.gating.batch_shape
+
     @property
     def sub_policies(self) -> list[LinearGaussian]:
         """The options as a typed list (the same modules as ``self.options``)."""
@@ -170,23 +228,26 @@ class HierarchicalPolicy(PolicyModule):
 
     @property
     def context_dim(self) -> int:
-        """S, the width of the contexts."""
+        """The width of the contexts."""
         return self.gating_features.in_features
 
     @property
     def active(self) -> Tensor:
-        """(O,) bool mask of options that have not been pruned."""
+        """([S,] O) bool mask of options that have not been pruned."""
         return self.gating.active
 
     def _context(self, context: Tensor) -> Tensor:
-        """context as a checked float64 (N, S) tensor."""
+        """context as a checked float64 ([population,] N, S) tensor."""
         device = self.sub_policies[0].bias.device
         c = as_float_tensor("context", context, device=device)
-        S = self.context_dim
-        if c.dim() != 2 or c.shape[1] != S:
-            raise ValueError(f"context must have shape (N, S) = (N, {S}), got {tuple(c.shape)}")
+        C, lead = self.context_dim, self.batch_shape
+        if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
+            names, sizes = ("population, ", batch_text(self.population)) if lead else ("", "")
+            raise ValueError(
+                f"context must have shape ({names}N, S) = ({sizes}N, {C}), got {tuple(c.shape)}"
+            )
         check_finite("context", c, "")
-        if not bool(self.active.any()):
+        if not bool(self.active.any(-1).all()):
             raise ValueError("every option of this policy is pruned (active is all False)")
         return c
 
@@ -196,22 +257,24 @@ class HierarchicalPolicy(PolicyModule):
 
     # ---- distribution -----------------------------------------------------------------------
     def gating_log_probs(self, context: Tensor) -> Tensor:
-        """context: (N, S) -> log pi(o | s): (N, O)."""
+        """context: ([S,] N, C) -> log pi(o | s): ([S,] N, O)."""
         return self.gating.log_probs(self._features(context)[0])
 
     def log_joint(self, context: Tensor, theta: Tensor) -> Tensor:
-        """context: (N, S), theta: (N, D) -> log pi(o | s) + log pi(theta | s, o): (N, O)."""
+        """context: ([S,] N, C), theta: ([S,] N, D) -> log pi(o | s) + log pi(theta | s, o):
+        ([S,] N, O)."""
         gf, pf = self._features(context)
         log_gate = self.gating.log_probs(gf)
         comps = torch.stack([opt.log_prob(pf, theta) for opt in self.sub_policies], dim=-1)
-        return torch.where(self.active, log_gate + comps, torch.full_like(comps, float("-inf")))
+        active = self.active.unsqueeze(-2)
+        return torch.where(active, log_gate + comps, torch.full_like(comps, float("-inf")))
 
     def log_prob(self, context: Tensor, theta: Tensor) -> Tensor:
-        """Marginal log density of theta: (N,)."""
+        """Marginal log density of theta: ([S,] N)."""
         return torch.logsumexp(self.log_joint(context, theta), dim=-1)
 
     def log_responsibilities(self, context: Tensor, theta: Tensor) -> Tensor:
-        """log p(o | s, theta): (N, O); -inf for pruned options.
+        """log p(o | s, theta): ([S,] N, O); -inf for pruned options.
 
         Raises:
             ValueError: when a sample has zero density under every active option (e.g.
@@ -221,58 +284,86 @@ class HierarchicalPolicy(PolicyModule):
         joint = self.log_joint(context, theta)
         impossible = torch.isneginf(joint).all(dim=-1)
         if bool(impossible.any()):
-            i = int(impossible.nonzero()[0, 0])
+            at = tuple(int(j) for j in impossible.nonzero()[0])
+            i = at[0] if len(at) == 1 else list(at)
             raise ValueError(
                 f"theta[{i}] has zero density under every active option (|theta| up to "
-                f"{float(torch.as_tensor(theta)[i].abs().max()):.3g}); its responsibilities are "
+                f"{float(torch.as_tensor(theta)[at].abs().max()):.3g}); its responsibilities are "
                 "undefined: rescale or drop that sample"
             )
         return torch.log_softmax(joint, dim=-1)
 
     def responsibilities(self, context: Tensor, theta: Tensor) -> Tensor:
-        """p(o | s, theta): (N, O)."""
+        """p(o | s, theta): ([S,] N, O)."""
         return self.log_responsibilities(context, theta).exp()
 
-    def sample(
-        self, context: Tensor, generator: torch.Generator | None = None
-    ) -> tuple[Tensor, Tensor]:
+    def sample(self, context: Tensor, generator: Generators = None) -> tuple[Tensor, Tensor]:
         """Draw an option from the gating, then theta from that option.
 
+        A population may take one generator per member: member s then draws exactly what it
+        would draw alone (its option, then every option's noise, in order).
+
         Returns:
-            theta (N, D) and option (N,) int64 (empty for N = 0).
+            theta ([S,] N, D) and option ([S,] N) int64 (empty for N = 0).
         """
-        check_generator("generator", generator)
+        gen = check_population_generators(self.population, generator)
         gf, pf = self._features(context)
+        if self.population is not None:
+            return self._population_sample(gf, pf, gen)
+        assert not isinstance(gen, list)
         probs = self.gating.probs(gf)
         N = pf.shape[0]
         dtype = self.sub_policies[0].bias.dtype
         if N == 0:
             empty = torch.zeros(0, dtype=torch.long, device=pf.device)
             return pf.new_empty((0, self.action_dim), dtype=dtype), empty
-        option = torch.multinomial(probs, 1, generator=generator).squeeze(-1)
+        option = torch.multinomial(probs, 1, generator=gen).squeeze(-1)
         used = torch.bincount(option, minlength=self.n_options).tolist()
         theta = pf.new_empty((N, self.action_dim), dtype=dtype)
         for o, opt in enumerate(self.sub_policies):
             if used[o]:
                 rows = option == o
-                theta[rows] = opt.sample(pf, generator)[rows]
+                theta[rows] = opt.sample(pf, gen)[rows]
             else:  # unchosen option: only advance the generator as its sample would have
                 b = opt.bias
-                torch.randn(
-                    (N, self.action_dim), generator=generator, dtype=b.dtype, device=b.device
-                )
+                torch.randn((N, self.action_dim), generator=gen, dtype=b.dtype, device=b.device)
+        return theta, option
+
+    def _population_sample(
+        self, gf: Tensor, pf: Tensor, gen: torch.Generator | list[torch.Generator] | None
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`sample` of a population: features (S, N, .)."""
+        probs = self.gating.probs(gf)
+        S, N = pf.shape[:2]
+        dtype = self.sub_policies[0].bias.dtype
+        if N == 0:
+            empty = torch.zeros(S, 0, dtype=torch.long, device=pf.device)
+            return pf.new_empty((S, 0, self.action_dim), dtype=dtype), empty
+        if isinstance(gen, list):
+            option = torch.stack(
+                [
+                    torch.multinomial(p, 1, generator=g).squeeze(-1)
+                    for p, g in zip(probs, gen, strict=True)
+                ]
+            )
+        else:
+            option = torch.multinomial(probs.reshape(S * N, -1), 1, generator=gen).view(S, N)
+        theta = pf.new_zeros((S, N, self.action_dim), dtype=dtype)
+        for o, opt in enumerate(self.sub_policies):
+            theta = torch.where((option == o)[..., None], opt.sample(pf, gen), theta)
         return theta, option
 
     def mean_action(self, context: Tensor) -> tuple[Tensor, Tensor]:
         """Noise-free policy: the mean of the most probable option.
 
         Returns:
-            theta (N, D) and option (N,) int64.
+            theta ([S,] N, D) and option ([S,] N) int64.
         """
         gf, pf = self._features(context)
         option = self.gating.log_probs(gf).argmax(dim=-1)
-        means = torch.stack([opt.mean(pf) for opt in self.sub_policies], dim=1)
-        return means[torch.arange(pf.shape[0], device=pf.device), option], option
+        means = torch.stack([opt.mean(pf) for opt in self.sub_policies], dim=-2)
+        index = option[..., None, None].expand(*option.shape, 1, self.action_dim)
+        return means.gather(-2, index).squeeze(-2), option
 
     # ---- refit and pruning ------------------------------------------------------------------
     @torch.no_grad()
@@ -285,30 +376,33 @@ class HierarchicalPolicy(PolicyModule):
                 (e.g. parameters so large that the option's covariance overflows).
         """
         gf, pf = self._features(context)
-        N = pf.shape[0]
+        N, lead = pf.shape[-2], self.batch_shape
         t = as_float_tensor("theta", theta)
-        if t.shape != (N, self.action_dim):
+        if t.shape != (*lead, N, self.action_dim):
             raise ValueError(
-                f"theta must have shape ({N}, {self.action_dim}), got {tuple(t.shape)}"
+                f"theta must have shape {(*lead, N, self.action_dim)}, got {tuple(t.shape)}"
             )
         check_finite("theta", t)
         w = as_float_tensor("weights", weights)
-        if w.shape != (N, self.n_options):
+        if w.shape != (*lead, N, self.n_options):
             raise ValueError(
-                f"weights must have shape ({N}, {self.n_options}), got {tuple(w.shape)}"
+                f"weights must have shape {(*lead, N, self.n_options)}, got {tuple(w.shape)}"
             )
         check_weights("weights", w)
-        on_pruned = (w[:, ~self.active] > 0).any(0)
+        on_pruned = ((w > 0) & ~self.active.unsqueeze(-2)).any(-2)
         if bool(on_pruned.any()):
-            pruned = (~self.active).nonzero().flatten()[on_pruned].tolist()
+            pruned = [list(map(int, j)) for j in on_pruned.nonzero()]
+            where = [j[-1] for j in pruned] if self.population is None else pruned
             raise ValueError(
-                f"weights put mass on pruned option(s) {pruned}; give them weight 0 (their "
+                f"weights put mass on pruned option(s) {where}; give them weight 0 (their "
                 "column of the weights must be zero)"
             )
-        w = power_of_two_scaled(w)
+        w = power_of_two_scaled(w, self.population is not None)
         ws = w.sum(-1)
-        targets = w / torch.where(ws > 0, ws, 1.0)[:, None]  # rows without weight stay 0
+        targets = w / torch.where(ws > 0, ws, 1.0)[..., None]  # rows without weight stay 0
         new = {f"gating.{k}": v for k, v in self.gating.fit_parameters(gf, targets, ws).items()}
+        if self.population is not None:
+            return new | self._population_option_fits(pf, t, w)
         total = float(w.sum())
         for o, opt in enumerate(self.sub_policies):
             if bool(self.active[o]) and float(w[:, o].sum()) > 1e-12 * total:
@@ -319,6 +413,28 @@ class HierarchicalPolicy(PolicyModule):
                 new.update({f"options.{o}.{k}": v for k, v in fit.items()})
         return new
 
+    def _population_option_fits(self, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
+        """The options' refits of a population (features (S, N, F), theta (S, N, D), weights
+        (S, N, O)): each option is fitted for all members in one call; a member where it is
+        pruned or has no weight keeps its parameters."""
+        new: dict[str, Tensor] = {}
+        total = w.sum((-2, -1))
+        for o, opt in enumerate(self.sub_policies):
+            col = w[..., o]
+            fitted = self.active[:, o] & (col.sum(-1) > 1e-12 * total)
+            if not bool(fitted.any()):
+                continue
+            safe = torch.where(fitted[:, None], col, 1.0)  # the others' fits are discarded
+            try:
+                fit = opt.fit_parameters(pf, t, safe)
+            except ValueError as exc:
+                raise ValueError(f"option {o}: {exc}") from None
+            for k, v in fit.items():
+                old = getattr(opt, k)
+                keep = fitted.view(-1, *[1] * (v.dim() - 1))
+                new[f"options.{o}.{k}"] = torch.where(keep, v, old)
+        return new
+
     @torch.no_grad()
     def weighted_fit(self, context: Tensor, theta: Tensor, weights: Tensor) -> None:
         """Refit gating and options to the weighted samples.
@@ -327,37 +443,49 @@ class HierarchicalPolicy(PolicyModule):
         set: a failure (a bad input, option 3's refit after options 1 and 2) changes nothing.
 
         Args:
-            context: (N, S).
-            theta: (N, D).
-            weights: (N, O) non-negative joint sample-option weights P_io (any scale).
-                Option o is refitted with weights P[:, o]; the gating with targets
-                P_io / sum_o P_io and sample weights sum_o P_io. Options without weight keep
-                their parameters (they are left to pruning); weight on a pruned option is
-                refused (its column must be 0).
+            context: ([S,] N, C).
+            theta: ([S,] N, D).
+            weights: ([S,] N, O) non-negative joint sample-option weights P_io (any scale;
+                each member's not all zero). Option o is refitted with weights P[..., o];
+                the gating with targets P_io / sum_o P_io and sample weights sum_o P_io.
+                Options without weight keep their parameters (they are left to pruning);
+                weight on a pruned option is refused (its column must be 0).
         """
         self.set_parameters(self.fit_parameters(context, theta, weights))
 
     @torch.no_grad()
-    def prune(self, context: Tensor, threshold: float = 1e-4) -> list[int]:
+    def prune(self, context: Tensor, threshold: float = 1e-4) -> list[int] | list[list[int]]:
         """Deactivate options whose prior mass ``mean_i pi(o | s_i)`` is below ``threshold``.
 
-        The most probable option is never pruned. Returns the indices pruned by this call.
+        The most probable option is never pruned. Returns the indices pruned by this call
+        (a population: one list per member).
         """
         limit = as_float("threshold", threshold)
         if not 0.0 <= limit < 1.0:
             raise ValueError(f"threshold must be in [0, 1), got {threshold}")
         c = self._context(context)
-        if c.shape[0] == 0:
-            raise ValueError("prune needs at least one context, got an empty (0, S) batch")
-        prior = self.gating.probs(self.gating_features(c)).mean(0)
+        if c.shape[-2] == 0:
+            raise ValueError("prune needs at least one context, got an empty (0, C) batch")
+        prior = self.gating.probs(self.gating_features(c)).mean(-2)
         drop = self.active & (prior < limit)
-        drop[int(prior.argmax())] = False
+        drop.scatter_(-1, prior.argmax(-1, keepdim=True), False)
         if bool(drop.any()):
             self.gating.active &= ~drop
-        return [int(i) for i in drop.nonzero().flatten()]
+        if self.population is None:
+            return [int(i) for i in drop.nonzero().flatten()]
+        return [[int(i) for i in row.nonzero().flatten()] for row in drop]
 
     def option_entropy(self, context: Tensor, theta: Tensor) -> Tensor:
-        """Mean entropy of the responsibilities p(o | s, theta) over the samples (scalar)."""
+        """Mean entropy of the responsibilities p(o | s, theta) over the samples (a scalar;
+        (S,) for a population)."""
         lr = self.log_responsibilities(context, theta)
         p = lr.exp()
-        return -(torch.where(p > 0, p * lr, torch.zeros_like(p))).sum(-1).mean()
+        return -(torch.where(p > 0, p * lr, torch.zeros_like(p))).sum(-1).mean(-1)
+
+
+def _same_map(a: FeatureMap, b: FeatureMap) -> bool:
+    """Whether two feature maps are of one kind, width and value (buffers and parameters)."""
+    if type(a) is not type(b) or (a.in_features, a.out_features) != (b.in_features, b.out_features):
+        return False
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)

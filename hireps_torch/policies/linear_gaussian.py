@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -14,12 +15,18 @@ from hireps_torch.checks import (
     check_count,
     check_finite,
     check_float_dtype,
-    check_generator,
     check_nonnegative_float,
     check_positive,
     check_weights,
 )
 from hireps_torch.policies._module import PolicyModule
+from hireps_torch.policies._population import (
+    Generators,
+    batch_text,
+    check_members,
+    check_population_generators,
+    normal,
+)
 
 __all__ = [
     "LinearGaussian",
@@ -38,37 +45,49 @@ def weighted_least_squares(
 ) -> tuple[Tensor, Tensor]:
     """Weighted least squares with an (unpenalised) bias, in float64.
 
+    Any leading batch dimensions (e.g. a population S) are independent problems.
+
     Args:
-        inputs: (N, F) regressors (F may be 0).
-        targets: (N, D).
-        weights: (N,) non-negative sample weights, not all zero.
+        inputs: (..., N, F) regressors (F may be 0).
+        targets: (..., N, D).
+        weights: (..., N) non-negative sample weights, not all zero.
         ridge: Tikhonov penalty on the slopes (not the bias), relative to the weight sum.
 
     Returns:
-        (weight (D, F), bias (D,)) minimising sum_i w_i ||y_i - W x_i - b||^2 + ridge ||W||^2.
+        (weight (..., D, F), bias (..., D)) minimising
+        sum_i w_i ||y_i - W x_i - b||^2 + ridge ||W||^2.
     """
-    X = torch.cat(
-        [torch.ones(inputs.shape[0], 1, dtype=torch.float64), inputs.to(torch.float64)], 1
-    )
+    x = inputs.to(torch.float64)
+    X = torch.cat([torch.ones(*x.shape[:-1], 1, dtype=torch.float64), x], -1)
     Y = targets.to(torch.float64)
     w = weights.to(torch.float64)
-    A = X.T @ (w[:, None] * X)
-    if ridge > 0 and X.shape[1] > 1:
-        reg = torch.full((X.shape[1],), ridge * float(w.sum()), dtype=torch.float64)
-        reg[0] = 0.0
-        A = A + torch.diag(reg)
-    B = X.T @ (w[:, None] * Y)
-    try:
-        beta = torch.linalg.solve(A, B)
-    except RuntimeError:  # singular (fewer effective samples than regressors): least-norm fit
-        beta = torch.linalg.lstsq(A, B, driver="gelsd").solution
-    return beta[1:].T.contiguous(), beta[0].contiguous()
+    A = X.mT @ (w[..., None] * X)
+    if ridge > 0 and X.shape[-1] > 1:
+        reg = ridge * w.sum(-1, keepdim=True) * torch.ones(X.shape[-1], dtype=torch.float64)
+        reg[..., 0] = 0.0
+        A = A + torch.diag_embed(reg)
+    B = X.mT @ (w[..., None] * Y)
+    beta, info = torch.linalg.solve_ex(A, B)
+    singular = info != 0
+    if bool(singular.any()):  # fewer effective samples than regressors: least-norm fit
+        least_norm = torch.linalg.lstsq(A[singular], B[singular], driver="gelsd").solution
+        beta = beta.clone()
+        beta[singular] = least_norm
+    return beta[..., 1:, :].mT.contiguous(), beta[..., 0, :].contiguous()
 
 
-def power_of_two_scaled(w: Tensor) -> Tensor:
+def power_of_two_scaled(w: Tensor, population: bool = False) -> Tensor:
     """Weights of any scale brought near 1 by an exact power of 2 (the fit is invariant to
     it), so that weights like 1e-320 or 1e300 neither underflow nor overflow the sums; weights
-    already within 2^-200 .. 2^200 are returned as they are."""
+    already within 2^-200 .. 2^200 are returned as they are. With ``population`` the leading
+    dimension holds independent members, each scaled on its own."""
+    if population:
+        peak = w.flatten(1).amax(1).view(-1, *[1] * (w.dim() - 1))
+        far = (peak < 2.0**-200) | (peak > 2.0**200)
+        if not bool(far.any()):
+            return w
+        exponent = torch.frexp(peak).exponent.to(torch.int64)
+        return torch.where(far, torch.ldexp(w, -exponent), w)
     top = float(w.max())
     if 2.0**-200 <= top <= 2.0**200:
         return w
@@ -107,6 +126,11 @@ def covariance_pseudo_samples(covariance_prior: float) -> float:
     return pseudo_samples("covariance_prior", covariance_prior)
 
 
+def _matvec(A: Tensor, x: Tensor) -> Tensor:
+    """A (..., D, F) times x (..., F): (..., D) (a matrix-vector product without batch)."""
+    return A @ x if x.dim() == 1 else (A @ x[..., None])[..., 0]
+
+
 def map_linear_regression(
     inputs: Tensor,
     targets: Tensor,
@@ -134,38 +158,42 @@ def map_linear_regression(
     the samples keeps its old slope (the data say nothing about it). ``k = 0`` is weighted
     least squares.
 
+    Any leading batch dimensions (e.g. a population S) are independent problems.
+
     Args:
-        inputs: (N, F) regressors.
-        targets: (N, D).
-        weights: (N,) non-negative sample weights, not all zero.
-        prior_weight: (D, F) slopes the prior is centred on (the current ones).
-        prior_bias: (D,) bias the prior is centred on.
+        inputs: (..., N, F) regressors.
+        targets: (..., N, D).
+        weights: (..., N) non-negative sample weights, not all zero.
+        prior_weight: (..., D, F) slopes the prior is centred on (the current ones).
+        prior_bias: (..., D) bias the prior is centred on.
         prior_samples: k >= 0.
         ridge: Tikhonov penalty on the slopes W, relative to the weight sum.
 
     Returns:
-        (weight (D, F), bias (D,)).
+        (weight (..., D, F), bias (..., D)).
     """
     x = inputs.to(torch.float64)
     y = targets.to(torch.float64)
     w = weights.to(torch.float64)
-    w = w / w.sum()
-    n_eff = 1.0 / (w**2).sum()
-    m = (w[:, None] * x).sum(0)
-    s = (w[:, None] * (x - m) ** 2).sum(0).sqrt()
-    magnitude = x.abs().amax(0) if x.shape[0] else torch.zeros_like(m)
+    w = w / w.sum(-1, keepdim=True)
+    n_eff = 1.0 / (w**2).sum(-1)
+    m = (w[..., None] * x).sum(-2)
+    s = (w[..., None] * (x - m[..., None, :]) ** 2).sum(-2).sqrt()
+    magnitude = x.abs().amax(-2) if x.shape[-2] else torch.zeros_like(m)
     s = torch.where(s > 1e-12 * magnitude, s, torch.ones_like(s))
-    Z = torch.cat([torch.ones(x.shape[0], 1, dtype=torch.float64), (x - m) / s], 1)
+    ones = torch.ones(*x.shape[:-1], 1, dtype=torch.float64)
+    Z = torch.cat([ones, (x - m[..., None, :]) / s[..., None, :]], -1)
     W0 = prior_weight.to(torch.float64)
-    beta0 = torch.cat([(prior_bias.to(torch.float64) + W0 @ m)[None, :], (W0 * s).T], 0)
-    lam = prior_samples / n_eff
-    diag = torch.full((Z.shape[1],), float(lam), dtype=torch.float64)
-    diag[1:] = diag[1:] + ridge / s**2
-    A = Z.T @ (w[:, None] * Z) + torch.diag(diag)
-    B = Z.T @ (w[:, None] * y) + lam * beta0
+    centre = prior_bias.to(torch.float64) + _matvec(W0, m)
+    beta0 = torch.cat([centre[..., None, :], (W0 * s[..., None, :]).mT], -2)
+    lam = (prior_samples / n_eff)[..., None]
+    diag = lam * torch.ones(Z.shape[-1], dtype=torch.float64)
+    diag[..., 1:] = diag[..., 1:] + ridge / s**2
+    A = Z.mT @ (w[..., None] * Z) + torch.diag_embed(diag)
+    B = Z.mT @ (w[..., None] * y) + lam[..., None] * beta0
     beta = torch.linalg.solve(A, B)
-    W = (beta[1:] / s[:, None]).T.contiguous()
-    return W, (beta[0] - W @ m).contiguous()
+    W = (beta[..., 1:, :] / s[..., :, None]).mT.contiguous()
+    return W, (beta[..., 0, :] - _matvec(W, m)).contiguous()
 
 
 def initial_std(init_std: float | Tensor, action_dim: int) -> Tensor:
@@ -248,51 +276,112 @@ class LinearGaussian(PolicyModule):
         self.bias = nn.Parameter(mean, requires_grad=False)
         self.chol = nn.Parameter(torch.diag(std), requires_grad=False)
 
+    population: int | None = None
+    """S for a population of S options stacked by :meth:`stack`; None for one option."""
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """() for one option, (S,) for a population."""
+        return () if self.population is None else (self.population,)
+
+    @classmethod
+    def stack(cls, members: Sequence[LinearGaussian]) -> LinearGaussian:
+        """A population of S options: the members' parameters stacked along a leading S.
+
+        Every input and output of the population gets the same leading S (features (S, N, F),
+        theta (S, N, D), log densities (S, N)); member s computes what ``members[s]`` would
+        (to round-off: batched products). The members must share ``in_features``,
+        ``action_dim``, dtype, device, ``min_variance`` and the priors (a ``ValueError`` naming
+        the first that differs). The members are copied, not shared.
+        """
+        opts: list[LinearGaussian] = check_members("members", members, cls)
+        first = opts[0]
+        for s, m in enumerate(opts[1:], 1):
+            for what in ("in_features", "action_dim", "covariance_prior", "mean_prior"):
+                if getattr(m, what) != getattr(first, what):
+                    raise ValueError(
+                        f"members[{s}].{what} = {getattr(m, what)} but members[0].{what} = "
+                        f"{getattr(first, what)}: a population shares it"
+                    )
+            if not torch.equal(m.min_variance, first.min_variance):
+                raise ValueError(f"members[{s}].min_variance differs from members[0]'s")
+            if (m.bias.dtype, m.bias.device) != (first.bias.dtype, first.bias.device):
+                raise ValueError(
+                    f"members[{s}] is {m.bias.dtype} on {m.bias.device} but members[0] is "
+                    f"{first.bias.dtype} on {first.bias.device}"
+                )
+        out = copy.deepcopy(first)
+        out.population = len(opts)
+        with torch.no_grad():
+            for name in ("weight", "bias", "chol"):
+                stacked = torch.stack([getattr(m, name) for m in opts])
+                setattr(out, name, nn.Parameter(stacked, requires_grad=False))
+        return out
+
+    def member(self, s: int) -> LinearGaussian:
+        """Member ``s`` of a population as an ordinary option (a copy)."""
+        index = _member_index(self.population, s)
+        out = copy.deepcopy(self)
+        out.population = None
+        with torch.no_grad():
+            for name in ("weight", "bias", "chol"):
+                setattr(out, name, nn.Parameter(getattr(self, name)[index].clone(), False))
+        return out
+
     # ---- distribution ---------------------------------------------------------------------
     def _features(self, features: Tensor) -> Tensor:
         x = as_float_tensor("features", features, self.bias.dtype, self.bias.device)
-        if x.dim() != 2 or x.shape[1] != self.in_features:
+        lead = self.batch_shape
+        if x.dim() != 2 + len(lead) or x.shape[:-2] != lead or x.shape[-1] != self.in_features:
             raise ValueError(
-                f"features must have shape (N, {self.in_features}), got {tuple(x.shape)}"
+                f"features must have shape ({batch_text(self.population)}N, {self.in_features}),"
+                f" got {tuple(x.shape)}"
             )
         check_finite("features", x, "")
         return x
 
     def _theta(self, theta: Tensor, N: int) -> Tensor:
         t = as_float_tensor("theta", theta, self.bias.dtype, self.bias.device)
-        if t.shape != (N, self.action_dim):
-            raise ValueError(f"theta must have shape {(N, self.action_dim)}, got {tuple(t.shape)}")
+        shape = (*self.batch_shape, N, self.action_dim)
+        if t.shape != shape:
+            raise ValueError(f"theta must have shape {shape}, got {tuple(t.shape)}")
         check_finite("theta", t, "")
         return t
 
     def mean(self, features: Tensor) -> Tensor:
-        """features: (N, F) -> mean (N, D)."""
+        """features: ([S,] N, F) -> mean ([S,] N, D)."""
         x = self._features(features)
-        return x @ self.weight.T + self.bias
+        return x @ self.weight.mT + self.bias.unsqueeze(-2)
 
     @property
     def covariance(self) -> Tensor:
-        """(D, D) covariance chol @ chol.T."""
-        return self.chol @ self.chol.T
+        """([S,] D, D) covariance chol @ chol.T."""
+        return self.chol @ self.chol.mT
 
-    def sample(self, features: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """features: (N, F) -> theta (N, D)."""
-        check_generator("generator", generator)
+    def sample(self, features: Tensor, generator: Generators = None) -> Tensor:
+        """features: ([S,] N, F) -> theta ([S,] N, D). A population may take one generator per
+        member (member s then draws what it would draw alone)."""
+        gen = check_population_generators(self.population, generator)
         mu = self.mean(features)
-        noise = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
-        return mu + noise @ self.chol.T
+        noise = normal(tuple(mu.shape), gen, mu.dtype, mu.device)
+        return mu + noise @ self.chol.mT
 
     def log_prob(self, features: Tensor, theta: Tensor) -> Tensor:
-        """features: (N, F), theta: (N, D) -> log density (N,)."""
+        """features: ([S,] N, F), theta: ([S,] N, D) -> log density ([S,] N)."""
         mu = self.mean(features)
-        diff = (self._theta(theta, mu.shape[0]) - mu).T  # (D, N)
+        diff = (self._theta(theta, mu.shape[-2]) - mu).mT  # ([S,] D, N)
         z: Tensor = torch.linalg.solve_triangular(self.chol, diff, upper=False)
-        half_logdet = torch.log(torch.diagonal(self.chol)).sum()
-        return -0.5 * (z**2).sum(0) - half_logdet - 0.5 * self.action_dim * math.log(2 * math.pi)
+        half_logdet = torch.log(torch.diagonal(self.chol, dim1=-2, dim2=-1)).sum(-1)
+        return (
+            -0.5 * (z**2).sum(-2)
+            - half_logdet[..., None]
+            - 0.5 * self.action_dim * math.log(2 * math.pi)
+        )
 
     def entropy(self) -> Tensor:
-        """Differential entropy (scalar) of the Gaussian (independent of the features)."""
-        half_logdet = torch.log(torch.diagonal(self.chol)).sum()
+        """Differential entropy ([S] or a scalar) of the Gaussian (independent of the
+        features)."""
+        half_logdet = torch.log(torch.diagonal(self.chol, dim1=-2, dim2=-1)).sum(-1)
         return half_logdet + 0.5 * self.action_dim * (1.0 + math.log(2 * math.pi))
 
     # ---- weighted maximum likelihood --------------------------------------------------------
@@ -301,45 +390,47 @@ class LinearGaussian(PolicyModule):
         self, inputs: Tensor, targets: Tensor, weights: Tensor, ridge: float = 1e-6
     ) -> dict[str, Tensor]:
         """The new ``weight``, ``bias`` and ``chol`` of :meth:`weighted_fit`, without setting
-        them (the option is unchanged; :meth:`set_parameters` sets them).
+        them (the option is unchanged; :meth:`set_parameters` sets them). A population fits
+        each member to its own samples (shapes with a leading S).
 
         Raises:
-            ValueError: naming the argument, for a wrong shape, a non-finite input, negative or
-                all-zero weights; or a fit that is not finite (parameters so large that their
-                covariance overflows).
+            ValueError: naming the argument (and the member of a population), for a wrong
+                shape, a non-finite input, negative or all-zero weights; or a fit that is not
+                finite (parameters so large that their covariance overflows).
         """
         x = self._features(inputs).to(torch.float64)
-        N = x.shape[0]
+        N = x.shape[-2]
+        lead = self.batch_shape
         y = as_float_tensor("targets", targets)
-        if y.shape != (N, self.action_dim):
+        if y.shape != (*lead, N, self.action_dim):
             raise ValueError(
-                f"targets must have shape ({N}, {self.action_dim}), got {tuple(y.shape)}"
+                f"targets must have shape {(*lead, N, self.action_dim)}, got {tuple(y.shape)}"
             )
         check_finite("targets", y)
         w = as_float_tensor("weights", weights)
-        if w.shape != (N,):
-            raise ValueError(f"weights must have shape ({N},), got {tuple(w.shape)}")
+        if w.shape != (*lead, N):
+            raise ValueError(f"weights must have shape {(*lead, N)}, got {tuple(w.shape)}")
         check_weights("weights", w)
-        w = power_of_two_scaled(w)
+        empty = ~(w > 0).any(-1)
+        if bool(empty.any()):
+            s = int(empty.nonzero()[0, 0])
+            raise ValueError(f"weights[{s}] are all zero (member {s} of the population)")
+        w = power_of_two_scaled(w, self.population is not None)
         r = check_nonnegative_float("ridge", ridge) or 0.0
-        overflow = ValueError(
-            f"the weighted fit overflows (largest |target| {float(y.abs().max()):.3g}, largest "
-            f"|input| {float(x.abs().max()) if x.numel() else 0.0:.3g}): rescale the "
-            "parameters / features"
-        )
         try:
             if self.mean_prior > 0:
                 W, b = map_linear_regression(x, y, w, self.weight, self.bias, self.mean_prior, r)
             else:
                 W, b = weighted_least_squares(x, y, w, ridge=r)
         except RuntimeError:
-            raise overflow from None
-        resid = y - (x @ W.T + b)
-        cov = (w[:, None] * resid).T @ resid / w.sum()
-        if not (bool(torch.isfinite(cov).all()) and bool(torch.isfinite(W).all())):
-            raise overflow
+            raise self._overflow(x, y, None) from None
+        resid = y - (x @ W.mT + b.unsqueeze(-2))
+        cov = (w[..., None] * resid).mT @ resid / w.sum(-1)[..., None, None]
+        bad = ~(_finite_members(cov) & _finite_members(W))
+        if bool(bad.any()):
+            raise self._overflow(x, y, bad)
         if self.covariance_prior > 0:
-            n_eff = w.sum() ** 2 / (w**2).sum()
+            n_eff = (w.sum(-1) ** 2 / (w**2).sum(-1))[..., None, None]
             k = self.covariance_prior
             cov = (n_eff * cov + k * self.covariance.to(torch.float64)) / (n_eff + k)
         new = {
@@ -351,6 +442,18 @@ class LinearGaussian(PolicyModule):
             if not bool(torch.isfinite(value).all()):
                 raise ValueError(f"the refitted {name} does not fit in {value.dtype}")
         return new
+
+    def _overflow(self, x: Tensor, y: Tensor, bad: Tensor | None) -> ValueError:
+        """The error of a fit that overflows (naming the member of a population)."""
+        who = ""
+        if bad is not None and self.population is not None:
+            s = int(bad.nonzero()[0, 0])
+            who, x, y = f"member {s}: ", x[s], y[s]
+        return ValueError(
+            f"{who}the weighted fit overflows (largest |target| {float(y.abs().max()):.3g}, "
+            f"largest |input| {float(x.abs().max()) if x.numel() else 0.0:.3g}): rescale the "
+            "parameters / features"
+        )
 
     @torch.no_grad()
     def weighted_fit(
@@ -367,17 +470,17 @@ class LinearGaussian(PolicyModule):
         leaves the option as it was.
 
         Args:
-            inputs: (N, F) features.
-            targets: (N, D) parameters / actions.
-            weights: (N,) non-negative, finite, not all zero.
+            inputs: ([S,] N, F) features.
+            targets: ([S,] N, D) parameters / actions.
+            weights: ([S,] N) non-negative, finite, not all zero (for each member).
             ridge: slope penalty relative to the weight sum (0 for plain WLS).
         """
         self.set_parameters(self.fit_parameters(inputs, targets, weights, ridge))
 
     def _floored_cholesky(self, cov: Tensor) -> Tensor:
-        """Cholesky factor (parameter dtype) of cov (D, D) symmetrised and floored."""
+        """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""
         cov = cov.to(torch.float64)
-        cov = 0.5 * (cov + cov.T)
+        cov = 0.5 * (cov + cov.mT)
         root = self.min_variance.sqrt()
         scale = root[:, None] * root[None, :]
         scaled = cov / scale
@@ -387,22 +490,26 @@ class LinearGaussian(PolicyModule):
                 "rescale the parameters"
             )
         evals, evecs = torch.linalg.eigh(scaled)
-        if bool((evals < 1.0).any()):
-            cov = (evecs * evals.clamp_min(1.0)) @ evecs.T * scale
-            cov = 0.5 * (cov + cov.T)
-        try:
-            chol: Tensor = torch.linalg.cholesky(cov)
-        except RuntimeError as exc:
-            raise ValueError(f"the floored covariance is not positive definite: {exc}") from None
+        low = (evals < 1.0).any(-1)
+        if bool(low.any()):
+            floored = (evecs * evals.clamp_min(1.0).unsqueeze(-2)) @ evecs.mT * scale
+            floored = 0.5 * (floored + floored.mT)
+            cov = floored if cov.dim() == 2 else torch.where(low[..., None, None], floored, cov)
+        chol, info = torch.linalg.cholesky_ex(cov)
+        if bool((info != 0).any()):
+            who = "" if cov.dim() == 2 else f" (member {int((info != 0).nonzero()[0, 0])})"
+            raise ValueError(f"the floored covariance is not positive definite{who}")
         return chol.to(self.chol.dtype)
 
     @torch.no_grad()
     def set_covariance(self, cov: Tensor) -> None:
-        """Set the covariance (D, D), symmetrised and floored at ``min_variance``."""
+        """Set the covariance ([S,] D, D), symmetrised and floored at ``min_variance``."""
         c = as_float_tensor("cov", cov)
         D = self.action_dim
-        if c.shape != (D, D):
-            raise ValueError(f"cov must have shape ({D}, {D}), got {tuple(c.shape)}")
+        if c.shape != (*self.batch_shape, D, D):
+            raise ValueError(
+                f"cov must have shape {(*self.batch_shape, D, D)}, got {tuple(c.shape)}"
+            )
         check_finite("cov", c, "")
         self.set_parameters({"chol": self._floored_cholesky(c)})
 
@@ -412,8 +519,24 @@ class LinearGaussian(PolicyModule):
         if chol is None:
             return
         c = chol.to(torch.float64)
-        if bool((c.triu(1) != 0).any()) or bool((torch.diagonal(c) <= 0).any()):
+        diagonal = torch.diagonal(c, dim1=-2, dim2=-1)
+        if bool((c.triu(1) != 0).any()) or bool((diagonal <= 0).any()):
             raise ValueError(
                 "chol must be lower triangular with a positive diagonal, got "
-                f"diagonal {torch.diagonal(c).tolist()}"
+                f"diagonal {diagonal.tolist()}"
             )
+
+
+def _finite_members(t: Tensor) -> Tensor:
+    """Whether each member of ``t`` ([S,] a, b) is finite: ([S])."""
+    return torch.isfinite(t).flatten(-2).all(-1)
+
+
+def _member_index(population: int | None, s: object) -> int:
+    """``s`` checked as a member index of a population of ``population``."""
+    if population is None:
+        raise ValueError("member() takes a member of a population; this module holds one policy")
+    index = check_count("s", s, 0)
+    if index >= population:
+        raise ValueError(f"member s must be in [0, {population}), got {index}")
+    return index

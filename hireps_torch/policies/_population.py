@@ -1,0 +1,84 @@
+"""What the policy modules share to hold a population: S independent policies stacked along
+a leading dimension (``torch.distributions``' ``batch_shape``), built by ``stack`` from S
+ordinary modules and taken apart again by ``member``.
+
+A population module's inputs and outputs carry the same leading S: features (S, N, F),
+parameters (S, N, D), log densities (S, N). Each member may draw its noise from its own
+generator (a sequence of S generators), so that a member's samples are those it would draw
+alone; the arithmetic is one batched call for all members.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hireps_torch.checks import check_generator
+
+__all__ = ["Generators", "check_members", "check_population_generators", "normal", "batch_text"]
+
+Generators = torch.Generator | Sequence[torch.Generator] | None
+"""None, one generator, or (for a population) one generator per member."""
+
+
+def check_members(name: str, members: object, cls: type) -> list[Any]:
+    """``members`` as a non-empty list of ordinary (not population) ``cls`` modules; a
+    ``TypeError`` / ``ValueError`` naming the bad entry."""
+    if isinstance(members, torch.nn.Module) or not isinstance(members, Sequence):
+        raise TypeError(
+            f"{name} must be a sequence of {cls.__name__}s, got {type(members).__name__}"
+        )
+    items = list(members)
+    if not items:
+        raise ValueError(f"{name} must hold at least one {cls.__name__}, got none")
+    for s, m in enumerate(items):
+        if not isinstance(m, cls):
+            raise TypeError(f"{name}[{s}] must be a {cls.__name__}, got {type(m).__name__}")
+        if getattr(m, "population", None) is not None:
+            raise ValueError(f"{name}[{s}] is a population already; stack ordinary modules")
+    return items
+
+
+def check_population_generators(
+    population: int | None, generator: object
+) -> torch.Generator | list[torch.Generator] | None:
+    """``generator`` checked: None or a ``torch.Generator``, or for a population of S also a
+    sequence of S generators (one per member)."""
+    if population is None or generator is None or isinstance(generator, torch.Generator):
+        return check_generator("generator", generator)
+    if not isinstance(generator, Sequence) or isinstance(generator, str | bytes):
+        raise TypeError(
+            "generator must be a torch.Generator, None or one generator per member, got "
+            f"{type(generator).__name__}"
+        )
+    gens = list(generator)
+    if len(gens) != population:
+        raise ValueError(
+            f"a population of {population} needs one generator per member, got {len(gens)}"
+        )
+    for s, g in enumerate(gens):
+        check_generator(f"generator[{s}]", g)
+    return gens
+
+
+def normal(
+    shape: tuple[int, ...],
+    generator: torch.Generator | list[torch.Generator] | None,
+    dtype: torch.dtype,
+    device: torch.device,
+) -> Tensor:
+    """Standard normal draws of ``shape``; with one generator per member, member s's
+    ``shape[1:]`` draws come from ``generator[s]`` (as it would draw them alone)."""
+    if isinstance(generator, list):
+        return torch.stack(
+            [torch.randn(shape[1:], generator=g, dtype=dtype, device=device) for g in generator]
+        )
+    return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+
+
+def batch_text(population: int | None) -> str:
+    """'S, ' for a population of S (for shape messages), '' otherwise."""
+    return "" if population is None else f"{population}, "

@@ -1,0 +1,156 @@
+"""Population runs: S seeds of one algorithm in one object, each member learning what it learns
+alone (issue 14: first updates equal to 1e-8, samples independent of the companions)."""
+
+import copy
+import warnings
+
+import pytest
+import torch
+
+from hireps_torch.algorithms import EpisodicHiREPS, Experience, InfiniteHorizonHiREPS
+from hireps_torch.features import FourierFeatures
+
+SEEDS = [3, 5, 11]
+
+
+def objective(theta, c):
+    return -((theta - c.sum(-1, keepdim=True)) ** 2).sum(-1)
+
+
+def contexts(seed, S=3, N=30):
+    return torch.randn(S, N, 1, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+
+
+def assert_members_equal(pop_policy, alone, atol):
+    state = pop_policy.state_dict()
+    for s, algo in enumerate(alone):
+        for key, value in algo.policy.state_dict().items():
+            if "features" in key:
+                continue
+            mine = state[key][s]
+            if value.dtype == torch.bool:
+                assert torch.equal(mine, value), key
+            else:
+                torch.testing.assert_close(mine, value, rtol=0, atol=atol, msg=key)
+
+
+@pytest.mark.parametrize("n_options, kappa_rel", [(1, None), (3, None), (3, 0.9)])
+def test_episodic_population_equals_separate_runs(n_options, kappa_rel):
+    kwargs = dict(context_dim=1, n_options=n_options, kappa_rel=kappa_rel, init_std=1.0)
+    pop = EpisodicHiREPS.create(2, seed=SEEDS, **kwargs)
+    alone = [EpisodicHiREPS.create(2, seed=s, **kwargs) for s in SEEDS]
+    assert pop.population == 3 and pop.policy.population == 3
+    assert_members_equal(pop.policy, alone, 0.0)  # the same initial policies
+    for it in range(2):
+        c = contexts(it)
+        theta = pop.ask(c)
+        report = pop.tell(c, theta, objective(theta, c))
+        for s, algo in enumerate(alone):
+            own = algo.ask(c[s])
+            torch.testing.assert_close(theta[s], own, rtol=0, atol=1e-10)
+            mine = algo.tell(c[s], own, objective(own, c[s]))
+            for key in ("eta", "kl", "effective_sample_size", "cross_entropy"):
+                assert report[key][s] == pytest.approx(mine[key], rel=1e-8, abs=1e-10), key
+            assert report["n_active_options"][s] == mine["n_active_options"]
+            assert report["refitted"][s] == mine["refitted"]
+        assert_members_equal(pop.policy, alone, 1e-8)
+
+
+def test_a_member_learns_the_same_whatever_its_companions():
+    kwargs = dict(context_dim=1, n_options=3, init_std=1.0)
+    first = EpisodicHiREPS.create(2, seed=[3, 5], **kwargs)
+    second = EpisodicHiREPS.create(2, seed=[3, 8, 9], **kwargs)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(2):
+        c = torch.randn(1, 30, 1, generator=g, dtype=torch.float64)
+        t1, t2 = first.ask(c.expand(2, -1, -1)), second.ask(c.expand(3, -1, -1))
+        torch.testing.assert_close(t1[0], t2[0], rtol=0, atol=1e-10)
+        first.tell(c.expand(2, -1, -1), t1, objective(t1, c))
+        second.tell(c.expand(3, -1, -1), t2, objective(t2, c))
+
+
+def test_copies_of_one_problem_get_identical_updates():
+    pop = EpisodicHiREPS.create(2, n_options=3, seed=[7, 8, 9])
+    one = {
+        k: v[:1].expand_as(v).clone() for k, v in pop.policy.state_dict().items() if "feat" not in k
+    }
+    pop.policy.load_state_dict(one, strict=False)
+    theta = pop.ask(20)[:1].expand(3, -1, -1).clone()
+    pop.tell(None, theta, -(theta**2).sum(-1))
+    for value in pop.policy.state_dict().values():
+        if value.dim() and value.shape[0] == 3:
+            assert torch.equal(value[0], value[1]) and torch.equal(value[0], value[2])
+
+
+def test_a_flat_member_is_left_alone_while_the_others_learn():
+    pop = EpisodicHiREPS.create(2, n_options=3, seed=[0, 1])
+    before = {k: v.clone() for k, v in pop.policy.state_dict().items()}
+    theta = pop.ask(20)
+    returns = -(theta**2).sum(-1)
+    returns[1] = 1.0  # member 1: no information
+    report = pop.tell(None, theta, returns)
+    assert report["refitted"] == [True, False]
+    after = pop.policy.state_dict()
+    for key, value in before.items():
+        if value.dim() and value.shape[0] == 2:
+            assert torch.equal(after[key][1], value[1]), key
+    assert not torch.equal(after["options.0.bias"][0], before["options.0.bias"][0])
+
+
+def test_infinite_horizon_population_equals_separate_runs():
+    vf = FourierFeatures([-1.0, -1.0], [1.0, 1.0], 3)
+    s0 = torch.rand(50, 2, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    kw = dict(value_features=vf, initial_states=0.2 * s0, gamma=0.95, n_options=3, init_std=0.5)
+    pop = InfiniteHorizonHiREPS.create(2, 1, seed=SEEDS, **kw)
+    alone = [InfiniteHorizonHiREPS.create(2, 1, seed=s, **kw) for s in SEEDS]
+    g = torch.Generator().manual_seed(1)
+    states = torch.rand(3, 60, 2, generator=g, dtype=torch.float64) * 2 - 1
+    actions = pop.sample(states)
+    nxt = (states + 0.1 * torch.cat([actions, -actions], -1)).clamp(-1, 1)
+    rewards = -(nxt**2).sum(-1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the same warnings alone and together
+        report = pop.learn(
+            Experience(states[:, :, None], actions[:, :, None], rewards[..., None], nxt[:, :, None])
+        )
+        for s, algo in enumerate(alone):
+            own = algo.sample(states[s])
+            torch.testing.assert_close(actions[s], own, rtol=0, atol=1e-12)
+            mine = algo.update(states[s], own, rewards[s], nxt[s])
+            assert report["eta"][s] == pytest.approx(mine["eta"], rel=1e-8)
+            assert report["kl"][s] == pytest.approx(mine["kl"], rel=1e-8, abs=1e-12)
+            torch.testing.assert_close(
+                pop.value_weights[s], algo.value_weights, rtol=1e-8, atol=1e-8
+            )
+    assert_members_equal(pop.policy, alone, 1e-8)
+    assert pop.value(states).shape == (3, 60)
+
+
+def test_population_checkpoint_round_trip():
+    pop = EpisodicHiREPS.create(2, n_options=2, seed=[1, 2])
+    state = copy.deepcopy(pop.state_dict())
+    theta = pop.ask(10)
+    pop.tell(None, theta, -(theta**2).sum(-1))
+    again = EpisodicHiREPS.create(2, n_options=2, seed=[1, 2])
+    again.load_state_dict(state)
+    torch.testing.assert_close(again.ask(10), theta)
+    with pytest.raises(ValueError, match=r"gating.bias: saved \(2, 2\), expected \(3, 2\)"):
+        EpisodicHiREPS.create(2, n_options=2, seed=[1, 2, 3]).load_state_dict(state)
+
+
+def test_bad_population_settings_name_the_value():
+    with pytest.raises(ValueError, match=r"population = 4 does not match the 3 seeds given"):
+        EpisodicHiREPS.create(2, seed=[0, 1, 2], population=4)
+    with pytest.raises(ValueError, match="seed 1 is repeated"):
+        EpisodicHiREPS.create(2, seed=[0, 1, 1])
+    with pytest.raises(ValueError, match="takes one seed per member"):
+        EpisodicHiREPS.create(2, seed=3, population=2)
+    assert EpisodicHiREPS.create(2, population=2).population == 2
+    pop = EpisodicHiREPS.create(2, context_dim=1, seed=[0, 1])
+    with pytest.raises(ValueError, match=r"contexts must have shape \(S, N, C\) = \(2, N, 1\)"):
+        pop.ask(torch.zeros(3, 5, 1))
+    theta = pop.ask(torch.zeros(2, 5, 1))
+    with pytest.raises(ValueError, match=r"returns must have shape \(S, N\) = \(2, N\)"):
+        pop.tell(torch.zeros(2, 5, 1), theta, torch.zeros(5))
+    with pytest.raises(ValueError, match="is on device meta"):
+        pop.tell(torch.zeros(2, 5, 1), theta.to("meta"), torch.zeros(2, 5))

@@ -495,7 +495,9 @@ class LinearGaussian(PolicyModule):
             floored = (evecs * evals.clamp_min(1.0).unsqueeze(-2)) @ evecs.mT * scale
             floored = 0.5 * (floored + floored.mT)
             cov = floored if cov.dim() == 2 else torch.where(low[..., None, None], floored, cov)
-        chol, info = torch.linalg.cholesky_ex(cov)
+        factor = torch.linalg.cholesky_ex(cov)
+        chol: Tensor = factor.L
+        info = factor.info
         if bool((info != 0).any()):
             who = "" if cov.dim() == 2 else f" (member {int((info != 0).nonzero()[0, 0])})"
             raise ValueError(f"the floored covariance is not positive definite{who}")

@@ -67,6 +67,7 @@ order, so the same seed and actions give the same trajectory.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -93,6 +94,7 @@ __all__ = [
     "BeamParams",
     "beam_step",
     "evaluate_beam",
+    "evaluate_beam_members",
     "goal_distance",
     "sample_start",
     "step_reward",
@@ -380,14 +382,60 @@ def evaluate_beam(
     gen = torch.Generator()
     gen.manual_seed(check_seed("seed", seed))
     sides = torch.where(torch.arange(n_episodes) % 2 == 0, 1.0, -1.0)
-    state = sample_start(sides, p, gen)
-    returns = torch.zeros(n_episodes, dtype=torch.float64)
-    fell = torch.zeros(n_episodes, dtype=torch.bool)
+    start = sample_start(sides, p, gen)[None]
+    (result,) = _episodes_of_members(lambda x: act(x[0])[None], p, start, hold_seconds, tolerance)
+    return result
+
+
+def evaluate_beam_members(
+    act: Any,
+    params: BeamParams | None = None,
+    *,
+    seeds: Sequence[int],
+    n_episodes: int = 10,
+    hold_seconds: float = 5.0,
+    tolerance: float = 0.03,
+) -> list[BeamEvaluation]:
+    """:func:`evaluate_beam` of S policies at once (a population), member s from the start
+    noise of ``seeds[s]`` (that :func:`evaluate_beam` draws with that seed).
+
+    Args:
+        act: callable ``states (S, E, 3) float64 -> desired angles (S, E) or (S, E, 1)``.
+        seeds: one start-noise seed per member.
+    """
+    p = check_params(params, BeamParams)
+    n_episodes = check_count("n_episodes", n_episodes, 1)
+    check_durations(hold_seconds=hold_seconds, tolerance=tolerance)
+    if hold_seconds > p.episode_seconds:
+        raise ValueError(
+            f"hold_seconds must be <= episode_seconds = {p.episode_seconds}, got {hold_seconds}"
+        )
+    sides = torch.where(torch.arange(n_episodes) % 2 == 0, 1.0, -1.0)
+    starts = []
+    for k, seed in enumerate(seeds):
+        gen = torch.Generator()
+        gen.manual_seed(check_seed(f"seeds[{k}]", seed))
+        starts.append(sample_start(sides, p, gen))
+    if not starts:
+        raise ValueError("seeds must name at least one member")
+    return _episodes_of_members(act, p, torch.stack(starts), hold_seconds, tolerance)
+
+
+def _episodes_of_members(
+    act: Any, p: BeamParams, start: Tensor, hold_seconds: float, tolerance: float
+) -> list[BeamEvaluation]:
+    """Full episodes from (S, E, 3) start states with ``act`` ((S, E, 3) -> (S, E[, 1])) in
+    one batched simulation; one :class:`BeamEvaluation` per member."""
+    S, E = start.shape[:2]
+    state = start.reshape(S * E, 3)
+    returns = torch.zeros(S * E, dtype=torch.float64)
+    fell = torch.zeros(S * E, dtype=torch.bool)
     paths = []
     with torch.no_grad():
         for _ in range(p.decisions_per_episode):
             safe = torch.where(fell[:, None], torch.zeros_like(state), state)
-            nxt, r, f, path = beam_step(safe, act(state), p)
+            action = act(state.reshape(S, E, 3)).reshape(S * E, -1)
+            nxt, r, f, path = beam_step(safe, action, p)
             returns += torch.where(fell, 0.0, r)
             path = torch.where(fell[:, None, None], state[:, None, :], path)
             state = torch.where(fell[:, None], state, nxt)
@@ -396,10 +444,14 @@ def evaluate_beam(
     traj = torch.cat(paths, dim=1)
     hold = max(1, round(hold_seconds / p.dt))
     near = goal_distance(traj[..., 0], p) < tolerance
-    success = near[:, -hold:].all(dim=1) & ~fell
-    return BeamEvaluation(
-        success_rate=float(success.to(torch.float64).mean()),
-        fell_share=float(fell.to(torch.float64).mean()),
-        average_return=float(returns.mean()),
-        positions=traj[..., 0],
-    )
+    success = (near[:, -hold:].all(dim=1) & ~fell).view(S, E)
+    fell_m, returns_m, positions = fell.view(S, E), returns.view(S, E), traj[..., 0].view(S, E, -1)
+    return [
+        BeamEvaluation(
+            success_rate=float(success[m].to(torch.float64).mean()),
+            fell_share=float(fell_m[m].to(torch.float64).mean()),
+            average_return=float(returns_m[m].mean()),
+            positions=positions[m],
+        )
+        for m in range(S)
+    ]

@@ -69,6 +69,7 @@ the same order, so the same seed and actions give the same trajectory.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,6 +96,7 @@ __all__ = [
     "SwingUpEvaluation",
     "energy",
     "evaluate_swing_up",
+    "evaluate_swing_up_members",
     "mirror_decisions",
     "mirror_states",
     "pd_torque",
@@ -403,23 +405,85 @@ def evaluate_swing_up(
     check_durations(angle_tol=angle_tol, velocity_tol=velocity_tol)
     gen = torch.Generator()
     gen.manual_seed(check_seed("seed", seed))
-    state = sample_start(n_rollouts, p, gen)
+    start = sample_start(n_rollouts, p, gen)[None]
+    (result,) = _rollout_members(
+        lambda x: act(x[0])[None], p, start, seconds, hold_seconds, angle_tol, velocity_tol
+    )
+    return result
+
+
+def evaluate_swing_up_members(
+    act: Any,
+    params: PendulumParams | None = None,
+    *,
+    seeds: Sequence[int],
+    n_rollouts: int = 50,
+    seconds: float = 5.0,
+    hold_seconds: float = 1.0,
+    angle_tol: float = 0.1,
+    velocity_tol: float = 1.0,
+) -> list[SwingUpEvaluation]:
+    """:func:`evaluate_swing_up` of S policies at once (a population), member s from the start
+    states of ``seeds[s]`` (those :func:`evaluate_swing_up` draws with that seed).
+
+    Args:
+        act: callable ``states (S, B, 2) float64 -> desired angles (S, B) or (S, B, 1)``.
+        seeds: one start-state seed per member.
+    """
+    p = check_params(params, PendulumParams)
+    n_rollouts = check_count("n_rollouts", n_rollouts, 1)
+    check_durations(seconds=seconds, hold_seconds=hold_seconds)
+    if hold_seconds > seconds:
+        raise ValueError(f"hold_seconds must be <= seconds = {seconds}, got {hold_seconds}")
+    check_durations(angle_tol=angle_tol, velocity_tol=velocity_tol)
+    starts = []
+    for k, seed in enumerate(seeds):
+        gen = torch.Generator()
+        gen.manual_seed(check_seed(f"seeds[{k}]", seed))
+        starts.append(sample_start(n_rollouts, p, gen))
+    if not starts:
+        raise ValueError("seeds must name at least one member")
+    return _rollout_members(
+        act, p, torch.stack(starts), seconds, hold_seconds, angle_tol, velocity_tol
+    )
+
+
+def _rollout_members(
+    act: Any,
+    p: PendulumParams,
+    state: Tensor,
+    seconds: float,
+    hold_seconds: float,
+    angle_tol: float,
+    velocity_tol: float,
+) -> list[SwingUpEvaluation]:
+    """Roll out (S, B, 2) start states with ``act`` ((S, B, 2) -> (S, B[, 1])) in one
+    batched simulation; one :class:`SwingUpEvaluation` per member."""
+    S, B = state.shape[:2]
     n_decisions = max(1, round(seconds / p.decision_seconds))
     paths = []
+    flat = state.reshape(S * B, 2)
     with torch.no_grad():
         for _ in range(n_decisions):
-            state, _, path = pendulum_step(state, act(state), p)
+            action = act(flat.reshape(S, B, 2)).reshape(S * B, -1)
+            flat, _, path = pendulum_step(flat, action, p)
             paths.append(path)
-    traj = torch.cat(paths, dim=1)  # (B, T, 2)
+    traj = torch.cat(paths, dim=1).reshape(S, B, -1, 2)  # (S, B, T, 2)
     up = (traj[..., 0].abs() < angle_tol) & (traj[..., 1].abs() < velocity_tol)
     hold = max(1, round(hold_seconds / p.dt))
-    success = up[:, -hold:].all(dim=1)
-    reached = up.any(dim=1)
-    first = up.to(torch.int64).argmax(dim=1).to(torch.float64) * p.dt + p.dt
-    t_up = float(first[reached].mean()) if bool(reached.any()) else math.nan
-    return SwingUpEvaluation(
-        success_rate=float(success.to(torch.float64).mean()),
-        time_to_upright=t_up,
-        reached_share=float(reached.to(torch.float64).mean()),
-        average_return=float(step_reward(traj).mean()),
-    )
+    success = up[..., -hold:].all(dim=-1)
+    reached = up.any(dim=-1)
+    first = up.to(torch.int64).argmax(dim=-1).to(torch.float64) * p.dt + p.dt
+    reward = step_reward(traj.reshape(S * B, -1, 2)).reshape(S, B, -1)
+    out = []
+    for s in range(S):
+        t_up = float(first[s][reached[s]].mean()) if bool(reached[s].any()) else math.nan
+        out.append(
+            SwingUpEvaluation(
+                success_rate=float(success[s].to(torch.float64).mean()),
+                time_to_upright=t_up,
+                reached_share=float(reached[s].to(torch.float64).mean()),
+                average_return=float(reward[s].mean()),
+            )
+        )
+    return out

@@ -14,8 +14,9 @@ from collections.abc import Callable
 from typing import Any
 
 from experiments import ball_on_beam, bimodal, hockey, pendulum
+from experiments.population import PopulationRun, run_population
 
-__all__ = ["EXPERIMENTS", "run_experiment"]
+__all__ = ["EXPERIMENTS", "POPULATIONS", "run_experiment"]
 
 EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
     "bimodal": (bimodal.BimodalConfig, bimodal.run),
@@ -27,10 +28,22 @@ EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
 }
 
 
+POPULATIONS: dict[str, PopulationRun] = {
+    "bimodal": bimodal.run_population,
+    "pendulum": pendulum.run_population,
+    "ball-on-beam": ball_on_beam.run_population,
+}
+"""The experiments that run a population of seeds in one process (``--seeds``)."""
+
+
 def run_experiment(cfg: Any) -> dict[str, Any]:
-    """Run the experiment whose config class ``cfg`` is an instance of (exact class)."""
-    for config_cls, run in EXPERIMENTS.values():
+    """Run the experiment whose config class ``cfg`` is an instance of (exact class); with
+    ``seeds`` its population (:func:`experiments.population.run_population`)."""
+    for name, (config_cls, run) in EXPERIMENTS.items():
         if type(cfg) is config_cls:
+            if getattr(cfg, "seeds", None) is not None:
+                summary: dict[str, Any] = run_population(name, cfg, POPULATIONS)
+                return summary
             return run(cfg)
     known = ", ".join(cls.__name__ for cls, _ in EXPERIMENTS.values())
     raise TypeError(f"no experiment takes a {type(cfg).__name__}; known configs: {known}")

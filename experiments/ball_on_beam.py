@@ -6,12 +6,20 @@ one infinite-horizon update per batch, a noise-free evaluation after every itera
 
 from __future__ import annotations
 
+import statistics
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-from environments.ball_on_beam import BallOnBeamBatchEnv, BeamParams, evaluate_beam, sample_start
+from environments.ball_on_beam import (
+    BallOnBeamBatchEnv,
+    BeamParams,
+    BeamTask,
+    evaluate_beam,
+    evaluate_beam_members,
+    sample_start,
+)
 from experiments.checkpoint import RunState
 from experiments.envstate import BatchedTaskState
 from experiments.loop import (
@@ -24,11 +32,18 @@ from experiments.loop import (
     resume_point,
 )
 from experiments.options import RunOptions, check_fourier_bases, check_options, option_error
+from experiments.population import Members, TaskPopulation, member_row, population_loop
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
-__all__ = ["BallOnBeamConfig", "build_ball_on_beam_policy", "run", "value_features"]
+__all__ = [
+    "BallOnBeamConfig",
+    "build_ball_on_beam_policy",
+    "run",
+    "run_population",
+    "value_features",
+]
 
 
 @dataclass(frozen=True)
@@ -122,10 +137,8 @@ def _make_algorithm(cfg: BallOnBeamConfig, params: BeamParams) -> InfiniteHorizo
     )
 
 
-def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
-    """Infinite-horizon HiREPS on the simulated ball on a beam; returns the summary."""
-    from hireps_torch.rollout import make_collector, policy_module
-
+def _checked(cfg: BallOnBeamConfig) -> int:
+    """Every option of ``cfg`` checked; the number of iterations."""
     check_options(
         cfg,
         counts=("fourier_coupling",),
@@ -135,10 +148,20 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
     check_fourier_bases(cfg, 3 if cfg.value_beam_angle else 2)
     if cfg.fourier_coupling is not None and cfg.fourier_coupling > 3:
         raise option_error("fourier_coupling", cfg.fourier_coupling, "in 1..3 (or None)")
-    B = cfg.episodes_per_iteration
-    iterations = check_budget(
-        cfg.episodes, B, n_options=cfg.n_options, eval_episodes=cfg.eval_episodes
+    return check_budget(
+        cfg.episodes,
+        cfg.episodes_per_iteration,
+        n_options=cfg.n_options,
+        eval_episodes=cfg.eval_episodes,
     )
+
+
+def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
+    """Infinite-horizon HiREPS on the simulated ball on a beam; returns the summary."""
+    from hireps_torch.rollout import make_collector, policy_module
+
+    B = cfg.episodes_per_iteration
+    iterations = _checked(cfg)
     resume = resume_point("ball_on_beam", cfg)
     params = BeamParams()
     algo = _make_algorithm(cfg, params)
@@ -178,25 +201,104 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
         postfix=infinite_horizon_postfix,
         progress=cfg.progress,
     )
-    first_success = next(
-        (int(w["episodes"]) for w in session.rows if w["eval_success_rate"] >= 0.9), None
-    )
-    last = session.rows[-1]
     return finish_run(
         session,
-        curve=("episodes", ["average_return", "eval_return"]),
+        curve=CURVE,
         title=label,
-        summary={
-            "experiment": "ball_on_beam",
-            "n_options": cfg.n_options,
-            "seed": cfg.seed,
-            "episodes": iterations * B,
-            "iterations": iterations,
-            "final_average_return": last["average_return"],
-            "final_eval_return": last["eval_return"],
-            "final_return": last["eval_return"],
-            "success_rate": last["eval_success_rate"],
-            "episodes_to_success": first_success,
-            "n_active_options": int(policy.active.sum()),
+        summary=_summary(cfg, session.rows, iterations, int(policy.active.sum())),
+    )
+
+
+CURVE = ("episodes", ["average_return", "eval_return"])
+"""The learning curve's columns."""
+
+
+def _summary(
+    cfg: BallOnBeamConfig, rows: list[dict[str, Any]], iterations: int, n_active: int
+) -> dict[str, Any]:
+    """A run's ``summary.json`` from its rows."""
+    first_success = next((int(w["episodes"]) for w in rows if w["eval_success_rate"] >= 0.9), None)
+    last = rows[-1]
+    return {
+        "experiment": "ball_on_beam",
+        "n_options": cfg.n_options,
+        "seed": cfg.seed,
+        "episodes": iterations * cfg.episodes_per_iteration,
+        "iterations": iterations,
+        "final_average_return": last["average_return"],
+        "final_eval_return": last["eval_return"],
+        "final_return": last["eval_return"],
+        "success_rate": last["eval_success_rate"],
+        "episodes_to_success": first_success,
+        "n_active_options": n_active,
+    }
+
+
+def run_population(cfg: BallOnBeamConfig, members: Members) -> list[dict[str, Any]]:
+    """``train.py ball-on-beam --seeds ...``: the seeds as one population (see
+    :mod:`experiments.population`): all members' beams in one batched simulation, member s's
+    policy and start states for phi_hat_0 those of ``--seed s``, its exploration and its beams'
+    start noise from its own generators. Returns the members' summaries."""
+    iterations = _checked(cfg)
+    params = BeamParams()
+    seeds = members.seeds
+    S, B = len(seeds), cfg.episodes_per_iteration
+    gens = [torch.Generator().manual_seed(s) for s in seeds]
+    policy = HierarchicalPolicy.stack([build_ball_on_beam_policy(cfg, g) for g in gens])
+    sides = torch.where(torch.arange(1000) % 2 == 0, 1.0, -1.0)
+    algo = InfiniteHorizonHiREPS(
+        policy,
+        value_features(cfg),
+        torch.stack([sample_start(sides, params, g) for g in gens]),
+        gamma=params.gamma,
+        epsilon=cfg.epsilon,
+        kappa_rel=cfg.kappa_rel,
+        seed=[s + 1 for s in seeds],
+    )
+    env = TaskPopulation([BeamTask(B, params, seed=s + 1) for s in seeds])
+
+    def step(it: int) -> list[dict[str, Any]]:
+        env.reset()  # every iteration starts B new episodes, as the ordinary run
+        data = env.collect(algo.sample, params.decisions_per_episode)
+        diag = algo.update(*data)
+        evs = evaluate_beam_members(
+            lambda x: policy.mean_action(x)[0],
+            params,
+            seeds=[s + 777 for s in seeds],
+            n_episodes=cfg.eval_episodes,
+        )
+        r, terminated = data[2], data[4]
+        return [
+            {
+                "iteration": it + 1,
+                "episodes": (it + 1) * B,
+                "average_return": float(r[m].sum()) / B,
+                "falls": int(terminated[m].sum()),
+                "eval_return": evs[m].average_return,
+                "eval_success_rate": evs[m].success_rate,
+            }
+            | member_row(diag, m)
+            for m in range(S)
+        ]
+
+    population_loop(
+        members,
+        step,
+        iterations=iterations,
+        label=f"ball_on_beam/{cfg.n_options}opt/{S} seeds",
+        postfix=lambda rows: {
+            "ret": f"{statistics.fmean(r['eval_return'] for r in rows):.1f}",
+            "success": f"{statistics.fmean(r['eval_success_rate'] for r in rows):.2f}",
         },
+        progress=cfg.progress,
+    )
+    active = policy.active.sum(-1).tolist()
+    rows = [w.rows for w in members.writers]
+    return members.finish(
+        [
+            _summary(c, r, iterations, int(n))
+            for c, r, n in zip(members.configs, rows, active, strict=True)
+        ],
+        curve=CURVE,
+        title=f"ball_on_beam/{cfg.n_options}opt",
     )

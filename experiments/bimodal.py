@@ -7,6 +7,8 @@ environment process), the option table and a picture of the options over the rew
 from __future__ import annotations
 
 import math
+import statistics
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -17,10 +19,18 @@ from environments.toy import ContextualTwoGaussians, TwoGaussians
 from experiments.checkpoint import RunState
 from experiments.loop import Run, ask_tell_loop, finish_run, resume_point
 from experiments.options import RunOptions, check_options
+from experiments.population import Members, member_row, population_loop
 from experiments.rundir import atomic_write
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 
-__all__ = ["BimodalConfig", "modes_covered", "option_summary", "plot_bimodal_options", "run"]
+__all__ = [
+    "BimodalConfig",
+    "modes_covered",
+    "option_summary",
+    "plot_bimodal_options",
+    "run",
+    "run_population",
+]
 
 
 @dataclass(frozen=True)
@@ -66,14 +76,17 @@ def _validate(cfg: BimodalConfig) -> None:
 
 
 def _make_algorithm(
-    cfg: BimodalConfig, task: TwoGaussians | ContextualTwoGaussians
+    cfg: BimodalConfig,
+    task: TwoGaussians | ContextualTwoGaussians,
+    seeds: list[int] | None = None,
 ) -> EpisodicHiREPS:
+    """The algorithm of ``cfg`` (a population of ``seeds`` when given)."""
     common: dict[str, Any] = dict(
         context_dim=task.context_dim,
         init_std=cfg.init_std,
         epsilon=cfg.epsilon,
         min_variance=cfg.min_variance,
-        seed=cfg.seed,
+        seed=cfg.seed if seeds is None else seeds,
     )
     if cfg.algorithm == "reps":
         return REPS.create(task.param_dim, **common)
@@ -86,11 +99,7 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
     """HiREPS or REPS on the (contextual) two-Gaussians task; returns the summary."""
     _validate(cfg)
     resume = resume_point("bimodal", cfg)
-    task: TwoGaussians | ContextualTwoGaussians
-    if cfg.contextual:
-        task = ContextualTwoGaussians(width=cfg.bump_width)
-    else:
-        task = TwoGaussians(width=cfg.bump_width)
+    task = _task(cfg)
     algo = _make_algorithm(cfg, task)
     ctx_gen = torch.Generator().manual_seed(cfg.seed + 10_000)
     eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
@@ -128,28 +137,118 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
         },
         progress=cfg.progress,
     )
-    options = option_summary(algo, task)
-    plots = []
-    if isinstance(task, TwoGaussians):
-        plain = task
-        plots.append(lambda d: plot_bimodal_options(algo, plain, d / "options.png"))
     return finish_run(
         session,
-        curve=("episodes", ["mean_return", "eval_return"]),
-        title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
-        extra_plots=plots,
-        summary={
-            "experiment": "bimodal",
-            "algorithm": cfg.algorithm,
-            "seed": cfg.seed,
-            "episodes": iterations * n,
-            "iterations": iterations,
-            "final_return": session.rows[-1]["eval_return"],
-            "final_mean_return": session.rows[-1]["mean_return"],
-            "n_active_options": int(algo.policy.active.sum()),
-            "modes_covered": modes_covered(options, task),
-            "options": options,
-        },
+        curve=CURVE,
+        title=_title(cfg),
+        extra_plots=_plots(algo, task),
+        summary=_summary(cfg, algo, task, session.rows, iterations),
+    )
+
+
+CURVE = ("episodes", ["mean_return", "eval_return"])
+"""The learning curve's columns."""
+
+
+def _task(cfg: BimodalConfig) -> TwoGaussians | ContextualTwoGaussians:
+    if cfg.contextual:
+        return ContextualTwoGaussians(width=cfg.bump_width)
+    return TwoGaussians(width=cfg.bump_width)
+
+
+def _title(cfg: BimodalConfig) -> str:
+    return f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})"
+
+
+def _plots(
+    algo: EpisodicHiREPS, task: TwoGaussians | ContextualTwoGaussians
+) -> list[Callable[[Path], None]]:
+    if isinstance(task, TwoGaussians):
+        return [lambda d: plot_bimodal_options(algo, task, d / "options.png")]
+    return []
+
+
+def _summary(
+    cfg: BimodalConfig,
+    algo: EpisodicHiREPS,
+    task: TwoGaussians | ContextualTwoGaussians,
+    rows: list[dict[str, Any]],
+    iterations: int,
+) -> dict[str, Any]:
+    options = option_summary(algo, task)
+    return {
+        "experiment": "bimodal",
+        "algorithm": cfg.algorithm,
+        "seed": cfg.seed,
+        "episodes": iterations * cfg.samples_per_iteration,
+        "iterations": iterations,
+        "final_return": rows[-1]["eval_return"],
+        "final_mean_return": rows[-1]["mean_return"],
+        "n_active_options": int(algo.policy.active.sum()),
+        "modes_covered": modes_covered(options, task),
+        "options": options,
+    }
+
+
+def run_population(cfg: BimodalConfig, members: Members) -> list[dict[str, Any]]:
+    """``train.py bimodal --seeds ...``: the seeds as one population (see
+    :mod:`experiments.population`); member s draws and learns what ``--seed s`` does (to
+    round-off). Returns the members' summaries."""
+    _validate(cfg)
+    task = _task(cfg)
+    seeds = members.seeds
+    S, n = len(seeds), cfg.samples_per_iteration
+    algo = _make_algorithm(cfg, task, seeds)
+    ctx_gens = [torch.Generator().manual_seed(s + 10_000) for s in seeds]
+    eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
+
+    def score(ctx: torch.Tensor | None, theta: torch.Tensor) -> torch.Tensor:
+        flat = theta.reshape(-1, task.param_dim)
+        if isinstance(task, ContextualTwoGaussians):
+            assert ctx is not None
+            return task(ctx.reshape(-1, 1), flat).reshape(theta.shape[:2])
+        return task(flat).reshape(theta.shape[:2])
+
+    def step(it: int) -> list[dict[str, Any]]:
+        ctx = None
+        if isinstance(task, ContextualTwoGaussians):
+            ctx = torch.stack([task.sample_contexts(n, g) for g in ctx_gens])
+            theta = algo.ask(ctx)
+        else:
+            theta = algo.ask(n)
+        diag = algo.tell(ctx, theta, score(ctx, theta))
+        grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1)
+        evals = score(grid, algo.act(1 if grid is None else grid)).mean(-1).tolist()
+        return [
+            {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evals[s]}
+            | member_row(diag, s)
+            for s in range(S)
+        ]
+
+    iterations = cfg.episodes // n
+    population_loop(
+        members,
+        step,
+        iterations=iterations,
+        label=f"bimodal/{cfg.algorithm}/{S} seeds",
+        postfix=lambda rows: {"ret": f"{statistics.fmean(r['mean_return'] for r in rows):.3f}"},
+        progress=cfg.progress,
+    )
+    solo = [
+        (REPS if cfg.algorithm == "reps" else EpisodicHiREPS)(
+            algo.policy.member(s), context_dim=task.context_dim, epsilon=cfg.epsilon
+        )
+        for s in range(S)
+    ]
+    rows = [w.rows for w in members.writers]
+    return members.finish(
+        [
+            _summary(c, a, task, r, iterations)
+            for c, a, r in zip(members.configs, solo, rows, strict=True)
+        ],
+        curve=CURVE,
+        title=_title(cfg),
+        extra_plots=[_plots(a, task) for a in solo],
     )
 
 

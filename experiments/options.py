@@ -21,6 +21,7 @@ __all__ = [
     "check_types",
     "config_dict",
     "option_error",
+    "parse_seeds",
 ]
 
 
@@ -30,6 +31,11 @@ class RunOptions:
 
     seed: int = 0
     """Seed of every random generator of the run (same seed, same run)."""
+    seeds: str | None = None
+    """Run these seeds as one population in one process (0-19, 0,3,7 or 0-2,9; bimodal,
+    pendulum and ball-on-beam): one ordinary run directory per seed, <run-dir>/seed<S>, plus
+    population.md, population.json and population.png (mean +- std band) in <run-dir>.
+    Replaces --seed."""
     run_dir: Path | None = None
     """Where to write the run (default runs/<experiment>/<timestamp>); must not exist or be
     empty."""
@@ -51,6 +57,13 @@ class RunOptions:
         check_types(self)
         if not -(2**62) <= self.seed <= 2**62:
             raise ValueError(f"seed must be an integer in [-2**62, 2**62], got {self.seed}")
+        if self.seeds is not None:
+            parse_seeds(self.seeds)
+            if self.resume is not None:
+                raise ValueError(
+                    "--seeds starts a population run; resume its members one by one, or run "
+                    "the population again (--resume takes one run directory)"
+                )
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
         if self.resume is not None and self.run_dir is not None:
@@ -124,9 +137,37 @@ def _check_type(name: str, value: Any, hint: Any) -> None:
 
 
 def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
-    """``config.json``'s content: the experiment's name and every option, JSON-ready."""
-    out: dict[str, Any] = jsonable({"experiment": experiment, **dataclasses.asdict(cfg)})
+    """``config.json``'s content: the experiment's name and every option, JSON-ready
+    (``seeds`` only in a population's: an ordinary run's config is as it always was)."""
+    options = dataclasses.asdict(cfg)
+    if options.get("seeds", "") is None:
+        del options["seeds"]
+    out: dict[str, Any] = jsonable({"experiment": experiment, **options})
     return out
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,3,7"``; ``"0-2,9"``. A repeated seed, an empty or
+    reversed range and anything else are a ValueError naming the text."""
+    import re
+    from collections import Counter
+
+    seeds: list[int] = []
+    for part in str(text).split(","):
+        m = re.fullmatch(r"\s*(-?[0-9]+)\s*(?:-\s*(-?[0-9]+)\s*)?", part)
+        if m is None or (m[2] is not None and int(m[2]) < int(m[1])):
+            raise ValueError(f"--seeds must look like 0-4, 0,3,7 or 0-2,9, got {text!r}")
+        lo, hi = int(m[1]), int(m[2] if m[2] is not None else m[1])
+        if not -(2**62) <= lo <= hi <= 2**62 or hi - lo >= 100_000:
+            raise ValueError(
+                f"--seeds {text!r}: seeds must lie in [-2**62, 2**62] and a range hold fewer "
+                f"than 100000 seeds, got {part.strip()!r}"
+            )
+        seeds.extend(range(lo, hi + 1))
+    repeated = sorted(s for s, n in Counter(seeds).items() if n > 1)
+    if repeated:
+        raise ValueError(f"--seeds {text!r} names seed(s) {repeated} more than once")
+    return seeds
 
 
 def check_options(

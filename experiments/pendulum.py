@@ -9,6 +9,7 @@ at the end.
 from __future__ import annotations
 
 import math
+import statistics
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -17,7 +18,10 @@ import torch
 from environments.pendulum import (
     PendulumParams,
     PendulumSwingUpBatchEnv,
+    PendulumTask,
+    SwingUpEvaluation,
     evaluate_swing_up,
+    evaluate_swing_up_members,
     mirror_decisions,
     sample_start,
 )
@@ -33,6 +37,7 @@ from experiments.loop import (
     resume_point,
 )
 from experiments.options import RunOptions, check_fourier_bases, check_options, option_error
+from experiments.population import Members, TaskPopulation, member_row, population_loop
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy
@@ -43,6 +48,7 @@ __all__ = [
     "pendulum_quadratic_features",
     "pendulum_value_features",
     "run",
+    "run_population",
 ]
 
 
@@ -208,8 +214,8 @@ def _make_collector(
     )
 
 
-def run(cfg: PendulumConfig) -> dict[str, Any]:
-    """Infinite-horizon HiREPS on the swing-up; returns the summary."""
+def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
+    """The task constants and the number of iterations of ``cfg`` (every option checked)."""
     check_options(
         cfg,
         counts=("eval_rollouts",),
@@ -238,12 +244,18 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         raise ValueError(
             f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})"
         )
+    return params, iterations
+
+
+def run(cfg: PendulumConfig) -> dict[str, Any]:
+    """Infinite-horizon HiREPS on the swing-up; returns the summary."""
+    params, iterations = _checked(cfg)
+    B = cfg.episodes_per_iteration
     resume = resume_point("pendulum", cfg)
     algo = _make_algorithm(cfg, params)
     policy = algo.policy
     collector = _make_collector(cfg, policy, params, iterations)
-    n_opt = cfg.n_options if cfg.gating != "flat" else 1
-    label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
+    label = _label(cfg)
     state = RunState(algo, env=BatchedTaskState(collector, carry=not cfg.reset_each_iteration))
 
     def act(states: torch.Tensor) -> torch.Tensor:
@@ -272,29 +284,142 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         progress=cfg.progress,
     )
 
-    ev = evaluate()
-    first_success = next(
-        (int(w["episodes"]) for w in session.rows if float(w["eval_success_rate"]) >= 0.9),
-        iterations * B if ev.success_rate >= 0.9 else None,  # seen first by the final one
-    )
     return finish_run(
         session,
         curve=("episodes", ["average_return"]),
         title=label,
-        summary={
-            "experiment": "pendulum",
-            "gating": cfg.gating,
-            "n_options": n_opt,
-            "steps_per_decision": cfg.steps_per_decision,
-            "seed": cfg.seed,
-            "episodes": iterations * B,
-            "iterations": iterations,
-            "final_average_return": session.rows[-1]["average_return"],
-            "final_return": ev.average_return,
-            "success_rate": ev.success_rate,
-            "episodes_to_success": first_success,
-            "time_to_upright": ev.time_to_upright,
-            "reached_upright_share": ev.reached_share,
-            "n_active_options": int(policy.active.sum()),
-        },
+        summary=_summary(cfg, session.rows, evaluate(), iterations, int(policy.active.sum())),
     )
+
+
+def _label(cfg: PendulumConfig) -> str:
+    n_opt = cfg.n_options if cfg.gating != "flat" else 1
+    return f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
+
+
+def _summary(
+    cfg: PendulumConfig,
+    rows: list[dict[str, Any]],
+    ev: SwingUpEvaluation,
+    iterations: int,
+    n_active: int,
+) -> dict[str, Any]:
+    """A run's ``summary.json`` from its rows and final noise-free evaluation ``ev``."""
+    B = cfg.episodes_per_iteration
+    first_success = next(
+        (int(w["episodes"]) for w in rows if float(w["eval_success_rate"]) >= 0.9),
+        iterations * B if ev.success_rate >= 0.9 else None,  # seen first by the final one
+    )
+    return {
+        "experiment": "pendulum",
+        "gating": cfg.gating,
+        "n_options": cfg.n_options if cfg.gating != "flat" else 1,
+        "steps_per_decision": cfg.steps_per_decision,
+        "seed": cfg.seed,
+        "episodes": iterations * B,
+        "iterations": iterations,
+        "final_average_return": rows[-1]["average_return"],
+        "final_return": ev.average_return,
+        "success_rate": ev.success_rate,
+        "episodes_to_success": first_success,
+        "time_to_upright": ev.time_to_upright,
+        "reached_upright_share": ev.reached_share,
+        "n_active_options": n_active,
+    }
+
+
+def run_population(cfg: PendulumConfig, members: Members) -> list[dict[str, Any]]:
+    """``train.py pendulum --seeds ...``: the seeds as one population (see
+    :mod:`experiments.population`). All members' ``S x episodes_per_iteration`` pendulums
+    are stepped in one batched simulation (no TorchRL collector, no workers); member s's
+    policy, value features and start states are those of ``--seed s``, its exploration and
+    its pendulums' restarts come from its own generators. Returns the members' summaries."""
+    if cfg.workers != 1:
+        raise option_error("workers", cfg.workers, "1 for a population (one batched process)")
+    params, iterations = _checked(cfg)
+    seeds = members.seeds
+    S, B = len(seeds), cfg.episodes_per_iteration
+    gens = [torch.Generator().manual_seed(s) for s in seeds]
+    for s in seeds:
+        torch.manual_seed(s)  # as the ordinary run: nothing of the population draws from it
+    policy = HierarchicalPolicy.stack([build_pendulum_policy(cfg, g) for g in gens])
+    algo = InfiniteHorizonHiREPS(
+        policy,
+        pendulum_value_features(cfg),
+        torch.stack([sample_start(1000, params, g) for g in gens]),
+        gamma=params.gamma,
+        epsilon=cfg.epsilon,
+        kappa_rel=cfg.kappa_rel if cfg.gating == "learned" else None,
+        prune_threshold=1e-4 if cfg.gating == "learned" else 0.0,
+        seed=[s + 1 for s in seeds],
+    )
+    env = TaskPopulation([PendulumTask(B, params, seed=s + 1) for s in seeds])
+    decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
+    eval_seeds = [s + 777 for s in seeds]
+
+    def evaluate() -> list[SwingUpEvaluation]:
+        return evaluate_swing_up_members(
+            lambda x: policy.mean_action(x)[0],
+            params,
+            seeds=eval_seeds,
+            n_rollouts=cfg.eval_rollouts,
+        )
+
+    def step(it: int) -> list[dict[str, Any]]:
+        if cfg.reset_each_iteration:
+            env.reset()
+        data = env.collect(algo.sample, decisions)
+        if cfg.mirror_samples:
+            data = mirror_members(*data)
+        diag = algo.update(*data)
+        due = cfg.eval_every > 0 and algo.iteration % cfg.eval_every == 0
+        evs = evaluate() if due else None
+        r = data[2][:, : B * decisions]  # the collected decisions (the mirror images follow)
+        return [
+            {
+                "iteration": it + 1,
+                "episodes": (it + 1) * B,
+                "average_return": float(r[m].mean()) / params.steps_per_decision,
+                "eval_success_rate": math.nan if evs is None else evs[m].success_rate,
+                "eval_return": math.nan if evs is None else evs[m].average_return,
+            }
+            | member_row(diag, m)
+            for m in range(S)
+        ]
+
+    population_loop(
+        members,
+        step,
+        iterations=iterations,
+        label=f"{_label(cfg)}/{S} seeds",
+        postfix=lambda rows: {
+            "ret": f"{statistics.fmean(r['average_return'] for r in rows):.1f}",
+            "kl": f"{statistics.fmean(r['kl'] for r in rows):.2f}",
+        },
+        progress=cfg.progress,
+    )
+    final = evaluate()
+    active = policy.active.sum(-1).tolist()
+    rows = [w.rows for w in members.writers]
+    return members.finish(
+        [
+            _summary(c, r, ev, iterations, int(n))
+            for c, r, ev, n in zip(members.configs, rows, final, active, strict=True)
+        ],
+        curve=("episodes", ["average_return"]),
+        title=_label(cfg),
+    )
+
+
+def mirror_members(
+    states: torch.Tensor,
+    actions: torch.Tensor,
+    rewards: torch.Tensor,
+    next_states: torch.Tensor,
+    terminated: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """:func:`~environments.pendulum.mirror_decisions` of each member: (S, N, ...) ->
+    (S, 2 N, ...), the mirror images after the decisions."""
+    data = (states, actions, rewards, next_states, terminated)
+    both = mirror_decisions(*(x.transpose(0, 1) for x in data))
+    return tuple(x.transpose(0, 1).contiguous() for x in both)

@@ -39,6 +39,7 @@ from typing import Annotated, Any
 import tyro
 from tqdm.auto import tqdm
 
+from experiments.options import parse_seeds
 from experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
 
 __all__ = [
@@ -63,7 +64,7 @@ METRICS: dict[str, tuple[str, str]] = {
 }
 """Per experiment: (the summary's final metric in the table, the metrics.csv curve column)."""
 
-RUN_OPTIONS = {"seed", "run_dir", "resume", "progress"}
+RUN_OPTIONS = {"seed", "seeds", "run_dir", "resume", "progress"}
 """Options a sweep sets itself (not allowed in --grid or --set)."""
 
 
@@ -102,30 +103,6 @@ class SweepRun:
     seed: int
     options: dict[str, Any] = field(default_factory=dict)
     run_dir: Path = Path()
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,3,7"``; ``"0-2,9"``. A repeated seed, an empty or
-    reversed range and anything else are a ValueError naming the text."""
-    import re
-    from collections import Counter
-
-    seeds: list[int] = []
-    for part in str(text).split(","):
-        m = re.fullmatch(r"\s*(-?[0-9]+)\s*(?:-\s*(-?[0-9]+)\s*)?", part)
-        if m is None or (m[2] is not None and int(m[2]) < int(m[1])):
-            raise ValueError(f"--seeds must look like 0-4, 0,3,7 or 0-2,9, got {text!r}")
-        lo, hi = int(m[1]), int(m[2] if m[2] is not None else m[1])
-        if not -(2**62) <= lo <= hi <= 2**62 or hi - lo >= 100_000:
-            raise ValueError(
-                f"--seeds {text!r}: seeds must lie in [-2**62, 2**62] and a range hold fewer "
-                f"than 100000 seeds, got {part.strip()!r}"
-            )
-        seeds.extend(range(lo, hi + 1))
-    repeated = sorted(s for s, n in Counter(seeds).items() if n > 1)
-    if repeated:
-        raise ValueError(f"--seeds {text!r} names seed(s) {repeated} more than once")
-    return seeds
 
 
 def _config_class(experiment: str) -> type:
@@ -412,10 +389,11 @@ def summarize(
     out: Path,
     metric: str | None = None,
     curve: str | None = None,
+    stem: str = "sweep",
 ) -> str:
     """Write ``sweep.md`` (table), ``sweep.json`` (summaries) and ``sweep.png`` (bands) to
-    ``out`` and return the table. ``metric`` / ``curve`` default to the experiment's
-    (:data:`METRICS`)."""
+    ``out`` (``stem`` names the files) and return the table. ``metric`` / ``curve`` default
+    to the experiment's (:data:`METRICS`)."""
     from experiments.rundir import atomic_write
 
     if not runs:
@@ -442,14 +420,14 @@ def summarize(
     table = "\n".join(lines)
     out.mkdir(parents=True, exist_ok=True)
     payload = {f"{n}/seed{s}": dict(v) for (n, s), v in results.items()}
-    text = {"sweep.json": json.dumps(payload, indent=1), "sweep.md": table + "\n"}
+    text = {f"{stem}.json": json.dumps(payload, indent=1), f"{stem}.md": table + "\n"}
     for fname, content in text.items():
 
         def write(p: Path, c: str = content) -> None:
             p.write_text(c)
 
         atomic_write(out / fname, write)
-    _plot(curves, out / "sweep.png", f"{experiment}: {curve} (mean ± std over seeds)")
+    _plot(curves, out / f"{stem}.png", f"{experiment}: {curve} (mean ± std over seeds)")
     return table
 
 

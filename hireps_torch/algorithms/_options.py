@@ -304,7 +304,7 @@ def plan_population_refit(
 ) -> PopulationRefit:
     """:func:`plan_refit` of every member (nothing changes): context (S, N, C), theta
     (S, N, D), the dual's block ``block`` of each member."""
-    w = sol.weights[:, block]
+    w = sol.weights[:, block, :, : policy.n_options]
     S, N = w.shape[:2]
     if not bool(torch.isfinite(w).all()):
         s = int((~torch.isfinite(w)).flatten(1).any(1).nonzero()[0, 0])
@@ -369,3 +369,29 @@ def apply_population_refit(
         "dual_iterations": [sol.iterations] * S,
         "feature_error": sol.feature_error.tolist(),
     }
+
+
+def stack_population_bounds(
+    bounds: list[PopulationBound], policies: list[HierarchicalPolicy]
+) -> tuple[Tensor | None, Tensor | None]:
+    """:func:`stack_bounds` of a population: the steps' (S, N, O_k) responsibilities as the
+    dual's (S, N, K, O) (a step whose members all have one active option gets log 1 on it,
+    missing columns log 0) and the bounds as (S, K) (inf: none). (None, None) when no step
+    has a member with two active options."""
+    if all(b.log_responsibilities is None for b in bounds):
+        return None, None
+    O = max(p.n_options for p in policies)
+    S = bounds[0].option_entropy.shape[0]
+    N = next(b.log_responsibilities.shape[1] for b in bounds if b.log_responsibilities is not None)
+    log_resp = torch.full((S, N, len(bounds), O), -math.inf, dtype=torch.float64)
+    for k, (b, pol) in enumerate(zip(bounds, policies, strict=True)):
+        lr = b.log_responsibilities
+        if lr is None:  # one active option in each member: log 1 on it
+            lr = torch.where(pol.active, 0.0, -math.inf)[:, None, :].expand(S, N, -1)
+        log_resp[:, :, k, : lr.shape[-1]] = lr
+    if all(b.kappa is None for b in bounds):
+        return log_resp, None
+    kappa = torch.stack(
+        [torch.full((S,), math.inf) if b.kappa is None else b.kappa for b in bounds], -1
+    )
+    return log_resp, kappa.to(torch.float64)

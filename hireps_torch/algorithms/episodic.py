@@ -439,9 +439,11 @@ class REPS(EpisodicHiREPS):
         min_variance: float | Tensor = 1e-8,
         covariance_prior: float = 0.0,
         mean_prior: float = 0.0,
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
+        population: int | None = None,
     ) -> REPS:
-        """Build REPS with a single linear-Gaussian policy (see :meth:`EpisodicHiREPS.create`)."""
+        """Build REPS with a single linear-Gaussian policy (see :meth:`EpisodicHiREPS.create`;
+        a sequence of seeds or ``population`` builds a population)."""
         algo = super().create(
             param_dim,
             context_dim=context_dim,
@@ -450,6 +452,7 @@ class REPS(EpisodicHiREPS):
             epsilon=epsilon,
             kappa_rel=None,
             seed=seed,
+            population=population,
             init_std=init_std,
             policy_features=policy_features,
             min_variance=min_variance,

@@ -80,7 +80,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         policy: the hierarchical policy (updated in place); its context is the state.
         value_features: features phi(s) of the value function (e.g. :class:`FourierFeatures`).
         initial_states: (M, S) draws from the start distribution; phi_hat_0 is their mean
-            feature vector.
+            feature vector (a population: shared, or (P, M, S), one set per member).
         gamma: 1 - restart probability per decision, in (0, 1).
         epsilon: KL bound per iteration, > 0.
         kappa_rel: entropy bound as a fraction of the current mean option entropy; None: off.
@@ -124,8 +124,9 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             )
         self.policy = policy
         self.value_features = value_features
-        s0 = self._states(initial_states, "initial_states", population=False)
-        self.initial_features = value_features(s0).mean(0)
+        per_member = policy.population is not None and getattr(initial_states, "dim", int)() == 3
+        s0 = self._states(initial_states, "initial_states", population=per_member)
+        self.initial_features = value_features(s0).mean(-2)
         self.value_weights = torch.zeros(
             *policy.batch_shape, value_features.out_features, dtype=torch.float64
         )
@@ -285,7 +286,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         s, a, R, s_next, term = self._transitions(states, actions, rewards, next_states, terminated)
         next_features = self.value_features(s_next)
         if term is not None:
-            next_features = torch.where(term[..., None], self.initial_features, next_features)
+            phi0 = self.initial_features.unsqueeze(-2)  # ([S,] 1, F)
+            next_features = torch.where(term[..., None], phi0, next_features)
         if self.population is not None:
             return self._population_update(s, a, R, next_features)
         bound = option_bound(self.policy, s, a, self.kappa_rel)

@@ -37,7 +37,16 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import apply_refit, option_bound, plan_refit, stack_bounds
+from hireps_torch.algorithms._options import (
+    apply_population_refit,
+    apply_refit,
+    option_bound,
+    plan_population_refit,
+    plan_refit,
+    population_bound,
+    stack_bounds,
+    stack_population_bounds,
+)
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
@@ -47,8 +56,7 @@ from hireps_torch.algorithms.base import (
     check_saved_values,
     check_state_keys,
     check_step,
-    fresh_policies,
-    next_seed,
+    member_policies,
 )
 from hireps_torch.checks import (
     as_finite_f64,
@@ -125,7 +133,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         epsilon: float | Sequence[float] = 1.0,
         kappa_rel: float | None = 0.9,
         prune_threshold: float = 1e-4,
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
     ) -> None:
         if not isinstance(policies, Sequence) or isinstance(policies, str):
             raise TypeError(
@@ -136,7 +144,14 @@ class TimeIndexedHiREPS(HiREPSBase):
         if K < 1:
             raise ValueError("policies must hold one policy per decision step (K >= 1), got 0")
         eps = check_epsilons(epsilon, K)
-        super().__init__(kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
+        sizes = [getattr(pol, "population", None) for pol in policies]
+        if len(set(sizes)) != 1:
+            raise ValueError(
+                f"the policies must all be populations of one size or all single, got {sizes}"
+            )
+        super().__init__(
+            kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed, population=sizes[0]
+        )
         if check_feature_map("value_features", value_features) is None:
             raise TypeError("value_features must be a feature map (e.g. QuadraticFeatures)")
         S = value_features.in_features
@@ -159,7 +174,9 @@ class TimeIndexedHiREPS(HiREPSBase):
         self.policies = list(policies)
         self.value_features = value_features
         self.epsilon = eps
-        self.value_weights = torch.zeros(K, value_features.out_features, dtype=torch.float64)
+        self.value_weights = torch.zeros(
+            *policies[0].batch_shape, K, value_features.out_features, dtype=torch.float64
+        )
 
     @classmethod
     def create(
@@ -173,7 +190,8 @@ class TimeIndexedHiREPS(HiREPSBase):
         epsilon: float | Sequence[float] = 1.0,
         kappa_rel: float | None = 0.9,
         value_features: FeatureMap | None = None,
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
+        population: int | None = None,
         **policy_kwargs: Unpack[PolicyKwargs],
     ) -> TimeIndexedHiREPS:
         """Build K fresh softmax-gated mixtures of linear-Gaussian options, one per step.
@@ -189,7 +207,11 @@ class TimeIndexedHiREPS(HiREPSBase):
             epsilon: KL bound, one float or K floats.
             kappa_rel: relative entropy bound (None: off).
             value_features: value features phi (the squared expansion of the state by default).
-            seed: seeds the initial option means (and, as seed + 1, the sampling generator).
+            seed: seeds the initial option means (and, as seed + 1, the sampling generator);
+                a sequence of S distinct seeds builds a population.
+            population: S, a population of S independent runs in one algorithm (see
+                :meth:`EpisodicHiREPS.create`): states (S, N, K, C), params (S, N, K, D),
+                rewards (S, N, K), one dual call and one batched refit per step.
             **policy_kwargs: ``init_std, spread, gating_features`` (the squared expansion of
                 the state by default), ``policy_features, min_variance, covariance_prior,
                 mean_prior``
@@ -208,15 +230,15 @@ class TimeIndexedHiREPS(HiREPSBase):
                     f"({K}, {param_dim}), got {tuple(m.shape)}"
                 )
             mean = mean + m
-        policies = fresh_policies(
-            list(mean), n_options, context_dim, param_dim, seed, **policy_kwargs
+        policies, sampling = member_policies(
+            seed, population, list(mean), n_options, context_dim, param_dim, **policy_kwargs
         )
         return cls(
             policies,
             value_features or QuadraticFeatures(context_dim),
             epsilon=epsilon,
             kappa_rel=kappa_rel,
-            seed=next_seed(seed),
+            seed=sampling,
         )
 
     @property
@@ -231,6 +253,15 @@ class TimeIndexedHiREPS(HiREPSBase):
     def _contexts(self, contexts: Tensor) -> Tensor:
         S = self.value_features.in_features
         c = as_float_tensor("contexts", contexts, device=torch.device("cpu"))
+        if self.population is not None:
+            P = self.population
+            if c.dim() != 3 or c.shape[0] != P or c.shape[2] != S or c.shape[1] < 1:
+                raise ValueError(
+                    f"contexts must have shape (population, N, S) = ({P}, N, {S}) with N >= 1, "
+                    f"got {tuple(c.shape)}"
+                )
+            as_finite_f64("contexts", c)
+            return c
         if c.dim() == 1 and S == 1:
             c = c[:, None]
         if c.dim() != 2 or c.shape[1] != S:
@@ -246,15 +277,20 @@ class TimeIndexedHiREPS(HiREPSBase):
         """Checked float64 states (N, K, S), params (N, K, D) and rewards (N, K) of
         :meth:`tell` (exactly these shapes)."""
         K = self.n_steps
+        lead = self.policies[0].batch_shape
         R = as_float_tensor("rewards", rewards, device=torch.device("cpu"))
-        if R.dim() != 2 or R.shape[1] != K:
-            raise ValueError(f"rewards must have shape (N, K) = (N, {K}), got {tuple(R.shape)}")
+        if R.dim() != 2 + len(lead) or R.shape[:-2] != lead or R.shape[-1] != K:
+            names = "population, N, K" if lead else "N, K"
+            want = ", ".join(map(str, (*lead, "N", K)))
+            raise ValueError(f"rewards must have shape ({names}) = ({want}), got {tuple(R.shape)}")
         check_finite("rewards", R)
-        N = R.shape[0]
+        N = R.shape[-2]
         S, D = self.value_features.in_features, self.policies[0].action_dim
         cpu = torch.device("cpu")
-        s = as_finite_f64("states", as_float_tensor("states", states, device=cpu), (N, K, S))
-        theta = as_finite_f64("params", as_float_tensor("params", params, device=cpu), (N, K, D))
+        states_t = as_float_tensor("states", states, device=cpu)
+        s = as_finite_f64("states", states_t, (*lead, N, K, S))
+        params_t = as_float_tensor("params", params, device=cpu)
+        theta = as_finite_f64("params", params_t, (*lead, N, K, D))
         return s, theta, R
 
     # ---- ask / tell -------------------------------------------------------------------------
@@ -285,7 +321,10 @@ class TimeIndexedHiREPS(HiREPSBase):
         V_k is defined up to a constant (phi has no constant column).
         """
         k = self._step(step)
-        return self.value_features(self._contexts(contexts)) @ self.value_weights[k]
+        phi = self.value_features(self._contexts(contexts))
+        if self.population is None:
+            return phi @ self.value_weights[k]
+        return (phi @ self.value_weights[:, k, :, None])[..., 0]
 
     @torch.no_grad()
     def tell(self, states: Tensor, params: Tensor, rewards: Tensor) -> dict[str, Any]:
@@ -305,6 +344,8 @@ class TimeIndexedHiREPS(HiREPSBase):
             episodes of the summed rewards), ``max_return, iteration``.
         """
         s, theta, R = self._episodes(states, params, rewards)
+        if self.population is not None:
+            return self._population_tell(s, theta, R)
         N = R.shape[0]
         bounds = [
             option_bound(pol, s[:, k], theta[:, k], self.kappa_rel)
@@ -341,6 +382,46 @@ class TimeIndexedHiREPS(HiREPSBase):
             "max_return": float(returns.max()),
         }
 
+    def _population_tell(self, s: Tensor, theta: Tensor, R: Tensor) -> dict[str, Any]:
+        """:meth:`tell` of a population (states (S, N, K, C), params (S, N, K, D), rewards
+        (S, N, K)): one dual call for all members and steps; member s's diagnostics are
+        those :meth:`tell` reports for it alone, as lists of S entries."""
+        S, N, K = R.shape
+        bounds = [
+            population_bound(pol, s[:, :, k], theta[:, :, k], self.kappa_rel)
+            for k, pol in enumerate(self.policies)
+        ]
+        log_resp, kappa = stack_population_bounds(bounds, self.policies)
+        sol = solve_time_indexed_dual(
+            R,
+            self.value_features(s),
+            epsilon=torch.tensor(self.epsilon, dtype=torch.float64),
+            log_responsibilities=log_resp,
+            kappa=kappa,
+            population=True,
+        )
+        refits = [  # every step's refit first: a failing step leaves all policies unchanged
+            plan_population_refit(pol, s[:, :, k], theta[:, :, k], sol, bounds[k], block=k)
+            for k, pol in enumerate(self.policies)
+        ]
+        self.value_weights = sol.v.reshape(S, K, -1).clone()
+        reports = [
+            apply_population_refit(pol, s[:, :, k], refit, self.prune_threshold)
+            for k, (pol, refit) in enumerate(zip(self.policies, refits, strict=True))
+        ]
+        self.iteration += 1
+        returns = R.sum(-1)
+        return {
+            "iteration": [self.iteration] * S,
+            **{key: [[r[key][m] for r in reports] for m in range(S)] for key in _PER_STEP},
+            "feature_error": sol.feature_error.tolist(),
+            "dual_converged": sol.converged.tolist(),
+            "dual_iterations": [sol.iterations] * S,
+            "mean_rewards": R.mean(1).tolist(),
+            "mean_return": returns.mean(-1).tolist(),
+            "max_return": returns.amax(-1).tolist(),
+        }
+
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
         """:meth:`ask` with the arguments in the interface's order: states (N, S) at ``step``."""
@@ -354,7 +435,15 @@ class TimeIndexedHiREPS(HiREPSBase):
         """:meth:`tell` from states (N, K, S), parameters (N, K, D) and rewards (N, K)."""
         S, D = self.value_features.in_features, self.policies[0].action_dim
         name = type(self).__name__
-        check_experience(experience, self.n_steps, S, D, transitions=False, algorithm=name)
+        check_experience(
+            experience,
+            self.n_steps,
+            S,
+            D,
+            transitions=False,
+            algorithm=name,
+            population=self.population,
+        )
         return self.tell(experience.states, experience.actions, experience.rewards)
 
     # ---- checkpointing ----------------------------------------------------------------------

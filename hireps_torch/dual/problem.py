@@ -144,25 +144,35 @@ class DualProblem:
         P, _, delta = self.weights_at(eta, xi, v)
         free = self.eta_free(x)
         M = x.new_zeros(S, n, n)
-        p = P.reshape(S, K, N * O, 1)
         for k in range(K):
-            # columns of block k: log eta_k, log xi_k, v (each scaled to zero where unused)
+            # columns of block k: log eta_k, log xi_k, v (each scaled to zero where unused);
+            # the option-dependent columns a (S, N, O, c) and the features D (S, N, P), which
+            # do not depend on the option: centred, Cov = E[a a^T], E[a D^T], E[D D^T] under P
+            # without expanding D over the options
+            pk = P[:, k]  # (S, N, O)
             h = delta[:, k, :, None] + xi[:, k, None, None] * self.lr[:, k]  # (S, N, O)
             zs = [-h * free[:, k, None, None]]
             cols = [k]
             if self.multi:
                 zs.append(self.lr[:, k] * (xi[:, k] * self.xi_on[:, k])[:, None, None])
                 cols.append(K + k)
+            a = torch.stack(zs, -1)  # (S, N, O, c)
+            a = a - (pk[..., None] * a).sum((1, 2), keepdim=True)
+            pa = pk[..., None] * a
+            c = len(cols)
+            idx = torch.tensor(cols, device=x.device)
+            aa = pa.reshape(S, N * O, c).transpose(1, 2) @ a.reshape(S, N * O, c)
+            M[:, idx[:, None], idx[None, :]] += aa / eta[:, k, None, None]
             if self.P:
                 assert self.D is not None
-                zs.extend(self.D[:, k, :, None, :].expand(-1, -1, O, -1).unbind(-1))
-                cols.extend(range(2 * K, n))
-            Z = torch.stack(zs, -1).reshape(S, N * O, len(cols))
-            pk = p[:, k]
-            Zc = Z - (pk * Z).sum(1, keepdim=True)
-            block = (Zc * pk).transpose(1, 2) @ Zc / eta[:, k, None, None]
-            idx = torch.tensor(cols, device=x.device)
-            M[:, idx[:, None], idx[None, :]] += block
+                w = pk.sum(-1)  # (S, N)
+                Dc = self.D[:, k] - (w[..., None] * self.D[:, k]).sum(1, keepdim=True)
+                ad = pa.sum(2).transpose(1, 2) @ Dc  # (S, c, P)
+                dd = (w[..., None] * Dc).transpose(1, 2) @ Dc  # (S, P, P)
+                vi = torch.arange(2 * K, n, device=x.device)
+                M[:, idx[:, None], vi[None, :]] += ad / eta[:, k, None, None]
+                M[:, vi[:, None], idx[None, :]] += ad.transpose(1, 2) / eta[:, k, None, None]
+                M[:, 2 * K :, 2 * K :] += dd / eta[:, k, None, None]
         d = M.diagonal(dim1=1, dim2=2)
         d[:, 2 * K :] += self.ridge[:, None]
         if raw:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Callable, Mapping, Sequence
-from typing import cast
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -196,8 +195,8 @@ class SoftmaxGating(Gating):
     Args:
         in_features: F (0 gives a context-free prior over options).
         n_options: O.
-        l2: L2 penalty on the weights and biases in :meth:`weighted_fit` (keeps the logistic fit
-            finite on separable data and where an option gets no target mass).
+        l2: L2 penalty on the weights in :meth:`weighted_fit` (keeps the logistic fit finite on
+            separable data).
         dtype: parameter dtype.
     """
 
@@ -234,10 +233,11 @@ class SoftmaxGating(Gating):
     ) -> dict[str, Tensor]:
         """Weighted multinomial logistic regression onto soft targets (the gating unchanged).
 
-        Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 (||weight||^2 +
-        ||bias||^2)`` over the active options: LBFGS, then Newton steps to its minimiser at
-        round-off (:data:`NEWTON_GTOL`), so a population's members (one LBFGS call for all) get
-        what they get alone. Without features (F = 0) this has the closed form
+        Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 ||weight||^2``
+        over the active options by Newton's method from the current parameters, to its
+        minimiser at round-off (:data:`NEWTON_GTOL`), each member of a population on its own
+        in one batched call. An option without target mass gets probability 0
+        (:data:`DEAD_LOGIT`). Without features (F = 0) this has the closed form
         ``pi(o) = sum_i w_i t_io / sum_i w_i``, which is used directly.
 
         Args:
@@ -258,83 +258,73 @@ class SoftmaxGating(Gating):
             logp = torch.log(prior / prior.sum(-1, keepdim=True))
             centred = logp - _active_mean(torch.where(act, logp, 0.0), act)
             return {"bias": torch.where(act, centred.to(self.bias.dtype), self.bias)}
-        start_w, start_b = self._logistic_regression(x, t, w, max_iter)
-        Wp, bp = _newton_polish(x, t, w, start_w, start_b, act, self.l2)
-        bad = ~(torch.isfinite(Wp).flatten(-2).all(-1) & torch.isfinite(bp).all(-1))
+        # an option without any target mass has its minimiser at logit -inf: it is left out
+        # of the fit and set to DEAD_LOGIT (probability 0, pruned next)
+        dead = act & ((w[..., None] * t).sum(-2) <= 0)
+        fit = act & ~dead
+        W0, b0 = self.weight.to(torch.float64), self.bias.to(torch.float64)
+        Wp, bp, failed = _newton_fit(x, t, w, W0, b0, fit, self.l2, max_iter)
+        bad = failed | ~(torch.isfinite(Wp).flatten(-2).all(-1) & torch.isfinite(bp).all(-1))
         if bool(bad.any()):
             who = "" if self.population is None else f"member {int(bad.nonzero()[0, 0])}: "
             raise ValueError(
                 f"{who}the gating fit is not finite (gating features up to "
                 f"{float(x.abs().max()):.3g}): rescale the gating features"
             )
-        centred = bp - _active_mean(torch.where(act, bp, 0.0), act)
+        centred = bp - _active_mean(torch.where(fit, bp, 0.0), fit)
+        centred = torch.where(dead, DEAD_LOGIT, centred)
+        Wp = torch.where(dead[..., None], 0.0, Wp)
         return {
             "weight": torch.where(act[..., None], Wp.to(self.weight.dtype), self.weight),
             "bias": torch.where(act, centred.to(self.bias.dtype), self.bias),
         }
 
-    def _logistic_regression(
-        self, x: Tensor, t: Tensor, w: Tensor, max_iter: int
-    ) -> tuple[Tensor, Tensor]:
-        """LBFGS on the weighted cross-entropy from the current parameters (of every member
-        of a population in one call: their losses add up and do not interact); the pruned
-        options are masked out of the loss and keep their values."""
-        act = self.active
-        Wp = self.weight.to(torch.float64).clone().requires_grad_(True)
-        bp = self.bias.to(torch.float64).clone().requires_grad_(True)
-        opt = torch.optim.LBFGS(
-            [Wp, bp],
-            lr=1.0,
-            max_iter=max_iter,
-            tolerance_grad=1e-9,
-            tolerance_change=1e-12,
-            history_size=20,
-            line_search_fn="strong_wolfe",
-        )
 
-        def closure() -> Tensor:
-            opt.zero_grad()
-            loss = _cross_entropy(x, t, w, Wp, bp, act, self.l2).sum()
-            torch.autograd.backward(loss)  # loss.backward(), typed
-            return loss
-
-        # LBFGS.step is unannotated in torch; it takes and returns the closure's loss
-        step = cast(Callable[[Callable[[], Tensor]], Tensor], opt.step)
-        with torch.enable_grad():
-            step(closure)
-        return Wp.detach(), bp.detach()
-
+DEAD_LOGIT = -1000.0
+"""The bias the gating fit gives an option without any target mass (its probability is then
+0 in float64, and pruning removes it)."""
 
 NEWTON_GTOL = 1e-12
-"""The gating fit ends with Newton steps until the largest gradient entry of the (weight-sum
-normalised) cross-entropy is below this, so that it is its minimiser to round-off (LBFGS alone
-stops on its change tolerance with gradients of ~1e-7, parameters ~1e-6 from it)."""
+"""The gating fit takes Newton steps until the largest gradient entry of the (weight-sum
+normalised) cross-entropy is below this: it is then the minimiser to round-off, whatever the
+start (LBFGS, which the fit used before, stopped on its change tolerance with gradients of
+~1e-7, parameters ~1e-6 from it, and took ~100 loss evaluations where Newton takes ~10)."""
 
 
 def _cross_entropy(
     x: Tensor, t: Tensor, w: Tensor, W: Tensor, b: Tensor, active: Tensor, l2: float
 ) -> Tensor:
-    """The gating fit's loss ([S]): sum_i w_i sum_o t_io (-log pi(o | x_i)) + l2/2 (||W||^2 +
-    ||b||^2) over the active options."""
+    """The gating fit's loss ([S]): sum_i w_i sum_o t_io (-log pi(o | x_i)) + l2/2 ||W||^2
+    over the active options."""
     keep = active.unsqueeze(-2)
     logits = (x @ W.mT + b.unsqueeze(-2)).masked_fill(~keep, float("-inf"))
     logp = torch.log_softmax(logits, dim=-1)
     fit = torch.where(keep, w[..., None] * t * logp, 0.0).sum((-2, -1))
-    squares = torch.where(active[..., None], W**2, 0.0).sum((-2, -1))
-    return -fit + 0.5 * l2 * (squares + torch.where(active, b**2, 0.0).sum(-1))
+    return -fit + 0.5 * l2 * torch.where(active[..., None], W**2, 0.0).sum((-2, -1))
 
 
-def _newton_polish(
-    x: Tensor, t: Tensor, w: Tensor, W: Tensor, b: Tensor, active: Tensor, l2: float
-) -> tuple[Tensor, Tensor]:
+def _newton_fit(
+    x: Tensor,
+    t: Tensor,
+    w: Tensor,
+    W: Tensor,
+    b: Tensor,
+    active: Tensor,
+    l2: float,
+    max_iter: int,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Newton steps (halved until the loss does not rise) on the gating's cross-entropy from
-    (W (..., O, F), b (..., O)) until the gradient is below :data:`NEWTON_GTOL`, each member of
-    a population on its own (a converged member stops). Pruned options are held fixed; a
-    member whose Newton system fails keeps its start."""
+    (W (..., O, F), b (..., O)) until the gradient is below :data:`NEWTON_GTOL` (at most
+    ``max_iter``), each member of a population on its own (a converged member stops).
+    Pruned options are held fixed. The loss is convex, strictly so with ``l2 > 0``; a
+    damping of 1e-10 of the Hessian's mean diagonal keeps the Newton system solvable
+    without it. Returns W, b and the ([S]) members whose loss, gradient or Newton system was
+    not finite (features too large)."""
     X = torch.cat([torch.ones(*x.shape[:-1], 1, dtype=torch.float64), x], -1)  # (.., N, F+1)
     theta = torch.cat([b[..., None], W], -1)  # (..., O, F+1)
     O, F1 = theta.shape[-2:]
     pen = torch.full((F1,), l2, dtype=torch.float64)
+    pen[0] = 0.0  # no penalty on the biases (the softmax's shift is fixed by the damping)
     keep = active[..., None].expand_as(theta).flatten(-2)  # (..., P)
 
     def loss_of(th: Tensor) -> Tensor:
@@ -342,7 +332,8 @@ def _newton_polish(
 
     loss = loss_of(theta)
     running = torch.ones(theta.shape[:-2], dtype=torch.bool)
-    for _ in range(10):
+    failed = ~torch.isfinite(loss)
+    for _ in range(max_iter):
         logits = (X @ theta.mT).masked_fill(~active.unsqueeze(-2), float("-inf"))
         p = torch.softmax(logits, dim=-1)  # (..., N, O)
         g = (w[..., None] * (p - t)).mT @ X + pen * theta  # (..., O, F+1)
@@ -350,19 +341,23 @@ def _newton_polish(
         running &= g.abs().amax(-1) > NEWTON_GTOL
         if not bool(running.any()):
             break
-        wp = w[..., None] * p
-        outer = torch.einsum("...na,...nb->...nab", X, X)
-        diag = torch.einsum("...no,...nab->...oab", wp, outer)
-        cross = torch.einsum("...no,...nq,...nab->...oaqb", wp, p, outer)
-        H = -cross
+        # H = sum_i w_i (diag(p_i) - p_i p_i^T) (x) x_i x_i^T + l2 I, as products over samples
+        A = ((w[..., None] * p)[..., None] * X[..., None, :]).flatten(-2)  # (..., N, O F1)
+        B = (p[..., None] * X[..., None, :]).flatten(-2)
+        blocks = (A.mT @ X).view(*A.shape[:-2], O, F1, F1)  # sum_i w_i p_io x_i x_i^T
+        H = -(A.mT @ B).view(*A.shape[:-2], O, F1, O, F1)
         eye = torch.eye(O, dtype=torch.bool)
-        H = H + torch.where(eye[:, None, :, None], diag[..., :, :, None, :], 0.0)
+        H = H + torch.where(eye[:, None, :, None], blocks[..., :, :, None, :], 0.0)
         H = H + torch.diag_embed(pen.repeat(O)).view(O, F1, O, F1)
         H = H.reshape(*H.shape[:-4], O * F1, O * F1)
         H = torch.where(keep[..., :, None] & keep[..., None, :], H, 0.0)
         H = H + torch.diag_embed((~keep).to(torch.float64))
+        damping = 1e-10 * torch.diagonal(H, dim1=-2, dim2=-1).mean(-1)
+        H = H + damping[..., None, None] * torch.eye(O * F1, dtype=torch.float64)
         step, info = torch.linalg.solve_ex(H, g)
-        running &= (info == 0) & torch.isfinite(step).all(-1)
+        solved = (info == 0) & torch.isfinite(step).all(-1) & torch.isfinite(g).all(-1)
+        failed |= running & ~solved
+        running &= solved
         step = torch.where(running[..., None], step, 0.0).view(theta.shape)
         moved = torch.zeros_like(running)
         for _halving in range(30):
@@ -376,7 +371,7 @@ def _newton_polish(
                 break
             step = 0.5 * step
         running &= moved
-    return theta[..., 1:].contiguous(), theta[..., 0].contiguous()
+    return theta[..., 1:].contiguous(), theta[..., 0].contiguous(), failed
 
 
 class ConstantGating(Gating):

@@ -7,7 +7,12 @@ import warnings
 import pytest
 import torch
 
-from hireps_torch.algorithms import EpisodicHiREPS, Experience, InfiniteHorizonHiREPS
+from hireps_torch.algorithms import (
+    EpisodicHiREPS,
+    Experience,
+    InfiniteHorizonHiREPS,
+    TimeIndexedHiREPS,
+)
 from hireps_torch.features import FourierFeatures
 
 SEEDS = [3, 5, 11]
@@ -154,3 +159,45 @@ def test_bad_population_settings_name_the_value():
         pop.tell(torch.zeros(2, 5, 1), theta, torch.zeros(5))
     with pytest.raises(ValueError, match="is on device meta"):
         pop.tell(torch.zeros(2, 5, 1), theta.to("meta"), torch.zeros(2, 5))
+
+
+@pytest.mark.parametrize("kappa_rel", [None, 0.9])
+def test_time_indexed_population_equals_separate_runs(kappa_rel):
+    """Three steps, the first without reward in the first update (its KL bound inactive)."""
+    kw = dict(n_options=3, init_std=0.5, kappa_rel=kappa_rel)
+    pop = TimeIndexedHiREPS.create(3, 2, 1, seed=SEEDS, **kw)
+    alone = [TimeIndexedHiREPS.create(3, 2, 1, seed=s, **kw) for s in SEEDS]
+    g = torch.Generator().manual_seed(0)
+    for it in range(2):
+        states = torch.zeros(3, 40, 3, 1, dtype=torch.float64)
+        params = torch.zeros(3, 40, 3, 2, dtype=torch.float64)
+        states[:, :, 0] = torch.randn(3, 40, 1, generator=g, dtype=torch.float64)
+        for k in range(3):
+            params[:, :, k] = pop.ask(k, states[:, :, k])
+            if k < 2:
+                states[:, :, k + 1] = states[:, :, k] + params[:, :, k, :1]
+        rewards = -(params**2).sum(-1) - (states[..., 0] - 1) ** 2
+        if it == 0:
+            rewards[:, :, 0] = 0.0
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the same warnings alone and together
+            report = pop.learn(Experience(states, params, rewards))
+            for s, algo in enumerate(alone):
+                own = torch.stack([algo.ask(k, states[s, :, k]) for k in range(3)], 1)
+                torch.testing.assert_close(own, params[s], rtol=0, atol=1e-10)
+                mine = algo.tell(states[s], own, rewards[s])
+                assert report["eta"][s] == pytest.approx(mine["eta"], rel=1e-8)
+                assert report["kl"][s] == pytest.approx(mine["kl"], rel=1e-8, abs=1e-12)
+                assert report["n_active_options"][s] == mine["n_active_options"]
+                torch.testing.assert_close(
+                    pop.value_weights[s], algo.value_weights, rtol=1e-8, atol=1e-8
+                )
+        for k, policy in enumerate(pop.policies):
+            state = policy.state_dict()
+            for s, algo in enumerate(alone):
+                for key, value in algo.policies[k].state_dict().items():
+                    if "features" not in key:
+                        torch.testing.assert_close(
+                            state[key][s].double(), value.double(), rtol=0, atol=1e-8
+                        )
+    assert pop.value(1, states[:, :, 1]).shape == (3, 40)

@@ -1,0 +1,109 @@
+"""``train.py E --seeds ...``: a population of seeds in one process (issue 14)."""
+
+import csv
+import json
+
+import pytest
+
+import train
+
+
+def rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def run(*argv):
+    return train.main([*argv, "--no-progress"])
+
+
+def test_bimodal_population_members_equal_their_ordinary_runs(tmp_path):
+    short = ["--episodes", "600", "--samples-per-iteration", "200"]
+    summary = run("bimodal", *short, "--seeds", "3,5,8", "--run-dir", str(tmp_path / "pop"))
+    assert summary["seeds"] == [3, 5, 8] and summary["metric"] == "final_return"
+    for name in ("population.md", "population.json", "population.png"):
+        assert (tmp_path / "pop" / name).is_file(), name
+    alone = run("bimodal", *short, "--seed", "5", "--run-dir", str(tmp_path / "alone"))
+    member = tmp_path / "pop" / "seed5"
+    config = json.loads((member / "config.json").read_text())
+    assert config["seed"] == 5 and "seeds" not in config
+    mine, theirs = rows(member / "metrics.csv"), rows(tmp_path / "alone" / "metrics.csv")
+    assert len(mine) == len(theirs) == 3
+    for a, b in zip(mine, theirs, strict=True):
+        for key in ("eval_return", "eta", "kl", "mean_return", "n_active_options"):
+            assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-9, abs=1e-12), key
+    member_summary = json.loads((member / "summary.json").read_text())
+    assert member_summary["final_return"] == pytest.approx(alone["final_return"], rel=1e-9)
+    table = (tmp_path / "pop" / "population.md").read_text()
+    assert "3: " in table and "8: " in table
+
+
+def test_a_population_of_one_is_the_ordinary_run_byte_for_byte(tmp_path):
+    short = ["--episodes", "400", "--samples-per-iteration", "200"]
+    run("bimodal", *short, "--seeds", "4", "--run-dir", str(tmp_path / "pop"))
+    run("bimodal", *short, "--seed", "4", "--run-dir", str(tmp_path / "alone"))
+    mine = (tmp_path / "pop" / "seed4" / "metrics.csv").read_bytes()
+    assert mine == (tmp_path / "alone" / "metrics.csv").read_bytes()
+    assert (tmp_path / "pop" / "population.png").is_file()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        [
+            "pendulum",
+            "--episodes",
+            "40",
+            "--episodes-per-iteration",
+            "20",
+            "--episode-seconds",
+            "0.5",
+            "--eval-rollouts",
+            "4",
+            "--eval-every",
+            "1",
+        ],
+        [
+            "ball-on-beam",
+            "--episodes",
+            "4",
+            "--episodes-per-iteration",
+            "2",
+            "--eval-episodes",
+            "2",
+        ],
+    ],
+)
+def test_infinite_horizon_populations_write_every_member(tmp_path, argv):
+    summary = run(*argv, "--seeds", "0-2", "--run-dir", str(tmp_path))
+    assert summary["seeds"] == [0, 1, 2] and len(summary["per_seed"]) == 3
+    for s in range(3):
+        member = tmp_path / f"seed{s}"
+        got = json.loads((member / "summary.json").read_text())
+        assert got["seed"] == s and got["iterations"] == 2
+        lines = rows(member / "metrics.csv")
+        assert len(lines) == 2 and all(float(r["kl"]) <= 0.5 * (1 + 1e-6) for r in lines)
+    data = json.loads((tmp_path / "population.json").read_text())
+    assert len(data) == 3
+
+
+@pytest.mark.parametrize(
+    "argv, error, match",
+    [
+        (["bimodal", "--seeds", "0,1,0"], ValueError, r"names seed\(s\) \[0\] more than once"),
+        (["bimodal", "--seeds", "2-1"], ValueError, "--seeds must look like 0-4"),
+        (["hockey-episodic", "--seeds", "0-1"], ValueError, "runs one seed at a time"),
+        (["pendulum", "--seeds", "0-1", "--workers", "2"], ValueError, r"workers \(--workers\)"),
+    ],
+)
+def test_bad_population_options_name_the_value(tmp_path, argv, error, match):
+    with pytest.raises(error, match=match):
+        run(*argv, "--run-dir", str(tmp_path / "run"))
+    assert not (tmp_path / "run" / "seed1").exists()
+
+
+def test_seeds_and_resume_do_not_mix(tmp_path):
+    short = ["--episodes", "400", "--samples-per-iteration", "200"]
+    run("bimodal", *short, "--run-dir", str(tmp_path / "one"))
+    with pytest.raises(ValueError, match="--seeds starts a population run"):
+        run("bimodal", "--seeds", "0-1", "--resume", str(tmp_path / "one"))

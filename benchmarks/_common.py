@@ -12,12 +12,13 @@ from typing import Any
 import torch
 
 
-def start_benchmark(out_base: Path, seeds: int) -> Path:
-    """Check ``--seeds``, run torch on one thread and create ``out_base/<timestamp>``
-    (a fresh folder: an existing one is never written into)."""
+def start_benchmark(out_base: Path, seeds: int, threads: int | None = 1) -> Path:
+    """Check ``--seeds``, run torch on ``threads`` threads (None: torch's default) and create
+    ``out_base/<timestamp>`` (a fresh folder: an existing one is never written into)."""
     if seeds < 1:
         raise SystemExit(f"--seeds must be >= 1, got {seeds}")
-    torch.set_num_threads(1)
+    if threads is not None:
+        torch.set_num_threads(threads)
     out = out_base / time.strftime("%Y%m%d-%H%M%S")
     out.mkdir(parents=True, exist_ok=False)
     return out

@@ -4,10 +4,14 @@
    control steps per call) at 20, 200 and 2000 parallel pendulums, next to gymnasium's own
    ``Pendulum-v1`` stepped in a Python loop, measured in the same run (control steps/s).
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
-   (each unique configuration runs once per seed and is shared between figures), as one sweep
+   (each unique configuration runs once per seed and is shared between figures). By default
+   each configuration's seeds run as one population (``train.py pendulum --seeds 0-4``: one
+   process, the seeds' duals solved together; :mod:`experiments.population`), one
+   configuration after the other. With ``--separate``, as one sweep of separate runs
    (:mod:`experiments.sweep`): ``--workers`` runs at a time, 2 by default, one per core of the
    2-core reference machine, in local processes or (``--backend ray``) as Ray tasks, on this
-   machine or a cluster (``--ray-address``); ``--out`` of an interrupted ablation resumes it:
+   machine or a cluster (``--ray-address``). ``--resume`` of an interrupted ablation reuses
+   what finished:
 
    - 16a: options 1 / 2 / 5 / 10 (d = 5)
    - 16b: d = 1 / 2 / 5 / 10 (5 options)
@@ -21,8 +25,9 @@ evaluated every 5 iterations) and one PNG per figure (mean
 curve with a +-1 std band) to ``--out``; prints the table, the wall time of each standard
 run and of the whole ablation.
 
-    OMP_NUM_THREADS=1 python benchmarks/pendulum_ablations.py [--seeds 5] [--workers 2]
-        [--backend local|ray] [--out DIR]
+    python benchmarks/pendulum_ablations.py [--seeds 5] [--out DIR]
+    OMP_NUM_THREADS=1 python benchmarks/pendulum_ablations.py --separate [--workers 2]
+        [--backend local|ray]
 """
 
 from __future__ import annotations
@@ -145,6 +150,33 @@ def _first(summary: dict[str, Any]) -> str:
 SLOWNESS = {"d1": 7.0, "d2": 2.7, "learned-10": 1.4}
 
 
+def run_populations(runs: list[SweepRun], report: Any) -> dict[tuple[str, int], dict[str, Any]]:
+    """Each configuration's seeds as one population (``train.py pendulum --seeds``), one
+    configuration after the other in this process; a configuration whose population finished
+    before (its ``population.json``) is read back. Returns every run's summary."""
+    import json
+
+    from experiments import run_experiment
+
+    done: dict[tuple[str, int], dict[str, Any]] = {}
+    for name in dict.fromkeys(r.name for r in runs):
+        mine = [r for r in runs if r.name == name]
+        root = mine[0].run_dir.parent
+        if not (root / "population.json").is_file():
+            if root.exists():  # an unfinished population: run it again
+                import shutil
+
+                shutil.rmtree(root)
+            seeds = ",".join(str(r.seed) for r in mine)
+            cfg = PendulumConfig(**mine[0].options, seeds=seeds, run_dir=root, progress=False)
+            run_experiment(cfg)
+        for r in mine:
+            summary = json.loads((r.run_dir / "summary.json").read_text())
+            done[(name, r.seed)] = summary
+            report(r, summary)
+    return done
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seeds", type=int, default=5)
@@ -152,14 +184,32 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "pendulum_ablations")
     ap.add_argument("--configs", nargs="*", default=list(CONFIGS), help="subset to run")
     ap.add_argument("--skip-speed", action="store_true")
-    ap.add_argument("--workers", type=int, default=2, help="runs at the same time, one thread each")
+    ap.add_argument(
+        "--separate",
+        action="store_true",
+        help="run every seed as its own run (a sweep) instead of each configuration's seeds "
+        "as one population (train.py pendulum --seeds, one process, torch's threads)",
+    )
+    ap.add_argument("--workers", type=int, default=2, help="with --separate: runs at the same time")
     ap.add_argument("--backend", choices=["local", "ray"], default="local")
     ap.add_argument("--ray-address", default=None, help="an existing Ray cluster (--backend ray)")
     ap.add_argument(
         "--resume", type=Path, default=None, help="finish the ablation written to this folder"
     )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads (default: 1 with --separate, torch's default for populations)",
+    )
     args = ap.parse_args()
-    out = args.resume if args.resume is not None else start_benchmark(args.out, args.seeds)
+    threads = args.threads if args.threads is not None else (1 if args.separate else None)
+    if args.resume is not None:
+        out = args.resume
+        if threads is not None:
+            torch.set_num_threads(threads)
+    else:
+        out = start_benchmark(args.out, args.seeds, threads)
     if not args.skip_speed:
         env_speed()
 
@@ -182,14 +232,17 @@ def main() -> None:
         )
 
     t_all = time.perf_counter()
-    done = run_sweep(
-        runs,
-        backend=args.backend,
-        workers=args.workers,
-        ray_address=args.ray_address,
-        progress=False,
-        on_result=report,
-    )
+    if args.separate:
+        done = run_sweep(
+            runs,
+            backend=args.backend,
+            workers=args.workers,
+            ray_address=args.ray_address,
+            progress=False,
+            on_result=report,
+        )
+    else:
+        done = run_populations(runs, report)
     for run in runs:
         x, y = read_curve(run.run_dir)
         done[(run.name, run.seed)] = {**done[(run.name, run.seed)], "curve": y, "episodes_axis": x}

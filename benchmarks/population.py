@@ -1,0 +1,123 @@
+"""A population of seeds in one process against one seed alone (issue 14), side by side.
+
+1. ``train.py pendulum --seed 0`` (the ordinary run, TorchRL collector) and
+   ``train.py pendulum --seeds 0-(S-1)`` (one population), the same episodes, one after the
+   other in this run: wall times and their ratio.
+2. The population's learning: final success per seed, and the share of seeds ending with
+   success >= 0.9, next to separate runs of the same seeds (``--separate DIR``: a finished
+   ``train.py sweep --experiment pendulum`` whose ``sweep.json`` is read, or
+   ``--run-separate`` to run that sweep here, two at a time). The two are compared with
+   Fisher's exact test on the 2 x 2 table (population / separate x success / not): the
+   environment draws differ (a population draws restarts from per-seed generators, the
+   ordinary run through the TorchRL collector), so the two are equal in distribution, not
+   seed by seed.
+
+    python benchmarks/population.py [--seeds 20] [--episodes 1000] [--separate DIR]
+        [--run-separate] [--out DIR]
+
+Threads: torch's default (2 on the 2-core reference machine) for both runs, or ``--threads``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks._common import start_benchmark  # noqa: E402
+from experiments import run_experiment  # noqa: E402
+from experiments.pendulum import PendulumConfig  # noqa: E402
+
+
+def separate_results(folder: Path) -> dict[int, float]:
+    """Final success per seed of a finished pendulum sweep (its ``sweep.json``)."""
+    path = next(folder.rglob("sweep.json"), None)
+    if path is None:
+        raise SystemExit(f"--separate {folder}: no sweep.json below it")
+    data = json.loads(path.read_text())
+    return {int(v["seed"]): float(v["success_rate"]) for v in data.values()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--episodes", type=int, default=PendulumConfig.episodes)
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "population_benchmark")
+    ap.add_argument("--separate", type=Path, default=None, help="a finished pendulum sweep")
+    ap.add_argument("--run-separate", action="store_true", help="run the separate sweep here")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    args = ap.parse_args()
+    out = start_benchmark(args.out, args.seeds, args.threads)
+    import torch
+
+    print(f"torch threads: {torch.get_num_threads()}")
+    S = args.seeds
+
+    t = time.perf_counter()
+    one = run_experiment(
+        PendulumConfig(episodes=args.episodes, seed=0, run_dir=out / "one", progress=False)
+    )
+    t_one = time.perf_counter() - t
+    t = time.perf_counter()
+    pop = run_experiment(
+        PendulumConfig(
+            episodes=args.episodes, seeds=f"0-{S - 1}", run_dir=out / "population", progress=False
+        )
+    )
+    t_pop = time.perf_counter() - t
+    print(f"one seed ({args.episodes} episodes): {t_one:.1f} s (success {one['success_rate']})")
+    print(f"population of {S} seeds: {t_pop:.1f} s = {t_pop / t_one:.2f} x one seed")
+
+    success = {int(k): float(v) for k, v in pop["per_seed"].items()}
+    good = sum(v >= 0.9 for v in success.values())
+    print(f"population: {good}/{S} seeds end with success >= 0.9")
+    print("  " + ", ".join(f"{s}: {v:.2f}" for s, v in success.items()))
+    separate = None
+    if args.run_separate:
+        from experiments.sweep import SweepConfig
+        from experiments.sweep import main as sweep
+
+        folder = out / "separate"
+        sweep(
+            SweepConfig(
+                experiment="pendulum",
+                seeds=f"0-{S - 1}",
+                set=(f"episodes={args.episodes}",),
+                out=folder,
+                workers=2,
+                progress=False,
+            )
+        )
+        separate = separate_results(folder)
+    elif args.separate is not None:
+        separate = separate_results(args.separate)
+    report: dict[str, Any] = {
+        "seeds": S,
+        "episodes": args.episodes,
+        "one_seed_seconds": t_one,
+        "population_seconds": t_pop,
+        "ratio": t_pop / t_one,
+        "population_success": success,
+    }
+    if separate is not None:
+        from scipy.stats import fisher_exact
+
+        sep_good = sum(separate.get(s, 0.0) >= 0.9 for s in success)
+        table = [[good, S - good], [sep_good, S - sep_good]]
+        p = float(fisher_exact(table).pvalue)
+        print(f"separate runs: {sep_good}/{S} seeds end with success >= 0.9")
+        print("  " + ", ".join(f"{s}: {separate.get(s, float('nan')):.2f}" for s in success))
+        print(f"Fisher's exact test, population vs separate: p = {p:.3f}")
+        report |= {"separate_success": separate, "fisher_p": p}
+    (out / "results.json").write_text(json.dumps(report, indent=1))
+    print(f"written to {out}")
+
+
+if __name__ == "__main__":
+    main()

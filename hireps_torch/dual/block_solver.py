@@ -445,7 +445,8 @@ class BlockSolver:
         """One LBFGS phase over the problems in ``mask`` (S,): at most ``max_iter`` iterations,
         run as LBFGS calls of at most ``_CHUNK`` iterations, each on the problems not yet
         converged and whitened by their curvature where it starts (see :class:`_Whitened`);
-        a call that stops on its own (converged, or stalled) ends the phase.
+        a call that stops on its own (converged, or stalled) ends the phase, unless it was
+        shared and some of its problems converged in it: the others then go on without them.
 
         Re-whitening matters for a population: one LBFGS call over S problems shares its
         history (20 pairs) among all of them, so it captures their curvature only while each
@@ -460,8 +461,13 @@ class BlockSolver:
         while True:  # torch's budgets for one call: max_iter iterations, 1.25 x evaluations
             used, spent, stalled = self._lbfgs(todo, min(left, _CHUNK), min(evals, _CHUNK * 5 // 4))
             left, evals = left - used, evals - spent
+            before = todo.clone()
             todo &= ~self.end.converged & self._finite()
-            if left <= 0 or evals <= 0 or stalled or not bool(todo.any()):
+            if left <= 0 or evals <= 0 or not bool(todo.any()):
+                return
+            # a call shared by several problems stalls when the progress of the last ones
+            # drowns in the round-off of their summed dual: those go on without the others
+            if stalled and (int(before.sum()) == 1 or torch.equal(todo, before)):
                 return
 
     def _lbfgs(self, mask: Tensor, max_iter: int, max_eval: int) -> tuple[int, int, bool]:

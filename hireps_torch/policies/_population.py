@@ -39,7 +39,19 @@ def check_members(name: str, members: object, cls: type) -> list[Any]:
             raise TypeError(f"{name}[{s}] must be a {cls.__name__}, got {type(m).__name__}")
         if getattr(m, "population", None) is not None:
             raise ValueError(f"{name}[{s}] is a population already; stack ordinary modules")
+    first = _devices(items[0])
+    for s, m in enumerate(items[1:], 1):
+        if _devices(m) != first:
+            raise ValueError(
+                f"{name}[{s}] is on device {sorted(_devices(m))} but {name}[0] on "
+                f"{sorted(first)}: move them to one device first (e.g. .to('cpu'))"
+            )
     return items
+
+
+def _devices(module: torch.nn.Module) -> set[str]:
+    """The devices of a module's parameters and buffers."""
+    return {str(t.device) for t in [*module.parameters(), *module.buffers()]}
 
 
 def check_population_generators(

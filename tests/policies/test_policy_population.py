@@ -199,5 +199,7 @@ def test_bad_population_inputs_name_the_value():
         HierarchicalPolicy.stack([pop])
     with pytest.raises(TypeError, match="members must be a sequence"):
         LinearGaussian.stack(pols[0].sub_policies[0])
+    with pytest.raises(ValueError, match=r"members\[1\] is on device \['meta'\]"):
+        HierarchicalPolicy.stack([pols[0], members()[1].to("meta")])
     with pytest.raises(ValueError, match=r"members\[1\].action_dim = 2"):
         LinearGaussian.stack([LinearGaussian(1, 3), LinearGaussian(1, 2)])

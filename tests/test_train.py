@@ -169,7 +169,9 @@ def test_ball_on_beam_subprocess_writes_the_run_directory(tmp_path):
     assert 0.0 <= summary["success_rate"] <= 1.0
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     assert len(rows) == 2  # 3 episodes per iteration
-    assert abs(float(rows[0]["kl"]) - 0.5) < 1e-3
+    from experiments.ball_on_beam import BallOnBeamConfig
+
+    assert abs(float(rows[0]["kl"]) - BallOnBeamConfig.epsilon) < 1e-3  # the bound is met
     for key in ("eta", "xi", "effective_sample_size", "policy_entropy", "falls", "eval_return"):
         assert key in rows[0]
 
@@ -385,7 +387,7 @@ def test_ball_on_beam_value_features_couple_position_and_velocity_and_skip_the_a
     change with the beam angle; ``value_beam_angle`` brings the angle in."""
     from experiments.ball_on_beam import BallOnBeamConfig, value_features
 
-    phi = value_features(BallOnBeamConfig())
+    phi = value_features(BallOnBeamConfig(value_goal_bowl=False))
     assert phi.in_features == 3 and phi.out_features == 15
     s = torch.tensor([[0.2, 0.3, 0.0], [0.2, 0.3, 0.1], [-0.2, 0.3, 0.0], [0.2, -0.3, 0.0]])
     f = phi(s)
@@ -394,9 +396,38 @@ def test_ball_on_beam_value_features_couple_position_and_velocity_and_skip_the_a
     # even where the uncoupled terms of x and of x' agree (f(x, v) - f(-x, v) - f(x, -v) ...)
     mixed = f[0] - f[2] - f[3] + phi(torch.tensor([[-0.2, -0.3, 0.0]]))[0]
     assert float(mixed.abs().max()) > 0.1
-    with_angle = value_features(BallOnBeamConfig(value_beam_angle=True))
+    with_angle = value_features(BallOnBeamConfig(value_beam_angle=True, value_goal_bowl=False))
     assert with_angle.out_features == 4**3 - 1
     assert not torch.equal(with_angle(s)[0], with_angle(s)[1])
+    # the default: the same 15 terms, then the goal bowl's 3
+    full = value_features(BallOnBeamConfig())
+    assert full.out_features == 18
+    torch.testing.assert_close(full(s)[:, :15], f, rtol=0, atol=0)
+
+
+def test_ball_on_beam_goal_bowl_features_are_the_quadratic_form_around_the_closer_goal():
+    """[e^2, e v, v^2] with e the offset from the closer goal over the half length and v the
+    velocity over max_velocity, against values computed by hand; zero at rest on either goal,
+    equal on mirrored states, the angle ignored; a bad max_velocity is refused by name."""
+    from environments.ball_on_beam import BeamParams
+    from experiments.ball_on_beam import GoalBowlFeatures
+
+    phi = GoalBowlFeatures(BeamParams(), max_velocity=2.0)
+    s = torch.tensor(
+        [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.1], [0.3, 0.5, 0.0], [-0.3, -0.5, 0.0], [0.0, 1.0, 0.0]],
+        dtype=torch.float64,
+    )
+    f = phi(s)
+    assert f.shape == (5, 3)
+    torch.testing.assert_close(f[0], torch.zeros(3, dtype=torch.float64))
+    torch.testing.assert_close(f[1], torch.zeros(3, dtype=torch.float64))
+    e, v = 0.2 / 0.5, 0.5 / 2.0  # 0.3 m is 0.2 m right of the goal at +0.1
+    torch.testing.assert_close(f[2], torch.tensor([e * e, e * v, v * v], dtype=torch.float64))
+    torch.testing.assert_close(f[3], f[2])  # the mirrored state
+    # x = 0 counts from the goal at +0.1: e = -0.2
+    torch.testing.assert_close(f[4], torch.tensor([0.04, -0.2 * 0.5, 0.25], dtype=torch.float64))
+    with pytest.raises(ValueError, match="max_velocity"):
+        GoalBowlFeatures(BeamParams(), max_velocity=0.0)
 
 
 def test_pendulum_evaluates_every_k_iterations_and_reports_the_first_success(tmp_path):

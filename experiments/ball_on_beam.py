@@ -61,8 +61,8 @@ class BallOnBeamConfig(RunOptions):
     epsilon: float = 1.0
     """KL bound per iteration (the paper does not give it for the beam). 1.0: 10 updates
     in 30 episodes leave the learned position gain weak at 0.5, so the ball settles slowly
-    and its rest point moves with every update (with the goal-bowl value features, seeds
-    0-59: 54/60 keep success at epsilon 1.0 against 49/60 at 0.5; see benchmarks/README.md)."""
+    (with the goal-bowl value features, seeds 0-59: 53/60 keep success at episode 30 with
+    epsilon 1.0 against 49/60 with 0.5; see benchmarks/README.md)."""
     kappa_rel: float | None = None
     """Entropy bound relative to the mean responsibility entropy (None: off). Off by default
     here: with 120 decisions per iteration the bound (0.9) sharpened an over-fitted gating and
@@ -91,8 +91,8 @@ class BallOnBeamConfig(RunOptions):
     """Add :class:`GoalBowlFeatures` (e^2, e x', x'^2 of the offset e from the closer goal)
     to the value features. The value's local shape at a goal is the reward's quadratic bowl,
     3 cm wide at the success tolerance, which 4 cosines over the 1 m beam cannot place: the
-    learned rest point then drifts with the sampling noise (seeds 0-59, epsilon 0.5: 49/60
-    keep success with the bowl, 42/60 without; see benchmarks/README.md)."""
+    learned rest point then drifts with the sampling noise (seeds 0-59, epsilon 1.0: 53/60
+    keep success with the bowl, 49/60 without; see benchmarks/README.md)."""
     max_velocity: float = 1.0
     """Ball speed (m/s) the value and gating features are scaled to."""
     eval_episodes: int = 10

@@ -82,7 +82,8 @@ def test_infinite_horizon_populations_write_every_member(tmp_path, argv):
         got = json.loads((member / "summary.json").read_text())
         assert got["seed"] == s and got["iterations"] == 2
         lines = rows(member / "metrics.csv")
-        assert len(lines) == 2 and all(float(r["kl"]) <= 0.5 * (1 + 1e-6) for r in lines)
+        epsilon = json.loads((member / "config.json").read_text())["epsilon"]
+        assert len(lines) == 2 and all(float(r["kl"]) <= epsilon * (1 + 1e-6) for r in lines)
     data = json.loads((tmp_path / "population.json").read_text())
     assert len(data) == 3
 

@@ -26,6 +26,7 @@ from hireps_torch.checks import (
     as_float,
     as_float_tensor,
     check_count,
+    check_device,
     check_seed,
 )
 
@@ -105,15 +106,6 @@ def check_scalar_action(action: object, batch: int, what: str) -> Tensor:
         i = int(bad.nonzero()[0, 0])
         raise ValueError(f"action contains a non-finite {what} at index {i}: {a[i].item()}")
     return a
-
-
-def check_device(device: object) -> torch.device:
-    """``device`` (a ``torch.device`` or its name) as a ``torch.device``; a ``ValueError``
-    naming it otherwise."""
-    try:
-        return torch.device(device)  # type: ignore[call-overload]
-    except (RuntimeError, TypeError):
-        raise ValueError(f"device must be a torch device or its name, got {device!r}") from None
 
 
 class BatchedTask:

@@ -299,14 +299,16 @@ def run_population(cfg: BallOnBeamConfig, members: Members) -> list[dict[str, An
         kappa_rel=cfg.kappa_rel,
         seed=[s + 1 for s in seeds],
     )
-    env = TaskPopulation([BeamTask(B, params, seed=s + 1) for s in seeds])
+    dev = torch.device(cfg.device)
+    algo.to(dev)  # the policy with it
+    env = TaskPopulation([BeamTask(B, params, seed=s + 1, device=dev) for s in seeds])
 
     def step(it: int) -> list[dict[str, Any]]:
         env.reset()  # every iteration starts B new episodes, as the ordinary run
         data = env.collect(algo.sample, params.decisions_per_episode)
         diag = algo.update(*data)
         evs = evaluate_beam_members(
-            lambda x: policy.mean_action(x)[0],
+            lambda x: policy.mean_action(x.to(dev))[0].cpu(),
             params,
             seeds=[s + 777 for s in seeds],
             n_episodes=cfg.eval_episodes,

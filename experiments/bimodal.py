@@ -198,26 +198,30 @@ def run_population(cfg: BimodalConfig, members: Members) -> list[dict[str, Any]]
     task = _task(cfg)
     seeds = members.seeds
     S, n = len(seeds), cfg.samples_per_iteration
-    algo = _make_algorithm(cfg, task, seeds)
+    dev = torch.device(cfg.device)
+    algo = _make_algorithm(cfg, task, seeds).to(dev)
     ctx_gens = [torch.Generator().manual_seed(s + 10_000) for s in seeds]
     eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
 
     def score(ctx: torch.Tensor | None, theta: torch.Tensor) -> torch.Tensor:
-        flat = theta.reshape(-1, task.param_dim)
+        """The task's returns (S, N) on the algorithm's device (the task computes on the CPU)."""
+        flat = theta.reshape(-1, task.param_dim).cpu()
         if isinstance(task, ContextualTwoGaussians):
             assert ctx is not None
-            return task(ctx.reshape(-1, 1), flat).reshape(theta.shape[:2])
-        return task(flat).reshape(theta.shape[:2])
+            out = task(ctx.reshape(-1, 1).cpu(), flat)
+        else:
+            out = task(flat)
+        return out.reshape(theta.shape[:2]).to(dev)
 
     def step(it: int) -> list[dict[str, Any]]:
         ctx = None
         if isinstance(task, ContextualTwoGaussians):
-            ctx = torch.stack([task.sample_contexts(n, g) for g in ctx_gens])
+            ctx = torch.stack([task.sample_contexts(n, g) for g in ctx_gens]).to(dev)
             theta = algo.ask(ctx)
         else:
             theta = algo.ask(n)
         diag = algo.tell(ctx, theta, score(ctx, theta))
-        grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1)
+        grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1).to(dev)
         evals = score(grid, algo.act(1 if grid is None else grid)).mean(-1).tolist()
         return [
             {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evals[s]}
@@ -236,7 +240,7 @@ def run_population(cfg: BimodalConfig, members: Members) -> list[dict[str, Any]]
     )
     solo = [
         (REPS if cfg.algorithm == "reps" else EpisodicHiREPS)(
-            algo.policy.member(s), context_dim=task.context_dim, epsilon=cfg.epsilon
+            algo.policy.member(s).cpu(), context_dim=task.context_dim, epsilon=cfg.epsilon
         )
         for s in range(S)
     ]

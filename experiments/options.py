@@ -11,6 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from experiments.rundir import LoggerName, jsonable
 
 __all__ = [
@@ -48,6 +50,11 @@ class RunOptions:
     """Show a progress bar."""
     logger: LoggerName = "csv"
     """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
+    device: str = "cpu"
+    """Where a population run (--seeds) computes: cpu, cuda, cuda:1, ... The policies, the
+    batched simulation and the float64 duals live there; the sampling generators stay on
+    the CPU, so a seed draws the same noise on every device. Ordinary runs and hockey
+    (pybullet) run on the CPU."""
 
     def check_run_options(self) -> None:
         """Refuse bad run options before anything is built or written: every option of the
@@ -64,6 +71,7 @@ class RunOptions:
                     "--seeds starts a population run; resume its members one by one, or run "
                     "the population again (--resume takes one run directory)"
                 )
+        check_run_device(self.device, self.seeds)
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
         if self.resume is not None and self.run_dir is not None:
@@ -74,6 +82,31 @@ class RunOptions:
                 )
         if self.resume is None and self.run_dir is not None:
             check_new_run_dir(Path(self.run_dir))
+
+
+def check_run_device(device: str, seeds: str | None) -> torch.device:
+    """``--device`` as a ``torch.device``: a name torch knows, present on this machine, and
+    other than the CPU only for a population run (``--seeds``); a ``ValueError`` naming it
+    otherwise."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise option_error("device", device, "a torch device such as cpu or cuda") from None
+    try:
+        torch.empty(0, device=dev)
+    except (RuntimeError, AssertionError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise option_error("device", device, f"a device present here ({first})") from None
+    if dev.type == "meta":
+        raise option_error("device", device, "a device that holds values (meta holds none)")
+    if dev.type != "cpu" and seeds is None:
+        raise option_error(
+            "device",
+            device,
+            "cpu for an ordinary run (a population run takes another device: --seeds S "
+            "--device cuda runs seed S alone on it)",
+        )
+    return dev
 
 
 def check_new_run_dir(run_dir: Path) -> None:
@@ -138,10 +171,13 @@ def _check_type(name: str, value: Any, hint: Any) -> None:
 
 def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
     """``config.json``'s content: the experiment's name and every option, JSON-ready
-    (``seeds`` only in a population's: an ordinary run's config is as it always was)."""
+    (``seeds`` only in a population's and ``device`` only where it is not the CPU: an
+    ordinary run's config is as it always was)."""
     options = dataclasses.asdict(cfg)
     if options.get("seeds", "") is None:
         del options["seeds"]
+    if options.get("device", "") == "cpu":  # as before --device existed
+        del options["device"]
     out: dict[str, Any] = jsonable({"experiment": experiment, **options})
     return out
 

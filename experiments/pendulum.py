@@ -353,13 +353,15 @@ def run_population(cfg: PendulumConfig, members: Members) -> list[dict[str, Any]
         prune_threshold=1e-4 if cfg.gating == "learned" else 0.0,
         seed=[s + 1 for s in seeds],
     )
-    env = TaskPopulation([PendulumTask(B, params, seed=s + 1) for s in seeds])
+    dev = torch.device(cfg.device)
+    algo.to(dev)  # the policy with it
+    env = TaskPopulation([PendulumTask(B, params, seed=s + 1, device=dev) for s in seeds])
     decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
     eval_seeds = [s + 777 for s in seeds]
 
     def evaluate() -> list[SwingUpEvaluation]:
         return evaluate_swing_up_members(
-            lambda x: policy.mean_action(x)[0],
+            lambda x: policy.mean_action(x.to(dev))[0].cpu(),
             params,
             seeds=eval_seeds,
             n_rollouts=cfg.eval_rollouts,

@@ -141,27 +141,34 @@ class TaskPopulation:
     transition of all S x B systems per decision; starts, restarts and truncation draw from
     each member's own task, so a member's systems do not depend on its companions.
 
+    The systems are stepped on the tasks' device; each member's start states and restart
+    draws come from its task's CPU generator (moved to the device), as in its ordinary run.
+
     Args:
-        tasks: one task per member, all of the same kind, constants and batch size.
+        tasks: one task per member, all of the same kind, constants, batch size and device.
     """
 
     def __init__(self, tasks: Sequence[Any]) -> None:
         self.tasks = list(tasks)
         first = self.tasks[0]
-        self.S, self.B = len(self.tasks), first.batch
-        self.state = torch.zeros(self.S, self.B, first.state_dim, dtype=torch.float64)
-        self.t = torch.zeros(self.S, self.B, dtype=torch.long)
+        self.S, self.B, self.device = len(self.tasks), first.batch, first.device
+        shape = (self.S, self.B)
+        self.state = torch.zeros(*shape, first.state_dim, dtype=torch.float64, device=self.device)
+        self.t = torch.zeros(shape, dtype=torch.long, device=self.device)
         self.reset()
 
     def reset(self, mask: Tensor | None = None) -> None:
         """Restart the masked (S, B) systems (all when None); a member whose systems are not
         masked draws nothing."""
+        every = torch.ones(self.S, self.B, dtype=torch.bool)
+        masks = (every if mask is None else mask).cpu()
         for s, task in enumerate(self.tasks):
-            m = torch.ones(self.B, dtype=torch.bool) if mask is None else mask[s]
+            m = masks[s]
             if bool(m.any()):
-                fresh = task.start_states(m).to(torch.float64)
-                self.state[s] = torch.where(m[:, None], fresh, self.state[s])
-                self.t[s] = torch.where(m, 0, self.t[s])
+                fresh = task.start_states(m).to(self.device, torch.float64)
+                md = m.to(self.device)
+                self.state[s] = torch.where(md[:, None], fresh, self.state[s])
+                self.t[s] = torch.where(md, 0, self.t[s])
 
     def collect(self, act: Callable[[Tensor], Tensor], decisions: int) -> tuple[Tensor, ...]:
         """``decisions`` decisions of every system with ``act`` (states (S, B, dim), seen as
@@ -181,7 +188,7 @@ class TaskPopulation:
                 buf.append(x)
             self.state = nxt
             self.t += 1
-            done = torch.zeros(S, B, dtype=torch.bool)
+            done = torch.zeros(S, B, dtype=torch.bool, device=self.device)
             for m, task in enumerate(self.tasks):
                 task.t = self.t[m]
                 done[m] = term[m] | task.truncated(term[m])
@@ -205,7 +212,7 @@ def run_population(experiment: str, cfg: Any, populations: Mapping[str, Populati
             f"(run its seeds with train.py sweep --experiment {experiment} --seeds {cfg.seeds})"
         )
     members = None
-    if len(seeds) == 1:  # the ordinary run
+    if len(seeds) == 1 and cfg.device == "cpu":  # the ordinary run
         root = Path(cfg.run_dir) if cfg.run_dir is not None else default_run_dir(experiment)
         one = dataclasses.replace(cfg, seed=seeds[0], seeds=None, run_dir=root / f"seed{seeds[0]}")
         summaries = [EXPERIMENTS[experiment][1](one)]

@@ -21,6 +21,7 @@ __all__ = [
     "as_float",
     "as_float_tensor",
     "check_count",
+    "check_device",
     "check_finite",
     "check_float_dtype",
     "check_generator",
@@ -33,27 +34,34 @@ __all__ = [
 ]
 
 
-def as_f64(name: str, value: Tensor | object) -> Tensor:
+def as_f64(name: str, value: Tensor | object, device: torch.device | None = None) -> Tensor:
     """``value`` as a detached float64 tensor; a ``TypeError`` naming ``name`` if it is not
     a number, a sequence of numbers or a tensor.
 
     Python numbers and sequences go straight to float64 (``torch.as_tensor(0.2)`` alone would
-    round through float32: 0.20000000298); tensors keep their values (a float32 tensor holds
-    float32 values already). Complex values are a ``TypeError`` (their imaginary part would
-    be dropped silently). A tensor on another device is copied to the CPU (where the duals
-    are solved); a ``meta`` tensor, which holds no values, is a ``ValueError``."""
+    round through float32: 0.20000000298), on ``device`` (the CPU when None); tensors keep
+    their values (a float32 tensor holds float32 values already) and their device. With
+    ``device`` given, a tensor on another device is a ``ValueError`` naming both (the dual's
+    data must live on one device: it is solved where its inputs are). Complex values are a
+    ``TypeError`` (their imaginary part would be dropped silently); a ``meta`` tensor, which
+    holds no values, is a ``ValueError``."""
     if not isinstance(value, Tensor):
         try:
-            value = torch.as_tensor(value, dtype=torch.float64)
+            value = torch.as_tensor(value, dtype=torch.float64, device=device or "cpu")
         except Exception as exc:
             raise TypeError(
                 f"{name} must be a tensor or numbers, got {type(value).__name__} {_short(value)}"
             ) from exc
     if value.is_complex():
         raise TypeError(f"{name} must be real, got a {value.dtype} tensor")
+    if device is not None and value.device != torch.device(device):
+        raise ValueError(
+            f"{name} is on device {value.device} but the other inputs are on {device}: move "
+            "them to one device first"
+        )
     if value.is_meta:
         raise ValueError(f"{name} is a meta tensor (no values); pass a tensor with data")
-    return value.detach().to(device="cpu", dtype=torch.float64)
+    return value.detach().to(dtype=torch.float64)
 
 
 def _short(value: object) -> str:
@@ -79,7 +87,10 @@ def check_finite(
 def as_finite_f64(name: str, value: Tensor | float, shape: tuple[int, ...] | None = None) -> Tensor:
     """``value`` as a float64 tensor, checked for ``shape`` (if given) and finiteness; the
     errors name ``name``, the shapes, and the first non-finite entry."""
-    t = torch.as_tensor(value, dtype=torch.float64)
+    if isinstance(value, Tensor):
+        t = value.to(torch.float64)  # on its device
+    else:
+        t = torch.as_tensor(value, dtype=torch.float64, device="cpu")
     if shape is not None and tuple(t.shape) != shape:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
     if not bool(torch.isfinite(t).all()):
@@ -146,9 +157,10 @@ def as_float_tensor(
         t = value.detach()
     else:
         try:
-            t = torch.as_tensor(value)
+            where = device if device is not None else torch.device("cpu")
+            t = torch.as_tensor(value, device=where)
             if t.is_floating_point():  # Python floats keep their float64 precision
-                t = torch.as_tensor(value, dtype=torch.float64)
+                t = torch.as_tensor(value, dtype=torch.float64, device=where)
         except Exception as exc:
             raise TypeError(
                 f"{name} must be a tensor of numbers, got {type(value).__name__} {_short(value)}"
@@ -188,6 +200,16 @@ def check_float_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"{name} must be a floating torch.dtype, got {_short(dtype)}")
     return dtype
+
+
+def check_device(device: object) -> torch.device:
+    """``device`` (a ``torch.device`` or its name) as a ``torch.device``; a ``ValueError``
+    naming it otherwise."""
+    try:
+        dev: torch.device = torch.device(device)  # type: ignore[call-overload]
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be a torch device or its name, got {device!r}") from None
+    return dev
 
 
 def check_generator(name: str, value: object) -> torch.Generator | None:

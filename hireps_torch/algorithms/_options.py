@@ -154,7 +154,7 @@ def plan_refit(
         )
     if not carries_information(sol, bound):
         return Refit(None, sol, bound)
-    weights = torch.zeros(context.shape[0], policy.n_options, dtype=torch.float64)
+    weights = context.new_zeros(context.shape[0], policy.n_options, dtype=torch.float64)
     weights[:, policy.active] = sol.weights
     return Refit(policy.fit_parameters(context, theta, weights), sol, bound)
 
@@ -198,8 +198,11 @@ def apply_refit(
     }
 
 
-def stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Tensor | None]:
-    """Per-step responsibilities and entropy bounds as the dual's (N, K, O) and (K,) inputs.
+def stack_bounds(
+    bounds: list[OptionBound], N: int, device: torch.device
+) -> tuple[Tensor | None, Tensor | None]:
+    """Per-step responsibilities and entropy bounds as the dual's (N, K, O) and (K,) inputs,
+    on ``device``.
 
     Steps may have different numbers of active options: the missing columns get log 0, and a
     step with one active option gets log p~ = 0 on it and no bound (kappa = inf). Returns
@@ -210,7 +213,7 @@ def stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Tens
     if O == 1:
         return None, None
     K = len(bounds)
-    log_resp = torch.full((N, K, O), -math.inf, dtype=torch.float64)
+    log_resp = torch.full((N, K, O), -math.inf, dtype=torch.float64, device=device)
     for k, b in enumerate(bounds):
         if b.log_responsibilities is None:
             log_resp[:, k, 0] = 0.0
@@ -219,7 +222,9 @@ def stack_bounds(bounds: list[OptionBound], N: int) -> tuple[Tensor | None, Tens
     if all(b.kappa is None for b in bounds):
         return log_resp, None
     kappa = torch.tensor(
-        [math.inf if b.kappa is None else b.kappa for b in bounds], dtype=torch.float64
+        [math.inf if b.kappa is None else b.kappa for b in bounds],
+        dtype=torch.float64,
+        device=device,
     )
     return log_resp, kappa
 
@@ -261,7 +266,7 @@ def population_bound(
     S = context.shape[0]
     several = policy.active.sum(-1) >= 2
     if not bool(several.any()):
-        return PopulationBound(None, torch.zeros(S, dtype=torch.float64), None)
+        return PopulationBound(None, context.new_zeros(S, dtype=torch.float64), None)
     lr = policy.log_responsibilities(context, theta)
     p = lr.exp()
     entropy = -(torch.where(p > 0, p * lr, 0.0)).sum(-1).mean(-1)
@@ -352,7 +357,7 @@ def apply_population_refit(
     sol, bound, k = refit.sol, refit.bound, refit.block
     prior = policy.gating.probs(policy.gating_features(context)).mean(-2)
     ent = torch.stack([o.entropy() for o in policy.sub_policies], -1)
-    kappa = bound.kappa if bound.kappa is not None else torch.full((S,), math.inf)
+    kappa = bound.kappa if bound.kappa is not None else prior.new_full((S,), math.inf)
     return {
         "eta": sol.eta[:, k].tolist(),
         "xi": sol.xi[:, k].tolist(),
@@ -383,7 +388,8 @@ def stack_population_bounds(
     O = max(p.n_options for p in policies)
     S = bounds[0].option_entropy.shape[0]
     N = next(b.log_responsibilities.shape[1] for b in bounds if b.log_responsibilities is not None)
-    log_resp = torch.full((S, N, len(bounds), O), -math.inf, dtype=torch.float64)
+    dev = bounds[0].option_entropy.device
+    log_resp = torch.full((S, N, len(bounds), O), -math.inf, dtype=torch.float64, device=dev)
     for k, (b, pol) in enumerate(zip(bounds, policies, strict=True)):
         lr = b.log_responsibilities
         if lr is None:  # one active option in each member: log 1 on it
@@ -392,6 +398,7 @@ def stack_population_bounds(
     if all(b.kappa is None for b in bounds):
         return log_resp, None
     kappa = torch.stack(
-        [torch.full((S,), math.inf) if b.kappa is None else b.kappa for b in bounds], -1
+        [torch.full((S,), math.inf, device=dev) if b.kappa is None else b.kappa for b in bounds],
+        -1,
     )
     return log_resp, kappa.to(torch.float64)

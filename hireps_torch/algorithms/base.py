@@ -17,7 +17,7 @@ import numbers
 import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol, TypedDict, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, Self, TypedDict, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -26,6 +26,7 @@ from hireps_torch.checks import (
     as_float,
     as_float_tensor,
     check_count,
+    check_device,
     check_finite,
     check_nonnegative_float,
     check_positive_float,
@@ -393,6 +394,38 @@ class HiREPSBase:
         )
         self.iteration = 0
 
+    @property
+    def device(self) -> torch.device:
+        """Where the policies, the samples an update takes and its dual live (the CPU unless
+        moved with :meth:`to`)."""
+        policy: HierarchicalPolicy = getattr(self, "policies")[0]  # noqa: B009
+        bias: Tensor = policy.sub_policies[0].bias
+        return bias.device
+
+    def to(self, device: torch.device | str) -> Self:
+        """Move the policies, the feature maps and the learned values to ``device`` (e.g.
+        ``"cuda"``) and return ``self``; updates then take their samples there and solve the
+        dual there (float64). The sampling generators stay on the CPU: a seed draws the same
+        noise on every device (moved to ``device``), so its run differs from the CPU's only
+        by the device's rounding. A device torch does not know, or one not present, raises a
+        ``ValueError`` naming it and moves nothing."""
+        dev = check_device(device)
+        if dev.type == "meta":
+            raise ValueError("device 'meta' holds no values: move the algorithm to cpu or cuda")
+        try:
+            torch.empty(0, device=dev)
+        except (RuntimeError, AssertionError) as exc:
+            raise ValueError(f"device {device!r} is not available here: {exc}") from None
+        for name, value in list(vars(self).items()):
+            if isinstance(value, torch.nn.Module):
+                value.to(dev)
+            elif isinstance(value, Tensor):
+                setattr(self, name, value.to(dev))
+            elif isinstance(value, list) and value and isinstance(value[0], torch.nn.Module):
+                for module in value:
+                    module.to(dev)
+        return self
+
     def _state(self, **learned: Any) -> dict[str, Any]:
         """A checkpoint: ``learned`` (the variant's entries) and the shared entries."""
         gen = self.generator
@@ -471,7 +504,7 @@ def check_saved_values(saved: object, current: Tensor) -> Tensor:
             "checkpoint with other value features or another number of steps?)"
         )
     check_finite("value_weights", v, "")
-    return v
+    return v.to(current.device)
 
 
 def check_prune_threshold(value: float) -> float:

@@ -190,8 +190,9 @@ class EpisodicHiREPS(HiREPSBase):
             count = n if contexts is None else check_count("the number of samples", contexts, 1)
             if count is None or count < 1:
                 raise ValueError(f"the number of samples must be >= 1, got {count}")
-            return torch.zeros(*self.policy.batch_shape, count, 0, dtype=torch.float64)
-        c = as_float_tensor("contexts", contexts, device=torch.device("cpu"))
+            shape = (*self.policy.batch_shape, count, 0)
+            return torch.zeros(shape, dtype=torch.float64, device=self.device)
+        c = as_float_tensor("contexts", contexts, device=self.device)
         if self.population is not None:
             return self._population_contexts(c)
         if c.dim() == 1 and self.context_dim == 1:
@@ -226,9 +227,9 @@ class EpisodicHiREPS(HiREPSBase):
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Checked float64 contexts (S, N, C), params (S, N, D) and returns (S, N)."""
         S, D = self.population, self.policy.action_dim
-        cpu = torch.device("cpu")
-        theta = as_float_tensor("params", params, device=cpu)
-        R = as_float_tensor("returns", returns, device=cpu)
+        dev = self.device
+        theta = as_float_tensor("params", params, device=dev)
+        R = as_float_tensor("returns", returns, device=dev)
         if R.dim() != 2 or R.shape[0] != S:
             raise ValueError(
                 f"returns must have shape (S, N) = ({S}, N) (one row per member of the "
@@ -252,9 +253,9 @@ class EpisodicHiREPS(HiREPSBase):
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Checked float64 contexts (N, S), params (N, D) and returns (N,) for :meth:`tell`."""
         D = self.policy.action_dim
-        cpu = torch.device("cpu")
-        theta = as_float_tensor("params", params, device=cpu)
-        R = as_float_tensor("returns", returns, device=cpu)
+        dev = self.device
+        theta = as_float_tensor("params", params, device=dev)
+        R = as_float_tensor("returns", returns, device=dev)
         if R.dim() != 1:
             n = f"({theta.shape[0]},)" if theta.dim() == 2 else "(N,)"
             raise ValueError(

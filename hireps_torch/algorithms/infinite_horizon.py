@@ -221,11 +221,11 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         lead = self.policy.batch_shape
         if N < 2:
             raise ValueError(f"the update needs at least 2 decisions, got states {tuple(s.shape)}")
-        a = as_float_tensor("actions", actions, device=torch.device("cpu"))
+        a = as_float_tensor("actions", actions, device=self.device)
         if a.shape != (*lead, N, A):
             raise ValueError(f"actions must have shape {(*lead, N, A)}, got {tuple(a.shape)}")
         as_finite_f64("actions", a)
-        R = as_float_tensor("rewards", rewards, device=torch.device("cpu"))
+        R = as_float_tensor("rewards", rewards, device=self.device)
         if R.shape != (*lead, N):
             raise ValueError(
                 f"rewards must have shape {(*lead, N)} (one per decision of states "
@@ -240,7 +240,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         term = None
         if terminated is not None:
             try:
-                term = torch.as_tensor(terminated, device=torch.device("cpu"))
+                term = torch.as_tensor(terminated, device=self.device)
             except (TypeError, ValueError, RuntimeError, NotImplementedError):
                 raise TypeError(
                     f"terminated must be a bool tensor of shape ({N},), got "
@@ -340,7 +340,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         """States ([S,] N, S_dim), N >= 1, as checked float64 (the population's leading S
         unless ``population`` is False)."""
         S = self.value_features.in_features
-        s = as_float_tensor(name, states, device=torch.device("cpu"))
+        s = as_float_tensor(name, states, device=self.device)
         lead = self.policy.batch_shape if population else ()
         if s.dim() != 2 + len(lead) or s.shape[:-2] != lead or s.shape[-1] != S:
             shape = ", ".join(map(str, (*lead, "N", S)))

@@ -252,7 +252,7 @@ class TimeIndexedHiREPS(HiREPSBase):
 
     def _contexts(self, contexts: Tensor) -> Tensor:
         S = self.value_features.in_features
-        c = as_float_tensor("contexts", contexts, device=torch.device("cpu"))
+        c = as_float_tensor("contexts", contexts, device=self.device)
         if self.population is not None:
             P = self.population
             if c.dim() != 3 or c.shape[0] != P or c.shape[2] != S or c.shape[1] < 1:
@@ -278,7 +278,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         :meth:`tell` (exactly these shapes)."""
         K = self.n_steps
         lead = self.policies[0].batch_shape
-        R = as_float_tensor("rewards", rewards, device=torch.device("cpu"))
+        R = as_float_tensor("rewards", rewards, device=self.device)
         if R.dim() != 2 + len(lead) or R.shape[:-2] != lead or R.shape[-1] != K:
             names = "population, N, K" if lead else "N, K"
             want = ", ".join(map(str, (*lead, "N", K)))
@@ -286,10 +286,10 @@ class TimeIndexedHiREPS(HiREPSBase):
         check_finite("rewards", R)
         N = R.shape[-2]
         S, D = self.value_features.in_features, self.policies[0].action_dim
-        cpu = torch.device("cpu")
-        states_t = as_float_tensor("states", states, device=cpu)
+        dev = self.device
+        states_t = as_float_tensor("states", states, device=dev)
         s = as_finite_f64("states", states_t, (*lead, N, K, S))
-        params_t = as_float_tensor("params", params, device=cpu)
+        params_t = as_float_tensor("params", params, device=dev)
         theta = as_finite_f64("params", params_t, (*lead, N, K, D))
         return s, theta, R
 
@@ -351,11 +351,11 @@ class TimeIndexedHiREPS(HiREPSBase):
             option_bound(pol, s[:, k], theta[:, k], self.kappa_rel)
             for k, pol in enumerate(self.policies)
         ]
-        log_resp, kappa = stack_bounds(bounds, N)
+        log_resp, kappa = stack_bounds(bounds, N, self.device)
         sol = solve_time_indexed_dual(
             R,
             self.value_features(s),
-            epsilon=torch.tensor(self.epsilon, dtype=torch.float64),
+            epsilon=torch.tensor(self.epsilon, dtype=torch.float64, device=self.device),
             log_responsibilities=log_resp,
             kappa=kappa,
         )
@@ -395,7 +395,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         sol = solve_time_indexed_dual(
             R,
             self.value_features(s),
-            epsilon=torch.tensor(self.epsilon, dtype=torch.float64),
+            epsilon=torch.tensor(self.epsilon, dtype=torch.float64, device=self.device),
             log_responsibilities=log_resp,
             kappa=kappa,
             population=True,

@@ -370,11 +370,11 @@ class BlockSolver:
             step, ok = _newton_step(H, grad, moving)
             active &= ok
             improved = torch.zeros_like(active)
-            for t in 0.5 ** torch.arange(10.0):
+            for t in (0.5**i for i in range(10)):
                 trying = active & ~improved
                 if not bool(trying.any()):
                     break
-                x = torch.where(trying[:, None], self.x + float(t) * step, self.x)
+                x = torch.where(trying[:, None], self.x + t * step, self.x)
                 g_t, grad_t, P_t = prob.evaluate(x)
                 acc = trying & (self._merit(grad_t, P_t) < best)
                 self.x = torch.where(acc[:, None], x, self.x)

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from hireps_torch._linalg import min_norm_lstsq
+
 __all__ = [
     "Standardised",
     "column_scales",
@@ -268,13 +270,8 @@ def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: Tensor, rounds: int 
 
 
 def _lstsq(A: Tensor, b: Tensor) -> Tensor:
-    """(S, P) minimum-norm least-squares solutions of A (S, M, P) x = b (S, M, 1) (LAPACK's
-    gelsd on the CPU; an SVD elsewhere, where gelsd is not available)."""
-    if A.device.type == "cpu":
-        x: Tensor = torch.linalg.lstsq(A, b, driver="gelsd").solution
-    else:
-        x = torch.linalg.pinv(A, rtol=1e-12) @ b
-    return x.squeeze(-1)
+    """(S, P) minimum-norm least-squares solutions of A (S, M, P) x = b (S, M, 1)."""
+    return min_norm_lstsq(A, b).squeeze(-1)
 
 
 def whitening(Dc: Tensor, weight: Tensor) -> Tensor:

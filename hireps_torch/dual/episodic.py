@@ -104,7 +104,9 @@ def solve_episodic_dual(
     D = None
     if context_features is not None:
         lead = (S, N) if population else (N,)
-        phi = check_features("context_features", context_features, *lead, population=population)
+        phi = check_features(
+            "context_features", context_features, *lead, population=population, device=R.device
+        )
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
         D = -centred(phi).reshape(S, 1, N, -1)
     sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)

@@ -116,15 +116,20 @@ def solve_infinite_horizon_dual(
     if not (math.isfinite(g) and 0.0 < g < 1.0):
         raise ValueError(f"gamma must be in (0, 1), got {gamma}")
     lead = (S, N) if population else (N,)
-    phi = check_features("features", features, *lead, population=population)
-    phi_next = check_features("next_features", next_features, *lead, population=population)
+    dev = R.device
+    phi = check_features("features", features, *lead, population=population, device=dev)
+    phi_next = check_features(
+        "next_features", next_features, *lead, population=population, device=dev
+    )
     if phi_next.shape != phi.shape:
         raise ValueError(
             f"next_features must have the shape of features {tuple(phi.shape)}, got "
             f"{tuple(phi_next.shape)}"
         )
     F = phi.shape[-1]
-    phi0 = check_feature_vector("initial_features", initial_features, F, S if population else None)
+    phi0 = check_feature_vector(
+        "initial_features", initial_features, F, S if population else None, dev
+    )
     D = (g * phi_next - phi).reshape(S, 1, N, F)
     c = ((1.0 - g) * phi0).reshape(S, F)
     sol = solve_blocks(R, lr, eps, D, c, kap, opts, stacklevel=3)

@@ -66,12 +66,15 @@ def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tens
     return log_resp.clamp_min(_LOG_RESP_FLOOR)
 
 
-def per_block(name: str, value: float | Tensor, K: int) -> Tensor:
-    """A bound given as one float or one value per block (K,), as a (K,) float64 tensor; a bool
-    is a ``TypeError`` (``epsilon=True`` is no bound)."""
+def per_block(
+    name: str, value: float | Tensor, K: int, device: torch.device | None = None
+) -> Tensor:
+    """A bound given as one float or one value per block (K,), as a (K,) float64 tensor on
+    ``device`` (a setting, so a tensor on another device is moved); a bool is a ``TypeError``
+    (``epsilon=True`` is no bound)."""
     if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
         raise TypeError(f"{name} must be a number or a tensor of numbers, got {value!r}")
-    t = as_f64(name, value)
+    t = as_f64(name, value).to(device)
     if t.dim() == 0:
         return t.expand(K).clone()
     if t.shape != (K,):
@@ -124,6 +127,7 @@ def common_inputs(
     if not isinstance(population, bool):
         raise TypeError(f"population must be True or False, got {population!r}")
     R = as_f64(name, returns)
+    dev = R.device
     dims = ("S, " if population else "") + ("N, K" if per_step else "N,")
     if R.dim() != (2 if per_step else 1) + int(population):
         raise ValueError(f"{name} must have shape ({dims}), got {tuple(R.shape)}")
@@ -142,12 +146,12 @@ def common_inputs(
     R = R.reshape(S, N, -1).transpose(1, 2).contiguous()
     K = R.shape[1]
     per_problem = population and isinstance(kappa, Tensor) and _per_problem(kappa, S, K)
-    eps, kap = check_bounds(epsilon, None if per_problem else kappa, K, N, stacklevel=4)
+    eps, kap = check_bounds(epsilon, None if per_problem else kappa, K, N, 4, dev)
     if per_problem:
-        kap = as_f64("kappa", kappa).reshape(S, K)
+        kap = as_f64("kappa", kappa).to(dev).reshape(S, K)
         if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
             raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
-    lr = _log_responsibilities(log_responsibilities, lead, S, K, population)
+    lr = _log_responsibilities(log_responsibilities, lead, S, K, population, dev)
     return R, eps.expand(S, K), lr, None if kap is None else kap.expand(S, K)
 
 
@@ -158,12 +162,17 @@ def _per_problem(kappa: Tensor, S: int, K: int) -> bool:
 
 
 def check_bounds(
-    epsilon: float | Tensor, kappa: float | Tensor | None, K: int, N: int, stacklevel: int
+    epsilon: float | Tensor,
+    kappa: float | Tensor | None,
+    K: int,
+    N: int,
+    stacklevel: int,
+    device: torch.device | None = None,
 ) -> tuple[Tensor, Tensor | None]:
-    """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, from one float or one
-    value per block; a :class:`~hireps_torch.dual.DegenerateWeightsWarning` (``stacklevel``
-    frames up) where epsilon >= log N."""
-    eps = per_block("epsilon", epsilon, K)
+    """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, on ``device``, from
+    one float or one value per block; a :class:`~hireps_torch.dual.DegenerateWeightsWarning`
+    (``stacklevel`` frames up) where epsilon >= log N."""
+    eps = per_block("epsilon", epsilon, K, device)
     check_positive("epsilon", eps)
     big = [(k, float(e)) for k, e in enumerate(eps) if e >= math.log(N)]
     if big:
@@ -178,20 +187,26 @@ def check_bounds(
         )
     kap = None
     if kappa is not None:
-        kap = per_block("kappa", kappa, K)
+        kap = per_block("kappa", kappa, K, device)
         if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
             raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
     return eps, kap
 
 
 def _log_responsibilities(
-    x: Tensor | None, lead: tuple[int, ...], S: int, K: int, population: bool
+    x: Tensor | None,
+    lead: tuple[int, ...],
+    S: int,
+    K: int,
+    population: bool,
+    device: torch.device,
 ) -> Tensor:
-    """Checked (*lead, O) log-responsibilities as (S, K, N, O); zeros (S, K, N, 1) for None."""
+    """Checked (*lead, O) log-responsibilities on ``device`` as (S, K, N, O); zeros
+    (S, K, N, 1) for None."""
     N = lead[int(population)]
     if x is None:
-        return torch.zeros(S, K, N, 1, dtype=torch.float64)
-    lr = as_f64("log_responsibilities", x)
+        return torch.zeros(S, K, N, 1, dtype=torch.float64, device=device)
+    lr = as_f64("log_responsibilities", x, device)
     if lr.dim() != len(lead) + 1 or tuple(lr.shape[:-1]) != lead:
         raise ValueError(
             f"log_responsibilities must have shape {_shape_text(lead, 'O', population)}, got "
@@ -200,10 +215,17 @@ def _log_responsibilities(
     return check_log_resp(lr).reshape(S, N, K, -1).transpose(1, 2).contiguous()
 
 
-def check_features(name: str, x: Tensor, *lead: int, population: bool = False) -> Tensor:
+def check_features(
+    name: str,
+    x: Tensor,
+    *lead: int,
+    population: bool = False,
+    device: torch.device | None = None,
+) -> Tensor:
     """Check features of shape (*lead, F): (N, F), or (N, K, F) per decision step, after a
-    leading S for a population (then ``lead`` starts with S)."""
-    phi = as_f64(name, x)
+    leading S for a population (then ``lead`` starts with S); on ``device`` if given (another
+    device is a ``ValueError``)."""
+    phi = as_f64(name, x, device)
     if phi.dim() != len(lead) + 1 or tuple(phi.shape[:-1]) != lead:
         raise ValueError(
             f"{name} must have shape {_shape_text(lead, 'F', population)}, got {tuple(phi.shape)}"
@@ -212,10 +234,13 @@ def check_features(name: str, x: Tensor, *lead: int, population: bool = False) -
     return phi
 
 
-def check_feature_vector(name: str, x: Tensor, F: int, S: int | None = None) -> Tensor:
+def check_feature_vector(
+    name: str, x: Tensor, F: int, S: int | None = None, device: torch.device | None = None
+) -> Tensor:
     """Check a mean feature vector (F,) such as phi_hat_0, or (S, F) for a population (S
-    given; one (F,) vector is then shared by every problem and returned as (S, F))."""
-    phi = as_f64(name, x)
+    given; one (F,) vector is then shared by every problem and returned as (S, F)); on
+    ``device`` if given (numbers go there, a tensor elsewhere is a ``ValueError``)."""
+    phi = as_f64(name, x, device)
     if S is not None and phi.shape == (F,):
         phi = phi.expand(S, F)
     shape = (F,) if S is None else (S, F)
@@ -267,23 +292,24 @@ def check_blocks(
         raise ValueError(f"R must have shape (K, N) with K >= 1, N >= 2, got {tuple(Rt.shape)}")
     check_finite("R", Rt)
     K, N = Rt.shape
-    lr = as_f64("log_resp", log_resp)
+    dev = Rt.device
+    lr = as_f64("log_resp", log_resp, dev)
     if lr.dim() != 3 or tuple(lr.shape[:2]) != (K, N) or lr.shape[2] < 1:
         raise ValueError(
             f"log_resp must have shape (K, N, O) = ({K}, {N}, O), got {tuple(lr.shape)}"
         )
     lr = check_log_resp(lr, "log_resp")
-    eps, kap = check_bounds(epsilon, kappa, K, N, stacklevel=4)
+    eps, kap = check_bounds(epsilon, kappa, K, N, 4, dev)
     Dt = ct = None
     if D is not None:
-        Dt = as_f64("D", D)
+        Dt = as_f64("D", D, dev)
         if Dt.dim() != 3 or tuple(Dt.shape[:2]) != (K, N):
             raise ValueError(f"D must have shape (K, N, P) = ({K}, {N}, P), got {tuple(Dt.shape)}")
         check_finite("D", Dt)
     if c is not None:
         if Dt is None:
             raise ValueError("c (the linear term in v) needs D (the features)")
-        ct = check_feature_vector("c", c, Dt.shape[-1])
+        ct = check_feature_vector("c", c, Dt.shape[-1], device=dev)
     return Rt, lr, eps, Dt, ct, kap
 
 

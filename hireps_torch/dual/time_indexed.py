@@ -137,13 +137,13 @@ def solve_time_indexed_dual(
     )
     S, K, N = R.shape
     lead = (S, N, K) if population else (N, K)
-    phi = check_features("features", features, *lead, population=population)
+    phi = check_features("features", features, *lead, population=population, device=R.device)
     phi = phi.reshape(S, N, K, -1).transpose(1, 2)  # (S, K, N, F)
     F = phi.shape[-1]
     phi1 = None
     if initial_features is not None:
         phi1 = check_feature_vector(
-            "initial_features", initial_features, F, S if population else None
+            "initial_features", initial_features, F, S if population else None, R.device
         ).reshape(S, F)
     D = _chained_map(phi, phi1)
     sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
@@ -172,8 +172,8 @@ def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:
     phi(s_{k+1},i) in slot k + 1, and block 1 also phi_hat_1 (S, F) in slot 1 (the sample mean
     when ``phi1`` is None: then constant columns are exactly 0 there)."""
     S, K, N, F = phi.shape
-    D = torch.zeros(S, K, N, K, F, dtype=torch.float64)
-    steps = torch.arange(K)
+    D = torch.zeros(S, K, N, K, F, dtype=torch.float64, device=phi.device)
+    steps = torch.arange(K, device=phi.device)
     D[:, steps, :, steps] = -phi.transpose(0, 1)
     D[:, steps[:-1], :, steps[1:]] = phi[:, 1:].transpose(0, 1)
     if phi1 is None:

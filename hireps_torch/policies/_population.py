@@ -82,13 +82,28 @@ def normal(
     dtype: torch.dtype,
     device: torch.device,
 ) -> Tensor:
-    """Standard normal draws of ``shape``; with one generator per member, member s's
-    ``shape[1:]`` draws come from ``generator[s]`` (as it would draw them alone)."""
+    """Standard normal draws of ``shape`` on ``device``; with one generator per member, member
+    s's ``shape[1:]`` draws come from ``generator[s]`` (as it would draw them alone). A
+    generator draws on its own device (a CPU generator for a policy on a GPU: the draws, and
+    so a seed's samples, are those of the same run on the CPU) and the draws are moved."""
     if isinstance(generator, list):
         return torch.stack(
-            [torch.randn(shape[1:], generator=g, dtype=dtype, device=device) for g in generator]
+            [
+                torch.randn(shape[1:], generator=g, dtype=dtype, device=g.device).to(device)
+                for g in generator
+            ]
         )
-    return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+    where = device if generator is None else generator.device
+    return torch.randn(shape, generator=generator, dtype=dtype, device=where).to(device)
+
+
+def categorical(probs: Tensor, generator: torch.Generator | None) -> Tensor:
+    """One index per row of ``probs`` (..., O) drawn with ``generator`` (on the generator's
+    device, as :func:`normal`), as int64 (...) on the device of ``probs``."""
+    where = probs if generator is None else probs.to(generator.device)
+    flat = where.reshape(-1, where.shape[-1])
+    out = torch.multinomial(flat, 1, generator=generator)
+    return out.view(probs.shape[:-1]).to(probs.device)
 
 
 def batch_text(population: int | None) -> str:

@@ -320,10 +320,10 @@ def _newton_fit(
     damping of 1e-10 of the Hessian's mean diagonal keeps the Newton system solvable
     without it. Returns W, b and the ([S]) members whose loss, gradient or Newton system was
     not finite (features too large)."""
-    X = torch.cat([torch.ones(*x.shape[:-1], 1, dtype=torch.float64), x], -1)  # (.., N, F+1)
+    X = torch.cat([x.new_ones(*x.shape[:-1], 1, dtype=torch.float64), x], -1)  # (.., N, F+1)
     theta = torch.cat([b[..., None], W], -1)  # (..., O, F+1)
     O, F1 = theta.shape[-2:]
-    pen = torch.full((F1,), l2, dtype=torch.float64)
+    pen = x.new_full((F1,), l2, dtype=torch.float64)
     pen[0] = 0.0  # no penalty on the biases (the softmax's shift is fixed by the damping)
     keep = active[..., None].expand_as(theta).flatten(-2)  # (..., P)
 
@@ -331,7 +331,7 @@ def _newton_fit(
         return _cross_entropy(x, t, w, th[..., 1:], th[..., 0], active, l2)
 
     loss = loss_of(theta)
-    running = torch.ones(theta.shape[:-2], dtype=torch.bool)
+    running = x.new_ones(theta.shape[:-2], dtype=torch.bool)
     failed = ~torch.isfinite(loss)
     for _ in range(max_iter):
         logits = (X @ theta.mT).masked_fill(~active.unsqueeze(-2), float("-inf"))
@@ -346,14 +346,14 @@ def _newton_fit(
         B = (p[..., None] * X[..., None, :]).flatten(-2)
         blocks = (A.mT @ X).view(*A.shape[:-2], O, F1, F1)  # sum_i w_i p_io x_i x_i^T
         H = -(A.mT @ B).view(*A.shape[:-2], O, F1, O, F1)
-        eye = torch.eye(O, dtype=torch.bool)
+        eye = torch.eye(O, dtype=torch.bool, device=x.device)
         H = H + torch.where(eye[:, None, :, None], blocks[..., :, :, None, :], 0.0)
         H = H + torch.diag_embed(pen.repeat(O)).view(O, F1, O, F1)
         H = H.reshape(*H.shape[:-4], O * F1, O * F1)
         H = torch.where(keep[..., :, None] & keep[..., None, :], H, 0.0)
         H = H + torch.diag_embed((~keep).to(torch.float64))
         damping = 1e-10 * torch.diagonal(H, dim1=-2, dim2=-1).mean(-1)
-        H = H + damping[..., None, None] * torch.eye(O * F1, dtype=torch.float64)
+        H = H + damping[..., None, None] * torch.eye(O * F1, dtype=torch.float64, device=x.device)
         step, info = torch.linalg.solve_ex(H, g)
         solved = (info == 0) & torch.isfinite(step).all(-1) & torch.isfinite(g).all(-1)
         failed |= running & ~solved
@@ -420,8 +420,8 @@ class ConstantGating(Gating):
         elsewhere."""
         x = self._features(features)
         nearest = torch.cdist(x, self.centroids.to(x.dtype)).argmin(dim=-1)
-        out = torch.full((*x.shape[:-1], self.n_options), float("-inf"), dtype=x.dtype)
-        return out.to(x.device).scatter_(-1, nearest[..., None], 0.0)
+        out = x.new_full((*x.shape[:-1], self.n_options), float("-inf"))
+        return out.scatter_(-1, nearest[..., None], 0.0)
 
     def fit_parameters(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100

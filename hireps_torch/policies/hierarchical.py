@@ -24,8 +24,10 @@ from hireps_torch.policies._module import PolicyModule
 from hireps_torch.policies._population import (
     Generators,
     batch_text,
+    categorical,
     check_members,
     check_population_generators,
+    normal,
 )
 from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import (
@@ -317,7 +319,7 @@ class HierarchicalPolicy(PolicyModule):
         if N == 0:
             empty = torch.zeros(0, dtype=torch.long, device=pf.device)
             return pf.new_empty((0, self.action_dim), dtype=dtype), empty
-        option = torch.multinomial(probs, 1, generator=gen).squeeze(-1)
+        option = categorical(probs, gen)
         used = torch.bincount(option, minlength=self.n_options).tolist()
         theta = pf.new_empty((N, self.action_dim), dtype=dtype)
         for o, opt in enumerate(self.sub_policies):
@@ -326,7 +328,7 @@ class HierarchicalPolicy(PolicyModule):
                 theta[rows] = opt.sample(pf, gen)[rows]
             else:  # unchosen option: only advance the generator as its sample would have
                 b = opt.bias
-                torch.randn((N, self.action_dim), generator=gen, dtype=b.dtype, device=b.device)
+                normal((N, self.action_dim), gen, b.dtype, b.device)
         return theta, option
 
     def _population_sample(
@@ -340,14 +342,9 @@ class HierarchicalPolicy(PolicyModule):
             empty = torch.zeros(S, 0, dtype=torch.long, device=pf.device)
             return pf.new_empty((S, 0, self.action_dim), dtype=dtype), empty
         if isinstance(gen, list):
-            option = torch.stack(
-                [
-                    torch.multinomial(p, 1, generator=g).squeeze(-1)
-                    for p, g in zip(probs, gen, strict=True)
-                ]
-            )
+            option = torch.stack([categorical(p, g) for p, g in zip(probs, gen, strict=True)])
         else:
-            option = torch.multinomial(probs.reshape(S * N, -1), 1, generator=gen).view(S, N)
+            option = categorical(probs, gen)
         theta = pf.new_zeros((S, N, self.action_dim), dtype=dtype)
         for o, opt in enumerate(self.sub_policies):
             theta = torch.where((option == o)[..., None], opt.sample(pf, gen), theta)

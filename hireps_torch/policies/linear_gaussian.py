@@ -9,6 +9,7 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import Tensor, nn
 
+from hireps_torch._linalg import min_norm_lstsq
 from hireps_torch.checks import (
     as_float,
     as_float_tensor,
@@ -58,19 +59,19 @@ def weighted_least_squares(
         sum_i w_i ||y_i - W x_i - b||^2 + ridge ||W||^2.
     """
     x = inputs.to(torch.float64)
-    X = torch.cat([torch.ones(*x.shape[:-1], 1, dtype=torch.float64), x], -1)
+    X = torch.cat([x.new_ones(*x.shape[:-1], 1), x], -1)
     Y = targets.to(torch.float64)
     w = weights.to(torch.float64)
     A = X.mT @ (w[..., None] * X)
     if ridge > 0 and X.shape[-1] > 1:
-        reg = ridge * w.sum(-1, keepdim=True) * torch.ones(X.shape[-1], dtype=torch.float64)
+        reg = ridge * w.sum(-1, keepdim=True) * X.new_ones(X.shape[-1])
         reg[..., 0] = 0.0
         A = A + torch.diag_embed(reg)
     B = X.mT @ (w[..., None] * Y)
     beta, info = torch.linalg.solve_ex(A, B)
     singular = info != 0
     if bool(singular.any()):  # fewer effective samples than regressors: least-norm fit
-        least_norm = torch.linalg.lstsq(A[singular], B[singular], driver="gelsd").solution
+        least_norm = min_norm_lstsq(A[singular], B[singular])
         beta = beta.clone()
         beta[singular] = least_norm
     return beta[..., 1:, :].mT.contiguous(), beta[..., 0, :].contiguous()
@@ -91,7 +92,7 @@ def power_of_two_scaled(w: Tensor, population: bool = False) -> Tensor:
     top = float(w.max())
     if 2.0**-200 <= top <= 2.0**200:
         return w
-    return torch.ldexp(w, torch.tensor(-math.frexp(top)[1], dtype=torch.int64))
+    return torch.ldexp(w, torch.tensor(-math.frexp(top)[1], dtype=torch.int64, device=w.device))
 
 
 def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
@@ -181,13 +182,13 @@ def map_linear_regression(
     s = (w[..., None] * (x - m[..., None, :]) ** 2).sum(-2).sqrt()
     magnitude = x.abs().amax(-2) if x.shape[-2] else torch.zeros_like(m)
     s = torch.where(s > 1e-12 * magnitude, s, torch.ones_like(s))
-    ones = torch.ones(*x.shape[:-1], 1, dtype=torch.float64)
+    ones = x.new_ones(*x.shape[:-1], 1, dtype=torch.float64)
     Z = torch.cat([ones, (x - m[..., None, :]) / s[..., None, :]], -1)
     W0 = prior_weight.to(torch.float64)
     centre = prior_bias.to(torch.float64) + _matvec(W0, m)
     beta0 = torch.cat([centre[..., None, :], (W0 * s[..., None, :]).mT], -2)
     lam = (prior_samples / n_eff)[..., None]
-    diag = lam * torch.ones(Z.shape[-1], dtype=torch.float64)
+    diag = lam * Z.new_ones(Z.shape[-1])
     diag[..., 1:] = diag[..., 1:] + ridge / s**2
     A = Z.mT @ (w[..., None] * Z) + torch.diag_embed(diag)
     B = Z.mT @ (w[..., None] * y) + lam[..., None] * beta0
@@ -481,7 +482,7 @@ class LinearGaussian(PolicyModule):
         """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""
         cov = cov.to(torch.float64)
         cov = 0.5 * (cov + cov.mT)
-        root = self.min_variance.sqrt()
+        root = self.min_variance.to(cov.device).sqrt()
         scale = root[:, None] * root[None, :]
         scaled = cov / scale
         if not bool(torch.isfinite(scaled).all()):

@@ -3,9 +3,10 @@
 1. Simulation cost: ``--timing-episodes`` episodes of the demo shot with exploration noise,
    stepped through the gymnasium env in this process: seconds per shot and per episode.
 2. Learning: ``train.py hockey-sequential`` and ``train.py hockey-episodic`` (1500 episodes,
-   30 per iteration, 5 options) for ``--seeds`` seeds each; per run the final average reward
-   (mean episode reward over the last iteration's 30 samples), the share of those episodes
-   ending in zone 3, and the wall time.
+   30 per iteration, 5 options) for ``--seeds`` seeds each; per run the last iteration's
+   average reward (mean episode reward over its 30 samples), the final policy's average
+   reward on 30 fresh episodes with its exploration and without (noise-free), the share of
+   the last iteration's episodes ending in zone 3, and the wall time.
    Also the real robot's setting (Fig 15b, ``train.py hockey-fixed-start``: a fixed start,
    10 episodes per update, 300 episodes) for the same seeds.
 3. Writes to ``--out``: ``learning_curve.png`` (average reward per episode against episodes,
@@ -24,6 +25,7 @@ processes or as Ray tasks; ``--resume DIR`` finishes an interrupted benchmark.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 
 os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # before torch: see experiments.workers
@@ -194,10 +196,13 @@ def main() -> None:
     )
 
     def report(run: SweepRun, summary: dict[str, Any]) -> None:
+        exploring = summary.get("final_policy_average_reward", math.nan)
+        noise_free = summary.get("eval_average_reward", math.nan)
         print(
-            f"  {run.name:10s} seed {run.seed}: final average reward "
-            f"{summary['final_average_reward']:5.2f}, zone 3 share "
-            f"{summary['zone3_share']:.2f}, {summary['wall_seconds']:.0f} s",
+            f"  {run.name:10s} seed {run.seed}: last iteration "
+            f"{summary['final_average_reward']:5.2f}, final policy {exploring:5.2f} "
+            f"(noise-free {noise_free:5.2f}), zone 3 share {summary['zone3_share']:.2f}, "
+            f"{summary['wall_seconds']:.0f} s",
             flush=True,
         )
 
@@ -219,23 +224,34 @@ def main() -> None:
         )
     total = time.perf_counter() - t_all
     lines = [
-        f"| variant | seeds | final average reward ({args.episodes} episodes) | zone 3 share "
-        "| s/run (mean, max) |",
-        "|---|--:|--:|--:|--:|",
+        "| variant | seeds | last iteration's average reward | final policy, exploring | "
+        "final policy, noise-free | zone 3 share (last iteration) | s/run (mean, max) |",
+        "|---|--:|--:|--:|--:|--:|--:|",
     ]
     for name, runs in results.items():
         walls = [r["wall_seconds"] for r in runs]
         lines.append(
             f"| {name} | {len(runs)} | "
             f"{mean_std([r['final_average_reward'] for r in runs], 2)} | "
+            f"{mean_std([r.get('final_policy_average_reward', math.nan) for r in runs], 2)} | "
+            f"{mean_std([r.get('eval_average_reward', math.nan) for r in runs], 2)} | "
             f"{mean_std([r['zone3_share'] for r in runs], 2)} | "
             f"{statistics.mean(walls):.0f}, {max(walls):.0f} |"
         )
     table = "\n".join(lines)
     print(table)
+    print(
+        "(final policy: the policy after the last update on episodes_per_iteration fresh "
+        "episodes, with its exploration and without)"
+    )
     for name, runs in results.items():
-        finals = [r["final_average_reward"] for r in runs]
-        print(f"{name}: final average reward per seed " + ", ".join(f"{f:.2f}" for f in finals))
+        for label, key in (
+            ("last iteration", "final_average_reward"),
+            ("final policy, exploring", "final_policy_average_reward"),
+            ("final policy, noise-free", "eval_average_reward"),
+        ):
+            values = ", ".join(f"{r.get(key, math.nan):.2f}" for r in runs)
+            print(f"{name}: {label} per seed {values}")
     print(f"all runs: {total:.0f} s")
     plot_curves({k: results[k] for k in ("sequential", "episodic")}, out)
     plot_curves(

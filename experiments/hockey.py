@@ -110,6 +110,14 @@ class HockeyConfig(RunOptions):
     in distance); position, its (x, y), where slopes fitted at the start mean over-turn for a
     target further out (sequential, 5 seeds: 1.11 with position, 2.29 with aim;
     benchmarks/README.md)."""
+    final_eval_episodes: int | None = None
+    """Episodes on which the final policy is evaluated after training (None: one iteration's
+    worth, episodes_per_iteration; 0: none), both noise-free (``eval_average_reward`` in
+    summary.json) and with its exploration (``final_policy_average_reward``, the paper's
+    "average reward", of the final policy), from starts that no training episode used. The
+    last iteration's average alone is one draw of 30 episodes of the policy before the last
+    update (seed 0 of the defaults: 1.76 there, 2.57 for the final policy on 60 fresh
+    episodes; benchmarks/README.md)."""
     aim_slopes: bool = True
     """Start every option's mean with the slopes of the kinematic aim mapping
     (environments/hockey/aim.py): the demo swing turned about the control puck's spot toward
@@ -248,6 +256,7 @@ def _check(cfg: HockeyConfig) -> int:
             "start_std",
             "floor_friction",
             "puck_restitution",
+            "final_eval_episodes",
         ),
     )
     B, W = cfg.episodes_per_iteration, cfg.workers
@@ -305,6 +314,48 @@ def _update(algo: Algorithm, K: int, zones: tuple[float, float, float, float]) -
         return {**_hockey_rows(r, final, zones), **scalars, **steps}
 
     return update
+
+
+EVAL_FIRST_EPISODE = 10**9
+"""Index of the first evaluation episode: its start and noise come from ``(seed, index)``
+(:func:`~experiments.workers.episode_seeds`), and no run plays a billion training episodes."""
+
+
+def evaluate_final_policy(
+    cfg: HockeyConfig, policies: list[Any], params: Any, n_episodes: int
+) -> dict[str, float]:
+    """The final ``policies`` on ``n_episodes`` (>= 1) fresh episodes, in this process: the
+    noise-free policy (the mean of the most probable option per shot) and the policy with its
+    exploration on the same starts. Returns ``eval_average_reward``,
+    ``eval_zone3_share``, ``eval_zone_reward`` (noise-free) and ``final_policy_average_reward``
+    (exploring)."""
+    from environments.hockey import ENV_ID, EPISODIC_ENV_ID
+    from experiments.workers import play_episodes
+    from hireps_torch.rollout import episodes, policy_module, time_indexed_module
+
+    sequential = isinstance(cfg, HockeySequentialConfig)
+    env = _make_env(ENV_ID if sequential else EPISODIC_ENV_ID, sequential, params)
+    K = len(policies)
+    indices = range(EVAL_FIRST_EPISODE, EVAL_FIRST_EPISODE + n_episodes)
+    out: dict[str, float] = {}
+    try:
+        for deterministic in (True, False):
+            actor = (
+                time_indexed_module(policies, deterministic)
+                if sequential
+                else policy_module(policies[0], deterministic)
+            )
+            _, _, r, final = episodes(play_episodes(env, actor, cfg.seed, indices, K), K)
+            rows = _hockey_rows(r, final, params.zones)
+            if deterministic:
+                out["eval_average_reward"] = rows["average_reward"]
+                out["eval_zone3_share"] = rows["zone3_share"]
+                out["eval_zone_reward"] = rows["zone_reward"]
+            else:
+                out["final_policy_average_reward"] = rows["average_reward"]
+    finally:
+        env.close()
+    return out
 
 
 def run(cfg: HockeyConfig) -> dict[str, Any]:
@@ -366,6 +417,9 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     )
     last = session.rows[-1]
     shots = iterations * B * params.n_shots
+    elapsed = session.writer.elapsed()
+    n_eval = B if cfg.final_eval_episodes is None else cfg.final_eval_episodes
+    evaluation = evaluate_final_policy(cfg, policies, params, n_eval) if n_eval > 0 else {}
     return finish_run(
         session,
         curve=("episodes", ["average_reward"]),
@@ -382,6 +436,7 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
             "zone3_share": last["zone3_share"],
             "final_zone_reward": last["zone_reward"],
             "n_active_options": [int(p.active.sum()) for p in policies],
-            "seconds_per_shot": session.writer.elapsed() / shots,
+            "seconds_per_shot": elapsed / shots,
+            **evaluation,
         },
     )

@@ -219,14 +219,17 @@ def test_hockey_same_seed_same_run(tmp_path):
             progress=False,
             run_dir=tmp_path / name,
         )
-        hockey.run(cfg)
-        return (tmp_path / name / "metrics.csv").read_text()
+        summary = hockey.run(cfg)
+        return (tmp_path / name / "metrics.csv").read_text(), summary
 
     seq = hockey.HockeySequentialConfig
-    a, b, c = run("a", seq, 1), run("b", seq, 1), run("c", seq, 2)
+    (a, sa), (b, sb), (c, _) = run("a", seq, 1), run("b", seq, 1), run("c", seq, 2)
     assert a == b and a != c
-    epi = run("e", hockey.HockeyEpisodicConfig, 1)
-    assert "average_reward" in epi
+    # the final policy's evaluation (3 fresh episodes each way) is part of the same run
+    keys = ("eval_average_reward", "eval_zone3_share", "final_policy_average_reward")
+    assert all(sa[k] == sb[k] and -10.0 < sa[k] <= 3.0 for k in keys)
+    epi, se = run("e", hockey.HockeyEpisodicConfig, 1)
+    assert "average_reward" in epi and "eval_average_reward" in se
 
 
 def test_run_hockey_refuses_the_base_config(tmp_path):
@@ -372,6 +375,7 @@ def test_wandb_logger_runs_offline_without_an_account(tmp_path, monkeypatch):
         ("hockey-sequential", {"init_std_velocity": float("inf")}, "init_std_velocity"),
         ("hockey-episodic", {"covariance_prior": -1.0}, "covariance_prior"),
         ("hockey-sequential", {"mean_prior": -1.0}, "mean_prior (--mean-prior) must be"),
+        ("hockey-episodic", {"final_eval_episodes": -1}, "final_eval_episodes (--final-eval-"),
         ("bimodal", {"checkpoint_every": 0}, "checkpoint_every must be >= 1, got 0"),
         ("bimodal", {"seed": 2**70}, "seed must be an integer in"),
     ],

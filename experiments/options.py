@@ -169,6 +169,11 @@ def _check_type(name: str, value: Any, hint: Any) -> None:
         raise option_error(name, value, want[hint], TypeError)
 
 
+_SAVED_ONLY_IF_SET = {"device": "cpu", "final_eval_episodes": None}
+"""Options left out of ``config.json`` at their default, so that the run directories written
+before they existed still compare equal (resume, sweeps)."""
+
+
 def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
     """``config.json``'s content: the experiment's name and every option, JSON-ready
     (``seeds`` only in a population's and ``device`` only where it is not the CPU: an
@@ -176,8 +181,9 @@ def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
     options = dataclasses.asdict(cfg)
     if options.get("seeds", "") is None:
         del options["seeds"]
-    if options.get("device", "") == "cpu":  # as before --device existed
-        del options["device"]
+    for key, default in _SAVED_ONLY_IF_SET.items():  # as before these options existed
+        if key in options and options[key] == default:
+            del options[key]
     out: dict[str, Any] = jsonable({"experiment": experiment, **options})
     return out
 

@@ -70,7 +70,9 @@ class Members:
 
     def member_config(self, cfg: RunOptions, seed: int) -> Any:
         """The config of the member with ``seed``: ``cfg`` with that seed, its own run
-        directory and no ``seeds`` (what ``train.py E --seed S`` would write)."""
+        directory and no ``seeds`` (what ``train.py E --seed S`` would write; a ``device``
+        other than the CPU stays in it, and such a member is run again with ``--seeds S
+        --device D``)."""
         return dataclasses.replace(cfg, seed=seed, seeds=None, run_dir=self.root / f"seed{seed}")
 
     def log(self, rows: Sequence[Mapping[str, Any]]) -> None:
@@ -212,7 +214,7 @@ def run_population(experiment: str, cfg: Any, populations: Mapping[str, Populati
             f"(run its seeds with train.py sweep --experiment {experiment} --seeds {cfg.seeds})"
         )
     members = None
-    if len(seeds) == 1 and cfg.device == "cpu":  # the ordinary run
+    if len(seeds) == 1 and torch.device(cfg.device).type == "cpu":  # the ordinary run
         root = Path(cfg.run_dir) if cfg.run_dir is not None else default_run_dir(experiment)
         one = dataclasses.replace(cfg, seed=seeds[0], seeds=None, run_dir=root / f"seed{seeds[0]}")
         summaries = [EXPERIMENTS[experiment][1](one)]

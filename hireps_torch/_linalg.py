@@ -10,10 +10,12 @@ __all__ = ["min_norm_lstsq"]
 
 def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
     """Minimum-norm least-squares solutions X (..., P, Q) of A (..., M, P) X = B (..., M, Q):
-    LAPACK's gelsd on the CPU, the pseudo-inverse (an SVD, relative cut 1e-12) elsewhere,
-    where gelsd is not available (CUDA's lstsq solves only full-rank systems)."""
+    LAPACK's gelsd on the CPU, elsewhere (CUDA's lstsq solves only full-rank systems) the
+    pseudo-inverse with gelsd's default cut (singular values below eps max(M, P) of the
+    largest are dropped), so that both devices find the same rank."""
     if A.device.type == "cpu":
         x: Tensor = torch.linalg.lstsq(A, B, driver="gelsd").solution
     else:
-        x = torch.linalg.pinv(A, rtol=1e-12) @ B
+        cut = torch.finfo(A.dtype).eps * max(A.shape[-2], A.shape[-1])
+        x = torch.linalg.pinv(A, rtol=cut) @ B
     return x

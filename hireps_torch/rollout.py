@@ -124,8 +124,8 @@ class TimeIndexedActor(nn.Module):
         if bool(((k < 0) | (k >= K)).any()):
             raise ValueError(f"step_count must be in [0, {K}), got {torch.unique(k).tolist()}")
         dim = int(self.policies[0].action_dim)  # type: ignore[arg-type]
-        a = torch.zeros(s.shape[0], dim, dtype=torch.float64)
-        o = torch.zeros(s.shape[0], dtype=torch.long)
+        a = s.new_zeros(s.shape[0], dim)
+        o = torch.zeros(s.shape[0], dtype=torch.long, device=s.device)
         for step in torch.unique(k).tolist():
             rows = k == step
             pol = self.policies[step]

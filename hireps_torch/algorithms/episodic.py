@@ -125,6 +125,7 @@ class EpisodicHiREPS(HiREPSBase):
         self.context_features = context_features or (
             QuadraticFeatures(context_dim) if context_dim > 0 else None
         )
+        self.to(self.device)  # the feature maps where the policy is
 
     @classmethod
     def create(

@@ -123,13 +123,11 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 f"features take S = {S}"
             )
         self.policy = policy
-        self.value_features = value_features
+        self.value_features = value_features.to(self.device)  # where the policy is
         per_member = policy.population is not None and getattr(initial_states, "dim", int)() == 3
         s0 = self._states(initial_states, "initial_states", population=per_member)
         self.initial_features = value_features(s0).mean(-2)
-        self.value_weights = torch.zeros(
-            *policy.batch_shape, value_features.out_features, dtype=torch.float64
-        )
+        self.value_weights = s0.new_zeros(*policy.batch_shape, value_features.out_features)
 
     @classmethod
     def create(
@@ -240,12 +238,17 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         term = None
         if terminated is not None:
             try:
-                term = torch.as_tensor(terminated, device=self.device)
+                term = torch.as_tensor(terminated)
             except (TypeError, ValueError, RuntimeError, NotImplementedError):
                 raise TypeError(
                     f"terminated must be a bool tensor of shape ({N},), got "
                     f"{type(terminated).__name__} {terminated!r:.60}"
                 ) from None
+            if term.device != self.device:
+                raise ValueError(
+                    f"terminated is on device {term.device} but the model is on {self.device}; "
+                    f"move one of them (e.g. terminated.to({str(self.device)!r}))"
+                )
             if term.shape != (*lead, N) or term.dtype != torch.bool:
                 raise ValueError(
                     f"terminated must be a bool tensor of shape {(*lead, N)}, got {term.dtype} "

@@ -177,6 +177,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         self.value_weights = torch.zeros(
             *policies[0].batch_shape, K, value_features.out_features, dtype=torch.float64
         )
+        self.to(self.device)  # every step's policy and the value features where step 0's is
 
     @classmethod
     def create(

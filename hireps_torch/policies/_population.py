@@ -87,12 +87,10 @@ def normal(
     generator draws on its own device (a CPU generator for a policy on a GPU: the draws, and
     so a seed's samples, are those of the same run on the CPU) and the draws are moved."""
     if isinstance(generator, list):
-        return torch.stack(
-            [
-                torch.randn(shape[1:], generator=g, dtype=dtype, device=g.device).to(device)
-                for g in generator
-            ]
-        )
+        draws = [
+            torch.randn(shape[1:], generator=g, dtype=dtype, device=g.device) for g in generator
+        ]
+        return torch.stack(draws).to(device)  # one transfer
     where = device if generator is None else generator.device
     return torch.randn(shape, generator=generator, dtype=dtype, device=where).to(device)
 

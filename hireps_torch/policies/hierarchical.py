@@ -342,7 +342,9 @@ class HierarchicalPolicy(PolicyModule):
             empty = torch.zeros(S, 0, dtype=torch.long, device=pf.device)
             return pf.new_empty((S, 0, self.action_dim), dtype=dtype), empty
         if isinstance(gen, list):
-            option = torch.stack([categorical(p, g) for p, g in zip(probs, gen, strict=True)])
+            host = probs.to(gen[0].device)  # one transfer; each member draws with its own
+            drawn = [categorical(p, g) for p, g in zip(host, gen, strict=True)]
+            option = torch.stack(drawn).to(probs.device)
         else:
             option = categorical(probs, gen)
         theta = pf.new_zeros((S, N, self.action_dim), dtype=dtype)

@@ -51,6 +51,7 @@ from benchmarks._common import (  # noqa: E402
 from experiments.hockey import HockeySequentialConfig  # noqa: E402
 from experiments.rundir import atomic_write  # noqa: E402
 from experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
+from hireps_torch.algorithms import TimeIndexedHiREPS  # noqa: E402
 
 
 def time_simulation(n_episodes: int) -> dict[str, float]:
@@ -115,15 +116,15 @@ def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
 
     from environments.hockey import RobotHockeyEnv
     from experiments.checkpoint import saved_config
-    from hireps_torch.algorithms import TimeIndexedHiREPS
+    from experiments.hockey import _make_algorithm, hockey_params
 
     ckpt = torch.load(run_dir / "checkpoint.pt")
     cfg = saved_config(HockeySequentialConfig, "hockey-sequential", run_dir)
-    env = RobotHockeyEnv(render_mode="rgb_array", frame_every=12)
+    params = hockey_params(cfg)  # the run's task, and its policy as the run built it
+    env = RobotHockeyEnv(params, render_mode="rgb_array", frame_every=12)
     demo = torch.as_tensor(env.demo_action(), dtype=torch.float64)
-    algo = TimeIndexedHiREPS.create(
-        env.params.n_shots, 14, 2, n_options=cfg.n_options, init_mean=demo, seed=cfg.seed
-    )
+    algo = _make_algorithm(cfg, env.params.n_shots, demo, params)
+    assert isinstance(algo, TimeIndexedHiREPS)
     algo.load_state_dict(ckpt["algorithm"])
     obs, _ = env.reset(seed=seed)
     frames, strip, total, zone = [env.render()], [env.render()], 0.0, 0

@@ -48,6 +48,7 @@ from benchmarks._common import (  # noqa: E402
     start_benchmark,
     write_results,
 )
+from environments.hockey import ENV_ID, demo_action  # noqa: E402
 from experiments.hockey import HockeySequentialConfig  # noqa: E402
 from experiments.rundir import atomic_write  # noqa: E402
 from experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
@@ -107,6 +108,40 @@ def plot_curves(
     plt.close(fig)
 
 
+def load_sequential(run_dir: Path) -> tuple[Any, Any]:
+    """A finished sequential run's config and algorithm, built as the run built it."""
+    from experiments.checkpoint import saved_config
+    from experiments.hockey import _make_algorithm, hockey_params
+
+    cfg = saved_config(HockeySequentialConfig, "hockey-sequential", run_dir)
+    params = hockey_params(cfg)
+    demo = torch.as_tensor(demo_action(params), dtype=torch.float64)
+    algo = _make_algorithm(cfg, params.n_shots, demo, params)
+    assert isinstance(algo, TimeIndexedHiREPS)
+    algo.load_state_dict(torch.load(run_dir / "checkpoint.pt", weights_only=True)["algorithm"])
+    return cfg, algo
+
+
+def describe_strategy(run_dir: Path, n_episodes: int = 10) -> list[list[float]]:
+    """The learned sequential policy's shots, noise-free, on ``n_episodes`` fresh starts: per
+    episode the target's distance from the robot at the start and after each shot (m)."""
+    from experiments.hockey import _make_env, hockey_params
+    from experiments.workers import play_episodes
+    from hireps_torch.rollout import episodes, time_indexed_module
+
+    cfg, algo = load_sequential(run_dir)
+    env = _make_env(ENV_ID, True, hockey_params(cfg))
+    try:
+        actor = time_indexed_module(list(algo.policies), deterministic=True)
+        first = 2 * 10**9  # starts that neither training nor the final evaluation used
+        batch = play_episodes(env, actor, cfg.seed, range(first, first + n_episodes), 3)
+    finally:
+        env.close()
+    states, _, _, final = episodes(batch, 3)
+    dist = torch.cat([states.norm(dim=-1), final.norm(dim=-1)[:, None]], -1)
+    return [[round(float(d), 2) for d in row] for row in dist]
+
+
 def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
     """Play one noise-free episode of a learned sequential policy; write a strip and a GIF."""
     import matplotlib
@@ -115,17 +150,10 @@ def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
     import matplotlib.pyplot as plt
 
     from environments.hockey import RobotHockeyEnv
-    from experiments.checkpoint import saved_config
-    from experiments.hockey import _make_algorithm, hockey_params
+    from experiments.hockey import hockey_params
 
-    ckpt = torch.load(run_dir / "checkpoint.pt")
-    cfg = saved_config(HockeySequentialConfig, "hockey-sequential", run_dir)
-    params = hockey_params(cfg)  # the run's task, and its policy as the run built it
-    env = RobotHockeyEnv(params, render_mode="rgb_array", frame_every=12)
-    demo = torch.as_tensor(env.demo_action(), dtype=torch.float64)
-    algo = _make_algorithm(cfg, env.params.n_shots, demo, params)
-    assert isinstance(algo, TimeIndexedHiREPS)
-    algo.load_state_dict(ckpt["algorithm"])
+    cfg, algo = load_sequential(run_dir)  # the run's policy, and its task below
+    env = RobotHockeyEnv(hockey_params(cfg), render_mode="rgb_array", frame_every=12)
     obs, _ = env.reset(seed=seed)
     frames, strip, total, zone = [env.render()], [env.render()], 0.0, 0
     for k in range(env.params.n_shots):
@@ -263,6 +291,15 @@ def main() -> None:
     )
     shown = record_episode(Path(results["sequential"][0]["run_dir"]), out)
     print(f"recorded episode (sequential, seed 0): {shown}")
+    strategy = {}
+    for r in results["sequential"]:
+        strategy[r["seed"]] = describe_strategy(Path(r["run_dir"]))
+        print(f"sequential seed {r['seed']}, noise-free, target distance (m) at start / after")
+        print(
+            "  shot 1 / shot 2 / shot 3: "
+            + "; ".join(" / ".join(map(str, row)) for row in strategy[r["seed"]])
+        )
+    shown = {**shown, "strategy": strategy}
     write_results(out, {"timing": timing, "runs": results, "episode": shown}, total, table)
 
 

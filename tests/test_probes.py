@@ -104,7 +104,7 @@ DUAL_PROBES = {
     "meta returns": (lambda: solve_episodic_dual(R.to("meta"), epsilon=0.5), "returns is a meta"),
     "meta log_resp": (
         lambda: solve_episodic_dual(R, epsilon=0.5, log_responsibilities=LR.to("meta")),
-        "log_responsibilities is a meta",
+        "log_responsibilities is on device meta but the other inputs are on cpu",
     ),
     "meta R generic": (
         lambda: solve_reps_dual(R[None].to("meta"), LR[None], 0.5),
@@ -522,7 +522,7 @@ IH_PROBES = {
     ),
     "terminated meta": (
         lambda: IH.update(_s, _a, _r, _s + 0.1, torch.zeros(20, dtype=torch.bool, device="meta")),
-        "terminated must be a bool tensor",
+        "terminated is on device meta but the model is on cpu",
     ),
     "terminated ints": (
         lambda: IH.update(_s, _a, _r, _s + 0.1, torch.zeros(20, dtype=torch.int64)),

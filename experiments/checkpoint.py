@@ -198,8 +198,13 @@ def saved_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
         raise ValueError(
             f"--resume {run_dir}: that run is a {data.get('experiment')!r} run, not {experiment!r}"
         )
+    from experiments.options import ABSENT_MEANS
+
     fields = {f.name for f in dataclasses.fields(config_cls)}
     values = {k: v for k, v in data.items() if k in fields}
+    for key, before in ABSENT_MEANS.items():  # left out of config.json at that value
+        if key in fields and key not in data:
+            values[key] = before
     # the run continues where it is now: a moved or copied run directory, or one named by
     # another (relative / absolute) path, is resumed in place (run_dir is a run-only option)
     values["run_dir"] = None

@@ -169,9 +169,17 @@ def _check_type(name: str, value: Any, hint: Any) -> None:
         raise option_error(name, value, want[hint], TypeError)
 
 
-_SAVED_ONLY_IF_SET = {"device": "cpu", "final_eval_episodes": None}
-"""Options left out of ``config.json`` at their default, so that the run directories written
-before they existed still compare equal (resume, sweeps)."""
+ABSENT_MEANS = {
+    "device": "cpu",
+    "final_eval_episodes": None,
+    "exploration_floor_end": None,
+    "option_goal_offset": False,
+}
+"""Options added after run directories were first written, with the value that reproduces
+the runs from before they existed. ``config.json`` leaves an option out at that value, so old
+and new run directories compare equal (resume, sweeps), and an old run directory without the
+option is resumed with it (:func:`experiments.checkpoint.saved_config`), even where the
+default has changed since (``option_goal_offset``)."""
 
 
 def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
@@ -181,8 +189,8 @@ def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
     options = dataclasses.asdict(cfg)
     if options.get("seeds", "") is None:
         del options["seeds"]
-    for key, default in _SAVED_ONLY_IF_SET.items():  # as before these options existed
-        if key in options and options[key] == default:
+    for key, before in ABSENT_MEANS.items():  # as before these options existed
+        if key in options and options[key] == before:
             del options[key]
     out: dict[str, Any] = jsonable({"experiment": experiment, **options})
     return out

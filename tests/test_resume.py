@@ -155,6 +155,20 @@ def test_interrupted_and_resumed_run_equals_the_uninterrupted_run(tmp_path, name
     assert_same_run(run, tmp_path / "full")
 
 
+def test_a_ball_on_beam_run_from_before_option_goal_offset_resumes_as_it_was(tmp_path):
+    """A run with options linear in the position (the behaviour before option_goal_offset
+    existed, whose config.json has no such key) resumed with a bare --resume ends as the
+    uninterrupted run: it is not switched to today's default."""
+    options = {"episodes": 15, "eval_episodes": 2, "seed": 3}
+    in_process("ball-on-beam", tmp_path / "full", option_goal_offset=False, **options)
+    run = tmp_path / "run"
+    code, err = interrupt(["ball-on-beam", *cli(options), "--no-option-goal-offset"], run, 2)
+    assert code == 130, err
+    assert "option_goal_offset" not in json.loads((run / "config.json").read_text())
+    resume_in_process("ball-on-beam", run)
+    assert_same_run(run, tmp_path / "full")
+
+
 def test_sigterm_with_sparse_checkpoints_resumes_from_the_last_iteration(tmp_path):
     options = {"episodes": 3000, "samples_per_iteration": 100, "seed": 2}
     in_process("bimodal", tmp_path / "full", **options)

@@ -232,6 +232,58 @@ def test_hockey_same_seed_same_run(tmp_path):
     assert "average_reward" in epi and "eval_average_reward" in se
 
 
+def test_hockey_exploration_floor_moves_linearly_to_its_end_value():
+    """The options' variance floor is (f std)^2 with f going from exploration_floor at the
+    first update to exploration_floor_end at the last, linearly; None keeps it constant; it
+    never goes below min_variance."""
+    from experiments.hockey import HockeySequentialConfig, variance_floor
+
+    std = torch.tensor([0.02, 0.3], dtype=torch.float64)
+    cfg = HockeySequentialConfig(exploration_floor=0.25, exploration_floor_end=0.1)
+    first, mid, last = (variance_floor(cfg, std, i, 51) for i in (0, 25, 50))
+    torch.testing.assert_close(first, (0.25 * std) ** 2)
+    torch.testing.assert_close(mid, (0.175 * std) ** 2)
+    torch.testing.assert_close(last, (0.1 * std) ** 2)
+    torch.testing.assert_close(variance_floor(cfg, std, 99, 51), last)  # past the end: held
+    const = HockeySequentialConfig(exploration_floor=0.25, exploration_floor_end=None)
+    torch.testing.assert_close(variance_floor(const, std, 50, 51), first)
+    low = HockeySequentialConfig(exploration_floor=0.0, exploration_floor_end=0.0)
+    torch.testing.assert_close(
+        variance_floor(low, std, 0, 51), torch.full((2,), 1e-6, dtype=torch.float64)
+    )
+
+
+def test_hockey_update_sets_the_floor_of_the_coming_update_before_learning(monkeypatch):
+    """_update puts floor(algo.iteration) on every option of every shot's policy before
+    algo.learn fits them (so a resumed run continues the schedule from its checkpoint)."""
+    import types
+
+    import hireps_torch.rollout
+    from experiments import hockey
+
+    N, K = 4, 3
+    fake = (torch.zeros(N, K, 2), torch.zeros(N, K, 14), torch.zeros(N, K), torch.zeros(N, 2))
+    monkeypatch.setattr(hireps_torch.rollout, "episodes", lambda batch, k: fake)
+    options = [types.SimpleNamespace(min_variance=torch.ones(14)) for _ in range(2 * K)]
+    seen = []
+
+    class Algo:
+        iteration = 7
+        policies = [
+            types.SimpleNamespace(sub_policies=options[2 * k : 2 * k + 2]) for k in range(K)
+        ]
+
+        def learn(self, experience):
+            seen.append([o.min_variance.clone() for o in options])
+            return {}
+
+    update = hockey._update(Algo(), K, (0.0, 1.0, 2.0, 3.0), lambda i: torch.full((14,), 0.01 * i))
+    update(None)
+    assert len(seen) == 1
+    for v in seen[0]:
+        torch.testing.assert_close(v, torch.full((14,), 0.07))
+
+
 def test_run_hockey_refuses_the_base_config(tmp_path):
     from experiments import hockey
 
@@ -423,8 +475,9 @@ def test_ball_on_beam_goal_bowl_features_are_the_quadratic_form_around_the_close
     )
     f = phi(s)
     assert f.shape == (5, 3)
-    torch.testing.assert_close(f[0], torch.zeros(3, dtype=torch.float64))
-    torch.testing.assert_close(f[1], torch.zeros(3, dtype=torch.float64))
+    # exactly: the goal is 0.1 in float64, not a float32 0.1 (1.5e-9 off)
+    torch.testing.assert_close(f[0], torch.zeros(3, dtype=torch.float64), rtol=0, atol=0)
+    torch.testing.assert_close(f[1], torch.zeros(3, dtype=torch.float64), rtol=0, atol=0)
     e, v = 0.2 / 0.5, 0.5 / 2.0  # 0.3 m is 0.2 m right of the goal at +0.1
     torch.testing.assert_close(f[2], torch.tensor([e * e, e * v, v * v], dtype=torch.float64))
     torch.testing.assert_close(f[3], f[2])  # the mirrored state
@@ -432,6 +485,55 @@ def test_ball_on_beam_goal_bowl_features_are_the_quadratic_form_around_the_close
     torch.testing.assert_close(f[4], torch.tensor([0.04, -0.2 * 0.5, 0.25], dtype=torch.float64))
     with pytest.raises(ValueError, match="max_velocity"):
         GoalBowlFeatures(BeamParams(), max_velocity=0.0)
+
+
+def test_ball_on_beam_goal_offset_features_are_the_state_seen_from_the_closer_goal():
+    """[x - g, x', alpha] with g the goal on the ball's side (+goal at x = 0): zero offset at
+    either goal, mirrored states give mirrored features; the default beam policy's options are
+    linear in them, --no-option-goal-offset in the state itself."""
+    from environments.ball_on_beam import BeamParams
+    from experiments.ball_on_beam import (
+        BallOnBeamConfig,
+        GoalOffsetFeatures,
+        build_ball_on_beam_policy,
+    )
+    from hireps_torch.features import IdentityFeatures
+
+    phi = GoalOffsetFeatures(BeamParams())
+    s = torch.tensor(
+        [[0.1, 0.2, 0.05], [-0.1, -0.2, -0.05], [0.45, 0.0, 0.0], [0.0, 0.3, 0.01]],
+        dtype=torch.float64,
+    )
+    f = phi(s)
+    want = torch.tensor(
+        [[0.0, 0.2, 0.05], [0.0, -0.2, -0.05], [0.35, 0.0, 0.0], [-0.1, 0.3, 0.01]],
+        dtype=torch.float64,
+    )
+    torch.testing.assert_close(f, want, rtol=0, atol=1e-15)
+    assert f.shape == (4, 3) and phi.out_features == 3
+    assert isinstance(
+        build_ball_on_beam_policy(BallOnBeamConfig()).policy_features, GoalOffsetFeatures
+    )
+    plain = build_ball_on_beam_policy(BallOnBeamConfig(option_goal_offset=False))
+    assert isinstance(plain.policy_features, IdentityFeatures)
+
+
+def test_old_ball_on_beam_run_directories_resume_with_options_linear_in_the_position(tmp_path):
+    """A config.json written before option_goal_offset existed (no such key) resumes with it
+    off, the behaviour of that time, although the default is now on; a new run saves it."""
+    import json
+
+    from experiments.ball_on_beam import BallOnBeamConfig
+    from experiments.checkpoint import saved_config
+    from experiments.options import config_dict
+
+    new = config_dict("ball_on_beam", BallOnBeamConfig())
+    assert new["option_goal_offset"] is True
+    old = config_dict("ball_on_beam", BallOnBeamConfig(option_goal_offset=False))
+    assert "option_goal_offset" not in old
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    cfg = saved_config(BallOnBeamConfig, "ball-on-beam", tmp_path)
+    assert cfg.option_goal_offset is False and cfg.resume == tmp_path
 
 
 def test_pendulum_evaluates_every_k_iterations_and_reports_the_first_success(tmp_path):

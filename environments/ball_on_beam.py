@@ -257,9 +257,16 @@ def sample_start(sides: Tensor, params: BeamParams, generator: torch.Generator |
 
 
 class BeamTask(BatchedTask):
-    """B beams for the adapters. Beam ``i``'s k-th episode is the ``(k B + i)``-th overall and
-    starts on the right when that number is even, so episodes alternate sides (a seed restarts
-    the count)."""
+    """B beams for the adapters. Episodes are numbered in the order they start (beams in index
+    order when several start together), and episode n starts on the right when n is even, so
+    the starts alternate sides: with B = 3, R L R in one iteration, L R L in the next. A start
+    drawn again before its beam took a decision (a reset right after a reset, as a collector
+    that resets at every iteration does after the end-of-episode reset) keeps its number and
+    side, with fresh noise. A seed restarts the numbering.
+
+    ``episodes`` (B,) holds each beam's current episode number (-1 before its first); the next
+    number is one past the largest.
+    """
 
     state_dim = 3
     action_name = "beam angle"
@@ -269,17 +276,21 @@ class BeamTask(BatchedTask):
     ) -> None:
         self.params = params
         self.action_limit = params.max_angle
-        self.episodes = torch.zeros(check_count("batch_size", batch, 1), dtype=torch.long)
+        self.episodes = torch.full((check_count("batch_size", batch, 1),), -1, dtype=torch.long)
         super().__init__(batch, seed, device)
 
     def seed(self, seed: int | None) -> None:
         super().seed(seed)
-        self.episodes.zero_()
+        self.episodes.fill_(-1)
 
     def start_states(self, mask: Tensor) -> Tensor:
-        index = self.episodes * self.batch + torch.arange(self.batch)
-        sides = torch.where(index % 2 == 0, 1.0, -1.0)
-        self.episodes = self.episodes + mask.long()
+        m = mask.reshape(-1).cpu()
+        played = self.t.cpu() > 0
+        new = m & ((self.episodes < 0) | played)
+        following = int(self.episodes.max()) + 1
+        numbers = following + torch.cumsum(new.long(), 0) - 1
+        self.episodes = torch.where(new, numbers, self.episodes)
+        sides = torch.where(self.episodes % 2 == 0, 1.0, -1.0)
         return sample_start(sides, self.params, self.gen)
 
     def transition(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:

@@ -167,10 +167,12 @@ class TaskPopulation:
         for s, task in enumerate(self.tasks):
             m = masks[s]
             if bool(m.any()):
+                task.t = self.t[s]  # the task sees which systems took a decision since starting
                 fresh = task.start_states(m).to(self.device, torch.float64)
                 md = m.to(self.device)
                 self.state[s] = torch.where(md[:, None], fresh, self.state[s])
                 self.t[s] = torch.where(md, 0, self.t[s])
+                task.t = self.t[s]
 
     def collect(self, act: Callable[[Tensor], Tensor], decisions: int) -> tuple[Tensor, ...]:
         """``decisions`` decisions of every system with ``act`` (states (S, B, dim), seen as

@@ -131,13 +131,53 @@ def test_a_falling_ball_ends_the_episode_with_the_penalty():
     assert term and not trunc
 
 
-def test_episodes_alternate_sides_in_the_batched_env_too():
+def test_episodes_alternate_sides_in_the_order_they_start():
+    """Episodes are numbered as they start, even numbers on the right: R L R, then L R L for
+    the next three; a reset before any decision keeps the numbers (fresh noise), a beam that
+    restarts alone takes the next number."""
     env = BallOnBeamBatchEnv(3, seed=0)
     first = env.reset()["state"][:, 0]
-    second = env.reset()["state"][:, 0]
+    again = env.reset()["state"][:, 0]  # nothing played: the same episodes 0, 1, 2
     assert torch.sign(first).tolist() == [1.0, -1.0, 1.0]
-    assert torch.sign(second).tolist() == [-1.0, 1.0, -1.0]
+    assert torch.sign(again).tolist() == [1.0, -1.0, 1.0]
+    assert not torch.equal(first, again)  # drawn again
     assert bool((first.abs() - 0.45).abs().max() < 0.05)
+    td = env.reset()
+    td["action"] = torch.zeros(3, 1)
+    env.step(td)  # a level beam: the balls stay put
+    second = env.reset()["state"][:, 0]  # episodes 3, 4, 5
+    assert torch.sign(second).tolist() == [-1.0, 1.0, -1.0]
+    td = env.reset()
+    td["action"] = torch.zeros(3, 1)
+    env.step(td)
+    td = env.reset(td.set("_reset", torch.tensor([[False], [True], [False]])))
+    assert env.task.episodes.tolist() == [3, 6, 5]
+    assert float(td["state"][1, 0]) > 0  # episode 6: right
+
+
+def test_a_collector_that_resets_every_iteration_alternates_sides():
+    """The ordinary run's collector (reset at each iteration after the end-of-episode reset)
+    starts iteration after iteration on R L R, L R L, R L R: the end-of-episode reset and the
+    iteration's reset count as one episode each beam, not two."""
+    from hireps_torch.rollout import make_collector
+
+    p = BeamParams()
+    B, T = 3, p.decisions_per_episode
+    collector = make_collector(
+        lambda: BallOnBeamBatchEnv(B, p, seed=1),
+        lambda td: td.set("action", torch.zeros(*td.batch_size, 1)),
+        frames_per_batch=B * T,
+        total_frames=3 * B * T,
+        reset_at_each_iter=True,
+        seed=1,
+    )
+    try:
+        firsts = [
+            torch.sign(batch["state"].reshape(B, T, 3)[:, 0, 0]).tolist() for batch in collector
+        ]
+    finally:
+        collector.shutdown()
+    assert firsts == [[1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, -1.0, 1.0]]
 
 
 def test_commands_beyond_the_limit_are_clipped_and_bad_actions_are_named():
@@ -198,3 +238,20 @@ def test_evaluation_tells_a_stabilising_controller_from_a_level_beam():
 def test_bad_counts_params_and_states_are_named(make, error, match):
     with pytest.raises(error, match=match):
         make()
+
+
+def test_a_population_of_beams_alternates_sides_over_iterations():
+    """TaskPopulation (population runs: a reset at each iteration after the end-of-episode
+    restarts) gives every member R L R, then L R L, as its ordinary run's collector."""
+    from environments.ball_on_beam import BeamTask
+    from experiments.population import TaskPopulation
+
+    p = BeamParams()
+    env = TaskPopulation([BeamTask(3, p, seed=1), BeamTask(3, p, seed=2)])
+    sides = []
+    for _ in range(3):
+        env.reset()
+        sides.append(torch.sign(env.state[..., 0]).tolist())
+        env.collect(lambda obs: torch.zeros(*obs.shape[:2], 1), p.decisions_per_episode)
+    r, l = [1.0, -1.0, 1.0], [-1.0, 1.0, -1.0]
+    assert sides == [[r, r], [l, l], [r, r]]

@@ -100,8 +100,9 @@ class BallOnBeamConfig(RunOptions):
     angle (:class:`GoalOffsetFeatures`) instead of its position: each option is a PD law that
     can rest at either goal. An option linear in x rests at one point for both start sides,
     and the gating did not learn to split the sides from 120 decisions per update (e.g. all
-    five options of a failing seed rested at the centre, between the goals). Seeds 0-89:
-    88/90 keep success at episode 30 against 78/90 with --no-option-goal-offset (see
+    five options of a failing seed rested at the centre, between the goals). Seeds 0-89 as
+    populations: 90/90 keep success at episode 30 against 81/90 with
+    --no-option-goal-offset, where the failing seeds hold one side only (see
     benchmarks/README.md)."""
     max_velocity: float = 1.0
     """Ball speed (m/s) the value and gating features are scaled to."""

@@ -536,6 +536,25 @@ def test_old_ball_on_beam_run_directories_resume_with_options_linear_in_the_posi
     assert cfg.option_goal_offset is False and cfg.resume == tmp_path
 
 
+def test_old_hockey_run_directories_resume_with_a_constant_exploration_floor(tmp_path):
+    """A hockey config.json from before exploration_floor_end existed resumes with the floor
+    constant (None), although the default now anneals it to 0.1; a new run saves 0.1."""
+    import json
+
+    from experiments.checkpoint import saved_config
+    from experiments.hockey import HockeySequentialConfig
+    from experiments.options import config_dict
+
+    assert (
+        config_dict("hockey_sequential", HockeySequentialConfig())["exploration_floor_end"] == 0.1
+    )
+    old = config_dict("hockey_sequential", HockeySequentialConfig(exploration_floor_end=None))
+    assert "exploration_floor_end" not in old
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    cfg = saved_config(HockeySequentialConfig, "hockey-sequential", tmp_path)
+    assert cfg.exploration_floor_end is None
+
+
 def test_pendulum_evaluates_every_k_iterations_and_reports_the_first_success(tmp_path):
     """eval_every = 2: evaluation columns filled on iterations 2 and 4 (nan elsewhere), equal
     to an evaluation of the policy at that point (the last one to the summary's final

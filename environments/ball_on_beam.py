@@ -184,21 +184,36 @@ def step_reward(state: Tensor, params: BeamParams) -> Tensor:
     return -(goal_distance(state[..., 0], params) ** 2 + state[..., 1] ** 2)
 
 
-def _derivative(s: Tensor, target: Tensor, p: BeamParams) -> Tensor:
-    x, v, alpha = s[..., 0], s[..., 1], s[..., 2]
+def _derivative(
+    x: Tensor, v: Tensor, alpha: Tensor, target: Tensor, p: BeamParams
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The time derivative (x', x'', alpha') of the state's components, each (B,)."""
     alpha_dot = (target - alpha) / p.servo_tau
     acc = (5.0 / 7.0) * (x * alpha_dot**2 - p.gravity * torch.sin(alpha) - p.rolling_resistance * v)
-    return torch.stack([v, acc, alpha_dot], dim=-1)
+    return v, acc, alpha_dot
+
+
+def _rk4(
+    x: Tensor, v: Tensor, alpha: Tensor, target: Tensor, p: BeamParams
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One RK4 step of ``p.dt`` on the components (x, x', alpha), each (B,): the arithmetic of
+    :func:`control_step` without stacking the state (3x fewer tensor operations)."""
+    h, half = p.dt, 0.5 * p.dt
+    k1 = _derivative(x, v, alpha, target, p)
+    k2 = _derivative(x + half * k1[0], v + half * k1[1], alpha + half * k1[2], target, p)
+    k3 = _derivative(x + half * k2[0], v + half * k2[1], alpha + half * k2[2], target, p)
+    k4 = _derivative(x + h * k3[0], v + h * k3[1], alpha + h * k3[2], target, p)
+    sixth = h / 6.0
+    x1, v1, alpha1 = (
+        y + sixth * (a + 2.0 * b + 2.0 * c + d)
+        for y, a, b, c, d in zip((x, v, alpha), k1, k2, k3, k4, strict=True)
+    )
+    return x1, v1, alpha1
 
 
 def control_step(state: Tensor, target: Tensor, params: BeamParams) -> Tensor:
     """One RK4 control step of ``dt`` toward the commanded angle: (B, 3), (B,) -> (B, 3)."""
-    h = params.dt
-    k1 = _derivative(state, target, params)
-    k2 = _derivative(state + 0.5 * h * k1, target, params)
-    k3 = _derivative(state + 0.5 * h * k2, target, params)
-    k4 = _derivative(state + h * k3, target, params)
-    return state + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return torch.stack(_rk4(state[..., 0], state[..., 1], state[..., 2], target, params), dim=-1)
 
 
 def beam_step(
@@ -227,16 +242,24 @@ def beam_step(
     target = target.clamp(-params.max_angle, params.max_angle)
     fell = torch.zeros(state.shape[0], dtype=torch.bool, device=state.device)
     reward = torch.zeros(state.shape[0], dtype=state.dtype, device=state.device)
-    path = []
-    s = state
+    xs, vs, alphas = [], [], []
+    x, v, alpha = state[:, 0], state[:, 1], state[:, 2]
     for _ in range(params.steps_per_decision):
-        nxt = control_step(s, target, params)
-        s = torch.where(fell[:, None], s, nxt)
-        reward = reward + torch.where(fell, 0.0, step_reward(s, params))
-        fell = fell | (s[:, 0].abs() > params.half_length)
-        path.append(s)
+        nx, nv, nalpha = _rk4(x, v, alpha, target, params)
+        # a fallen ball stays where it left the beam (no host sync: this may run on a GPU)
+        x, v, alpha = (
+            torch.where(fell, old, new) for old, new in ((x, nx), (v, nv), (alpha, nalpha))
+        )
+        reward = reward + torch.where(fell, 0.0, -(goal_distance(x, params) ** 2 + v**2))
+        fell = fell | (x.abs() > params.half_length)
+        xs.append(x)
+        vs.append(v)
+        alphas.append(alpha)
     reward = reward - params.fall_penalty * fell.to(state.dtype)
-    return s, reward, fell, torch.stack(path, dim=1)
+    path = torch.stack(
+        [torch.stack(xs, dim=1), torch.stack(vs, dim=1), torch.stack(alphas, dim=1)], dim=-1
+    )
+    return path[:, -1], reward, fell, path
 
 
 def sample_start(sides: Tensor, params: BeamParams, generator: torch.Generator | None) -> Tensor:

@@ -174,6 +174,7 @@ ABSENT_MEANS = {
     "final_eval_episodes": None,
     "exploration_floor_end": None,
     "option_goal_offset": False,
+    "epsilon_end": None,
 }
 """Options added after run directories were first written, with the value that reproduces
 the runs from before they existed. ``config.json`` leaves an option out at that value, so old

@@ -88,6 +88,27 @@ def test_infinite_horizon_populations_write_every_member(tmp_path, argv):
     assert len(data) == 3
 
 
+def test_pendulum_population_members_follow_the_kl_schedule(tmp_path):
+    """Every member of a pendulum population realises the scheduled KL bound of each update
+    (epsilon 0.6 -> 0.2 over three updates)."""
+    argv = ["pendulum", "--episodes", "60", "--episodes-per-iteration", "20"]
+    argv += ["--episode-seconds", "1", "--eval-rollouts", "2", "--eval-every", "0"]
+    run(
+        *argv,
+        "--epsilon",
+        "0.6",
+        "--epsilon-end",
+        "0.2",
+        "--seeds",
+        "1,2",
+        "--run-dir",
+        str(tmp_path),
+    )
+    for s in (1, 2):
+        kl = [float(r["kl"]) for r in rows(tmp_path / f"seed{s}" / "metrics.csv")]
+        assert kl == pytest.approx([0.6, 0.4, 0.2], rel=1e-4), s
+
+
 @pytest.mark.parametrize(
     "argv, error, match",
     [

@@ -584,3 +584,48 @@ def test_pendulum_evaluates_every_k_iterations_and_reports_the_first_success(tmp
     assert not any(math.isnan(float(r["eval_success_rate"])) for r in runs[1])
     for key in ("average_return", "eta", "kl", "effective_sample_size"):
         assert [r[key] for r in runs[0]] == [r[key] for r in runs[1]] == [r[key] for r in rows]
+
+
+def test_old_pendulum_run_directories_resume_with_a_constant_kl_bound(tmp_path):
+    """A pendulum config.json from before epsilon_end existed resumes with epsilon held
+    (None), although the default now moves it to 0.1; a new run saves the end value."""
+    import json
+
+    from experiments.checkpoint import saved_config
+    from experiments.options import config_dict
+    from experiments.pendulum import PendulumConfig
+
+    assert config_dict("pendulum", PendulumConfig())["epsilon_end"] == 0.1
+    old = config_dict("pendulum", PendulumConfig(epsilon_end=None))
+    assert "epsilon_end" not in old
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    cfg = saved_config(PendulumConfig, "pendulum", tmp_path)
+    assert cfg.epsilon_end is None and cfg.epsilon == 0.5
+
+
+def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
+    """epsilon_at: epsilon at the first update, epsilon_end at the last, linear in between,
+    held past the end, constant with None; a run realises the scheduled bound at every update
+    (the kl column); the bound is set from algo.iteration, so a resumed run continues the
+    schedule from its checkpoint."""
+    import types
+
+    from experiments import pendulum
+
+    PendulumConfig, epsilon_at = pendulum.PendulumConfig, pendulum.epsilon_at
+    cfg = PendulumConfig(epsilon=0.6, epsilon_end=0.2)
+    assert [epsilon_at(cfg, i, 5) for i in range(5)] == pytest.approx([0.6, 0.5, 0.4, 0.3, 0.2])
+    assert epsilon_at(cfg, 9, 5) == pytest.approx(0.2)
+    assert epsilon_at(cfg, 0, 1) == 0.6
+    assert epsilon_at(PendulumConfig(epsilon=0.6, epsilon_end=None), 4, 5) == 0.6
+    short = dict(episode_seconds=1.0, eval_rollouts=2, eval_every=0, seed=2)
+    text, _ = run_in_process(
+        tmp_path, "r", "pendulum", episodes=60, epsilon=0.6, epsilon_end=0.2, **short
+    )
+    kl = [float(r["kl"]) for r in csv.DictReader(text.splitlines())]
+    assert kl == pytest.approx([0.6, 0.4, 0.2], rel=1e-4)
+    algo = types.SimpleNamespace(iteration=3, epsilon=None)
+    seen = []
+    step = pendulum._scheduled(cfg, algo, 5, lambda batch: seen.append(algo.epsilon))
+    step(None)
+    assert seen == [pytest.approx(0.3)]

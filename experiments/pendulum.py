@@ -91,7 +91,7 @@ class PendulumConfig(RunOptions):
     update to this at the last (None: ``epsilon`` throughout). The early updates must find the
     swing-up; once the pendulums balance, the samples sit upright, and a bound held at 0.5 lets
     the rarely visited swing-up states drift, so the noise-free policy lost a swing-up it had
-    found in 4 of 40 seeds (benchmarks/README.md)."""
+    found in 6 of 60 seeds (benchmarks/README.md)."""
     kappa_rel: float = 0.9
     """Entropy bound relative to the mean responsibility entropy (learned gating only)."""
     init_std: float = 1.5

@@ -259,7 +259,7 @@ def beam_step(
     path = torch.stack(
         [torch.stack(xs, dim=1), torch.stack(vs, dim=1), torch.stack(alphas, dim=1)], dim=-1
     )
-    return path[:, -1], reward, fell, path
+    return path[:, -1].clone(), reward, fell, path  # the state shares no memory with path
 
 
 def sample_start(sides: Tensor, params: BeamParams, generator: torch.Generator | None) -> Tensor:

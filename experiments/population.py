@@ -164,6 +164,8 @@ class TaskPopulation:
         masked draws nothing."""
         every = torch.ones(self.S, self.B, dtype=torch.bool)
         masks = (every if mask is None else mask).cpu()
+        # a new tensor: the old one may be a collected next state (before the restart)
+        self.state = self.state.clone()
         for s, task in enumerate(self.tasks):
             m = masks[s]
             if bool(m.any()):

@@ -169,6 +169,21 @@ def test_a_ball_on_beam_run_from_before_option_goal_offset_resumes_as_it_was(tmp
     assert_same_run(run, tmp_path / "full")
 
 
+def test_a_pendulum_run_from_before_epsilon_end_resumes_with_the_bound_held(tmp_path):
+    """A pendulum run with the KL bound held (the behaviour before epsilon_end existed, whose
+    config.json has no such key) resumed with a bare --resume ends as the uninterrupted run,
+    at the bound 0.5 in every update: it is not switched to today's schedule."""
+    options = {"episodes": 120, "episode_seconds": 2.0, "eval_rollouts": 1, "seed": 4}
+    in_process("pendulum", tmp_path / "full", epsilon_end=None, **options)
+    run = tmp_path / "run"
+    code, err = interrupt(["pendulum", *cli(options), "--epsilon-end", "None"], run, 2)
+    assert code == 130, err
+    assert "epsilon_end" not in json.loads((run / "config.json").read_text())
+    resume_in_process("pendulum", run)
+    assert_same_run(run, tmp_path / "full")
+    assert [float(r["kl"]) for r in rows(run)] == pytest.approx([0.5] * 6, rel=1e-4)
+
+
 def test_sigterm_with_sparse_checkpoints_resumes_from_the_last_iteration(tmp_path):
     options = {"episodes": 3000, "samples_per_iteration": 100, "seed": 2}
     in_process("bimodal", tmp_path / "full", **options)

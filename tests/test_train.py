@@ -587,8 +587,9 @@ def test_pendulum_evaluates_every_k_iterations_and_reports_the_first_success(tmp
 
 
 def test_old_pendulum_run_directories_resume_with_a_constant_kl_bound(tmp_path):
-    """A pendulum config.json from before epsilon_end existed resumes with epsilon held
-    (None), although the default now moves it to 0.1; a new run saves the end value."""
+    """A pendulum config.json from before epsilon_end existed is read with epsilon held
+    (None), although the default now moves it to 0.1; a new run saves the end value (the
+    resumed run itself: tests/test_resume.py)."""
     import json
 
     from experiments.checkpoint import saved_config
@@ -615,7 +616,8 @@ def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
     PendulumConfig, epsilon_at = pendulum.PendulumConfig, pendulum.epsilon_at
     cfg = PendulumConfig(epsilon=0.6, epsilon_end=0.2)
     assert [epsilon_at(cfg, i, 5) for i in range(5)] == pytest.approx([0.6, 0.5, 0.4, 0.3, 0.2])
-    assert epsilon_at(cfg, 9, 5) == pytest.approx(0.2)
+    assert epsilon_at(cfg, 9, 5) == epsilon_at(cfg, 4, 5) == pytest.approx(0.2)  # then held
+    assert epsilon_at(PendulumConfig(), 49, 50) == pytest.approx(0.1)
     assert epsilon_at(cfg, 0, 1) == 0.6
     assert epsilon_at(PendulumConfig(epsilon=0.6, epsilon_end=None), 4, 5) == 0.6
     short = dict(episode_seconds=1.0, eval_rollouts=2, eval_every=0, seed=2)

@@ -255,3 +255,38 @@ def test_a_population_of_beams_alternates_sides_over_iterations():
         env.collect(lambda obs: torch.zeros(*obs.shape[:2], 1), p.decisions_per_episode)
     r, l = [1.0, -1.0, 1.0], [-1.0, 1.0, -1.0]
     assert sides == [[r, r], [l, l], [r, r]]
+
+
+def test_a_population_collects_the_state_reached_before_a_restart():
+    """TaskPopulation.collect's next states are those the transitions reached: for the
+    decision that ends an episode (truncated, then restarted) the ball where the episode
+    ended, not the fresh start that follows it, as in the ordinary run's collector."""
+    from environments.ball_on_beam import BeamTask
+    from experiments.population import TaskPopulation
+
+    p = BeamParams()
+    env = TaskPopulation([BeamTask(2, p, seed=1), BeamTask(2, p, seed=2)])
+    n = p.decisions_per_episode
+
+    def pd(obs):  # holds the ball on the beam
+        return (0.2 * obs[..., 0] + 0.3 * obs[..., 1])[..., None]
+
+    states, actions, _, s_next, terminated = env.collect(pd, n + 1)
+    assert not bool(terminated.any())
+    for s in range(2):
+        for b in range(2):
+            rows = slice(b * (n + 1), (b + 1) * (n + 1))
+            x, a, y = states[s, rows], actions[s, rows], s_next[s, rows]
+            reached, _, _, _ = beam_step(x, a, p)
+            torch.testing.assert_close(y, reached, rtol=0, atol=0)
+            assert torch.equal(y[:-2], x[1:-1])  # within the episode: the next decision's state
+            assert not torch.equal(y[n - 1], x[n])  # the end of the episode: then a restart
+            assert abs(float(x[n, 0])) > 0.3  # the restart at an end of the beam
+
+
+def test_beam_step_returns_a_state_that_shares_no_memory_with_its_path():
+    s = torch.tensor([[0.1, 0.0, 0.0]], dtype=torch.float64)
+    nxt, _, _, path = beam_step(s, torch.tensor([0.05], dtype=torch.float64), BeamParams())
+    assert torch.equal(nxt, path[:, -1])
+    path[:, -1] = 7.0
+    assert float(nxt[0, 0]) != 7.0

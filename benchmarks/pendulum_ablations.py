@@ -54,7 +54,7 @@ from benchmarks._common import (  # noqa: E402
 from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
 from experiments.pendulum import PendulumConfig  # noqa: E402
 from experiments.rundir import atomic_write  # noqa: E402
-from experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
+from experiments.sweep import SweepRun, check_same_options, plan, run_sweep  # noqa: E402
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "learned-1": {"n_options": 1},
@@ -153,7 +153,9 @@ SLOWNESS = {"d1": 7.0, "d2": 2.7, "learned-10": 1.4}
 def run_populations(runs: list[SweepRun], report: Any) -> dict[tuple[str, int], dict[str, Any]]:
     """Each configuration's seeds as one population (``train.py pendulum --seeds``), one
     configuration after the other in this process; a configuration whose population finished
-    before (its ``population.json``) is read back. Returns every run's summary."""
+    before (its ``population.json``) is read back, after each member's ``config.json`` is
+    checked against the options asked for (a ValueError naming those that differ, e.g. a
+    default changed since). Returns every run's summary."""
     import json
 
     from experiments import run_experiment
@@ -171,6 +173,8 @@ def run_populations(runs: list[SweepRun], report: Any) -> dict[tuple[str, int], 
             cfg = PendulumConfig(**mine[0].options, seeds=seeds, run_dir=root, progress=False)
             run_experiment(cfg)
         for r in mine:
+            member = PendulumConfig(**r.options, seed=r.seed, run_dir=r.run_dir, progress=False)
+            check_same_options(r, member)
             summary = json.loads((r.run_dir / "summary.json").read_text())
             done[(name, r.seed)] = summary
             report(r, summary)

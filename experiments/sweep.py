@@ -45,6 +45,7 @@ from experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
 __all__ = [
     "SweepConfig",
     "SweepRun",
+    "check_same_options",
     "main",
     "parse_grid",
     "parse_seeds",
@@ -213,7 +214,7 @@ def run_one(run: SweepRun) -> dict[str, Any]:
     d = Path(run.run_dir)
     cfg = config_cls(**run.options, seed=run.seed, run_dir=d, progress=False)
     if (d / "config.json").is_file():
-        _check_same_options(run, cfg)
+        check_same_options(run, cfg)
         if (d / "summary.json").is_file():
             return {**json.loads((d / "summary.json").read_text()), "reused": True}
         # interrupted: continue from its checkpoint
@@ -229,7 +230,7 @@ def run_one(run: SweepRun) -> dict[str, Any]:
     return summary
 
 
-def _check_same_options(run: SweepRun, cfg: Any) -> None:
+def check_same_options(run: SweepRun, cfg: Any) -> None:
     """A ValueError naming every option in which the run already in ``run.run_dir`` differs
     from the one the sweep asks for (e.g. another ``--set``): nothing is reused or mixed."""
     from experiments.checkpoint import changed_options, read_config

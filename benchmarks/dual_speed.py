@@ -1,140 +1,129 @@
-"""Speed of the episodic HiREPS dual: hireps_torch (torch LBFGS) vs scipy L-BFGS-B.
+"""The duals real runs produce, solved by the code of a given commit and by the current code
+side by side in one run.
 
-For N in {30, 300, 3000, 30000} and O in {1, 5} the same random problem (returns, 2 context
-features, responsibilities; an entropy bound at 0.8 of the mean responsibility entropy when
-O = 5) is solved by ``solve_episodic_dual`` and by a scipy L-BFGS-B solve of the same dual
-written here in numpy with its analytic gradient (same standardisation, bounds eta > 0,
-xi >= 0). Prints the median wall time of each, their ratio and the realised KL of both.
+The problems (``benchmarks/dual_problems.pt``, written by ``benchmarks/record_duals.py``) are
+the checked K-block inputs of :func:`hireps_torch.dual.solver.solve_blocks`, one per update of a
+few seeds of every experiment. Each side runs in its own subprocess (the baseline from a
+``git worktree`` of the commit, so both import their own ``hireps_torch``), one thread, and
+solves every problem ``--repeats`` times. Printed per experiment and side: LBFGS iterations per
+solve (Newton steps counted as iterations; median, max), the share that converged, the median
+time per solve, and the baseline / current ratios.
 
-    OMP_NUM_THREADS=1 python benchmarks/dual_speed.py [--repeats 15]
+    OMP_NUM_THREADS=1 python benchmarks/dual_speed.py [--baseline f73bf30] [--repeats 3]
 """
 
 from __future__ import annotations
 
 import argparse
-import functools
-import platform
+import json
+import os
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
+import warnings
 from pathlib import Path
-
-import numpy as np
-import torch
-from scipy.optimize import minimize
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from hireps_torch.dual import solve_episodic_dual  # noqa: E402
+PROBLEMS = ROOT / "benchmarks" / "dual_problems.pt"
 
 
-def scipy_dual(R, phi, lr, eps, kappa):
-    """Episodic HiREPS dual with analytic gradient; returns (weights, kl, eta)."""
-    N, O = lr.shape
-    Rs = (R - R.mean()) / R.std()
-    Phi = phi - phi.mean(0)
-    Phi = Phi / Phi.std(0)
-    F = Phi.shape[1]
-    use_xi = kappa is not None
-    kap = 0.0 if kappa is None else kappa
+def solve_all(root: Path, problems: Path, repeats: int) -> list[dict[str, Any]]:
+    """Solve every recorded problem with the ``hireps_torch`` under ``root``; one row each."""
+    sys.path.insert(0, str(root))
+    import torch
 
-    def parts(x):
-        eta, xi, v = x[0], (x[1] if use_xi else 0.0), x[2 if use_xi else 1 :]
-        delta = Rs - Phi @ v
-        a = (delta[:, None] + (eta + xi) * lr) / eta
-        m = a.max()
-        e = np.exp(a - m)
-        Z = e.sum()
-        P = e / Z
-        logZ = m + np.log(Z) - np.log(N)
-        return eta, xi, v, delta, P, logZ
+    torch.set_num_threads(1)
+    from hireps_torch.dual.solver import checked_settings, solve_blocks
 
-    def fg(x):
-        eta, xi, v, delta, P, logZ = parts(x)
-        g = eta * eps + xi * kap + eta * logZ
-        Pl = (P * lr).sum()
-        d_eta = eps + logZ - ((P.sum(1) * delta).sum() + xi * Pl) / eta
-        grad = [d_eta]
-        if use_xi:
-            grad.append(kap + Pl)
-        grad.extend(-(P.sum(1) @ Phi))
-        return g, np.asarray(grad)
-
-    x0 = np.concatenate([[1.0], [0.0] if use_xi else [], np.zeros(F)])
-    bounds = [(1e-8, None)] + ([(0.0, None)] if use_xi else []) + [(None, None)] * F
-    res = minimize(
-        fg,
-        x0,
-        jac=True,
-        method="L-BFGS-B",
-        bounds=bounds,
-        options={"maxiter": 300, "gtol": 1e-9, "ftol": 1e-14},
-    )
-    _, _, _, _, P, _ = parts(res.x)
-    kl = float((P * (np.log(np.maximum(P, 1e-300)) - lr + np.log(N))).sum())
-    return P, kl
+    settings = checked_settings(300)
+    rows = []
+    for p in torch.load(problems, weights_only=False):
+        args = [
+            None if p[k] is None else p[k][None].double()
+            for k in ("R", "log_resp", "eps", "D", "c", "kappa")
+        ]
+        times = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                sol = solve_blocks(*args, settings)
+                times.append(time.perf_counter() - t0)
+        rows.append(
+            {
+                "experiment": p["experiment"],
+                "iterations": int(sol.iterations),
+                "converged": bool(sol.converged.all()),
+                "ms": 1e3 * statistics.median(times),
+                "kl_over": float((sol.kl / p["eps"][None]).max()),
+            }
+        )
+    return rows
 
 
-def problem(N, O, seed=0):
-    g = np.random.default_rng(seed)
-    phi = g.normal(size=(N, 2))
-    R = 3.0 * g.normal(size=N) + 2.0 * phi[:, 0]
-    logits = 2.0 * g.normal(size=(N, O))
-    lr = logits - np.log(np.exp(logits).sum(1, keepdims=True))
-    kappa = 0.8 * float(-(np.exp(lr) * lr).sum(1).mean()) if O > 1 else None
-    return R, phi, lr, kappa
-
-
-def median_time(fn, repeats):
-    fn()  # warm-up
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return statistics.median(ts)
+def _side(root: Path, repeats: int) -> list[dict[str, Any]]:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    out = subprocess.run(
+        [sys.executable, __file__, "--solve", str(root), "--repeats", str(repeats)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    rows: list[dict[str, Any]] = json.loads(out.strip().splitlines()[-1])
+    return rows
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--repeats", type=int, default=15)
-    args = ap.parse_args()
-    torch.set_num_threads(1)
-    eps = 0.5
-    print(
-        f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"threads {torch.get_num_threads()}; epsilon = {eps}, F = 2 context features"
-    )
-    print(
-        f"{'N':>6} {'O':>2} {'torch ms':>9} {'scipy ms':>9} {'torch/scipy':>12} "
-        f"{'KL torch':>9} {'KL scipy':>9} {'max|dw|':>9}"
-    )
-    for N in (30, 300, 3000, 30000):
-        for O in (1, 5):
-            R, phi, lr, kappa = problem(N, O)
-            Rt, phit, lrt = (torch.from_numpy(a) for a in (R, phi, lr))
-            reps = max(3, args.repeats // (1 if N < 30000 else 3))
-
-            run_torch = functools.partial(
-                solve_episodic_dual,
-                Rt,
-                epsilon=eps,
-                log_responsibilities=lrt,
-                context_features=phit,
-                kappa=kappa,
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--baseline", default="f73bf30", help="commit to compare with")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--solve", type=Path, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.solve is not None:
+        print(json.dumps(solve_all(args.solve, PROBLEMS, args.repeats)))
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        old = Path(tmp) / "baseline"
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), args.baseline],
+            check=True,
+            capture_output=True,
+        )
+        try:
+            sides = {args.baseline: _side(old, args.repeats), "current": _side(ROOT, args.repeats)}
+        finally:
+            subprocess.run(
+                ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False
             )
-            run_scipy = functools.partial(scipy_dual, R, phi, lr, eps, kappa)
-
-            tt = median_time(run_torch, reps)
-            ts = median_time(run_scipy, reps)
-            sol = run_torch()
-            P, kl_s = run_scipy()
-            dw = float(np.abs(sol.weights.numpy() - P).max())
+    experiments = list(dict.fromkeys(r["experiment"] for r in sides["current"]))
+    print(
+        f"{'experiment':<18} {'code':<9} {'solves':>6} {'iter median':>11} {'iter max':>8} "
+        f"{'converged':>9} {'ms/solve':>8}"
+    )
+    for name in [*experiments, "all"]:
+        stats = {}
+        for label, rows in sides.items():
+            mine = [r for r in rows if name in ("all", r["experiment"])]
+            its = [r["iterations"] for r in mine]
+            stats[label] = (statistics.median(its), max(its), statistics.median(r["ms"] for r in mine))
+            conv = sum(r["converged"] for r in mine)
             print(
-                f"{N:>6} {O:>2} {tt * 1e3:>9.2f} {ts * 1e3:>9.2f} {tt / ts:>12.2f} "
-                f"{sol.kl:>9.5f} {kl_s:>9.5f} {dw:>9.1e}"
+                f"{name:<18} {label:<9} {len(mine):>6} {stats[label][0]:>11g} {its and max(its):>8} "
+                f"{conv:>4}/{len(mine):<4} {stats[label][2]:>8.2f}"
             )
+        (a_it, a_max, a_ms), (b_it, b_max, b_ms) = stats[args.baseline], stats["current"]
+        print(
+            f"{'':<18} {'ratio':<9} {'':>6} {a_it / max(b_it, 1):>10.1f}x {a_max / max(b_max, 1):>7.1f}x"
+            f" {'':>9} {a_ms / b_ms:>7.1f}x"
+        )
+    unconverged = [
+        (r["experiment"], i) for i, r in enumerate(sides["current"]) if not r["converged"]
+    ]
+    print(f"current code, unconverged problems (experiment, index): {unconverged or 'none'}")
 
 
 if __name__ == "__main__":

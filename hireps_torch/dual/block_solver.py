@@ -75,6 +75,11 @@ class LbfgsSettings:
 
 _REFINE_GRAD = 1e-13  # the Newton refinement's target (standardised gradient)
 _CHUNK = 25  # LBFGS iterations between re-whitenings (see BlockSolver.phase)
+_NEWTON_STEPS = 20  # Newton steps of a phase before LBFGS takes over (BlockSolver.descend)
+_HALVINGS = 30  # step halvings per Newton step
+_ARMIJO = 1e-4  # sufficient decrease of a Newton step
+_FLAT = 1e-13  # relative change of the dual value within round-off
+_MAX_LOG_STEP = 2.0  # largest change of a log eta or log xi in one Newton step
 _RUNOFF = 1.0e6  # a dual this far below its start (standardised units) is running off
 
 
@@ -399,34 +404,27 @@ class BlockSolver:
         return torch.where(self.entropy_bound, torch.maximum(m, excess), m)
 
     def entropy_kkt(self, mask: Tensor) -> None:
-        """KKT for xi >= 0 on the problems in ``mask``: solve with xi free; where xi ends ~0
-        with the bound slack, switch it off and re-solve (then xi = 0 exactly and the bound
-        holds as inequality)."""
+        """KKT for xi >= 0 on the problems in ``mask`` by active sets: solve with xi off; switch
+        it on where a block's bound is violated, starting from the xi that meets the bound
+        (eta and v held), and off where the weights without xi (eta and v held) meet it; re-solve
+        until no block changes. A block whose bound stays violated with xi on (the log-space
+        gradient xi (kappa - CE) vanishes with xi) restarts from the xi that meets it."""
         prob, K = self.prob, self.prob.K
-        prob.xi_on = torch.where(mask[:, None], self.bounded, prob.xi_on)
+        prob.xi_on = torch.where(mask[:, None], False, prob.xi_on)
         self.phase(mask)
-        for _ in range(3):
-            # In log space the dual is nearly flat in xi below the xi that meets the bound (the
-            # xi-gradient xi (kappa - CE) vanishes with xi): a line search can jump there and
-            # LBFGS stops with xi ~0 and the bound violated. Restart from the xi that meets the
-            # bound with the rest held fixed.
+        for _ in range(2 * K + 2):
             ce = block_cross_entropy(self.end.weights, prob.lr)
-            stuck = mask[:, None] & prob.xi_on & (ce > prob.kappa + 1e-6)
-            if not bool(stuck.any()):
+            violated = mask[:, None] & self.bounded & (ce > prob.kappa + 1e-6)
+            _, eta, _, v = prob.unpack(self.x)
+            P0, _, _ = prob.weights_at(eta, torch.zeros_like(eta), v)
+            slack = mask[:, None] & prob.xi_on & (block_cross_entropy(P0, prob.lr) <= prob.kappa)
+            restart = violated & ~slack
+            if not bool((restart | slack).any()):
                 break
+            prob.xi_on = (prob.xi_on | restart) & ~slack
             log_xi = prob.log_xi_meeting_bound(self.x)
-            self.x[:, K : 2 * K] = torch.where(stuck, log_xi, self.x[:, K : 2 * K])
-            self.phase(stuck.any(-1))
-        # the bound is slack where the weights without xi (eta and v held) meet it: the KKT
-        # test that needs no threshold on xi, which LBFGS leaves anywhere below ~1e-5 when the
-        # bound is slack (its log-space gradient xi (kappa - CE) vanishes with xi)
-        _, eta, _, v = prob.unpack(self.x)
-        P0, _, _ = prob.weights_at(eta, torch.zeros_like(eta), v)
-        ce0 = block_cross_entropy(P0, prob.lr)
-        slack = mask[:, None] & prob.xi_on & (ce0 <= prob.kappa)
-        if bool(slack.any()):
-            prob.xi_on &= ~slack
-            self.phase(slack.any(-1))
+            self.x[:, K : 2 * K] = torch.where(restart, log_xi, self.x[:, K : 2 * K])
+            self.phase((restart | slack).any(-1))
 
     def unstick(self, mask: Tensor) -> None:
         """Lift each eta of the problems in ``mask`` held at its floor whose KL bound is broken
@@ -440,6 +438,78 @@ class BlockSolver:
         _, eta, xi, v = prob.unpack(torch.where(finite[:, None], self.x, 0.0))
         lifted, moved = enforce_kl(prob, eta, xi, v)
         self.x[:, :K] = torch.where(low & moved, lifted.log(), self.x[:, :K])
+
+    def descend(self, mask: Tensor) -> None:
+        """Damped Newton steps on the problems in ``mask`` (S,) before LBFGS: each step solves
+        with the exact Hessian (:meth:`DualProblem.curvature` plus the log-space gradient on
+        the diagonal), or with its positive semi-definite part where the exact one is not
+        positive definite (away from the optimum in log eta), and is halved until the dual
+        falls (Armijo), or, where the dual is flat to round-off, until the gradient shrinks. A
+        problem stops when its gradient meets ``tolerance_grad`` or no halving helps; LBFGS
+        then takes over. Steps taken count as iterations (once per step, however many
+        problems take it)."""
+        prob = self.prob
+        g, grad, P = prob.evaluate(self.x)
+        merit = grad.abs().amax(-1)
+        active = mask & torch.isfinite(self.x).all(-1) & torch.isfinite(g)
+        for _ in range(_NEWTON_STEPS):
+            active &= merit > self.settings.tolerance_grad
+            if not bool(active.any()):
+                break
+            step = self._newton_direction(grad)
+            # a trust region in log eta and log xi: a block's temperature changes by at most
+            # e^_MAX_LOG_STEP per step (its curvature vanishes as its weights collapse)
+            big = step[:, : 2 * prob.K].abs().amax(-1, keepdim=True) if prob.K else step[:, :0]
+            step = step * (_MAX_LOG_STEP / big.clamp_min(_MAX_LOG_STEP))
+            slope = (grad * step).sum(-1)
+            taken = torch.zeros_like(active)
+            t = 1.0
+            for _ in range(_HALVINGS):
+                trying = active & ~taken
+                if not bool(trying.any()):
+                    break
+                x = torch.where(trying[:, None], self.x + t * step, self.x)
+                g_t, grad_t, P_t = prob.evaluate(x)
+                merit_t = grad_t.abs().amax(-1)
+                flat = g_t <= g + _FLAT * (1.0 + g.abs())
+                ok = trying & ((g_t <= g + _ARMIJO * t * slope) | (flat & (merit_t < merit)))
+                self.x = torch.where(ok[:, None], x, self.x)
+                g = torch.where(ok, g_t, g)
+                grad = torch.where(ok[:, None], grad_t, grad)
+                P = torch.where(ok[:, None, None, None], P_t, P)
+                merit = torch.where(ok, merit_t, merit)
+                taken |= ok
+                t *= 0.5
+            active &= taken
+            self.iterations += 1
+        self._set(mask, merit <= self.settings.converged_grad, g, P)
+
+    def _newton_direction(self, grad: Tensor) -> Tensor:
+        """(S, n) Newton directions at x for gradients (S, n) on the moving coordinates (0
+        elsewhere), from the exact Hessian where it is positive definite, else from its
+        positive semi-definite part (:meth:`DualProblem.curvature`)."""
+        prob, K = self.prob, self.prob.K
+        M = prob.curvature(self.x, raw=True)
+        H = M.clone()
+        H.diagonal(dim1=1, dim2=2)[:, : 2 * K] += grad[:, : 2 * K]
+        moving = self._moving()
+        step, ok = _newton_step(H, grad, moving, cholesky=True)
+        if not bool(ok.all()):
+            psd, _ = _newton_step(M, grad, moving, cholesky=True, ridge=1e-8)
+            step = torch.where(ok[:, None], step, psd)
+        return step
+
+    def _moving(self) -> Tensor:
+        """(S, n) the coordinates a step may move: free eta, xi where on, every v."""
+        prob = self.prob
+        return torch.cat(
+            [
+                prob.eta_free(self.x),
+                prob.xi_on & prob.multi,
+                torch.ones(prob.S, prob.P, dtype=torch.bool, device=self.x.device),
+            ],
+            -1,
+        )
 
     def phase(self, mask: Tensor) -> None:
         """One LBFGS phase over the problems in ``mask`` (S,): at most ``max_iter`` iterations,
@@ -457,7 +527,11 @@ class BlockSolver:
         solved exactly as before.
         """
         self.unstick(mask)
-        left, evals, todo = self.settings.max_iter, self.settings.max_iter * 5 // 4, mask.clone()
+        self.descend(mask)
+        todo = mask & ~self.end.converged & self._finite()
+        if not bool(todo.any()):
+            return
+        left, evals = self.settings.max_iter, self.settings.max_iter * 5 // 4
         while True:  # torch's budgets for one call: max_iter iterations, 1.25 x evaluations
             used, spent, stalled = self._lbfgs(todo, min(left, _CHUNK), min(evals, _CHUNK * 5 // 4))
             left, evals = left - used, evals - spent
@@ -481,11 +555,9 @@ class BlockSolver:
         idx = mask.nonzero().flatten()
         prob = self.prob if every else self.prob.take(idx)
         x0 = self.x.clone() if every else self.x[idx]
-        L: Tensor | None = None
-        if prob.multi:
-            L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
-            eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
-            L = torch.where((info == 0)[:, None, None], L, eye)  # no whitening where it fails
+        L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
+        eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
+        L = torch.where((info == 0)[:, None, None], L, eye)  # no whitening where it fails
         floor = self.floor if every else self.floor[idx]
         objective = _Whitened(prob, x0, L, floor)
         opt = torch.optim.LBFGS(
@@ -530,7 +602,9 @@ def _only(s: int, like: Tensor) -> Tensor:
     return mask
 
 
-def _newton_step(H: Tensor, grad: Tensor, moving: Tensor) -> tuple[Tensor, Tensor]:
+def _newton_step(
+    H: Tensor, grad: Tensor, moving: Tensor, cholesky: bool = False, ridge: float = 1e-12
+) -> tuple[Tensor, Tensor]:
     """(-H^-1 grad on the ``moving`` coordinates, 0 elsewhere (S, n); (S,) whether H was
     regular) for Hessians H (S, n, n), scaled to unit diagonal first (the curvature of a block
     held near its eta floor is tiny, not flat)."""
@@ -541,8 +615,12 @@ def _newton_step(H: Tensor, grad: Tensor, moving: Tensor) -> tuple[Tensor, Tenso
     g = torch.where(moving, grad, 0.0)
     d = Hm.diagonal(dim1=1, dim2=2)
     scale = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
-    Hs = scale[:, :, None] * Hm * scale[:, None, :] + 1e-12 * eye
-    sol, info = torch.linalg.solve_ex(Hs, (scale * g)[..., None])
+    Hs = scale[:, :, None] * Hm * scale[:, None, :] + ridge * eye
+    if cholesky:  # positive definite only
+        L, info = torch.linalg.cholesky_ex(Hs)
+        sol = torch.cholesky_solve((scale * g)[..., None], L)
+    else:
+        sol, info = torch.linalg.solve_ex(Hs, (scale * g)[..., None])
     ok = (info == 0) & torch.isfinite(sol).all(dim=(1, 2))
     step = torch.where(ok[:, None], -scale * sol[..., 0], 0.0)
     return torch.where(moving, step, 0.0), ok

@@ -109,16 +109,20 @@ def main() -> None:
         for label, rows in sides.items():
             mine = [r for r in rows if name in ("all", r["experiment"])]
             its = [r["iterations"] for r in mine]
-            stats[label] = (statistics.median(its), max(its), statistics.median(r["ms"] for r in mine))
+            stats[label] = (
+                statistics.median(its),
+                max(its),
+                statistics.median(r["ms"] for r in mine),
+            )
             conv = sum(r["converged"] for r in mine)
             print(
-                f"{name:<18} {label:<9} {len(mine):>6} {stats[label][0]:>11g} {its and max(its):>8} "
-                f"{conv:>4}/{len(mine):<4} {stats[label][2]:>8.2f}"
+                f"{name:<18} {label:<9} {len(mine):>6} {stats[label][0]:>11g} "
+                f"{max(its):>8} {conv:>4}/{len(mine):<4} {stats[label][2]:>8.2f}"
             )
         (a_it, a_max, a_ms), (b_it, b_max, b_ms) = stats[args.baseline], stats["current"]
         print(
-            f"{'':<18} {'ratio':<9} {'':>6} {a_it / max(b_it, 1):>10.1f}x {a_max / max(b_max, 1):>7.1f}x"
-            f" {'':>9} {a_ms / b_ms:>7.1f}x"
+            f"{'':<18} {'ratio':<9} {'':>6} {a_it / max(b_it, 1):>10.1f}x "
+            f"{a_max / max(b_max, 1):>7.1f}x {'':>9} {a_ms / b_ms:>7.1f}x"
         )
     unconverged = [
         (r["experiment"], i) for i, r in enumerate(sides["current"]) if not r["converged"]

@@ -57,8 +57,7 @@ def _recording(module: Any) -> None:
                     "experiment": _CURRENT["experiment"],
                     "seed": _CURRENT["seed"],
                     "update": sum(
-                        p["experiment"] == _CURRENT["experiment"]
-                        and p["seed"] == _CURRENT["seed"]
+                        p["experiment"] == _CURRENT["experiment"] and p["seed"] == _CURRENT["seed"]
                         for p in PROBLEMS
                     ),
                     "R": R[s].clone(),

@@ -1,9 +1,14 @@
-"""LBFGS on one standardised K-block dual: :class:`BlockSolver`.
+"""Newton steps and LBFGS on one standardised K-block dual: :class:`BlockSolver`.
 
-The entropy bound is handled by its KKT conditions: the dual is solved with xi free, then
-re-solved with xi = 0 exactly for blocks whose xi ended ~0 with the bound slack; a block whose xi
-collapsed with the bound still violated (the log-space gradient vanishes there) restarts from the
-xi that meets it. When no distribution within the KL bound meets the feature constraints the
+Every phase starts with damped Newton steps with the exact curvature
+(:meth:`BlockSolver.descend`: each problem on its own, a trust region on log eta and log xi);
+LBFGS (``torch.optim.LBFGS``) takes over from where they stop short of the gradient tolerance,
+in coordinates whitened by the curvature where each of its calls starts.
+
+The entropy bound is handled by its KKT conditions with active sets: the dual is solved with xi
+off, then xi is switched on for the blocks whose bound is violated (starting from the xi that
+meets it) and off again for those whose weights without xi meet it, until no block changes.
+When no distribution within the KL bound meets the feature constraints the
 dual is unbounded below; the solver detects it and re-solves with a ridge on the standardised u
 (see :meth:`BlockSolver.relax`). Returns without information (``Standardised.informative``
 False) are solved with eta held at 1 and R = 0: the dual then yields the closest distribution
@@ -512,7 +517,8 @@ class BlockSolver:
         )
 
     def phase(self, mask: Tensor) -> None:
-        """One LBFGS phase over the problems in ``mask`` (S,): at most ``max_iter`` iterations,
+        """One phase over the problems in ``mask`` (S,): Newton steps (:meth:`descend`), then, for
+        the problems they leave short of the tolerance, at most ``max_iter`` LBFGS iterations,
         run as LBFGS calls of at most ``_CHUNK`` iterations, each on the problems not yet
         converged and whitened by their curvature where it starts (see :class:`_Whitened`);
         a call that stops on its own (converged, or stalled) ends the phase, unless it was
@@ -548,9 +554,8 @@ class BlockSolver:
         """One LBFGS call from x over the problems in ``mask`` (S,); returns its iterations,
         its evaluations and whether it stopped on its own (converged or stalled) before either
         budget ran out.
-        With options, LBFGS runs in whitened coordinates (see :class:`_Whitened`), which saves
-        iterations: the xi direction is badly scaled against eta and v otherwise (measured:
-        with one option the plain problem is as well scaled)."""
+        LBFGS runs in coordinates whitened by the curvature at the call's start (see
+        :class:`_Whitened`)."""
         every = bool(mask.all())
         idx = mask.nonzero().flatten()
         prob = self.prob if every else self.prob.take(idx)

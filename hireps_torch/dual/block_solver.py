@@ -34,6 +34,7 @@ fallback runs for each problem alone.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -85,7 +86,7 @@ _HALVINGS = 30  # step halvings per Newton step
 _ARMIJO = 1e-4  # sufficient decrease of a Newton step
 _FLAT = 1e-13  # relative change of the dual value within round-off
 _MAX_LOG_STEP = 2.0  # largest change of a log eta or log xi in one Newton step
-_RUNOFF = 1.0e6  # a dual this far below its start (standardised units) is running off
+_FLAT_FLOOR = 1e-9  # round-off allowed below the weak-duality bound (BlockSolver.floor)
 
 
 class _End(NamedTuple):
@@ -155,10 +156,12 @@ class BlockSolver:
         self.x[:, : self.prob.K] = torch.where(flat[:, None], 0.0, self.x[:, : self.prob.K])
         g, _, P = self.prob.evaluate(self.x)
         self.end = _End(torch.zeros_like(flat), g, P)
-        # below this a dual is running off to -infinity (its feature constraints cannot be met
-        # within the KL bound): at the optimum of a bounded dual the value is within a few
-        # return spreads of its start (standardised units)
-        self.floor = g - _RUNOFF
+        # weak duality: for any distribution P that meets every constraint the dual is at
+        # least sum_k E_P[R_k] >= sum_k min_i R_ki. A dual value below that (less round-off)
+        # certifies that no such P exists: the feature constraints cannot be met within the
+        # KL bound, and the dual runs off to -infinity
+        low = self.prob.R.amin(-1).sum(-1)
+        self.floor = low - _FLAT_FLOOR * (1.0 + low.abs() + g.abs())
 
     def _set(self, mask: Tensor, converged: Tensor, value: Tensor, weights: Tensor) -> None:
         """Overwrite the ends of the problems in ``mask`` (S,) (the arguments are (S, ...))."""
@@ -259,7 +262,7 @@ class BlockSolver:
         # An unconverged solve that broke the KL bound ran off the same way, only more slowly
         # (the projection solve does not bound the KL: the safeguard after it does).
         ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
-        sunk = ~(self.end.value > self.floor + 0.5 * _RUNOFF)  # on its way to -infinity
+        sunk = self._sunk()
         clash = todo & (prob.shows_conflict(self.x, self.end.value) | sunk)
         return clash | (todo & ran_off), clash
 
@@ -303,7 +306,7 @@ class BlockSolver:
         for _ in range(2):
             # a stalled LBFGS (its preconditioner, the curvature at the phase's start, gone
             # stale) resumes with the curvature where it stopped
-            again = mask & ~self.end.converged & self._finite()
+            again = mask & ~self.end.converged & self._finite() & ~self._sunk()
             if not bool(again.any()):
                 break
             self.phase(again)
@@ -313,12 +316,18 @@ class BlockSolver:
             met = (~self.bounded | (ce <= self.prob.kappa + 1e-6)).all(-1)
             e = self.end
             self.end = e._replace(converged=torch.where(kkt, e.converged & met, e.converged))
-        short = mask & ~self.end.converged & self._finite()
+        short = mask & ~self.end.converged & self._finite() & ~self._sunk()
         if bool(short.any()):
             self.polish(short)
         done = mask & self.end.converged
         if bool(done.any()):
             self.newton(done, steps=2, target=_REFINE_GRAD)
+
+    def _sunk(self) -> Tensor:
+        """(S,) problems without a ridge whose dual value fell below the weak-duality bound
+        (``floor``): their constraints conflict, and the ridge fallback of :meth:`run` takes
+        them."""
+        return (self.prob.ridge == 0) & ~(self.end.value >= self.floor)
 
     def _finite(self) -> Tensor:
         """(S,) problems whose point and dual value are finite (the others ran off: the
@@ -457,8 +466,9 @@ class BlockSolver:
         g, grad, P = prob.evaluate(self.x)
         merit = grad.abs().amax(-1)
         active = mask & torch.isfinite(self.x).all(-1) & torch.isfinite(g)
+        bounded = prob.ridge > 0  # a ridge bounds the dual: the weak-duality floor is off
         for _ in range(_NEWTON_STEPS):
-            active &= merit > self.settings.tolerance_grad
+            active &= (merit > self.settings.tolerance_grad) & (bounded | (g >= self.floor))
             if not bool(active.any()):
                 break
             step = self._newton_direction(grad)
@@ -534,7 +544,7 @@ class BlockSolver:
         """
         self.unstick(mask)
         self.descend(mask)
-        todo = mask & ~self.end.converged & self._finite()
+        todo = mask & ~self.end.converged & self._finite() & ~self._sunk()
         if not bool(todo.any()):
             return
         left, evals = self.settings.max_iter, self.settings.max_iter * 5 // 4
@@ -542,7 +552,7 @@ class BlockSolver:
             used, spent, stalled = self._lbfgs(todo, min(left, _CHUNK), min(evals, _CHUNK * 5 // 4))
             left, evals = left - used, evals - spent
             before = todo.clone()
-            todo &= ~self.end.converged & self._finite()
+            todo &= ~self.end.converged & self._finite() & ~self._sunk()
             if left <= 0 or evals <= 0 or not bool(todo.any()):
                 return
             # a call shared by several problems stalls when the progress of the last ones
@@ -563,7 +573,8 @@ class BlockSolver:
         L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
         eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
         L = torch.where((info == 0)[:, None, None], L, eye)  # no whitening where it fails
-        floor = self.floor if every else self.floor[idx]
+        floor = torch.where(self.prob.ridge > 0, -math.inf, self.floor)  # see descend
+        floor = floor if every else floor[idx]
         objective = _Whitened(prob, x0, L, floor)
         opt = torch.optim.LBFGS(
             [objective.z],

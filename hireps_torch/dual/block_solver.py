@@ -25,9 +25,10 @@ that LBFGS completes with every eta above its floor.
 The solver holds a population of S independent problems (:class:`DualProblem`): each phase
 runs one LBFGS call over the problems that need it, every decision (a KKT phase, a resumed
 LBFGS, the ridge fallback, Newton steps) is taken per problem, and a phase run for some
-problems leaves the others exactly as they were. A solve ends with Newton steps on every
-converged problem, which take its gradient from LBFGS's tolerance to round-off: a problem's
-solution then does not depend on which other problems shared the LBFGS call. A problem that a
+problems leaves the others exactly as they were. The Newton steps are each problem's own; a
+problem that converged in a shared LBFGS call ends with Newton steps that take its gradient
+from LBFGS's tolerance to round-off: its solution then does not depend on which other problems
+shared the call. A problem that a
 shared call leaves unconverged, or flags as a conflict, is solved again alone, and the ridge
 fallback runs for each problem alone.
 """
@@ -82,7 +83,8 @@ class LbfgsSettings:
 _REFINE_GRAD = 1e-13  # the Newton refinement's target (standardised gradient)
 _CHUNK = 25  # LBFGS iterations between re-whitenings (see BlockSolver.phase)
 _NEWTON_STEPS = 20  # Newton steps of a phase before LBFGS takes over (BlockSolver.descend)
-_HALVINGS = 30  # step halvings per Newton step
+_DAMPINGS = 16  # tries per Newton step, the damping growing tenfold after each
+_LAM_MIN = 1e-4  # the damping a try starts from once halving the step did not help
 _ARMIJO = 1e-4  # sufficient decrease of a Newton step
 _FLAT = 1e-13  # relative change of the dual value within round-off
 _MAX_LOG_STEP = 2.0  # largest change of a log eta or log xi in one Newton step
@@ -150,6 +152,7 @@ class BlockSolver:
         self.prob.log_eta_min = eta_floor(st)
         self.x = self.prob.start()
         self.iterations = 0
+        self.shared = torch.zeros(self.prob.S, dtype=torch.bool, device=self.x.device)
         self.informative = st.informative
         flat = ~st.informative  # the projection solve: R = 0 and eta held at 1
         self.prob.eta_on[flat] = False
@@ -297,7 +300,8 @@ class BlockSolver:
     def solve(self, mask: Tensor) -> None:
         """The LBFGS phases of the problems in ``mask`` (S,): the entropy bound's KKT phases,
         then up to two resumes of a stalled LBFGS, then Newton steps where it still stopped
-        short, and the Newton refinement of those that converged."""
+        short, and the Newton refinement of those that converged in a shared LBFGS call (their
+        answer then does not depend on the other problems of the call)."""
         kkt = mask & self.entropy_bound
         if bool(kkt.any()):
             self.entropy_kkt(kkt)
@@ -319,7 +323,7 @@ class BlockSolver:
         short = mask & ~self.end.converged & self._finite() & ~self._sunk()
         if bool(short.any()):
             self.polish(short)
-        done = mask & self.end.converged
+        done = mask & self.end.converged & self.shared
         if bool(done.any()):
             self.newton(done, steps=2, target=_REFINE_GRAD)
 
@@ -454,65 +458,82 @@ class BlockSolver:
         self.x[:, :K] = torch.where(low & moved, lifted.log(), self.x[:, :K])
 
     def descend(self, mask: Tensor) -> None:
-        """Damped Newton steps on the problems in ``mask`` (S,) before LBFGS: each step solves
-        with the exact Hessian (:meth:`DualProblem.curvature` plus the log-space gradient on
-        the diagonal), or with its positive semi-definite part where the exact one is not
-        positive definite (away from the optimum in log eta), and is halved until the dual
-        falls (Armijo), or, where the dual is flat to round-off, until the gradient shrinks. A
-        problem stops when its gradient meets ``tolerance_grad`` or no halving helps; LBFGS
-        then takes over. Steps taken count as iterations (once per step, however many
-        problems take it)."""
+        """Damped Newton steps on the problems in ``mask`` (S,) before LBFGS.
+
+        Each step solves with the exact Hessian (:meth:`DualProblem.curvature` plus the
+        log-space gradient on the diagonal), or with its positive semi-definite part where the
+        exact one is not positive definite (away from the optimum in log eta), plus a
+        Levenberg-Marquardt damping lam I (in coordinates with a unit Hessian diagonal; per
+        problem, 0 to start). A step is taken when the dual falls (Armijo) or, where the dual is
+        flat to round-off, when the gradient shrinks; otherwise it is halved, and after three
+        halvings damped, lam growing tenfold from 1e-4 each try (the curvature of v is near
+        singular when a block's weights sit on a few samples); after a step lam shrinks
+        tenfold. A problem stops when its gradient meets
+        ``tolerance_grad`` or no damping helps; LBFGS then takes over. Steps taken count as
+        iterations (once per step, however many problems take it)."""
         prob = self.prob
         g, grad, P = prob.evaluate(self.x)
         merit = grad.abs().amax(-1)
         active = mask & torch.isfinite(self.x).all(-1) & torch.isfinite(g)
         bounded = prob.ridge > 0  # a ridge bounds the dual: the weak-duality floor is off
+        lam = torch.zeros_like(g)
         for _ in range(_NEWTON_STEPS):
             active &= (merit > self.settings.tolerance_grad) & (bounded | (g >= self.floor))
             if not bool(active.any()):
                 break
-            step = self._newton_direction(grad)
-            # a trust region in log eta and log xi: a block's temperature changes by at most
-            # e^_MAX_LOG_STEP per step (its curvature vanishes as its weights collapse)
-            big = step[:, : 2 * prob.K].abs().amax(-1, keepdim=True) if prob.K else step[:, :0]
-            step = step * (_MAX_LOG_STEP / big.clamp_min(_MAX_LOG_STEP))
-            slope = (grad * step).sum(-1)
+            curvature = self._hessians(grad)
             taken = torch.zeros_like(active)
-            t = 1.0
-            for _ in range(_HALVINGS):
+            t = torch.ones_like(g)
+            for _ in range(_DAMPINGS):
                 trying = active & ~taken
                 if not bool(trying.any()):
                     break
-                x = torch.where(trying[:, None], self.x + t * step, self.x)
+                step = t[:, None] * self._damped_step(*curvature, grad, lam)
+                slope = (grad * step).sum(-1)
+                x = torch.where(trying[:, None], self.x + step, self.x)
                 g_t, grad_t, P_t = prob.evaluate(x)
                 merit_t = grad_t.abs().amax(-1)
                 flat = g_t <= g + _FLAT * (1.0 + g.abs())
-                ok = trying & ((g_t <= g + _ARMIJO * t * slope) | (flat & (merit_t < merit)))
+                ok = trying & ((g_t <= g + _ARMIJO * slope) | (flat & (merit_t < merit)))
                 self.x = torch.where(ok[:, None], x, self.x)
                 g = torch.where(ok, g_t, g)
                 grad = torch.where(ok[:, None], grad_t, grad)
                 P = torch.where(ok[:, None, None, None], P_t, P)
                 merit = torch.where(ok, merit_t, merit)
                 taken |= ok
-                t *= 0.5
+                # a failed try first halves the step, then (from the fourth) damps it
+                halve = trying & ~ok & (t > 0.1)
+                damp = trying & ~ok & ~halve
+                t = torch.where(halve, 0.5 * t, t)
+                lam = torch.where(damp, (10.0 * lam).clamp_min(_LAM_MIN), lam)
+                lam = torch.where(ok, torch.where(lam > _LAM_MIN, 0.1 * lam, 0.0), lam)
             active &= taken
             self.iterations += 1
         self._set(mask, merit <= self.settings.converged_grad, g, P)
 
-    def _newton_direction(self, grad: Tensor) -> Tensor:
-        """(S, n) Newton directions at x for gradients (S, n) on the moving coordinates (0
-        elsewhere), from the exact Hessian where it is positive definite, else from its
-        positive semi-definite part (:meth:`DualProblem.curvature`)."""
-        prob, K = self.prob, self.prob.K
-        M = prob.curvature(self.x, raw=True)
+    def _hessians(self, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(exact Hessian (S, n, n), its positive semi-definite part (S, n, n), moving
+        coordinates (S, n)) at x, for the gradients (S, n) there."""
+        K = self.prob.K
+        M = self.prob.curvature(self.x, raw=True)
         H = M.clone()
         H.diagonal(dim1=1, dim2=2)[:, : 2 * K] += grad[:, : 2 * K]
-        moving = self._moving()
-        step, ok = _newton_step(H, grad, moving, cholesky=True)
+        return H, M, self._moving()
+
+    def _damped_step(
+        self, H: Tensor, M: Tensor, moving: Tensor, grad: Tensor, lam: Tensor
+    ) -> Tensor:
+        """(S, n) Newton steps with damping lam (S,) from the exact Hessian H where H + lam I
+        is positive definite, else from its positive semi-definite part M, on the moving
+        coordinates (0 elsewhere), within the trust region of log eta and log xi."""
+        step, ok = _newton_step(H, grad, moving, cholesky=True, ridge=lam)
         if not bool(ok.all()):
-            psd, _ = _newton_step(M, grad, moving, cholesky=True, ridge=1e-8)
+            psd, _ = _newton_step(M, grad, moving, cholesky=True, ridge=lam + 1e-8)
             step = torch.where(ok[:, None], step, psd)
-        return step
+        # a block's temperature (and xi) changes by at most e^_MAX_LOG_STEP per step
+        K2 = 2 * self.prob.K
+        big = step[:, :K2].abs().amax(-1, keepdim=True) if K2 else step[:, :0].sum(-1, True)
+        return step * (_MAX_LOG_STEP / big.clamp_min(_MAX_LOG_STEP))
 
     def _moving(self) -> Tensor:
         """(S, n) the coordinates a step may move: free eta, xi where on, every v."""
@@ -596,6 +617,8 @@ class BlockSolver:
         used, spent = int(state.get("n_iter", 0)), int(state.get("func_evals", 0))
         stalled = used < max_iter and spent < max_eval
         self.iterations += used
+        if int(mask.sum()) > 1:
+            self.shared |= mask
         x = objective.x()
         g, grad, P = prob.evaluate(x)
         conv = grad.abs().amax(-1) <= self.settings.converged_grad
@@ -619,7 +642,11 @@ def _only(s: int, like: Tensor) -> Tensor:
 
 
 def _newton_step(
-    H: Tensor, grad: Tensor, moving: Tensor, cholesky: bool = False, ridge: float = 1e-12
+    H: Tensor,
+    grad: Tensor,
+    moving: Tensor,
+    cholesky: bool = False,
+    ridge: float | Tensor = 1e-12,
 ) -> tuple[Tensor, Tensor]:
     """(-H^-1 grad on the ``moving`` coordinates, 0 elsewhere (S, n); (S,) whether H was
     regular) for Hessians H (S, n, n), scaled to unit diagonal first (the curvature of a block
@@ -631,7 +658,8 @@ def _newton_step(
     g = torch.where(moving, grad, 0.0)
     d = Hm.diagonal(dim1=1, dim2=2)
     scale = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
-    Hs = scale[:, :, None] * Hm * scale[:, None, :] + ridge * eye
+    lam = ridge[:, None, None] if isinstance(ridge, Tensor) else ridge
+    Hs = scale[:, :, None] * Hm * scale[:, None, :] + (lam + 1e-12) * eye
     if cholesky:  # positive definite only
         L, info = torch.linalg.cholesky_ex(Hs)
         sol = torch.cholesky_solve((scale * g)[..., None], L)

@@ -156,7 +156,8 @@ def plan_refit(
         return Refit(None, sol, bound)
     weights = context.new_zeros(context.shape[0], policy.n_options, dtype=torch.float64)
     weights[:, policy.active] = sol.weights
-    return Refit(policy.fit_parameters(context, theta, weights), sol, bound)
+    gf, pf = policy.gating_features(context), policy.policy_features(context)
+    return Refit(policy.fit_checked(gf, pf, theta, weights), sol, bound)
 
 
 def apply_refit(

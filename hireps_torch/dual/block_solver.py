@@ -43,7 +43,7 @@ import torch
 from torch import Tensor
 
 from hireps_torch.dual.conditioning import Standardised
-from hireps_torch.dual.problem import LOG_ETA_MIN, DualProblem
+from hireps_torch.dual.problem import LOG_ETA_MAX, LOG_ETA_MIN, DualProblem
 from hireps_torch.dual.safeguards import enforce_kl
 from hireps_torch.dual.solutions import block_cross_entropy, block_kl
 
@@ -472,6 +472,10 @@ class BlockSolver:
         ``tolerance_grad`` or no damping helps; LBFGS then takes over. Steps taken count as
         iterations (once per step, however many problems take it)."""
         prob = self.prob
+        if prob.S == 1 and prob.K == 1 and prob.P == 0 and not prob.multi:
+            if bool(prob.eta_on[0, 0]) and bool(mask[0]):
+                self._descend_temperature()
+                return
         g, grad, P = prob.evaluate(self.x)
         merit = grad.abs().amax(-1)
         active = mask & torch.isfinite(self.x).all(-1) & torch.isfinite(g)
@@ -510,6 +514,52 @@ class BlockSolver:
             active &= taken
             self.iterations += 1
         self._set(mask, merit <= self.settings.converged_grad, g, P)
+
+    def _descend_temperature(self) -> None:
+        """:meth:`descend` of one problem whose only variable is one block's log eta (no
+        features, one option column, no entropy bound: plain REPS): the same Newton steps,
+        halvings and trust region, from the weighted moments of the returns in one pass per
+        evaluation (the second derivative in a = log eta is Var_P(R) / eta + dg/da)."""
+        prob, settings = self.prob, self.settings
+        R = prob.R[0, 0]
+        powers = torch.stack([torch.ones_like(R), R, R * R], -1)  # (N, 3)
+        eps, log_n = float(prob.eps[0, 0]), prob.log_n
+        lo, hi = float(prob.log_eta_min[0, 0]), LOG_ETA_MAX
+
+        def parts(a: float) -> tuple[float, float, float]:
+            """(g, dg/da, d2g/da2) at log eta = a (clamped as :meth:`DualProblem.unpack`)."""
+            eta = math.exp(min(max(a, lo), hi))
+            z = R / eta
+            m = z.max()
+            s0, s1, s2 = ((z - m).exp() @ powers).tolist()
+            lse = float(m) + math.log(s0) - log_n
+            mean, var = s1 / s0, max(s2 / s0 - (s1 / s0) ** 2, 0.0)
+            d_eta = eps + lse - mean / eta
+            inside = lo < a < hi
+            grad = eta * d_eta if inside else 0.0
+            return eta * (eps + lse), grad, (var / eta + grad if inside else 0.0)
+
+        a = float(self.x[0, 0])
+        g, grad, curv = parts(a)
+        for _ in range(_NEWTON_STEPS):
+            if not (abs(grad) > settings.tolerance_grad and math.isfinite(g)):
+                break
+            step = -grad / curv if curv > 0 else -grad / max(abs(grad), 1.0)
+            step = max(-_MAX_LOG_STEP, min(_MAX_LOG_STEP, step))
+            for _ in range(_DAMPINGS):
+                g_t, grad_t, curv_t = parts(a + step)
+                flat = g_t <= g + _FLAT * (1.0 + abs(g))
+                if g_t <= g + _ARMIJO * grad * step or (flat and abs(grad_t) < abs(grad)):
+                    a, g, grad, curv = a + step, g_t, grad_t, curv_t
+                    break
+                step *= 0.5
+            else:
+                break
+            self.iterations += 1
+        self.x[0, 0] = a
+        g_all, grad_all, P = prob.evaluate(self.x)
+        converged = grad_all.abs().amax(-1) <= settings.converged_grad
+        self._set(torch.ones_like(converged), converged, g_all, P)
 
     def _hessians(self, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(exact Hessian (S, n, n), its positive semi-definite part (S, n, n), moving

@@ -250,8 +250,13 @@ class SoftmaxGating(Gating):
             ``{"weight": (O, F), "bias": (O,)}``, the new values (pruned options' rows kept).
         """
         x, t, w = self._fit_inputs(features, targets, sample_weights)
-        x = x.to(torch.float64)
-        max_iter = check_count("max_iter", max_iter, 1)
+        return self.fit_checked(x.to(torch.float64), t, w, check_count("max_iter", max_iter, 1))
+
+    def fit_checked(
+        self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
+    ) -> dict[str, Tensor]:
+        """:meth:`fit_parameters` on inputs already checked: float64 features x ([S,] N, F),
+        targets t ([S,] N, O) and sample weights w ([S,] N) summing to 1."""
         act = self.active
         if self.in_features == 0:
             prior = torch.where(act, (w[..., None] * t).sum(-2).clamp_min(1e-300), 0.0)
@@ -428,6 +433,12 @@ class ConstantGating(Gating):
     ) -> dict[str, Tensor]:
         """Constant gating: nothing to fit (the inputs are checked all the same)."""
         self._fit_inputs(features, targets, sample_weights)
+        return {}
+
+    def fit_checked(
+        self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
+    ) -> dict[str, Tensor]:
+        """Constant gating: nothing to fit."""
         return {}
 
 

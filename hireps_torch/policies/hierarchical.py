@@ -388,6 +388,10 @@ class HierarchicalPolicy(PolicyModule):
                 f"weights must have shape {(*lead, N, self.n_options)}, got {tuple(w.shape)}"
             )
         check_weights("weights", w)
+        empty = ~(w > 0).flatten(-2).any(-1)
+        if bool(empty.any()):
+            who = "" if self.population is None else f"[{int(empty.nonzero()[0, 0])}]"
+            raise ValueError(f"weights{who} are all zero: nothing to fit")
         on_pruned = ((w > 0) & ~self.active.unsqueeze(-2)).any(-2)
         if bool(on_pruned.any()):
             pruned = [list(map(int, j)) for j in on_pruned.nonzero()]
@@ -396,17 +400,27 @@ class HierarchicalPolicy(PolicyModule):
                 f"weights put mass on pruned option(s) {where}; give them weight 0 (their "
                 "column of the weights must be zero)"
             )
+        return self.fit_checked(gf, pf, t, w)
+
+    def fit_checked(self, gf: Tensor, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
+        """:meth:`fit_parameters` on inputs already checked: gating and option features gf, pf
+        ([S,] N, .) of checked contexts, float64 theta t ([S,] N, D) and weights w
+        ([S,] N, O) (non-negative, finite, zero on pruned options, some positive weight)."""
         w = power_of_two_scaled(w, self.population is not None)
         ws = w.sum(-1)
-        targets = w / torch.where(ws > 0, ws, 1.0)[..., None]  # rows without weight stay 0
-        new = {f"gating.{k}": v for k, v in self.gating.fit_parameters(gf, targets, ws).items()}
+        new: dict[str, Tensor] = {}
+        if self.n_options > 1:  # one option: pi(o | s) = 1 whatever the gating holds
+            targets = w / torch.where(ws > 0, ws, 1.0)[..., None]  # rows without weight stay 0
+            norm = ws / ws.sum(-1, keepdim=True)
+            x = gf.to(torch.float64)
+            new = {f"gating.{k}": v for k, v in self.gating.fit_checked(x, targets, norm).items()}
         if self.population is not None:
             return new | self._population_option_fits(pf, t, w)
         total = float(w.sum())
         for o, opt in enumerate(self.sub_policies):
             if bool(self.active[o]) and float(w[:, o].sum()) > 1e-12 * total:
                 try:
-                    fit = opt.fit_parameters(pf, t, w[:, o])
+                    fit = opt.fit_checked(pf.to(torch.float64), t, w[:, o])
                 except ValueError as exc:
                     raise ValueError(f"option {o}: {exc}") from None
                 new.update({f"options.{o}.{k}": v for k, v in fit.items()})

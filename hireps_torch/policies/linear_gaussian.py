@@ -416,8 +416,14 @@ class LinearGaussian(PolicyModule):
         if bool(empty.any()):
             s = int(empty.nonzero()[0, 0])
             raise ValueError(f"weights[{s}] are all zero (member {s} of the population)")
-        w = power_of_two_scaled(w, self.population is not None)
         r = check_nonnegative_float("ridge", ridge) or 0.0
+        return self.fit_checked(x, y, w, r)
+
+    def fit_checked(self, x: Tensor, y: Tensor, w: Tensor, r: float = 1e-6) -> dict[str, Tensor]:
+        """:meth:`fit_parameters` on inputs already checked: float64 features x ([S,] N, F)
+        (after the option's feature map), targets y ([S,] N, D), non-negative weights w
+        ([S,] N) with some positive weight for each member, ridge r >= 0."""
+        w = power_of_two_scaled(w, self.population is not None)
         try:
             if self.mean_prior > 0:
                 W, b = map_linear_regression(x, y, w, self.weight, self.bias, self.mean_prior, r)

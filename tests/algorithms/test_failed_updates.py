@@ -177,7 +177,7 @@ def test_a_late_failure_changes_nothing(make, data, call, dual, monkeypatch):
     def fail(*a, **k):
         raise ValueError("the covariance overflows (injected)")
 
-    monkeypatch.setattr(last, "fit_parameters", fail)
+    monkeypatch.setattr(last, "fit_checked", fail)
     expect_unchanged(algo, lambda: getattr(algo, call)(*args), "option 2: .*injected")
     monkeypatch.undo()
     getattr(algo, call)(*args)  # and the same call then works

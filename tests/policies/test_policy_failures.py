@@ -116,7 +116,7 @@ def test_an_option_failing_after_the_others_were_fitted_changes_nothing(gen, mon
         calls.append(1)
         raise ValueError("the covariance overflows (injected)")
 
-    monkeypatch.setattr(pol.sub_policies[2], "fit_parameters", fail)
+    monkeypatch.setattr(pol.sub_policies[2], "fit_checked", fail)
     w = torch.rand(40, 3, generator=gen, dtype=f64)
     expect_unchanged(pol, lambda: pol.weighted_fit(s, theta, w), match="option 2: .*injected")
     assert calls == [1]

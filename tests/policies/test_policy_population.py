@@ -184,7 +184,7 @@ def test_bad_population_inputs_name_the_value():
     with pytest.raises(ValueError, match=r"theta must have shape \(3, 40, 3\)"):
         pop.fit_parameters(ctx, theta[:, :, :2], w)
     w[1] = 0.0
-    with pytest.raises(ValueError, match=r"sample_weights\[1\] are all zero"):
+    with pytest.raises(ValueError, match=r"weights\[1\] are all zero"):
         pop.fit_parameters(ctx, theta, w)
     with pytest.raises(ValueError, match="is on device meta"):
         pop.log_prob(ctx.to("meta"), theta)

@@ -25,10 +25,9 @@ that LBFGS completes with every eta above its floor.
 The solver holds a population of S independent problems (:class:`DualProblem`): each phase
 runs one LBFGS call over the problems that need it, every decision (a KKT phase, a resumed
 LBFGS, the ridge fallback, Newton steps) is taken per problem, and a phase run for some
-problems leaves the others exactly as they were. The Newton steps are each problem's own; a
-problem that converged in a shared LBFGS call ends with Newton steps that take its gradient
-from LBFGS's tolerance to round-off: its solution then does not depend on which other problems
-shared the call. A problem that a
+problems leaves the others exactly as they were. The Newton steps are each problem's own, and a
+solve ends with Newton steps that take each converged problem's gradient from the tolerance to
+round-off: its solution then does not depend on which other problems shared an LBFGS call. A problem that a
 shared call leaves unconverged, or flags as a conflict, is solved again alone, and the ridge
 fallback runs for each problem alone.
 """
@@ -43,7 +42,7 @@ import torch
 from torch import Tensor
 
 from hireps_torch.dual.conditioning import Standardised
-from hireps_torch.dual.problem import LOG_ETA_MAX, LOG_ETA_MIN, DualProblem
+from hireps_torch.dual.problem import LOG_ETA_MIN, DualProblem
 from hireps_torch.dual.safeguards import enforce_kl
 from hireps_torch.dual.solutions import block_cross_entropy, block_kl
 
@@ -152,7 +151,6 @@ class BlockSolver:
         self.prob.log_eta_min = eta_floor(st)
         self.x = self.prob.start()
         self.iterations = 0
-        self.shared = torch.zeros(self.prob.S, dtype=torch.bool, device=self.x.device)
         self.informative = st.informative
         flat = ~st.informative  # the projection solve: R = 0 and eta held at 1
         self.prob.eta_on[flat] = False
@@ -300,8 +298,8 @@ class BlockSolver:
     def solve(self, mask: Tensor) -> None:
         """The LBFGS phases of the problems in ``mask`` (S,): the entropy bound's KKT phases,
         then up to two resumes of a stalled LBFGS, then Newton steps where it still stopped
-        short, and the Newton refinement of those that converged in a shared LBFGS call (their
-        answer then does not depend on the other problems of the call)."""
+        short, and the Newton refinement of those that converged (their answer then does not
+        depend on the other problems of a shared LBFGS call)."""
         kkt = mask & self.entropy_bound
         if bool(kkt.any()):
             self.entropy_kkt(kkt)
@@ -323,7 +321,7 @@ class BlockSolver:
         short = mask & ~self.end.converged & self._finite() & ~self._sunk()
         if bool(short.any()):
             self.polish(short)
-        done = mask & self.end.converged & self.shared
+        done = mask & self.end.converged
         if bool(done.any()):
             self.newton(done, steps=2, target=_REFINE_GRAD)
 
@@ -472,10 +470,6 @@ class BlockSolver:
         ``tolerance_grad`` or no damping helps; LBFGS then takes over. Steps taken count as
         iterations (once per step, however many problems take it)."""
         prob = self.prob
-        if prob.S == 1 and prob.K == 1 and prob.P == 0 and not prob.multi:
-            if bool(prob.eta_on[0, 0]) and bool(mask[0]):
-                self._descend_temperature()
-                return
         g, grad, P = prob.evaluate(self.x)
         merit = grad.abs().amax(-1)
         active = mask & torch.isfinite(self.x).all(-1) & torch.isfinite(g)
@@ -514,52 +508,6 @@ class BlockSolver:
             active &= taken
             self.iterations += 1
         self._set(mask, merit <= self.settings.converged_grad, g, P)
-
-    def _descend_temperature(self) -> None:
-        """:meth:`descend` of one problem whose only variable is one block's log eta (no
-        features, one option column, no entropy bound: plain REPS): the same Newton steps,
-        halvings and trust region, from the weighted moments of the returns in one pass per
-        evaluation (the second derivative in a = log eta is Var_P(R) / eta + dg/da)."""
-        prob, settings = self.prob, self.settings
-        R = prob.R[0, 0]
-        powers = torch.stack([torch.ones_like(R), R, R * R], -1)  # (N, 3)
-        eps, log_n = float(prob.eps[0, 0]), prob.log_n
-        lo, hi = float(prob.log_eta_min[0, 0]), LOG_ETA_MAX
-
-        def parts(a: float) -> tuple[float, float, float]:
-            """(g, dg/da, d2g/da2) at log eta = a (clamped as :meth:`DualProblem.unpack`)."""
-            eta = math.exp(min(max(a, lo), hi))
-            z = R / eta
-            m = z.max()
-            s0, s1, s2 = ((z - m).exp() @ powers).tolist()
-            lse = float(m) + math.log(s0) - log_n
-            mean, var = s1 / s0, max(s2 / s0 - (s1 / s0) ** 2, 0.0)
-            d_eta = eps + lse - mean / eta
-            inside = lo < a < hi
-            grad = eta * d_eta if inside else 0.0
-            return eta * (eps + lse), grad, (var / eta + grad if inside else 0.0)
-
-        a = float(self.x[0, 0])
-        g, grad, curv = parts(a)
-        for _ in range(_NEWTON_STEPS):
-            if not (abs(grad) > settings.tolerance_grad and math.isfinite(g)):
-                break
-            step = -grad / curv if curv > 0 else -grad / max(abs(grad), 1.0)
-            step = max(-_MAX_LOG_STEP, min(_MAX_LOG_STEP, step))
-            for _ in range(_DAMPINGS):
-                g_t, grad_t, curv_t = parts(a + step)
-                flat = g_t <= g + _FLAT * (1.0 + abs(g))
-                if g_t <= g + _ARMIJO * grad * step or (flat and abs(grad_t) < abs(grad)):
-                    a, g, grad, curv = a + step, g_t, grad_t, curv_t
-                    break
-                step *= 0.5
-            else:
-                break
-            self.iterations += 1
-        self.x[0, 0] = a
-        g_all, grad_all, P = prob.evaluate(self.x)
-        converged = grad_all.abs().amax(-1) <= settings.converged_grad
-        self._set(torch.ones_like(converged), converged, g_all, P)
 
     def _hessians(self, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(exact Hessian (S, n, n), its positive semi-definite part (S, n, n), moving
@@ -667,8 +615,6 @@ class BlockSolver:
         used, spent = int(state.get("n_iter", 0)), int(state.get("func_evals", 0))
         stalled = used < max_iter and spent < max_eval
         self.iterations += used
-        if int(mask.sum()) > 1:
-            self.shared |= mask
         x = objective.x()
         g, grad, P = prob.evaluate(x)
         conv = grad.abs().amax(-1) <= self.settings.converged_grad

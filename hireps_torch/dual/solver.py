@@ -37,6 +37,7 @@ from hireps_torch.dual.solutions import (
     RepsDualSolution,
     finish,
 )
+from hireps_torch.dual.temperature import solve_temperature
 
 __all__ = [
     "LbfgsSettings",
@@ -139,8 +140,15 @@ def solve_blocks(
     (one per problem that did not converge, prefixed "problem s" when S > 1) are attributed
     ``stacklevel`` frames up (2: the caller of this function)."""
     S, K = R.shape[:2]
-    if log_resp.shape[-1] > 1 and (kappa is None or not bool(torch.isfinite(kappa).any())):
+    if D is not None and D.shape[-1] == 0:  # zero-width features are no features
+        D = c = None
+    unbounded = kappa is None or not bool(torch.isfinite(kappa).any())
+    if log_resp.shape[-1] > 1 and unbounded:
         return _factorised(R, log_resp, eps, D, c, settings, stacklevel + 1)
+    if S == 1 and K == 1 and D is None and unbounded:  # one option column: plain REPS
+        sol = solve_temperature(R[0, 0], float(eps[0, 0]), settings)
+        if sol is not None:
+            return sol
     r_scale = _pow2_scale(R.abs().amax(dim=(1, 2)))  # (S,)
     f_scale = _pow2_scale(_column_max(D, S, R))  # (S, P)
     st = standardise(

@@ -1,0 +1,110 @@
+"""The dual whose only variable is one temperature: plain episodic REPS (one block, no features,
+one option column, no entropy bound), ``g(eta) = eta eps + eta log((1/N) sum_i exp(R_i / eta))``.
+
+:func:`solve_temperature` takes Newton steps in a = log eta on the standardised returns, each
+from the weighted moments of the returns in one pass (``dg/da = eta (eps - KL)``,
+``d2g/da2 = Var_P(R) / eta + dg/da``), halved until the dual falls and held within a trust
+region of ``e^2`` per step, until the realised KL is within ``KL_RTOL`` of epsilon (below it:
+the KL bound holds by construction) and, in at most two more steps, the gradient is at
+round-off (so that a problem solved here and the same problem solved by the general solver
+agree to round-off). It returns None where it cannot conclude (returns without
+spread, a step that does not help, the step budget spent); the general solver
+(:mod:`hireps_torch.dual.solver`) then solves the problem from the start, with its warnings.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from hireps_torch.dual.block_solver import LbfgsSettings
+from hireps_torch.dual.problem import LOG_ETA_MAX
+from hireps_torch.dual.safeguards import KL_RTOL
+from hireps_torch.dual.solutions import PopulationDualSolution
+
+__all__ = ["solve_temperature"]
+
+_STEPS = 30  # Newton steps at most
+_HALVINGS = 30  # halvings of a step at most
+_MAX_LOG_STEP = 2.0  # largest change of log eta in one step
+_REFINE_GRAD = 1e-13  # the gradient the steps past the KL tolerance aim at (round-off)
+_REFINE_STEPS = 2  # steps past the KL tolerance at most
+_SPREAD_RTOL = 1e-13  # returns whose spread is below this of their magnitude carry no information
+_LOG_ETA_FLOOR = -10.0  # eta >= e^-10 return spreads (the general solver's floor, eta_floor)
+
+
+def solve_temperature(
+    R: Tensor, eps: float, settings: LbfgsSettings
+) -> PopulationDualSolution | None:
+    """Solve the one-temperature dual of finite float64 returns R (N,) for KL bound eps, or
+    None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
+    ``KL <= eps (1 + KL_RTOL)``."""
+    N = R.shape[0]
+    mean, spread = R.mean(), R.std()
+    m_abs, s = float(R.abs().max()), float(spread)
+    if not (math.isfinite(s) and s > _SPREAD_RTOL * m_abs):
+        return None
+    r = (R - mean) / spread
+    powers = torch.stack([torch.ones_like(r), r, r * r], -1)  # (N, 3)
+    log_n = math.log(N)
+
+    def parts(a: float) -> tuple[float, float, float, float]:
+        """(g, dg/da, d2g/da2, KL) at log eta = a."""
+        eta = math.exp(a)
+        z = r / eta
+        top = float(z.max())
+        s0, s1, s2 = ((z - top).exp() @ powers).tolist()
+        lse = top + math.log(s0) - log_n
+        avg = s1 / s0
+        kl = avg / eta - lse
+        grad = eta * (eps - kl)
+        var = max(s2 / s0 - avg * avg, 0.0)
+        return eta * (eps + lse), grad, var / eta + grad, kl
+
+    lo = _LOG_ETA_FLOOR
+    a = max(-0.5 * math.log(2.0 * eps), lo + 1.0)  # KL ~ Var / (2 eta^2) = eps
+    g, grad, curv, kl = parts(a)
+    steps = refined = 0
+    while True:
+        held = abs(kl - eps) <= KL_RTOL * eps and kl <= eps
+        if held and (abs(grad) <= _REFINE_GRAD or refined == _REFINE_STEPS):
+            break
+        refined += held  # steps past the tolerance take the gradient to round-off
+        if steps == _STEPS or not math.isfinite(g):
+            return None
+        step = -grad / curv if curv > 0 else math.copysign(_MAX_LOG_STEP, -grad)
+        step = max(-_MAX_LOG_STEP, min(_MAX_LOG_STEP, step))
+        for _ in range(_HALVINGS):
+            if lo <= a + step <= LOG_ETA_MAX:
+                trial = parts(a + step)
+                flat = trial[0] <= g + 1e-13 * (1.0 + abs(g))
+                if trial[0] <= g + 1e-4 * grad * step or (flat and abs(trial[1]) < abs(grad)):
+                    a += step
+                    g, grad, curv, kl = trial
+                    break
+            step *= 0.5
+        else:
+            if held:  # at round-off already
+                break
+            return None
+        steps += 1
+    eta = math.exp(a)
+    z = r / eta
+    w = torch.softmax(z, 0)
+    ess = 1.0 / float((w * w).sum())
+    ones = R.new_ones(1, 1)
+    return PopulationDualSolution(
+        eta=ones * (eta * s),
+        xi=R.new_zeros(1, 1),
+        v=R.new_zeros(1, 0),
+        weights=w.reshape(1, 1, N, 1),
+        kl=ones * kl,
+        cross_entropy=R.new_zeros(1, 1),
+        effective_sample_size=ones * ess,
+        feature_error=R.new_zeros(1),
+        dual_value=(g * spread + mean).reshape(1),
+        converged=torch.ones(1, dtype=torch.bool, device=R.device),
+        iterations=steps,
+    )

@@ -154,8 +154,10 @@ def plan_refit(
         )
     if not carries_information(sol, bound):
         return Refit(None, sol, bound)
-    weights = context.new_zeros(context.shape[0], policy.n_options, dtype=torch.float64)
-    weights[:, policy.active] = sol.weights
+    weights = sol.weights
+    if weights.shape[-1] < policy.n_options:  # pruned options get weight 0
+        weights = context.new_zeros(context.shape[0], policy.n_options, dtype=torch.float64)
+        weights[:, policy.active] = sol.weights
     gf, pf = policy.gating_features(context), policy.policy_features(context)
     return Refit(policy.fit_checked(gf, pf, theta, weights), sol, bound)
 
@@ -175,12 +177,14 @@ def apply_refit(
     """
     pruned: list[int] = []
     if refit.values is not None:
-        policy.set_parameters(refit.values)
+        policy.set_checked(refit.values)
         if policy.n_options > 1 and prune_threshold > 0:
             pruned = cast(list[int], policy.prune(context, prune_threshold))
     sol, bound = refit.sol, refit.bound
-    prior = policy.gating.probs(policy.gating_features(context)).mean(0)
     ent = torch.stack([o.entropy() for o in policy.sub_policies])
+    prior = ent.new_ones(1)  # one option: pi(o | s) = 1
+    if policy.n_options > 1:
+        prior = policy.gating.probs(policy.gating_features(context)).mean(0)
     return {
         "eta": sol.eta,
         "xi": sol.xi,
@@ -349,7 +353,7 @@ def apply_population_refit(
     S = refit.informed.shape[0]
     pruned: list[list[int]] = [[] for _ in range(S)]
     if refit.values is not None:
-        policy.set_parameters(refit.values)
+        policy.set_checked(refit.values)
         if policy.n_options > 1 and prune_threshold > 0:
             before = policy.active.clone()
             found = cast(list[list[int]], policy.prune(context, prune_threshold))

@@ -52,6 +52,10 @@ from hireps_torch.checks import (
     check_positive_float,
 )
 from hireps_torch.dual import solve_episodic_dual
+from hireps_torch.dual.episodic import episodic_solution
+from hireps_torch.dual.inputs import LOG_RESP_FLOOR, warn_if_degenerate
+from hireps_torch.dual.solutions import block_solution
+from hireps_torch.dual.solver import checked_settings
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -59,6 +63,8 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["REPS", "EpisodicHiREPS"]
+
+_SETTINGS = checked_settings(300)  # the dual's LBFGS settings (solve_episodic_dual's defaults)
 
 
 class EpisodicHiREPS(HiREPSBase):
@@ -270,10 +276,12 @@ class EpisodicHiREPS(HiREPSBase):
                 f"{tuple(theta.shape)}"
             )
         check_finite("returns", R)
-        as_finite_f64("params", theta)
+        check_finite("params", theta)
         c = self._contexts(contexts, n=N)
         if c.shape[0] != N:
             raise ValueError(f"got {c.shape[0]} contexts for {N} params and returns")
+        if N < 2:
+            raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
         return c, theta, R
 
     # ---- ask / tell -------------------------------------------------------------------------
@@ -324,14 +332,20 @@ class EpisodicHiREPS(HiREPSBase):
             return self._population_tell(*self._population_samples(contexts, params, returns))
         c, theta, R = self._samples(contexts, params, returns)
         bound = option_bound(self.policy, c, theta, self.kappa_rel)
-        phi = self.context_features(c) if self.context_features is not None else None
-        sol = solve_episodic_dual(
-            R,
-            epsilon=self.epsilon,
-            log_responsibilities=bound.log_responsibilities,
-            context_features=phi,
-            kappa=bound.kappa,
-        )
+        N = R.shape[0]
+        warn_if_degenerate([self.epsilon], N, 3)
+        eps = R.new_full((1,), self.epsilon)
+        kappa = None if bound.kappa is None else R.new_full((1,), bound.kappa)
+        lr = bound.log_responsibilities
+        lr = R.new_zeros(N, 1) if lr is None else lr.clamp_min(LOG_RESP_FLOOR)
+        phi = None
+        if self.context_features is not None:
+            phi = self.context_features(c).to(R)[None]
+            check_finite("context features", phi)
+        one = episodic_solution(
+            R[None], lr[None], eps[None], phi, None if kappa is None else kappa[None], _SETTINGS
+        ).problem(0)
+        sol = block_solution(one, 0, one.v)
         refit = plan_refit(self.policy, c, theta, sol, bound)
         report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1

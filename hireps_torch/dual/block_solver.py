@@ -27,9 +27,9 @@ runs one LBFGS call over the problems that need it, every decision (a KKT phase,
 LBFGS, the ridge fallback, Newton steps) is taken per problem, and a phase run for some
 problems leaves the others exactly as they were. The Newton steps are each problem's own, and a
 solve ends with Newton steps that take each converged problem's gradient from the tolerance to
-round-off: its solution then does not depend on which other problems shared an LBFGS call. A problem that a
-shared call leaves unconverged, or flags as a conflict, is solved again alone, and the ridge
-fallback runs for each problem alone.
+round-off: its solution then does not depend on which other problems shared an LBFGS call. A
+problem that a shared call leaves unconverged, or flags as a conflict, is solved again alone,
+and the ridge fallback runs for each problem alone.
 """
 
 from __future__ import annotations

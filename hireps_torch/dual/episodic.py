@@ -14,9 +14,9 @@ from hireps_torch.dual.solutions import (
     block_solution,
     warn_if_collapsed,
 )
-from hireps_torch.dual.solver import checked_settings, solve_blocks
+from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
 
-__all__ = ["solve_episodic_dual"]
+__all__ = ["episodic_solution", "solve_episodic_dual"]
 
 
 @overload
@@ -101,17 +101,38 @@ def solve_episodic_dual(
         returns, epsilon, log_responsibilities, kappa, population=population
     )
     S, _, N = R.shape
-    D = None
+    phi = None
     if context_features is not None:
         lead = (S, N) if population else (N,)
         phi = check_features(
             "context_features", context_features, *lead, population=population, device=R.device
         )
-        # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
-        D = -centred(phi).reshape(S, 1, N, -1)
-    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
-    warn_if_collapsed(sol, eps)
+        phi = phi.reshape(S, N, -1)
+    sol = episodic_solution(R[:, 0], lr[:, 0], eps, phi, kap, opts, stacklevel=3)
     if population:
         return sol
     one = sol.problem(0)
     return block_solution(one, 0, one.v)
+
+
+def episodic_solution(
+    R: Tensor,
+    log_resp: Tensor,
+    eps: Tensor,
+    phi: Tensor | None,
+    kappa: Tensor | None,
+    settings: LbfgsSettings,
+    stacklevel: int = 2,
+) -> PopulationDualSolution:
+    """:func:`solve_episodic_dual` of S problems on inputs already checked: float64 returns R
+    (S, N), log responsibilities (S, N, O) (normalised, log 0 floored), epsilon (S, 1),
+    context features phi (S, N, F) or None and kappa (S, 1) or None. Warnings are attributed
+    ``stacklevel`` frames up (2: the caller of this function)."""
+    S, N = R.shape
+    D = None
+    if phi is not None:
+        # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
+        D = -centred(phi).reshape(S, 1, N, -1)
+    sol = solve_blocks(R[:, None], log_resp[:, None], eps, D, None, kappa, settings, stacklevel + 1)
+    warn_if_collapsed(sol, eps, stacklevel)
+    return sol

@@ -20,6 +20,7 @@ from hireps_torch.checks import as_f64, as_float, check_finite, check_positive
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
 __all__ = [
+    "LOG_RESP_FLOOR",
     "centred",
     "check_blocks",
     "check_bounds",
@@ -29,9 +30,10 @@ __all__ = [
     "check_settings",
     "common_inputs",
     "per_block",
+    "warn_if_degenerate",
 ]
 
-_LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it is exactly 0
+LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it is exactly 0
 
 
 def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tensor:
@@ -63,7 +65,7 @@ def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tens
         )
     if worst > 1e-13:
         log_resp = log_resp - norm.unsqueeze(-1)
-    return log_resp.clamp_min(_LOG_RESP_FLOOR)
+    return log_resp.clamp_min(LOG_RESP_FLOOR)
 
 
 def per_block(
@@ -174,8 +176,22 @@ def check_bounds(
     (``stacklevel`` frames up) where epsilon >= log N."""
     eps = per_block("epsilon", epsilon, K, device)
     check_positive("epsilon", eps)
-    big = [(k, float(e)) for k, e in enumerate(eps) if e >= math.log(N)]
+    warn_if_degenerate(eps.tolist(), N, stacklevel)
+    kap = None
+    if kappa is not None:
+        kap = per_block("kappa", kappa, K, device)
+        if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
+            raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
+    return eps, kap
+
+
+def warn_if_degenerate(epsilon: list[float], N: int, stacklevel: int) -> None:
+    """A :class:`~hireps_torch.dual.DegenerateWeightsWarning` where a block's epsilon >= log N
+    (the weights then collapse onto the best samples), attributed ``stacklevel`` frames up
+    (1: the caller of this function)."""
+    big = [(k, e) for k, e in enumerate(epsilon) if e >= math.log(N)]
     if big:
+        K = len(epsilon)
         which = ", ".join(
             f"epsilon = {e:.4g}" if K == 1 else f"epsilon[{k}] = {e:.4g}" for k, e in big
         )
@@ -183,14 +199,8 @@ def check_bounds(
             f"{which} >= log N = {math.log(N):.4g} (N = {N}): the KL bound cannot bind and the "
             "weights collapse onto the best sample(s); use a smaller epsilon or more samples",
             DegenerateWeightsWarning,
-            stacklevel=stacklevel,
+            stacklevel=stacklevel + 1,
         )
-    kap = None
-    if kappa is not None:
-        kap = per_block("kappa", kappa, K, device)
-        if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
-            raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
-    return eps, kap
 
 
 def _log_responsibilities(

@@ -296,9 +296,9 @@ def finish(
     )
 
 
-def warn_if_collapsed(sol: PopulationDualSolution, epsilon: Tensor) -> None:
-    """Warn (at the wrapper's caller) when a block's weights sit on ~one sample (epsilon
-    (S, K))."""
+def warn_if_collapsed(sol: PopulationDualSolution, epsilon: Tensor, stacklevel: int = 2) -> None:
+    """Warn (``stacklevel`` frames above the caller; 2: the wrapper's caller) when a block's
+    weights sit on ~one sample (epsilon (S, K))."""
     S, K, N, _ = sol.weights.shape
     ess = sol.effective_sample_size
     bad = ((ess < 1.5) & sol.eta.isfinite()).nonzero().tolist()
@@ -313,5 +313,5 @@ def warn_if_collapsed(sol: PopulationDualSolution, epsilon: Tensor) -> None:
             f"the weights collapsed onto {which} with N = {N}; the refit will rely on its "
             "variance floor",
             DegenerateWeightsWarning,
-            stacklevel=3,
+            stacklevel=stacklevel + 1,
         )

@@ -5,7 +5,7 @@ one option column, no entropy bound), ``g(eta) = eta eps + eta log((1/N) sum_i e
 from the weighted moments of the returns in one pass (``dg/da = eta (eps - KL)``,
 ``d2g/da2 = Var_P(R) / eta + dg/da``), halved until the dual falls and held within a trust
 region of ``e^2`` per step, until the realised KL is within ``KL_RTOL`` of epsilon (below it:
-the KL bound holds by construction) and, in at most two more steps, the gradient is at
+the KL bound holds by construction) and, in at most one more step, the gradient is at
 round-off (so that a problem solved here and the same problem solved by the general solver
 agree to round-off). It returns None where it cannot conclude (returns without
 spread, a step that does not help, the step budget spent); the general solver
@@ -30,7 +30,7 @@ _STEPS = 30  # Newton steps at most
 _HALVINGS = 30  # halvings of a step at most
 _MAX_LOG_STEP = 2.0  # largest change of log eta in one step
 _REFINE_GRAD = 1e-13  # the gradient the steps past the KL tolerance aim at (round-off)
-_REFINE_STEPS = 2  # steps past the KL tolerance at most
+_REFINE_STEPS = 1  # steps past the KL tolerance at most
 _SPREAD_RTOL = 1e-13  # returns whose spread is below this of their magnitude carry no information
 _LOG_ETA_FLOOR = -10.0  # eta >= e^-10 return spreads (the general solver's floor, eta_floor)
 
@@ -48,14 +48,13 @@ def solve_temperature(
         return None
     r = (R - mean) / spread
     powers = torch.stack([torch.ones_like(r), r, r * r], -1)  # (N, 3)
-    log_n = math.log(N)
+    log_n, r_max = math.log(N), float(r.max())
 
     def parts(a: float) -> tuple[float, float, float, float]:
         """(g, dg/da, d2g/da2, KL) at log eta = a."""
         eta = math.exp(a)
-        z = r / eta
-        top = float(z.max())
-        s0, s1, s2 = ((z - top).exp() @ powers).tolist()
+        top = r_max / eta  # the largest r / eta
+        s0, s1, s2 = (torch.exp(r * (1.0 / eta) - top) @ powers).tolist()
         lse = top + math.log(s0) - log_n
         avg = s1 / s0
         kl = avg / eta - lse

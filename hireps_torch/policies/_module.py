@@ -69,5 +69,12 @@ class PolicyModule(nn.Module):
                 )
             if value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise ValueError(f"the new value of {key} is not finite")
+        self.set_checked(values)
+
+    @torch.no_grad()
+    def set_checked(self, values: Mapping[str, Tensor]) -> None:
+        """:meth:`set_parameters` of values already checked (names, shapes, finiteness), as
+        the refits' ``fit_checked`` return them."""
         for key, value in values.items():
-            current[key].copy_(value)
+            module, _, name = key.rpartition(".")
+            getattr(self.get_submodule(module) if module else self, name).copy_(value)

@@ -416,11 +416,12 @@ class HierarchicalPolicy(PolicyModule):
             new = {f"gating.{k}": v for k, v in self.gating.fit_checked(x, targets, norm).items()}
         if self.population is not None:
             return new | self._population_option_fits(pf, t, w)
-        total = float(w.sum())
+        mass, active = w.sum(-2).tolist(), self.active.tolist()
+        x = pf.to(torch.float64)
         for o, opt in enumerate(self.sub_policies):
-            if bool(self.active[o]) and float(w[:, o].sum()) > 1e-12 * total:
+            if active[o] and mass[o] > 1e-12 * sum(mass):
                 try:
-                    fit = opt.fit_checked(pf.to(torch.float64), t, w[:, o])
+                    fit = opt.fit_checked(x, t, w[:, o])
                 except ValueError as exc:
                     raise ValueError(f"option {o}: {exc}") from None
                 new.update({f"options.{o}.{k}": v for k, v in fit.items()})

@@ -59,9 +59,12 @@ def weighted_least_squares(
         sum_i w_i ||y_i - W x_i - b||^2 + ridge ||W||^2.
     """
     x = inputs.to(torch.float64)
-    X = torch.cat([x.new_ones(*x.shape[:-1], 1), x], -1)
     Y = targets.to(torch.float64)
     w = weights.to(torch.float64)
+    if x.shape[-1] == 0:  # no regressors: the weighted mean
+        mean = (w.unsqueeze(-2) @ Y).squeeze(-2) / w.sum(-1, keepdim=True)
+        return Y.new_zeros(*Y.shape[:-2], Y.shape[-1], 0), mean
+    X = torch.cat([x.new_ones(*x.shape[:-1], 1), x], -1)
     A = X.mT @ (w[..., None] * X)
     if ridge > 0 and X.shape[-1] > 1:
         reg = ridge * w.sum(-1, keepdim=True) * X.new_ones(X.shape[-1])
@@ -445,8 +448,8 @@ class LinearGaussian(PolicyModule):
             "bias": b.to(self.bias.dtype),
             "chol": self._floored_cholesky(cov),
         }
-        for name, value in new.items():
-            if not bool(torch.isfinite(value).all()):
+        for name, value in new.items():  # finite in float64 (checked above); a narrower dtype
+            if value.dtype != torch.float64 and not bool(torch.isfinite(value).all()):
                 raise ValueError(f"the refitted {name} does not fit in {value.dtype}")
         return new
 
@@ -496,12 +499,16 @@ class LinearGaussian(PolicyModule):
                 f"the covariance overflows (largest entry {float(cov.abs().max()):.3g}): "
                 "rescale the parameters"
             )
-        evals, evecs = torch.linalg.eigh(scaled)
-        low = (evals < 1.0).any(-1)
-        if bool(low.any()):
+        # the floor binds iff some eigenvalue of the scaled covariance is below 1, i.e. iff
+        # scaled - I is not positive definite (one Cholesky factorisation tells)
+        eye = torch.eye(scaled.shape[-1], dtype=scaled.dtype, device=scaled.device)
+        above = torch.linalg.cholesky_ex(scaled - eye).info == 0
+        if not bool(above.all()):
+            evals, evecs = torch.linalg.eigh(scaled)
+            low = (evals < 1.0).any(-1)
             floored = (evecs * evals.clamp_min(1.0).unsqueeze(-2)) @ evecs.mT * scale
             floored = 0.5 * (floored + floored.mT)
-            cov = floored if cov.dim() == 2 else torch.where(low[..., None, None], floored, cov)
+            cov = torch.where(low[..., None, None], floored, cov)
         factor = torch.linalg.cholesky_ex(cov)
         chol: Tensor = factor.L
         info = factor.info

@@ -156,7 +156,7 @@ def test_infinite_horizon_update_with_bad_input_changes_nothing():
 @pytest.mark.parametrize(
     "make, data, call, dual",
     [
-        (make_episodic, episodic_data, "tell", "episodic.solve_episodic_dual"),
+        (make_episodic, episodic_data, "tell", "episodic.episodic_solution"),
         (make_ti, ti_data, "tell", "time_indexed.solve_time_indexed_dual"),
         (make_ih, ih_data, "update", "infinite_horizon.solve_infinite_horizon_dual"),
     ],

@@ -80,6 +80,8 @@ class LbfgsSettings:
 
 
 _REFINE_GRAD = 1e-13  # the Newton refinement's target (standardised gradient)
+_REFINE_STEPS = 2  # Newton steps of the refinement at most
+_POLISH_STEPS = 8  # Newton steps where LBFGS stopped short, at most
 _CHUNK = 25  # LBFGS iterations between re-whitenings (see BlockSolver.phase)
 _NEWTON_STEPS = 20  # Newton steps of a phase before LBFGS takes over (BlockSolver.descend)
 _DAMPINGS = 16  # tries per Newton step, the damping growing tenfold after each
@@ -323,7 +325,7 @@ class BlockSolver:
             self.polish(short)
         done = mask & self.end.converged
         if bool(done.any()):
-            self.newton(done, steps=2, target=_REFINE_GRAD)
+            self.descend(done, _REFINE_GRAD, _REFINE_STEPS)
 
     def _sunk(self) -> Tensor:
         """(S,) problems without a ridge whose dual value fell below the weak-duality bound
@@ -336,7 +338,7 @@ class BlockSolver:
         ridge fallback of :meth:`run` takes them)."""
         return torch.isfinite(self.x).all(-1) & torch.isfinite(self.end.value)
 
-    def polish(self, mask: Tensor, steps: int = 8) -> None:
+    def polish(self, mask: Tensor) -> None:
         """Newton steps with the exact curvature (:meth:`DualProblem.curvature`, the Hessian
         near the optimum) on the moving coordinates of the problems in ``mask``, each halved
         until it shrinks the merit (largest gradient entry or entropy-bound excess). LBFGS
@@ -357,56 +359,12 @@ class BlockSolver:
         sinking = mask[:, None] & prob.eta_free(self.x) & (grad[:, :K] > 0) & low
         self.x[:, :K] = torch.where(sinking, prob.log_eta_min, self.x[:, :K])
         self.unstick(mask)
-        best = self.newton(mask, steps, self.settings.converged_grad)
+        best = self.descend(mask, self.settings.converged_grad, _POLISH_STEPS, excess=True)
         worse = mask & (best > merit0)  # no better than LBFGS left it
         self.x = torch.where(worse[:, None], x0, self.x)
         e = self.end
         self._set(mask & ~worse, best <= self.settings.converged_grad, e.value, e.weights)
         self._set(worse, end0.converged, end0.value, end0.weights)
-
-    def newton(self, mask: Tensor, steps: int, target: float) -> Tensor:
-        """Up to ``steps`` damped Newton steps on the problems in ``mask`` (S,) until their
-        merit is at most ``target``; each step is halved until it shrinks the merit (a problem
-        whose step does not is left where it is). Returns the merits (S,); the ends of the
-        problems that moved are updated (their ``converged`` is left to the caller)."""
-        prob, K = self.prob, self.prob.K
-        g, grad, P = prob.evaluate(self.x)
-        best = self._merit(grad, P)
-        active = mask & torch.isfinite(self.x).all(-1)
-        for _ in range(steps):
-            active &= best > target
-            if not bool(active.any()):
-                break
-            moving = torch.cat(
-                [
-                    prob.eta_free(self.x),
-                    prob.xi_on & prob.multi,
-                    torch.ones(prob.S, prob.P, dtype=torch.bool, device=self.x.device),
-                ],
-                -1,
-            )
-            H = prob.curvature(self.x, raw=True)
-            # the exact Hessian in log eta, log xi adds the log-space gradient on the diagonal
-            H.diagonal(dim1=1, dim2=2)[:, : 2 * K] += grad[:, : 2 * K]
-            step, ok = _newton_step(H, grad, moving)
-            active &= ok
-            improved = torch.zeros_like(active)
-            for t in (0.5**i for i in range(10)):
-                trying = active & ~improved
-                if not bool(trying.any()):
-                    break
-                x = torch.where(trying[:, None], self.x + t * step, self.x)
-                g_t, grad_t, P_t = prob.evaluate(x)
-                acc = trying & (self._merit(grad_t, P_t) < best)
-                self.x = torch.where(acc[:, None], x, self.x)
-                g = torch.where(acc, g_t, g)
-                grad = torch.where(acc[:, None], grad_t, grad)
-                P = torch.where(acc[:, None, None, None], P_t, P)
-                best = torch.where(acc, self._merit(grad_t, P_t), best)
-                improved |= acc
-            active &= improved
-        self._set(mask, self.end.converged, g, P)
-        return best
 
     def _excess(self, P: Tensor) -> Tensor:
         """(S, K) how far each bounded block's cross-entropy exceeds kappa (<= 0: met)."""
@@ -416,6 +374,8 @@ class BlockSolver:
     def _merit(self, grad: Tensor, P: Tensor) -> Tensor:
         """(S,) largest gradient entry, or entropy-bound excess where the bound is on."""
         m = grad.abs().amax(-1)
+        if not self.prob.multi:
+            return m
         excess = self._excess(P).amax(-1)
         return torch.where(self.entropy_bound, torch.maximum(m, excess), m)
 
@@ -455,7 +415,13 @@ class BlockSolver:
         lifted, moved = enforce_kl(prob, eta, xi, v)
         self.x[:, :K] = torch.where(low & moved, lifted.log(), self.x[:, :K])
 
-    def descend(self, mask: Tensor) -> None:
+    def descend(
+        self,
+        mask: Tensor,
+        target: float | None = None,
+        steps: int = _NEWTON_STEPS,
+        excess: bool = False,
+    ) -> Tensor:
         """Damped Newton steps on the problems in ``mask`` (S,) before LBFGS.
 
         Each step solves with the exact Hessian (:meth:`DualProblem.curvature` plus the
@@ -470,16 +436,19 @@ class BlockSolver:
         ``tolerance_grad`` or no damping helps; LBFGS then takes over. Steps taken count as
         iterations (once per step, however many problems take it)."""
         prob = self.prob
+        target = self.settings.tolerance_grad if target is None else target
+        merits = self._merit if excess else lambda grad, _: grad.abs().amax(-1)
         g, grad, P = prob.evaluate(self.x)
-        merit = grad.abs().amax(-1)
+        merit = merits(grad, P)
         active = mask & torch.isfinite(self.x).all(-1) & torch.isfinite(g)
         bounded = prob.ridge > 0  # a ridge bounds the dual: the weak-duality floor is off
         lam = torch.zeros_like(g)
-        for _ in range(_NEWTON_STEPS):
-            active &= (merit > self.settings.tolerance_grad) & (bounded | (g >= self.floor))
+        M: Tensor | None = None  # the curvature, kept for one more step after a full one
+        for _ in range(steps):
+            active &= (merit > target) & (bounded | (g >= self.floor))
             if not bool(active.any()):
                 break
-            curvature = self._hessians(grad)
+            curvature = self._hessians(grad, M)
             taken = torch.zeros_like(active)
             t = torch.ones_like(g)
             for _ in range(_DAMPINGS):
@@ -490,7 +459,7 @@ class BlockSolver:
                 slope = (grad * step).sum(-1)
                 x = torch.where(trying[:, None], self.x + step, self.x)
                 g_t, grad_t, P_t = prob.evaluate(x)
-                merit_t = grad_t.abs().amax(-1)
+                merit_t = merits(grad_t, P_t)
                 flat = g_t <= g + _FLAT * (1.0 + g.abs())
                 ok = trying & ((g_t <= g + _ARMIJO * slope) | (flat & (merit_t < merit)))
                 self.x = torch.where(ok[:, None], x, self.x)
@@ -507,13 +476,17 @@ class BlockSolver:
                 lam = torch.where(ok, torch.where(lam > _LAM_MIN, 0.1 * lam, 0.0), lam)
             active &= taken
             self.iterations += 1
+            full = bool(((t == 1.0) & (lam == 0.0) | ~active).all())
+            M = curvature[1] if full and M is None else None
         self._set(mask, merit <= self.settings.converged_grad, g, P)
+        return merit
 
-    def _hessians(self, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _hessians(self, grad: Tensor, M: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """(exact Hessian (S, n, n), its positive semi-definite part (S, n, n), moving
-        coordinates (S, n)) at x, for the gradients (S, n) there."""
+        coordinates (S, n)) at x, for the gradients (S, n) there; with M, that curvature of
+        the step before instead of a new one (a simplified Newton step)."""
         K = self.prob.K
-        M = self.prob.curvature(self.x, raw=True)
+        M = self.prob.curvature(self.x, raw=True) if M is None else M
         H = M.clone()
         H.diagonal(dim1=1, dim2=2)[:, : 2 * K] += grad[:, : 2 * K]
         return H, M, self._moving()

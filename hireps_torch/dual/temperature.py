@@ -42,11 +42,18 @@ def solve_temperature(
     None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
     ``KL <= eps (1 + KL_RTOL)``."""
     N = R.shape[0]
-    mean, spread = R.mean(), R.std()
-    m_abs, s = float(R.abs().max()), float(spread)
-    if not (math.isfinite(s) and s > _SPREAD_RTOL * m_abs):
+    m_abs = float(R.abs().max())
+    if m_abs == 0.0:
         return None
-    r = (R - mean) / spread
+    # an exact power of 2 brings the returns to [0.5, 1) (in two factors: neither overflows)
+    e = math.frexp(m_abs)[1]
+    unit = 2.0 ** (e // 2) * 2.0 ** (e - e // 2)
+    Rn = R * 2.0 ** -(e // 2) * 2.0 ** -(e - e // 2)
+    mean, spread = Rn.mean(), Rn.std()
+    s = float(spread)
+    if not s > _SPREAD_RTOL:
+        return None
+    r = (Rn - mean) / spread
     powers = torch.stack([torch.ones_like(r), r, r * r], -1)  # (N, 3)
     log_n, r_max = math.log(N), float(r.max())
 
@@ -95,7 +102,7 @@ def solve_temperature(
     ess = 1.0 / float((w * w).sum())
     ones = R.new_ones(1, 1)
     return PopulationDualSolution(
-        eta=ones * (eta * s),
+        eta=ones * (eta * s * unit),
         xi=R.new_zeros(1, 1),
         v=R.new_zeros(1, 0),
         weights=w.reshape(1, 1, N, 1),
@@ -103,7 +110,7 @@ def solve_temperature(
         cross_entropy=R.new_zeros(1, 1),
         effective_sample_size=ones * ess,
         feature_error=R.new_zeros(1),
-        dual_value=(g * spread + mean).reshape(1),
+        dual_value=((g * spread + mean) * unit).reshape(1),
         converged=torch.ones(1, dtype=torch.bool, device=R.device),
         iterations=steps,
     )

@@ -54,7 +54,7 @@ from hireps_torch.checks import (
 from hireps_torch.dual import solve_episodic_dual
 from hireps_torch.dual.episodic import episodic_solution
 from hireps_torch.dual.inputs import LOG_RESP_FLOOR, warn_if_degenerate
-from hireps_torch.dual.solutions import block_solution
+from hireps_torch.dual.solutions import single_solution
 from hireps_torch.dual.solver import checked_settings
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
@@ -342,10 +342,11 @@ class EpisodicHiREPS(HiREPSBase):
         if self.context_features is not None:
             phi = self.context_features(c).to(R)[None]
             check_finite("context features", phi)
-        one = episodic_solution(
-            R[None], lr[None], eps[None], phi, None if kappa is None else kappa[None], _SETTINGS
-        ).problem(0)
-        sol = block_solution(one, 0, one.v)
+        sol = single_solution(
+            episodic_solution(
+                R[None], lr[None], eps[None], phi, None if kappa is None else kappa[None], _SETTINGS
+            )
+        )
         refit = plan_refit(self.policy, c, theta, sol, bound)
         report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1

@@ -11,7 +11,7 @@ from hireps_torch.dual.inputs import centred, check_features, common_inputs
 from hireps_torch.dual.solutions import (
     DualSolution,
     PopulationDualSolution,
-    block_solution,
+    single_solution,
     warn_if_collapsed,
 )
 from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
@@ -111,8 +111,7 @@ def solve_episodic_dual(
     sol = episodic_solution(R[:, 0], lr[:, 0], eps, phi, kap, opts, stacklevel=3)
     if population:
         return sol
-    one = sol.problem(0)
-    return block_solution(one, 0, one.v)
+    return single_solution(sol)
 
 
 def episodic_solution(

@@ -13,7 +13,7 @@ from hireps_torch.dual.inputs import check_feature_vector, check_features, commo
 from hireps_torch.dual.solutions import (
     DualSolution,
     PopulationDualSolution,
-    block_solution,
+    single_solution,
     warn_if_collapsed,
 )
 from hireps_torch.dual.solver import checked_settings, solve_blocks
@@ -136,5 +136,4 @@ def solve_infinite_horizon_dual(
     warn_if_collapsed(sol, eps)
     if population:
         return sol
-    one = sol.problem(0)
-    return block_solution(one, 0, one.v)
+    return single_solution(sol)

@@ -35,6 +35,7 @@ __all__ = [
     "block_kl",
     "block_solution",
     "finish",
+    "single_solution",
     "warn_if_collapsed",
 ]
 
@@ -243,6 +244,38 @@ def block_solution(
         feature_error=sol.feature_error,
         dual_value=sol.dual_value,
         converged=sol.converged,
+        iterations=sol.iterations,
+    )
+
+
+def single_solution(sol: PopulationDualSolution) -> DualSolution:
+    """The :class:`DualSolution` of a one-block population of one (S = K = 1), its numbers
+    read in one transfer."""
+    numbers = torch.cat(
+        [
+            sol.eta[0],
+            sol.xi[0],
+            sol.kl[0],
+            sol.cross_entropy[0],
+            sol.effective_sample_size[0],
+            sol.feature_error,
+            sol.dual_value,
+        ]
+    ).tolist()
+    eta, xi, kl, ce, ess, feature_error, dual_value = numbers
+    w = sol.weights[0, 0]
+    return DualSolution(
+        eta=eta,
+        xi=xi,
+        v=sol.v[0],
+        weights=w,
+        sample_weights=w.sum(-1),
+        kl=kl,
+        cross_entropy=ce,
+        effective_sample_size=ess,
+        feature_error=feature_error,
+        dual_value=dual_value,
+        converged=bool(sol.converged[0]),
         iterations=sol.iterations,
     )
 

@@ -97,20 +97,21 @@ def solve_temperature(
             return None
         steps += 1
     eta = math.exp(a)
-    z = r / eta
-    w = torch.softmax(z, 0)
-    ess = 1.0 / float((w * w).sum())
-    ones = R.new_ones(1, 1)
+    w = torch.softmax(r * (1.0 / eta), 0)
+    ess = 1.0 / float(w @ w)
+    dual = (g * s + float(mean)) * unit
+    numbers = R.new_tensor([[eta * s * unit], [kl], [ess], [dual], [0.0]])  # (5, 1)
+    zero = numbers[4:5]
     return PopulationDualSolution(
-        eta=ones * (eta * s * unit),
-        xi=R.new_zeros(1, 1),
+        eta=numbers[0:1],
+        xi=zero,
         v=R.new_zeros(1, 0),
-        weights=w.reshape(1, 1, N, 1),
-        kl=ones * kl,
-        cross_entropy=R.new_zeros(1, 1),
-        effective_sample_size=ones * ess,
-        feature_error=R.new_zeros(1),
-        dual_value=((g * spread + mean) * unit).reshape(1),
+        weights=w.view(1, 1, N, 1),
+        kl=numbers[1:2],
+        cross_entropy=zero,
+        effective_sample_size=numbers[2:3],
+        feature_error=zero[0],
+        dual_value=numbers[3],
         converged=torch.ones(1, dtype=torch.bool, device=R.device),
         iterations=steps,
     )

@@ -46,9 +46,12 @@ Modules, in reading order:
 - :mod:`~hireps_torch.dual.inputs`: the wrappers' and the generic solver's input checks.
 - :mod:`~hireps_torch.dual.solver`: :func:`solve_reps_dual`: exact power-of-2 scaling, the
   solve, the safeguards, one warning (its docstring: the numerics).
-- :mod:`~hireps_torch.dual.block_solver`: LBFGS with the entropy bound's KKT phases, the
-  fallback for infeasible feature constraints, the projection solve for returns without
-  information, the eta floor and the Newton polish.
+- :mod:`~hireps_torch.dual.temperature`: plain REPS (one block, no features, one option
+  column, no entropy bound): Newton on the temperature alone from the returns' moments.
+- :mod:`~hireps_torch.dual.block_solver`: Newton steps with the exact curvature, then LBFGS in
+  coordinates whitened by it, with the entropy bound's KKT phases (active sets), the fallback
+  for infeasible feature constraints (recognised by weak duality), the projection solve for
+  returns without information, the eta floor and the Newton refinement.
 - :mod:`~hireps_torch.dual.safeguards`: the KL bound by construction (a final search on eta),
   the entropy bound's reachability, and the check of every constraint with its tolerance.
 - :mod:`~hireps_torch.dual.conditioning`: value start, whitening and scaling of the problem.

@@ -1,16 +1,19 @@
-"""The generic K-block solver :func:`solve_reps_dual` (LBFGS in float64).
+"""The generic K-block solver :func:`solve_reps_dual` (Newton steps and LBFGS in float64).
 
 Numerics: everything in float64 whatever the input dtype. The returns and each feature column
 are first scaled by exact powers of 2 (so that magnitudes from 1e-300 to 1e300 neither overflow
 nor reach a threshold: every threshold inside is relative), then standardised
 (:mod:`hireps_torch.dual.conditioning`); eta and xi live in log space; log-sum-exp subtracts the
-max. LBFGS itself, with the entropy bound's KKT phases and the fallback for infeasible feature
-constraints, is :class:`~hireps_torch.dual.block_solver.BlockSolver`. After it the
+max. A plain REPS dual (one block, no features, one option column, no entropy bound) is solved
+by :func:`~hireps_torch.dual.temperature.solve_temperature`, which returns a solution only when
+its KL is within 1e-6 of epsilon and not above it; every other dual, and one that it cannot
+conclude, by :class:`~hireps_torch.dual.block_solver.BlockSolver` (Newton steps, LBFGS, the
+entropy bound's KKT phases and the fallback for infeasible feature constraints). After it the
 safeguards of :mod:`hireps_torch.dual.safeguards` run on every path: an entropy bound that the
 KL bound cannot reach is relaxed before the solve, the KL bound is enforced after it (eta
 raised, xi and v held), and every constraint is checked. ``converged`` is True only when the
 KL bound, the entropy bound and the feature constraints hold to their tolerances (listed in
-:mod:`~hireps_torch.dual.safeguards`) and LBFGS met its gradient tolerance; otherwise one
+:mod:`~hireps_torch.dual.safeguards`) and the solver met its gradient tolerance; otherwise one
 warning names what failed and by how much: an
 :class:`~hireps_torch.dual.InfeasibleConstraintsWarning` when a constraint cannot be met (by
 any distribution, or within the KL bound), else a

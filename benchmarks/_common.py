@@ -2,14 +2,32 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import statistics
+import subprocess
+import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import torch
+
+
+@contextlib.contextmanager
+def baseline_worktree(root: Path, commit: str) -> Iterator[Path]:
+    """A ``git worktree`` of ``commit`` of the repository at ``root`` in a temporary folder,
+    removed on exit: the code to compare with, side by side."""
+    with tempfile.TemporaryDirectory() as tmp:
+        old = Path(tmp) / "baseline"
+        git = ["git", "-C", str(root), "worktree"]
+        subprocess.run([*git, "add", "--detach", str(old), commit], check=True, capture_output=True)
+        try:
+            yield old
+        finally:
+            subprocess.run([*git, "remove", "--force", str(old)], check=False)
 
 
 def start_benchmark(out_base: Path, seeds: int, threads: int | None = 1) -> Path:

@@ -20,13 +20,16 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks._common import baseline_worktree  # noqa: E402
+
 PROBLEMS = ROOT / "benchmarks" / "dual_problems.pt"
 
 
@@ -86,19 +89,8 @@ def main() -> None:
     if args.solve is not None:
         print(json.dumps(solve_all(args.solve, PROBLEMS, args.repeats)))
         return
-    with tempfile.TemporaryDirectory() as tmp:
-        old = Path(tmp) / "baseline"
-        subprocess.run(
-            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), args.baseline],
-            check=True,
-            capture_output=True,
-        )
-        try:
-            sides = {args.baseline: _side(old, args.repeats), "current": _side(ROOT, args.repeats)}
-        finally:
-            subprocess.run(
-                ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False
-            )
+    with baseline_worktree(ROOT, args.baseline) as old:
+        sides = {args.baseline: _side(old, args.repeats), "current": _side(ROOT, args.repeats)}
     experiments = list(dict.fromkeys(r["experiment"] for r in sides["current"]))
     print(
         f"{'experiment':<18} {'code':<9} {'solves':>6} {'iter median':>11} {'iter max':>8} "

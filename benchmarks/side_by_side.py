@@ -27,6 +27,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks._common import baseline_worktree  # noqa: E402
 
 
 def _seeds(text: str) -> list[int]:
@@ -84,32 +87,21 @@ def main() -> None:
         for a in (f"--{kv.split('=')[0].replace('_', '-')}", kv.split("=", 1)[1])
     ]
     results: dict[str, list[dict[str, Any]]] = {args.baseline: [], "current": []}
-    with tempfile.TemporaryDirectory() as tmp:
-        old = Path(tmp) / "baseline"
-        subprocess.run(
-            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), args.baseline],
-            check=True,
-            capture_output=True,
+    with tempfile.TemporaryDirectory() as tmp, baseline_worktree(ROOT, args.baseline) as old:
+        print(
+            f"{'seed':>4} {'code':<9} {'wall s':>7} {'iter med':>8} {'iter max':>8} "
+            f"{'success':>7}  unconverged updates",
+            flush=True,
         )
-        try:
-            print(
-                f"{'seed':>4} {'code':<9} {'wall s':>7} {'iter med':>8} {'iter max':>8} "
-                f"{'success':>7}  unconverged updates",
-                flush=True,
-            )
-            for seed in _seeds(args.seeds):
-                for label, root in ((args.baseline, old), ("current", ROOT)):
-                    r = one_run(root, args.experiment, seed, Path(tmp) / f"{label}-{seed}", extra)
-                    results[label].append(r)
-                    print(
-                        f"{seed:>4} {label:<9} {r['wall']:>7.2f} {r['iter_median']:>8g} "
-                        f"{r['iter_max']:>8} {r['success']:>7.2f}  {r['unconverged'] or '-'}",
-                        flush=True,
-                    )
-        finally:
-            subprocess.run(
-                ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False
-            )
+        for seed in _seeds(args.seeds):
+            for label, root in ((args.baseline, old), ("current", ROOT)):
+                r = one_run(root, args.experiment, seed, Path(tmp) / f"{label}-{seed}", extra)
+                results[label].append(r)
+                print(
+                    f"{seed:>4} {label:<9} {r['wall']:>7.2f} {r['iter_median']:>8g} "
+                    f"{r['iter_max']:>8} {r['success']:>7.2f}  {r['unconverged'] or '-'}",
+                    flush=True,
+                )
     for label, rs in results.items():
         walls = [r["wall"] for r in rs]
         ok = sum(r["success"] >= 0.9 for r in rs)

@@ -57,6 +57,10 @@ from hireps_torch.checks import (
     check_positive_float,
 )
 from hireps_torch.dual import solve_infinite_horizon_dual
+from hireps_torch.dual.infinite_horizon import infinite_horizon_solution
+from hireps_torch.dual.inputs import LOG_RESP_FLOOR, warn_if_degenerate
+from hireps_torch.dual.solutions import single_solution
+from hireps_torch.dual.solver import checked_settings
 from hireps_torch.features import FeatureMap, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -64,6 +68,8 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["InfiniteHorizonHiREPS"]
+
+_SETTINGS = checked_settings(300)  # the dual's LBFGS settings (the wrapper's defaults)
 
 
 class InfiniteHorizonHiREPS(HiREPSBase):
@@ -127,6 +133,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         per_member = policy.population is not None and getattr(initial_states, "dim", int)() == 3
         s0 = self._states(initial_states, "initial_states", population=per_member)
         self.initial_features = value_features(s0).mean(-2)
+        check_finite("value features of initial_states", self.initial_features)
         self.value_weights = s0.new_zeros(*policy.batch_shape, value_features.out_features)
 
     @classmethod
@@ -294,15 +301,28 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         if self.population is not None:
             return self._population_update(s, a, R, next_features)
         bound = option_bound(self.policy, s, a, self.kappa_rel)
-        sol = solve_infinite_horizon_dual(
-            R,
-            self.value_features(s),
-            next_features,
-            self.initial_features,
-            gamma=self.gamma,
-            epsilon=self.epsilon,
-            log_responsibilities=bound.log_responsibilities,
-            kappa=bound.kappa,
+        N = R.shape[0]
+        warn_if_degenerate([self.epsilon], N, 3)
+        phi = self.value_features(s).to(R)
+        next_features = next_features.to(R)
+        check_finite("value features", phi)
+        check_finite("value features of next_states", next_features)
+        lr = bound.log_responsibilities
+        lr = R.new_zeros(N, 1) if lr is None else lr.clamp_min(LOG_RESP_FLOOR)
+        kappa = None if bound.kappa is None else R.new_full((1, 1), bound.kappa)
+        phi0 = self.initial_features.to(R)[None]
+        sol = single_solution(
+            infinite_horizon_solution(
+                R[None],
+                lr[None],
+                R.new_full((1, 1), self.epsilon),
+                phi[None],
+                next_features[None],
+                phi0,
+                self.gamma,
+                kappa,
+                _SETTINGS,
+            )
         )
         refit = plan_refit(self.policy, s, a, sol, bound)
         self.value_weights = sol.v.clone()

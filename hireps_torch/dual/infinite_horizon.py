@@ -16,9 +16,9 @@ from hireps_torch.dual.solutions import (
     single_solution,
     warn_if_collapsed,
 )
-from hireps_torch.dual.solver import checked_settings, solve_blocks
+from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
 
-__all__ = ["solve_infinite_horizon_dual"]
+__all__ = ["infinite_horizon_solution", "solve_infinite_horizon_dual"]
 
 
 @overload
@@ -130,10 +130,43 @@ def solve_infinite_horizon_dual(
     phi0 = check_feature_vector(
         "initial_features", initial_features, F, S if population else None, dev
     )
-    D = (g * phi_next - phi).reshape(S, 1, N, F)
-    c = ((1.0 - g) * phi0).reshape(S, F)
-    sol = solve_blocks(R, lr, eps, D, c, kap, opts, stacklevel=3)
-    warn_if_collapsed(sol, eps)
+    sol = infinite_horizon_solution(
+        R[:, 0],
+        lr[:, 0],
+        eps,
+        phi.reshape(S, N, F),
+        phi_next.reshape(S, N, F),
+        phi0.reshape(S, F),
+        g,
+        kap,
+        opts,
+        stacklevel=3,
+    )
     if population:
         return sol
     return single_solution(sol)
+
+
+def infinite_horizon_solution(
+    R: Tensor,
+    log_resp: Tensor,
+    eps: Tensor,
+    phi: Tensor,
+    phi_next: Tensor,
+    phi0: Tensor,
+    gamma: float,
+    kappa: Tensor | None,
+    settings: LbfgsSettings,
+    stacklevel: int = 2,
+) -> PopulationDualSolution:
+    """:func:`solve_infinite_horizon_dual` of S problems on inputs already checked: float64
+    rewards R (S, N), log responsibilities (S, N, O) (normalised, log 0 floored), epsilon
+    (S, 1), finite features phi and phi_next (S, N, F), initial features phi0 (S, F), gamma in
+    (0, 1) and kappa (S, 1) or None. Warnings are attributed ``stacklevel`` frames up (2: the
+    caller of this function)."""
+    S, N, F = phi.shape
+    D = (gamma * phi_next - phi).reshape(S, 1, N, F)
+    c = (1.0 - gamma) * phi0
+    sol = solve_blocks(R[:, None], log_resp[:, None], eps, D, c, kappa, settings, stacklevel + 1)
+    warn_if_collapsed(sol, eps, stacklevel)
+    return sol

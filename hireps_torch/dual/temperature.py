@@ -19,7 +19,13 @@ import math
 import torch
 from torch import Tensor
 
-from hireps_torch.dual.block_solver import LbfgsSettings
+from hireps_torch.dual.block_solver import (
+    _ARMIJO,
+    _FLAT,
+    _LOG_ETA_FLOOR,
+    _MAX_LOG_STEP,
+    LbfgsSettings,
+)
 from hireps_torch.dual.problem import LOG_ETA_MAX
 from hireps_torch.dual.safeguards import KL_RTOL
 from hireps_torch.dual.solutions import PopulationDualSolution
@@ -28,11 +34,9 @@ __all__ = ["solve_temperature"]
 
 _STEPS = 30  # Newton steps at most
 _HALVINGS = 30  # halvings of a step at most
-_MAX_LOG_STEP = 2.0  # largest change of log eta in one step
 _REFINE_GRAD = 1e-13  # the gradient the steps past the KL tolerance aim at (round-off)
 _REFINE_STEPS = 1  # steps past the KL tolerance at most
 _SPREAD_RTOL = 1e-13  # returns whose spread is below this of their magnitude carry no information
-_LOG_ETA_FLOOR = -10.0  # eta >= e^-10 return spreads (the general solver's floor, eta_floor)
 
 
 def solve_temperature(
@@ -85,8 +89,8 @@ def solve_temperature(
         for _ in range(_HALVINGS):
             if lo <= a + step <= LOG_ETA_MAX:
                 trial = parts(a + step)
-                flat = trial[0] <= g + 1e-13 * (1.0 + abs(g))
-                if trial[0] <= g + 1e-4 * grad * step or (flat and abs(trial[1]) < abs(grad)):
+                flat = trial[0] <= g + _FLAT * (1.0 + abs(g))
+                if trial[0] <= g + _ARMIJO * grad * step or (flat and abs(trial[1]) < abs(grad)):
                     a += step
                     g, grad, curv, kl = trial
                     break

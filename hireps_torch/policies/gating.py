@@ -170,6 +170,13 @@ class Gating(PolicyModule):
         sample weights (N,); the gating is unchanged."""
         raise NotImplementedError
 
+    def fit_checked(
+        self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
+    ) -> dict[str, Tensor]:
+        """:meth:`fit_parameters` on inputs already checked: float64 features x ([S,] N, F),
+        targets t ([S,] N, O) and sample weights w ([S,] N) summing to 1."""
+        raise NotImplementedError
+
     @torch.no_grad()
     def weighted_fit(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100

@@ -492,7 +492,7 @@ class LinearGaussian(PolicyModule):
         cov = cov.to(torch.float64)
         cov = 0.5 * (cov + cov.mT)
         root = self.min_variance.to(cov.device).sqrt()
-        scale = root[:, None] * root[None, :]
+        scale = torch.outer(root, root)
         scaled = cov / scale
         if not bool(torch.isfinite(scaled).all()):
             raise ValueError(

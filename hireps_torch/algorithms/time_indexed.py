@@ -65,6 +65,9 @@ from hireps_torch.checks import (
     check_finite,
 )
 from hireps_torch.dual import solve_time_indexed_dual
+from hireps_torch.dual.inputs import LOG_RESP_FLOOR, warn_if_degenerate
+from hireps_torch.dual.solver import checked_settings
+from hireps_torch.dual.time_indexed import single_time_indexed, time_indexed_solution
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -72,6 +75,8 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["TimeIndexedHiREPS"]
+
+_SETTINGS = checked_settings(300)  # the dual's LBFGS settings (the wrapper's defaults)
 
 # diagnostics that tell() reports as one entry per step
 _PER_STEP = (
@@ -286,6 +291,8 @@ class TimeIndexedHiREPS(HiREPSBase):
             raise ValueError(f"rewards must have shape ({names}) = ({want}), got {tuple(R.shape)}")
         check_finite("rewards", R)
         N = R.shape[-2]
+        if N < 2:
+            raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
         S, D = self.value_features.in_features, self.policies[0].action_dim
         dev = self.device
         states_t = as_float_tensor("states", states, device=dev)
@@ -353,12 +360,21 @@ class TimeIndexedHiREPS(HiREPSBase):
             for k, pol in enumerate(self.policies)
         ]
         log_resp, kappa = stack_bounds(bounds, N, self.device)
-        sol = solve_time_indexed_dual(
-            R,
-            self.value_features(s),
-            epsilon=torch.tensor(self.epsilon, dtype=torch.float64, device=self.device),
-            log_responsibilities=log_resp,
-            kappa=kappa,
+        K = R.shape[1]
+        warn_if_degenerate(self.epsilon, N, 3)
+        phi = self.value_features(s).to(R)  # (N, K, F)
+        check_finite("value features", phi)
+        lr = R.new_zeros(N, K, 1) if log_resp is None else log_resp.clamp_min(LOG_RESP_FLOOR)
+        sol = single_time_indexed(
+            time_indexed_solution(
+                R.T[None],
+                lr.transpose(0, 1)[None],
+                R.new_tensor(self.epsilon)[None],
+                phi.transpose(0, 1)[None],
+                None,
+                None if kappa is None else kappa[None],
+                _SETTINGS,
+            )
         )
         refits = []  # every step's refit first: a failing step leaves all policies unchanged
         for k, (pol, bound) in enumerate(zip(self.policies, bounds, strict=True)):

@@ -43,9 +43,9 @@ from hireps_torch.dual.solutions import (
     TimeIndexedDualSolution,
     warn_if_collapsed,
 )
-from hireps_torch.dual.solver import checked_settings, solve_blocks
+from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
 
-__all__ = ["solve_time_indexed_dual"]
+__all__ = ["single_time_indexed", "solve_time_indexed_dual", "time_indexed_solution"]
 
 
 @overload
@@ -145,16 +145,41 @@ def solve_time_indexed_dual(
         phi1 = check_feature_vector(
             "initial_features", initial_features, F, S if population else None, R.device
         ).reshape(S, F)
-    D = _chained_map(phi, phi1)
-    sol = solve_blocks(R, lr, eps, D, None, kap, opts, stacklevel=3)
-    warn_if_collapsed(sol, eps)
+    sol = time_indexed_solution(R, lr, eps, phi, phi1, kap, opts, stacklevel=3)
     if population:
         return sol
+    return single_time_indexed(sol)
+
+
+def time_indexed_solution(
+    R: Tensor,
+    log_resp: Tensor,
+    eps: Tensor,
+    phi: Tensor,
+    phi1: Tensor | None,
+    kappa: Tensor | None,
+    settings: LbfgsSettings,
+    stacklevel: int = 2,
+) -> PopulationDualSolution:
+    """:func:`solve_time_indexed_dual` of S problems on inputs already checked, block-major:
+    float64 rewards R (S, K, N), log responsibilities (S, K, N, O) (normalised, log 0
+    floored), epsilon (S, K), finite features phi (S, K, N, F), initial features phi1 (S, F) or
+    None (the sample mean of step 1's) and kappa (S, K) or None. Warnings are attributed
+    ``stacklevel`` frames up (2: the caller of this function)."""
+    D = _chained_map(phi, phi1)
+    sol = solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)
+    warn_if_collapsed(sol, eps, stacklevel)
+    return sol
+
+
+def single_time_indexed(sol: PopulationDualSolution) -> TimeIndexedDualSolution:
+    """The :class:`TimeIndexedDualSolution` of a population of one (v (1, K F))."""
+    K = sol.eta.shape[-1]
     one = sol.problem(0)
     return TimeIndexedDualSolution(
         eta=one.eta,
         xi=one.xi,
-        v=one.v.reshape(K, F),
+        v=one.v.reshape(K, -1),
         weights=one.weights,
         sample_weights=one.weights.sum(-1),
         kl=one.kl,

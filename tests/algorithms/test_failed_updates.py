@@ -157,7 +157,7 @@ def test_infinite_horizon_update_with_bad_input_changes_nothing():
     "make, data, call, dual",
     [
         (make_episodic, episodic_data, "tell", "episodic.episodic_solution"),
-        (make_ti, ti_data, "tell", "time_indexed.solve_time_indexed_dual"),
+        (make_ti, ti_data, "tell", "time_indexed.time_indexed_solution"),
         (make_ih, ih_data, "update", "infinite_horizon.infinite_horizon_solution"),
     ],
 )

@@ -298,10 +298,11 @@ class BlockSolver:
         return (block_kl(w, self.prob.lr) > 1.01 * self.prob.eps + 1e-3).any(-1)
 
     def solve(self, mask: Tensor) -> None:
-        """The LBFGS phases of the problems in ``mask`` (S,): the entropy bound's KKT phases,
-        then up to two resumes of a stalled LBFGS, then Newton steps where it still stopped
-        short, and the Newton refinement of those that converged (their answer then does not
-        depend on the other problems of a shared LBFGS call)."""
+        """The phases (Newton steps, then LBFGS) of the problems in ``mask`` (S,): the entropy
+        bound's KKT phases, then up to two resumes of a phase that stopped short, then the
+        polish where it still did, and the Newton refinement of those that converged (their
+        answer then does not depend on the other problems of a shared LBFGS call); a problem
+        whose dual fell below the weak-duality bound is left to the ridge fallback."""
         kkt = mask & self.entropy_bound
         if bool(kkt.any()):
             self.entropy_kkt(kkt)

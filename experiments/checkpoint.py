@@ -140,9 +140,10 @@ def load_checkpoint(run_dir: Path) -> CheckpointState | None:
         return None
     try:
         ckpt: CheckpointState = torch.load(path)
-    except Exception as exc:  # truncated, not a torch file, pickled objects, ...
+    except Exception as exc:  # truncated, empty, not a torch file, pickled objects, ...
+        why = next(iter(str(exc).splitlines()), "")[:200] or "no message"
         raise ValueError(
-            f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
+            f"{path} cannot be read ({type(exc).__name__}: {why}); "
             "move it away to restart this run from its first iteration"
         ) from exc
     if not isinstance(ckpt, dict):

@@ -257,12 +257,13 @@ def test_the_final_checkpoint_loads_with_weights_only_and_gives_the_same_actions
     assert float(task(ctx, algo.act(ctx)).mean()) == pytest.approx(summary["final_return"], abs=0.0)
 
 
-def test_an_unreadable_checkpoint_is_named_and_nothing_changes(tmp_path):
+@pytest.mark.parametrize("keep", [100, 0], ids=["truncated", "empty"])
+def test_an_unreadable_checkpoint_is_named_and_nothing_changes(tmp_path, keep):
     run = tmp_path / "run"
     in_process("bimodal", run, episodes=600)
     (run / "summary.json").unlink()  # as if stopped before its end
     ckpt = run / "checkpoint.pt"
-    ckpt.write_bytes(ckpt.read_bytes()[:100])  # a truncated file
+    ckpt.write_bytes(ckpt.read_bytes()[:keep])  # a truncated or a zero-byte file
     before = {p.name: p.read_bytes() for p in run.iterdir()}
     with pytest.raises(ValueError, match=f"{ckpt} cannot be read"):
         resume_in_process("bimodal", run)

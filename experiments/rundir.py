@@ -59,12 +59,19 @@ def _umask() -> int:
 
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place."""
+    """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place. A
+    write that fails (a full disk, a file size limit) is an ``OSError`` naming ``path``; the
+    file there before is left as it was."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        write(Path(tmp))
+        try:
+            write(Path(tmp))
+        except (OSError, RuntimeError) as exc:  # torch.save wraps the OSError in a RuntimeError
+            why = next(iter(str(exc).splitlines()), "")[:200] or type(exc).__name__
+            kept = f"the previous {path.name} is kept" if path.exists() else "nothing was written"
+            raise OSError(f"cannot write {path} ({why}; is the disk full?): {kept}") from exc
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would hide results from a group
         os.replace(tmp, path)
     finally:

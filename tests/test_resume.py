@@ -284,3 +284,54 @@ def test_a_run_with_worker_processes_resumes_with_a_warning_and_exits_cleanly(tm
     assert "not bit-identical" in resumed.stderr
     assert [int(r["iteration"]) for r in rows(run)] == list(range(1, 5))
     assert (run / "summary.json").is_file()
+
+
+def test_a_write_that_fails_is_named_and_keeps_the_previous_file(tmp_path):
+    from experiments.rundir import atomic_write
+
+    path = tmp_path / "checkpoint.pt"
+    path.write_bytes(b"the previous checkpoint")
+
+    def full_disk(tmp):
+        tmp.write_bytes(b"half")
+        raise RuntimeError("[enforce fail at inline_container.cc] . unexpected pos")
+
+    with pytest.raises(
+        OSError, match=r"cannot write .*checkpoint.pt .*previous checkpoint.pt is kept"
+    ):
+        atomic_write(path, full_disk)
+    assert path.read_bytes() == b"the previous checkpoint"
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]  # no temporary left
+
+
+def test_a_file_size_limit_during_the_checkpoint_ends_the_run_with_a_message(tmp_path):
+    import resource
+
+    run = tmp_path / "run"
+    limit = 27 * 1024  # `ulimit -f 27`: config.json and metrics.csv fit, a checkpoint does not
+
+    def limited():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "train.py"),
+            "bimodal",
+            "--episodes",
+            "400",
+            "--run-dir",
+            str(run),
+            "--no-progress",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        preexec_fn=limited,
+    )
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert "cannot write" in out.stderr and "checkpoint.pt" in out.stderr
+    assert "Traceback" not in out.stderr
+    assert not any(p.name.endswith(".tmp") for p in run.iterdir())

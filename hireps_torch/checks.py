@@ -75,13 +75,14 @@ def check_finite(
 ) -> None:
     """Raise naming ``name``, the number of non-finite entries and the first one's index
     (followed by ``advice``, if any)."""
+    if x.numel() == 0 or bool(torch.isfinite(x).all()):
+        return
     bad = ~torch.isfinite(x)
-    if bool(bad.any()):
-        idx = tuple(int(i) for i in bad.nonzero()[0])
-        raise ValueError(
-            f"{name} contains {int(bad.sum())} non-finite value(s) (first at index {idx}: "
-            f"{x[idx].item()})" + (f"; {advice}" if advice else "")
-        )
+    idx = tuple(int(i) for i in bad.nonzero()[0])
+    raise ValueError(
+        f"{name} contains {int(bad.sum())} non-finite value(s) (first at index {idx}: "
+        f"{x[idx].item()})" + (f"; {advice}" if advice else "")
+    )
 
 
 def as_finite_f64(name: str, value: Tensor | float, shape: tuple[int, ...] | None = None) -> Tensor:

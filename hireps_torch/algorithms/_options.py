@@ -100,15 +100,23 @@ def carries_information(sol: DualSolution, bound: OptionBound) -> bool:
     distribution p~_io / N (1 / N with one option, where the dual has one column; the KL to
     it is then below ~1e-12). The update then has nothing to learn from.
     """
-    if math.isinf(sol.eta):
-        return False
+    return _judge(sol, bound)[1]
+
+
+def _judge(sol: DualSolution, bound: OptionBound) -> tuple[bool, bool]:
+    """(whether ``sol.weights`` are finite, :func:`carries_information`), in one transfer."""
     w = sol.weights
+    finite = torch.isfinite(w).all()
+    if math.isinf(sol.eta):
+        return bool(finite), False
     N = w.shape[0]
     lr = bound.log_responsibilities
-    old = torch.full_like(w, 1.0 / N) if lr is None else lr.exp() / N
-    if old.shape != w.shape:
-        return True
-    return not bool(((w - old).abs() <= UNIFORM_RTOL * old).all())
+    old = w.new_tensor(1.0 / N) if lr is None else lr.exp() / N
+    if old.dim() and old.shape != w.shape:
+        return bool(finite), True
+    flat = ((w - old).abs() <= UNIFORM_RTOL * old).all()
+    ok, uniform = torch.stack([finite, flat]).tolist()
+    return ok, not uniform
 
 
 @dataclass(frozen=True)
@@ -147,12 +155,13 @@ def plan_refit(
         ValueError: when the dual's weights are not finite or the refit fails (naming the
             option), before anything changed.
     """
-    if not bool(torch.isfinite(sol.weights).all()):
+    finite, informed = _judge(sol, bound)
+    if not finite:
         raise ValueError(
             f"the dual returned non-finite weights (eta = {sol.eta}, xi = {sol.xi}, converged "
             f"= {sol.converged}); the policy is left unchanged"
         )
-    if not carries_information(sol, bound):
+    if not informed:
         return Refit(None, sol, bound)
     weights = sol.weights
     if weights.shape[-1] < policy.n_options:  # pruned options get weight 0

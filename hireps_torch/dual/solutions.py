@@ -118,6 +118,9 @@ class PopulationDualSolution:
     dual_value: Tensor
     converged: Tensor
     iterations: int
+    numbers: tuple[float, ...] | None = None
+    """Where S = K = 1 and the solver has them as floats: (eta, xi, kl, cross_entropy,
+    effective_sample_size, feature_error, dual_value) (:func:`single_solution` reads them)."""
 
     @property
     def sample_weights(self) -> Tensor:
@@ -250,8 +253,8 @@ def block_solution(
 
 def single_solution(sol: PopulationDualSolution) -> DualSolution:
     """The :class:`DualSolution` of a one-block population of one (S = K = 1), its numbers
-    read in one transfer."""
-    numbers = torch.cat(
+    read in one transfer (none where the solver gave them as floats)."""
+    numbers = sol.numbers or torch.cat(
         [
             sol.eta[0],
             sol.xi[0],

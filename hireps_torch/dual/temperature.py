@@ -15,6 +15,7 @@ spread, a step that does not help, the step budget spent); the general solver
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -46,20 +47,23 @@ def solve_temperature(
     None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
     ``KL <= eps (1 + KL_RTOL)``."""
     N = R.shape[0]
-    m_abs = float(R.abs().max())
+    lo_r, hi_r = torch.aminmax(R)
+    m_abs = max(-float(lo_r), float(hi_r))
     if m_abs == 0.0:
         return None
     # an exact power of 2 brings the returns to [0.5, 1) (in two factors: neither overflows)
     e = math.frexp(m_abs)[1]
     unit = 2.0 ** (e // 2) * 2.0 ** (e - e // 2)
-    Rn = R * 2.0 ** -(e // 2) * 2.0 ** -(e - e // 2)
-    mean, spread = Rn.mean(), Rn.std()
-    s = float(spread)
+    f1, f2 = 2.0 ** -(e // 2), 2.0 ** -(e - e // 2)
+    Rn = R * f1 * f2
+    std_mean = torch.std_mean(Rn)
+    s, mean = torch.stack(std_mean).tolist()
     if not s > _SPREAD_RTOL:
         return None
-    r = (Rn - mean) / spread
+    r = (Rn - mean) / s
     powers = torch.stack([torch.ones_like(r), r, r * r], -1)  # (N, 3)
-    log_n, r_max = math.log(N), float(r.max())
+    # the shift of the exponentials: any value near max r keeps them in range
+    log_n, r_max = math.log(N), (float(hi_r) * f1 * f2 - mean) / s
 
     def parts(a: float) -> tuple[float, float, float, float]:
         """(g, dg/da, d2g/da2, KL) at log eta = a."""
@@ -81,6 +85,11 @@ def solve_temperature(
         held = abs(kl - eps) <= KL_RTOL * eps and kl <= eps
         if held and (abs(grad) <= _REFINE_GRAD or refined == _REFINE_STEPS):
             break
+        if not held and abs(kl - eps) <= KL_RTOL * eps:  # KL above eps by round-off
+            nudged = _nudge(parts, a, eps)
+            if nudged is not None:
+                a, (g, grad, curv, kl) = nudged
+                break
         refined += held  # steps past the tolerance take the gradient to round-off
         if steps == _STEPS or not math.isfinite(g):
             return None
@@ -103,7 +112,7 @@ def solve_temperature(
     eta = math.exp(a)
     w = torch.softmax(r * (1.0 / eta), 0)
     ess = 1.0 / float(w @ w)
-    dual = (g * s + float(mean)) * unit
+    dual = (g * s + mean) * unit
     numbers = R.new_tensor([[eta * s * unit], [kl], [ess], [dual], [0.0]])  # (5, 1)
     zero = numbers[4:5]
     return PopulationDualSolution(
@@ -118,4 +127,19 @@ def solve_temperature(
         dual_value=numbers[3],
         converged=torch.ones(1, dtype=torch.bool, device=R.device),
         iterations=steps,
+        numbers=(eta * s * unit, 0.0, kl, 0.0, ess, 0.0, dual),
     )
+
+
+def _nudge(
+    parts: Callable[[float], tuple[float, float, float, float]], a: float, eps: float
+) -> tuple[float, tuple[float, float, float, float]] | None:
+    """The smallest of a few steps up in log eta (units of round-off; the KL falls as eta
+    grows) that brings a KL above eps by round-off to at most eps, with its parts; None if
+    none does."""
+    unit = math.ulp(max(abs(a), 1.0))
+    for k in range(1, 12):
+        trial = parts(a + unit * 2.0**k)
+        if trial[3] <= eps and abs(trial[3] - eps) <= KL_RTOL * eps:
+            return a + unit * 2.0**k, trial
+    return None

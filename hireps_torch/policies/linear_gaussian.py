@@ -420,13 +420,13 @@ class LinearGaussian(PolicyModule):
             s = int(empty.nonzero()[0, 0])
             raise ValueError(f"weights[{s}] are all zero (member {s} of the population)")
         r = check_nonnegative_float("ridge", ridge) or 0.0
-        return self.fit_checked(x, y, w, r)
+        return self.fit_checked(x, y, power_of_two_scaled(w, self.population is not None), r)
 
     def fit_checked(self, x: Tensor, y: Tensor, w: Tensor, r: float = 1e-6) -> dict[str, Tensor]:
         """:meth:`fit_parameters` on inputs already checked: float64 features x ([S,] N, F)
         (after the option's feature map), targets y ([S,] N, D), non-negative weights w
-        ([S,] N) with some positive weight for each member, ridge r >= 0."""
-        w = power_of_two_scaled(w, self.population is not None)
+        ([S,] N) with some positive weight for each member, at most 2^200 (as
+        :func:`power_of_two_scaled` leaves them), ridge r >= 0."""
         try:
             if self.mean_prior > 0:
                 W, b = map_linear_regression(x, y, w, self.weight, self.bias, self.mean_prior, r)
@@ -434,19 +434,22 @@ class LinearGaussian(PolicyModule):
                 W, b = weighted_least_squares(x, y, w, ridge=r)
         except RuntimeError:
             raise self._overflow(x, y, None) from None
-        resid = y - (x @ W.mT + b.unsqueeze(-2))
+        resid = y - b.unsqueeze(-2) if x.shape[-1] == 0 else y - (x @ W.mT + b.unsqueeze(-2))
         cov = (w[..., None] * resid).mT @ resid / w.sum(-1)[..., None, None]
-        bad = ~(_finite_members(cov) & _finite_members(W))
-        if bool(bad.any()):
-            raise self._overflow(x, y, bad)
         if self.covariance_prior > 0:
             n_eff = (w.sum(-1) ** 2 / (w**2).sum(-1))[..., None, None]
             k = self.covariance_prior
             cov = (n_eff * cov + k * self.covariance.to(torch.float64)) / (n_eff + k)
+        chol = self._unfloored_cholesky(cov, torch.isfinite(W).all())
+        if chol is None:  # not finite, or the floor binds: the checks and the floor one by one
+            bad = ~(_finite_members(cov) & _finite_members(W))
+            if bool(bad.any()):
+                raise self._overflow(x, y, bad)
+            chol = self._floored_cholesky(cov)
         new = {
             "weight": W.to(self.weight.dtype),
             "bias": b.to(self.bias.dtype),
-            "chol": self._floored_cholesky(cov),
+            "chol": chol.to(self.chol.dtype),
         }
         for name, value in new.items():  # finite in float64 (checked above); a narrower dtype
             if value.dtype != torch.float64 and not bool(torch.isfinite(value).all()):
@@ -487,28 +490,40 @@ class LinearGaussian(PolicyModule):
         """
         self.set_parameters(self.fit_parameters(inputs, targets, weights, ridge))
 
+    def _floor_scale(self, cov: Tensor) -> Tensor:
+        """sqrt(m_i m_j) of the variance floor m, as cov's dtype and device: (D, D)."""
+        root = self.min_variance.to(cov.device).sqrt()
+        return torch.outer(root, root)
+
+    def _unfloored_cholesky(self, cov: Tensor, ok: Tensor) -> Tensor | None:
+        """The Cholesky factor (float64) of cov ([S,] D, D) where ``ok`` (a bool tensor) holds,
+        cov is finite and the variance floor does not bind (every eigenvalue of the scaled
+        covariance above 1: scaled - I positive definite); None otherwise. One transfer."""
+        cov = 0.5 * (cov + cov.mT)
+        scaled = cov / self._floor_scale(cov)
+        eye = torch.eye(scaled.shape[-1], dtype=scaled.dtype, device=scaled.device)
+        above = torch.linalg.cholesky_ex(scaled - eye).info == 0
+        factor = torch.linalg.cholesky_ex(cov)
+        if bool(ok & torch.isfinite(scaled).all() & above.all() & (factor.info == 0).all()):
+            return factor.L
+        return None
+
     def _floored_cholesky(self, cov: Tensor) -> Tensor:
         """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""
         cov = cov.to(torch.float64)
         cov = 0.5 * (cov + cov.mT)
-        root = self.min_variance.to(cov.device).sqrt()
-        scale = torch.outer(root, root)
+        scale = self._floor_scale(cov)
         scaled = cov / scale
         if not bool(torch.isfinite(scaled).all()):
             raise ValueError(
                 f"the covariance overflows (largest entry {float(cov.abs().max()):.3g}): "
                 "rescale the parameters"
             )
-        # the floor binds iff some eigenvalue of the scaled covariance is below 1, i.e. iff
-        # scaled - I is not positive definite (one Cholesky factorisation tells)
-        eye = torch.eye(scaled.shape[-1], dtype=scaled.dtype, device=scaled.device)
-        above = torch.linalg.cholesky_ex(scaled - eye).info == 0
-        if not bool(above.all()):
-            evals, evecs = torch.linalg.eigh(scaled)
-            low = (evals < 1.0).any(-1)
-            floored = (evecs * evals.clamp_min(1.0).unsqueeze(-2)) @ evecs.mT * scale
-            floored = 0.5 * (floored + floored.mT)
-            cov = torch.where(low[..., None, None], floored, cov)
+        evals, evecs = torch.linalg.eigh(scaled)
+        low = (evals < 1.0).any(-1)
+        floored = (evecs * evals.clamp_min(1.0).unsqueeze(-2)) @ evecs.mT * scale
+        floored = 0.5 * (floored + floored.mT)
+        cov = torch.where(low[..., None, None], floored, cov)
         factor = torch.linalg.cholesky_ex(cov)
         chol: Tensor = factor.L
         info = factor.info

@@ -16,7 +16,7 @@ from typing import Any
 from experiments import ball_on_beam, bimodal, hockey, pendulum
 from experiments.population import PopulationRun, run_population
 
-__all__ = ["EXPERIMENTS", "POPULATIONS", "run_experiment"]
+__all__ = ["CHECKS", "EXPERIMENTS", "POPULATIONS", "run_experiment"]
 
 EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
     "bimodal": (bimodal.BimodalConfig, bimodal.run),
@@ -27,6 +27,16 @@ EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
     "hockey-fixed-start": (hockey.HockeyFixedStartConfig, hockey.run),
 }
 
+CHECKS: dict[str, Callable[[Any], None]] = {
+    "bimodal": bimodal.check,
+    "pendulum": pendulum.check,
+    "ball-on-beam": ball_on_beam.check,
+    "hockey-sequential": hockey.check,
+    "hockey-episodic": hockey.check,
+    "hockey-fixed-start": hockey.check,
+}
+"""Each experiment's check of a config: what its ``run`` refuses, refused without a run
+(a sweep checks every configuration before its first run)."""
 
 POPULATIONS: dict[str, PopulationRun] = {
     "bimodal": bimodal.run_population,

@@ -241,6 +241,12 @@ def _checked(cfg: BallOnBeamConfig) -> int:
     )
 
 
+def check(cfg: BallOnBeamConfig) -> None:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
+    _checked(cfg)
+    _make_algorithm(cfg, BeamParams())
+
+
 def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the simulated ball on a beam; returns the summary."""
     from hireps_torch.rollout import make_collector, policy_module

@@ -95,6 +95,12 @@ def _make_algorithm(
     )
 
 
+def check(cfg: BimodalConfig) -> None:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
+    _validate(cfg)
+    _make_algorithm(cfg, _task(cfg))
+
+
 def run(cfg: BimodalConfig) -> dict[str, Any]:
     """HiREPS or REPS on the (contextual) two-Gaussians task; returns the summary."""
     _validate(cfg)

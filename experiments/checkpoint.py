@@ -136,6 +136,8 @@ CheckpointState = dict[str, Any]
 def load_checkpoint(run_dir: Path) -> CheckpointState | None:
     """The run's checkpoint (None if it stopped before its first iteration finished)."""
     path = run_dir / "checkpoint.pt"
+    if path.exists() and not path.is_file():
+        raise ValueError(f"{path} is not a file; move it away (nothing was changed)")
     if not path.is_file():
         return None
     try:
@@ -174,16 +176,20 @@ def read_config(run_dir: Path) -> dict[str, Any]:
     return data
 
 
-def changed_options(saved: Mapping[str, Any], now: Mapping[str, Any]) -> list[str]:
+def changed_options(
+    saved: Mapping[str, Any], now: Mapping[str, Any], labels: tuple[str, str] = ("run", "now")
+) -> list[str]:
     """Options whose values differ between the saved config and this one, as
-    ``name (run: saved, now: current)``; the run-only options are ignored."""
+    ``name (run: saved, now: current)`` (``labels`` name the two); the run-only options are
+    ignored."""
     out = []
+    a, b = labels
     for key in sorted(set(saved) | set(now)):
         if key in RUN_ONLY_OPTIONS:
             continue
         if saved.get(key, "<absent>") != now.get(key, "<absent>"):
             out.append(
-                f"{key} (run: {saved.get(key, '<absent>')!r}, now: {now.get(key, '<absent>')!r})"
+                f"{key} ({a}: {saved.get(key, '<absent>')!r}, {b}: {now.get(key, '<absent>')!r})"
             )
     return out
 
@@ -220,13 +226,31 @@ class StopRequest:
     signame: str | None = None
 
 
+EARLY = StopRequest()
+"""A SIGINT / SIGTERM that came before the run's own handler was installed (a worker
+process records it here while it starts): the run then stops after its first iteration."""
+
+
+def record_early_stops() -> None:
+    """Until :func:`stop_on_signals` takes over, SIGINT / SIGTERM only set :data:`EARLY`
+    (for worker processes: a Ctrl-C while one starts must not kill it half-way, nor be
+    lost)."""
+
+    def handler(signum: int, frame: types.FrameType | None) -> None:
+        EARLY.signame = signal.Signals(signum).name
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handler)
+
+
 @contextmanager
-def stop_on_signals() -> Iterator[StopRequest]:
+def stop_on_signals(then: str = "then saving the checkpoint") -> Iterator[StopRequest]:
     """While active, the first SIGINT or SIGTERM only requests a stop (the loop finishes the
-    current iteration, writes the checkpoint and raises :class:`RunInterrupted`); a second
-    one interrupts at once (the last written checkpoint stays valid). Handlers are restored
-    on exit; outside the main thread this does nothing."""
-    request = StopRequest()
+    current iteration, writes the checkpoint and raises :class:`RunInterrupted`; the message
+    printed says ``then``); a second one interrupts at once (the last written checkpoint
+    stays valid). Handlers are restored on exit; outside the main thread this does
+    nothing."""
+    request = StopRequest(EARLY.signame)
     names: dict[int, str] = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
     previous: dict[int, Any] = {}
 
@@ -235,7 +259,7 @@ def stop_on_signals() -> Iterator[StopRequest]:
             raise KeyboardInterrupt(f"second {names.get(signum, signum)}: stopping now")
         request.signame = names.get(signum, str(signum))
         print(
-            f"\n{request.signame}: finishing this iteration, then saving the checkpoint "
+            f"\n{request.signame}: finishing this iteration, {then} "
             "(send it again to stop at once)",
             file=sys.stderr,
         )

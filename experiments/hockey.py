@@ -393,6 +393,16 @@ def evaluate_final_policy(
     return out
 
 
+def check(cfg: HockeyConfig) -> None:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
+    from environments.hockey import demo_action
+
+    _check(cfg)
+    params = hockey_params(cfg)
+    demo = torch.as_tensor(demo_action(params), dtype=torch.float64)
+    _make_algorithm(cfg, params.n_shots, demo, params)
+
+
 def run(cfg: HockeyConfig) -> dict[str, Any]:
     """Sequential or episodic HiREPS on the simulated robot hockey task; returns the summary."""
     from environments.hockey import ENV_ID, EPISODIC_ENV_ID, demo_action

@@ -90,7 +90,40 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
             + "; ".join(diff)
             + " (pass no options, or the same ones, with --resume)"
         )
-    return Resume(run_dir, load_checkpoint(run_dir))
+    ckpt = load_checkpoint(run_dir)
+    if ckpt is None:
+        logged = _logged_rows(run_dir / "metrics.csv")
+        if logged:
+            raise ValueError(
+                f"cannot resume {run_dir}: its metrics.csv holds {logged} row(s) but there is "
+                f"no {run_dir / 'checkpoint.pt'} to continue them from; restore the checkpoint, "
+                "or move the directory away and start a new run (nothing was changed)"
+            )
+    else:
+        theirs = ckpt.get("config")
+        if not isinstance(theirs, dict) or ckpt.get("experiment") != experiment:
+            raise ValueError(
+                f"cannot resume {run_dir}: its checkpoint.pt is of a "
+                f"{ckpt.get('experiment')!r} run, not of this {experiment!r} run (nothing was "
+                "changed)"
+            )
+        mismatch = changed_options(theirs, saved, ("checkpoint.pt", "config.json"))
+        if mismatch:
+            raise ValueError(
+                f"cannot resume {run_dir}: its checkpoint.pt was written by a run with other "
+                "options than its config.json holds: "
+                + "; ".join(mismatch)
+                + " (was one of them copied or edited?); nothing was changed"
+            )
+    return Resume(run_dir, ckpt)
+
+
+def _logged_rows(path: Path) -> int:
+    """The data rows of a ``metrics.csv`` (0 if there is none)."""
+    if not path.is_file():
+        return 0
+    with path.open(newline="") as f:
+        return max(sum(1 for line in f if line.strip()) - 1, 0)
 
 
 class Run:
@@ -183,7 +216,10 @@ def _iterate(
                 if stop.signame is not None and it + 1 < iterations:
                     raise RunInterrupted(run.writer.dir, it + 1, stop.signame)
     except BaseException:
-        run.save_unsaved()
+        try:
+            run.save_unsaved()
+        finally:
+            run.writer.release()
         raise
     finally:
         bar.close()

@@ -265,6 +265,12 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
     return params, iterations
 
 
+def check(cfg: PendulumConfig) -> None:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
+    params, _ = _checked(cfg)
+    _make_algorithm(cfg, params)
+
+
 def run(cfg: PendulumConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the swing-up; returns the summary."""
     params, iterations = _checked(cfg)

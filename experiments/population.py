@@ -120,7 +120,7 @@ def population_loop(
     members.open()
     bar = tqdm(total=iterations, desc=label, disable=not progress)
     try:
-        with stop_on_signals() as stop:
+        with stop_on_signals("then stopping (population runs write no checkpoint)") as stop:
             for it in range(iterations):
                 rows = step(it)
                 members.log(rows)
@@ -129,8 +129,9 @@ def population_loop(
                 if stop.signame is not None and it + 1 < iterations:
                     raise KeyboardInterrupt(
                         f"{stop.signame}: population stopped after iteration {it + 1}; the "
-                        f"members' metrics.csv under {members.root} hold the rows so far "
-                        "(population runs do not resume: run it again)"
+                        f"members' metrics.csv under {members.root} hold the rows so far. "
+                        "Population runs write no checkpoint and do not resume: to run it "
+                        f"again, move {members.root} away or pass another --run-dir"
                     )
     finally:
         bar.close()

@@ -20,6 +20,7 @@ import math
 import os
 import tempfile
 import time
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -28,6 +29,7 @@ import torch
 
 __all__ = [
     "LOGGERS",
+    "DirectoryLock",
     "LoggerName",
     "RunWriter",
     "atomic_write",
@@ -77,6 +79,35 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+class DirectoryLock:
+    """The exclusive lock of a directory, for one writer per run directory: ``flock`` on the
+    directory itself, which the system drops when the process ends, however it ends (a crash
+    leaves nothing stuck), and :meth:`release` (or garbage collection) drops earlier. A
+    directory that another process holds is a ``BlockingIOError`` naming it. Where the
+    platform or the file system has no such locks (Windows, some network mounts) the
+    directory is used without one."""
+
+    def __init__(self, directory: Path) -> None:
+        self.release: Callable[[], Any] = lambda: None
+        try:
+            import fcntl
+        except ImportError:
+            return
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise BlockingIOError(
+                f"{directory} is being written by another process (a run, resume, population "
+                "or sweep that is still going); wait for it to end, or stop it first (nothing "
+                "was changed)"
+            ) from None
+        except OSError:  # no locks on this file system
+            pass
+        self.release = weakref.finalize(self, os.close, fd)
 
 
 def jsonable(x: Any) -> Any:
@@ -130,8 +161,15 @@ class RunWriter:
                 f"run directory {self.dir} already exists and is not empty; pass a new "
                 "--run-dir, or --resume it (nothing was overwritten)"
             )
-        self.logger = make_logger(logger, self.dir, config.get("experiment", "run"))
+        created = not self.dir.exists()
         self.dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.lock = DirectoryLock(self.dir)
+            self.logger = make_logger(logger, self.dir, config.get("experiment", "run"))
+        except BaseException:
+            if created and not any(self.dir.iterdir()):
+                self.dir.rmdir()  # a refused run leaves nothing behind
+            raise
         self.start = time.perf_counter() - elapsed
         self._fields: list[str] | None = None
         self.rows: list[dict[str, Any]] = []
@@ -223,9 +261,14 @@ class RunWriter:
         out = dict(summary)
         out["wall_seconds"] = round(self.elapsed(), 3)
         self.write_json("summary.json", out)
-        self.close()
+        self.release()
         written: dict[str, Any] = jsonable(out)  # what summary.json holds (NaN -> None)
         return written
+
+    def release(self) -> None:
+        """Close the logger and drop the directory's lock: this writer writes no more."""
+        self.close()
+        self.lock.release()
 
     def close(self) -> None:
         """Flush and close the TorchRL logger (if any); ``metrics.csv`` is always flushed."""

@@ -28,10 +28,10 @@ import dataclasses
 import itertools
 import json
 import multiprocessing
+import multiprocessing.connection
 import statistics
 import typing
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -40,11 +40,14 @@ import tyro
 from tqdm.auto import tqdm
 
 from experiments.options import parse_seeds
+from experiments.rundir import DirectoryLock
 from experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
 
 __all__ = [
     "SweepConfig",
+    "SweepFailed",
     "SweepRun",
+    "check_configurations",
     "check_same_options",
     "main",
     "parse_grid",
@@ -247,6 +250,47 @@ def check_same_options(run: SweepRun, cfg: Any) -> None:
         )
 
 
+def check_configurations(runs: Sequence[SweepRun]) -> None:
+    """Every configuration of ``runs`` checked as its run would check it (with its first
+    seed), before any run starts: a ``ValueError`` naming each bad configuration and why."""
+    import torch
+
+    from experiments import CHECKS
+
+    errors, seen = [], set()
+    for run in runs:
+        if run.name in seen:
+            continue
+        seen.add(run.name)
+        config_cls = _config_class(run.experiment)
+        try:
+            with torch.random.fork_rng(devices=[]):  # a check draws nothing a run would see
+                CHECKS[run.experiment](config_cls(**run.options, seed=run.seed, progress=False))
+        except (ValueError, TypeError) as exc:
+            errors.append(f"configuration {run.name} (seed {run.seed}): {exc}")
+    if errors:
+        raise ValueError(
+            "the sweep was not started, " + "; ".join(errors) + " (nothing was run or written)"
+        )
+
+
+class SweepFailed(Exception):
+    """Runs of a sweep that failed (the others ran): ``failures`` maps (configuration, seed)
+    to the error, ``results`` holds the summaries of the runs that ended."""
+
+    def __init__(
+        self, failures: Mapping[tuple[str, int], str], results: Mapping[tuple[str, int], Any]
+    ) -> None:
+        self.failures, self.results = dict(failures), dict(results)
+        super().__init__(
+            f"{len(self.failures)} run(s) of the sweep failed, the others ran: "
+            + "; ".join(f"{n}/seed{s}: {why}" for (n, s), why in self.failures.items())
+        )
+
+
+Failed = Callable[[SweepRun, BaseException], None]
+
+
 def _one_thread(run: SweepRun) -> dict[str, Any]:
     import torch
 
@@ -255,24 +299,87 @@ def _one_thread(run: SweepRun) -> dict[str, Any]:
 
 
 def _local(
-    runs: Sequence[SweepRun], workers: int, done: Callable[[SweepRun, dict[str, Any]], None]
+    runs: Sequence[SweepRun],
+    workers: int,
+    done: Callable[[SweepRun, dict[str, Any]], None],
+    failed: Failed,
 ) -> None:
     if workers == 1:  # one thread as in the worker processes: the same sums, the same results
         for run in runs:
-            done(run, _one_thread(run))
+            try:
+                summary = _one_thread(run)
+            except Exception as exc:
+                failed(run, exc)
+                continue
+            done(run, summary)
         return
     ctx = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(workers, mp_context=ctx)
+    queued = list(runs)
+    going: dict[Any, tuple[SweepRun, Any]] = {}  # the result pipe -> (run, process)
     try:
-        pending: dict[Future[dict[str, Any]], SweepRun] = {
-            pool.submit(_one_thread, r): r for r in runs
-        }
-        while pending:
-            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                done(pending.pop(fut), fut.result())
-    finally:  # an error or Ctrl-C: do not wait for the queued runs
-        pool.shutdown(wait=True, cancel_futures=True)
+        while queued or going:
+            while queued and len(going) < workers:
+                run = queued.pop(0)
+                reader, send = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_in_worker, args=(run, send), daemon=True)
+                proc.start()
+                send.close()
+                going[reader] = (run, proc)
+            for ready in multiprocessing.connection.wait(list(going)):
+                run, proc = going.pop(ready)
+                receive: Any = ready
+                try:
+                    kind, value = receive.recv()
+                except EOFError:  # the process died without a word
+                    proc.join()
+                    kind, value = "error", f"its worker process died (exit code {proc.exitcode})"
+                proc.join()
+                if kind == "ok":
+                    done(run, value)
+                elif kind == "interrupted":
+                    raise KeyboardInterrupt(value)
+                else:
+                    failed(run, RuntimeError(value))
+    finally:  # an error or Ctrl-C: the runs going stop at their next iteration boundary
+        _stop_workers([proc for _, proc in going.values()])
+
+
+def _in_worker(run: SweepRun, send: Any) -> None:
+    """A local worker process: one run, its outcome sent back as (kind, value). A SIGINT
+    before the run's own handler takes it is kept for the run (which then stops after its
+    first iteration with its checkpoint written): the process never stops half-way."""
+    from experiments.checkpoint import record_early_stops
+
+    record_early_stops()
+    try:
+        out: tuple[str, Any] = ("ok", _one_thread(run))
+    except KeyboardInterrupt as stop:
+        out = ("interrupted", str(stop))
+    except BaseException as exc:
+        out = ("error", f"{type(exc).__name__}: {exc}")
+    send.send(out)
+    send.close()
+
+
+_STOP_SECONDS = 60.0  # a run going finishes its iteration within this, or is stopped at once
+
+
+def _stop_workers(procs: Sequence[Any]) -> None:
+    """Wait for the worker processes still going (after a Ctrl-C they finish their
+    iteration and write the checkpoint); after :data:`_STOP_SECONDS` a SIGTERM (the second
+    signal: stop at once, the last checkpoint kept), then a kill: no process is left."""
+    import time
+
+    deadline = time.monotonic() + _STOP_SECONDS
+    for proc in procs:
+        proc.join(max(deadline - time.monotonic(), 0.0))
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(10.0)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
 
 
 def _ray(
@@ -280,6 +387,7 @@ def _ray(
     workers: int,
     address: str | None,
     done: Callable[[SweepRun, dict[str, Any]], None],
+    failed: Failed,
 ) -> None:
     ray = import_ray()
     if address is not None:
@@ -310,7 +418,13 @@ def _ray(
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
-                done(pending.pop(ref), ray.get(ref))
+                run = pending.pop(ref)
+                try:
+                    summary = ray.get(ref)
+                except Exception as exc:  # a RayTaskError: the run's own error is its cause
+                    failed(run, getattr(exc, "cause", None) or exc)
+                    continue
+                done(run, summary)
     except BaseException:
         for ref in list(locals().get("pending", {})):
             ray.cancel(ref, force=True)
@@ -328,10 +442,16 @@ def run_sweep(
     ray_address: str | None = None,
     progress: bool = True,
     on_result: Callable[[SweepRun, dict[str, Any]], None] | None = None,
+    checked: bool = False,
 ) -> dict[tuple[str, int], dict[str, Any]]:
     """Run every run of ``runs`` (finished ones are reused, interrupted ones resumed), in
     the order given as far as the backend keeps it; ``on_result(run, summary)`` is called as
-    each one ends. Returns ``{(name, seed): summary}``."""
+    each one ends. Returns ``{(name, seed): summary}``.
+
+    Every configuration is checked before the first run (:func:`check_configurations`;
+    ``checked``: the caller did). A
+    run that fails does not stop the others: :class:`SweepFailed`, raised once all have
+    ended, names each failed run and holds the others' summaries."""
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if backend not in ("local", "ray"):
@@ -345,8 +465,15 @@ def run_sweep(
     keys = [(r.name, r.seed) for r in runs]
     if len(set(keys)) != len(keys):
         raise ValueError("a sweep holds the same (configuration, seed) twice")
+    if not checked:
+        check_configurations(runs)
     results: dict[tuple[str, int], dict[str, Any]] = {}
+    failures: dict[tuple[str, int], str] = {}
     bar = tqdm(total=len(runs), desc="sweep", disable=not progress)
+
+    def failed(run: SweepRun, exc: BaseException) -> None:
+        failures[(run.name, run.seed)] = f"{type(exc).__name__}: {exc}"
+        bar.update(1)
 
     def done(run: SweepRun, summary: dict[str, Any]) -> None:
         results[(run.name, run.seed)] = summary
@@ -362,11 +489,13 @@ def run_sweep(
             todo.append(run)
     try:
         if todo and backend == "ray":
-            _ray(todo, workers, ray_address, done)
+            _ray(todo, workers, ray_address, done, failed)
         elif todo:
-            _local(todo, workers, done)
+            _local(todo, workers, done, failed)
     finally:
         bar.close()
+    if failures:
+        raise SweepFailed(failures, results)
     return results
 
 
@@ -466,18 +595,43 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
         check_ray_address(cfg.ray_address)
     configurations = parse_grid(cfg.experiment, cfg.grid, cfg.set)
     runs = plan(cfg.experiment, configurations, parse_seeds(cfg.seeds), cfg.out)
-    reused = sum((r.run_dir / "summary.json").is_file() for r in runs)
-    if cfg.progress and reused:
-        print(f"{reused} of {len(runs)} runs already finished; running the rest", flush=True)
-    results = run_sweep(
-        runs,
-        backend=cfg.backend,
-        workers=cfg.workers,
-        ray_address=cfg.ray_address,
-        progress=cfg.progress,
-    )
+    check_configurations(runs)  # before anything is written
     out = Path(cfg.out) / cfg.experiment
-    table = summarize(runs, results, out)
+    out.mkdir(parents=True, exist_ok=True)
+    lock = DirectoryLock(out)  # one sweep per directory (each run also locks its own)
+    try:
+        reused = sum((r.run_dir / "summary.json").is_file() for r in runs)
+        if cfg.progress and reused:
+            print(f"{reused} of {len(runs)} runs already finished; running the rest", flush=True)
+        failure: SweepFailed | None = None
+        try:
+            results = run_sweep(
+                runs,
+                backend=cfg.backend,
+                workers=cfg.workers,
+                ray_address=cfg.ray_address,
+                progress=cfg.progress,
+                checked=True,
+            )
+        except SweepFailed as exc:
+            failure, results = exc, exc.results
+        except KeyboardInterrupt as stop:
+            why = f" ({stop})" if str(stop) else ""
+            raise KeyboardInterrupt(
+                f"the sweep stopped{why}; every run keeps its last checkpoint (the runs that "
+                "were going wrote one as they stopped). Run the same command again: finished "
+                "runs are reused and the others resume from their checkpoints"
+            ) from None
+        ended = [r for r in runs if (r.name, r.seed) in results]
+        table = summarize(ended, results, out) if ended else ""
+    finally:
+        lock.release()
+    if failure is not None:
+        print(table)
+        raise ValueError(
+            f"{failure}. The table in {out / 'sweep.md'} holds the runs that ended; run the "
+            "sweep again once the failed runs are fixed (the others are reused)"
+        )
     print(table)
     return {
         "experiment": cfg.experiment,

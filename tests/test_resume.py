@@ -335,3 +335,119 @@ def test_a_file_size_limit_during_the_checkpoint_ends_the_run_with_a_message(tmp
     assert "cannot write" in out.stderr and "checkpoint.pt" in out.stderr
     assert "Traceback" not in out.stderr
     assert not any(p.name.endswith(".tmp") for p in run.iterdir())
+
+
+def _unfinished(tmp_path, name, **options):
+    """A finished bimodal run with its summary.json removed: as if stopped before its end."""
+    run = tmp_path / name
+    in_process("bimodal", run, episodes=600, **options)
+    (run / "summary.json").unlink()
+    return run
+
+
+def _files(run):
+    return {p.name: (p.read_bytes() if p.is_file() else "dir") for p in run.iterdir()}
+
+
+def test_a_checkpoint_of_another_run_is_refused_naming_what_differs(tmp_path):
+    run, other = _unfinished(tmp_path, "run"), _unfinished(tmp_path, "other", seed=7)
+    (run / "checkpoint.pt").write_bytes((other / "checkpoint.pt").read_bytes())
+    before = _files(run)
+    with pytest.raises(ValueError, match=r"seed \(checkpoint.pt: 7, config.json: 0\)"):
+        resume_in_process("bimodal", run)
+    assert _files(run) == before
+
+
+def test_a_config_edited_after_the_interrupt_is_refused_naming_what_differs(tmp_path):
+    run = _unfinished(tmp_path, "run")
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "epsilon": 0.3}))
+    before = _files(run)
+    p = train("bimodal", "--resume", str(run), "--no-progress")
+    assert p.returncode == 2
+    assert "epsilon (checkpoint.pt: 1.0, config.json: 0.3)" in p.stderr
+    assert _files(run) == before
+
+
+@pytest.mark.parametrize("damage", ["deleted", "a directory"])
+def test_rows_without_a_checkpoint_are_refused_and_kept(tmp_path, damage):
+    run = _unfinished(tmp_path, "run")
+    (run / "checkpoint.pt").unlink()
+    if damage == "a directory":
+        (run / "checkpoint.pt").mkdir()
+    before = _files(run)
+    what = "is not a file" if damage == "a directory" else r"holds 3 row\(s\) but there is no"
+    with pytest.raises(ValueError, match=what):
+        resume_in_process("bimodal", run)
+    assert _files(run) == before
+    assert len(rows(run)) == 3
+
+
+def test_a_run_directory_has_one_writer_and_a_crash_leaves_no_lock(tmp_path):
+    """A resume of a directory that another process is writing is refused and changes
+    nothing; once that process is gone (here: its lock dropped, as a crash drops it) the
+    resume goes ahead."""
+    from experiments.rundir import DirectoryLock
+
+    run = _unfinished(tmp_path, "run")
+    before = _files(run)
+    held = DirectoryLock(run)  # what a running train.py holds
+    p = train("bimodal", "--resume", str(run), "--no-progress")
+    assert p.returncode == 2
+    assert "is being written by another process" in p.stderr
+    assert _files(run) == before
+    with pytest.raises(BlockingIOError, match="being written by another process"):
+        resume_in_process("bimodal", run)
+    assert _files(run) == before
+    held.release()
+    resume_in_process("bimodal", run)
+    assert (run / "summary.json").is_file()
+    assert [int(r["iteration"]) for r in rows(run)] == [1, 2, 3]
+
+
+def test_two_resumes_at_once_log_every_iteration_once(tmp_path):
+    """Two ``--resume`` of the same directory started together: one runs, the other is
+    refused; metrics.csv holds every iteration once, in order."""
+    run = _unfinished(tmp_path, "run", samples_per_iteration=20)
+    (run / "checkpoint.pt").unlink()
+    (run / "metrics.csv").unlink()
+    cmd = [sys.executable, str(ROOT / "train.py"), "bimodal", "--resume", str(run), "--no-progress"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    procs = [
+        subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True) for _ in "ab"
+    ]
+    outs = [(p.wait(timeout=240), p.stderr.read()) for p in procs]
+    refused = [err for code, err in outs if code == 2]
+    late = [err for code, err in outs if code == 0 and "already finished" in err]
+    assert sorted(code for code, _ in outs) in ([0, 2], [0, 0]), outs
+    assert len(refused + late) == 1, outs  # the other one ran it
+    assert all("being written by another process" in err for err in refused)
+    assert [int(r["iteration"]) for r in rows(run)] == list(range(1, 31))
+
+
+def test_an_interrupted_population_says_what_it_kept_and_how_to_run_again(tmp_path):
+    """SIGINT to a population: no word of a checkpoint it does not write, the rows kept, and
+    the advice given (another directory) works."""
+    run = tmp_path / "pop"
+    args = ["bimodal", "--seeds", "0-1", "--episodes", "200000", "--samples-per-iteration", "20"]
+    p = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *args, "--run-dir", str(run), "--no-progress"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    deadline = time.time() + 120
+    first = run / "seed0" / "metrics.csv"
+    while time.time() < deadline and not (
+        first.exists() and len(first.read_text().splitlines()) > 2
+    ):
+        time.sleep(0.01)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "checkpoint" not in err.replace("write no checkpoint", "")
+    assert "population runs write no checkpoint" in err
+    assert f"move {run} away or pass another --run-dir" in err
+    assert len(rows(run / "seed1")) >= 1 and not (run / "seed0" / "checkpoint.pt").exists()

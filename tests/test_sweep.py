@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments.sweep import parse_grid, parse_seeds, plan, run_sweep, summarize
+from experiments.sweep import SweepFailed, parse_grid, parse_seeds, plan, run_sweep, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -245,7 +245,7 @@ def test_a_sweep_refuses_runs_with_other_options_and_unknown_leftovers(tmp_path)
     leftover = plan("bimodal", {"default": {}}, [1], tmp_path)
     leftover[0].run_dir.mkdir(parents=True)
     (leftover[0].run_dir / ".config.json.x.tmp").write_text("{")
-    with pytest.raises(FileExistsError, match="holds files but no config.json"):
+    with pytest.raises(SweepFailed, match="default/seed1: FileExistsError: .* holds files but no"):
         run_sweep(leftover, progress=False)
     assert (leftover[0].run_dir / ".config.json.x.tmp").read_text() == "{"
 
@@ -275,3 +275,110 @@ def test_repeated_set_and_grid_flags_all_count():
     configs = parse_grid(cfg.experiment, cfg.grid, cfg.set)
     assert len(configs) == 4
     assert all(c["flat_pucks"] is False and c["floor_friction"] == 0.05 for c in configs.values())
+
+
+def test_every_configuration_is_checked_before_the_first_run(tmp_path):
+    out = tmp_path / "sw"
+    p = _sweep(
+        [
+            "--experiment",
+            "bimodal",
+            "--seeds",
+            "0-1",
+            "--grid",
+            "epsilon=0.5,-1",
+            "--set",
+            "episodes=400",
+            "--out",
+            str(out),
+        ]
+    )
+    assert p.returncode == 2
+    assert "configuration epsilon=-1 (seed 0): epsilon must be finite and > 0" in p.stderr
+    assert not out.exists()  # nothing ran, nothing was written
+
+
+def test_a_failing_run_is_named_and_the_others_still_run(tmp_path):
+    """Seed 1's run directory holds a damaged checkpoint: seeds 0 and 2 run, the sweep names
+    seed 1 and writes the table of the others; once it is fixed, a rerun finishes."""
+    out = tmp_path / "sw"
+    args = ["--experiment", "bimodal", "--seeds", "0-2", "--set", "episodes=400", "--out", str(out)]
+    bad = out / "bimodal" / "default" / "seed1"
+    from experiments import EXPERIMENTS
+
+    config_cls, run = EXPERIMENTS["bimodal"]
+    run(config_cls(episodes=400, seed=1, run_dir=bad, progress=False))
+    (bad / "summary.json").unlink()
+    (bad / "checkpoint.pt").write_bytes(b"")
+    p = _sweep(args)
+    assert p.returncode == 2, p.stderr
+    assert "1 run(s) of the sweep failed" in p.stderr and "default/seed1" in p.stderr
+    assert "cannot be read" in p.stderr
+    for seed in (0, 2):
+        assert (out / "bimodal" / "default" / f"seed{seed}" / "summary.json").is_file()
+    table = (out / "bimodal" / "sweep.md").read_text()
+    assert "0: " in table and "2: " in table and "1: " not in table
+    (bad / "checkpoint.pt").unlink()
+    (bad / "metrics.csv").unlink()
+    again = _sweep(args)
+    assert again.returncode == 0, again.stderr
+    assert "1: " in (out / "bimodal" / "sweep.md").read_text()
+
+
+def test_a_sweep_directory_has_one_sweep_at_a_time(tmp_path):
+    from experiments.rundir import DirectoryLock
+
+    out = tmp_path / "sw"
+    (out / "bimodal").mkdir(parents=True)
+    held = DirectoryLock(out / "bimodal")
+    p = _sweep(
+        ["--experiment", "bimodal", "--seeds", "0", "--set", "episodes=400", "--out", str(out)]
+    )
+    assert p.returncode == 2 and "being written by another process" in p.stderr
+    assert list((out / "bimodal").iterdir()) == []
+    held.release()
+
+
+def test_ctrl_c_of_a_sweep_with_workers_says_how_to_finish_it(tmp_path):
+    out = tmp_path / "sw"
+    args = [
+        "--experiment",
+        "bimodal",
+        "--seeds",
+        "0-1",
+        "--set",
+        "episodes=400000",
+        "--set",
+        "samples_per_iteration=20",
+        "--out",
+        str(out),
+        "--workers",
+        "2",
+    ]
+    p = subprocess.Popen(
+        [sys.executable, "train.py", "sweep", "--no-progress", *args],
+        cwd=ROOT,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    metrics = out / "bimodal" / "default" / "seed0" / "metrics.csv"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (metrics.exists() and metrics.read_text().count("\n") > 2):
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGINT)  # what Ctrl-C in a terminal sends: the whole group
+    start = time.time()
+    _, err = p.communicate(timeout=120)
+    assert time.time() - start < 30, err
+    assert p.returncode == 130, err
+    for _ in range(50):  # the multiprocessing resource tracker ends as its parent ends
+        left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True).stdout
+        if not left.split():
+            break
+        time.sleep(0.1)
+    assert not left.split(), f"processes left behind: {left}"
+    assert "interrupted: the sweep stopped" in err
+    assert "Run the same command again" in err
+    assert (out / "bimodal" / "default" / "seed0" / "checkpoint.pt").is_file()

@@ -338,12 +338,19 @@ def finish_run(
     return writer.finish(summary)
 
 
+MAX_COUNT = 10**9
+"""The largest count an experiment takes (options, episodes per iteration, ...)."""
+MAX_WORKERS = 1024
+"""The most worker processes a run starts."""
+
+
 def check_budget(episodes: int, episodes_per_iteration: int, **positive: int) -> int:
     """Every count in ``positive`` >= 1 (the error names it) and at least one iteration's
     episodes; returns the number of iterations."""
     for name, value in {**positive, "episodes_per_iteration": episodes_per_iteration}.items():
-        if value < 1:
-            raise ValueError(f"{name} must be >= 1, got {value}")
+        top = MAX_WORKERS if name == "workers" else MAX_COUNT
+        if not 1 <= value <= top:
+            raise ValueError(f"{name} must be in 1..{top}, got {value}")
     if episodes < episodes_per_iteration:
         raise ValueError(
             f"episodes ({episodes}) must be at least episodes_per_iteration "

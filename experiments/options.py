@@ -197,6 +197,10 @@ def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
     return out
 
 
+MAX_SEEDS = 10_000
+"""The most seeds one ``--seeds`` names (a population or a sweep)."""
+
+
 def parse_seeds(text: str) -> list[int]:
     """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,3,7"``; ``"0-2,9"``. A repeated seed, an empty or
     reversed range and anything else are a ValueError naming the text."""
@@ -209,12 +213,14 @@ def parse_seeds(text: str) -> list[int]:
         if m is None or (m[2] is not None and int(m[2]) < int(m[1])):
             raise ValueError(f"--seeds must look like 0-4, 0,3,7 or 0-2,9, got {text!r}")
         lo, hi = int(m[1]), int(m[2] if m[2] is not None else m[1])
-        if not -(2**62) <= lo <= hi <= 2**62 or hi - lo >= 100_000:
+        if not -(2**62) <= lo <= hi <= 2**62 or hi - lo >= MAX_SEEDS:
             raise ValueError(
-                f"--seeds {text!r}: seeds must lie in [-2**62, 2**62] and a range hold fewer "
-                f"than 100000 seeds, got {part.strip()!r}"
+                f"--seeds {text!r}: seeds must lie in [-2**62, 2**62] and a range hold at most "
+                f"{MAX_SEEDS} seeds, got {part.strip()!r}"
             )
         seeds.extend(range(lo, hi + 1))
+        if len(seeds) > MAX_SEEDS:
+            raise ValueError(f"--seeds {text!r} names more than {MAX_SEEDS} seeds")
     repeated = sorted(s for s, n in Counter(seeds).items() if n > 1)
     if repeated:
         raise ValueError(f"--seeds {text!r} names seed(s) {repeated} more than once")

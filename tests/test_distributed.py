@@ -208,7 +208,7 @@ def test_bad_backend_options_are_named():
 @pytest.mark.parametrize(
     ("options", "message"),
     [
-        (dict(workers=0), "workers must be >= 1, got 0"),
+        (dict(workers=0), "workers must be in 1..1024, got 0"),
         (dict(ray_address="127.0.0.1:1"), "needs --backend ray"),
         (dict(backend="spark"), "backend"),
     ],

@@ -631,3 +631,20 @@ def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
     step = pendulum._scheduled(cfg, algo, 5, lambda batch: seen.append(algo.epsilon))
     step(None)
     assert seen == [pytest.approx(0.3)]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["pendulum", "--workers", "100000000000000000000"], "workers must be in 1..1024"),
+        (["pendulum", "--seeds", "0-99999"], "a range hold at most 10000 seeds"),
+        (["bimodal", "--seeds", "0-6000,7000-12000"], "names more than 10000 seeds"),
+        (["bimodal", "--min-variance", "5e-324"], "min_variance must be finite and at least"),
+    ],
+)
+def test_absurd_counts_and_floors_are_refused_before_anything_is_written(tmp_path, args, message):
+    run = tmp_path / "run"
+    p = train(*args, "--run-dir", str(run), "--no-progress")
+    assert p.returncode == 2, p.stderr
+    assert message in p.stderr
+    assert not run.exists()

@@ -254,17 +254,20 @@ def block_solution(
 def single_solution(sol: PopulationDualSolution) -> DualSolution:
     """The :class:`DualSolution` of a one-block population of one (S = K = 1), its numbers
     read in one transfer (none where the solver gave them as floats)."""
-    numbers = sol.numbers or torch.cat(
-        [
-            sol.eta[0],
-            sol.xi[0],
-            sol.kl[0],
-            sol.cross_entropy[0],
-            sol.effective_sample_size[0],
-            sol.feature_error,
-            sol.dual_value,
-        ]
-    ).tolist()
+    numbers = (
+        sol.numbers
+        or torch.cat(
+            [
+                sol.eta[0],
+                sol.xi[0],
+                sol.kl[0],
+                sol.cross_entropy[0],
+                sol.effective_sample_size[0],
+                sol.feature_error,
+                sol.dual_value,
+            ]
+        ).tolist()
+    )
     eta, xi, kl, ce, ess, feature_error, dual_value = numbers
     w = sol.weights[0, 0]
     return DualSolution(

@@ -22,6 +22,21 @@ class PolicyModule(nn.Module):
     factor must be lower triangular with a positive diagonal).
     """
 
+    OPTIONAL_STATE: tuple[str, ...] = ()
+    """This module's entries that an older checkpoint may lack; they keep their value."""
+
+    def _completed(self, state_dict: Mapping[str, Any]) -> Mapping[str, Any]:
+        """``state_dict`` with the optional entries it lacks taken from this module."""
+        mine = self.state_dict()
+        missing = {
+            f"{name}.{key}" if name else key
+            for name, module in self.named_modules()
+            if isinstance(module, PolicyModule)
+            for key in module.OPTIONAL_STATE
+        } - set(state_dict)
+        missing &= set(mine)
+        return state_dict if not missing else {**state_dict, **{k: mine[k] for k in missing}}
+
     def check_state(self, state: Mapping[str, Tensor]) -> None:
         """Module-specific checks of this module's own entries of a state (names without the
         module's prefix; keys and shapes are already checked, entries may be absent when not
@@ -32,6 +47,7 @@ class PolicyModule(nn.Module):
         saved and the expected shape) unless :meth:`load_state_dict` would load
         ``state_dict`` completely. Changes nothing."""
         what = type(self).__name__
+        state_dict = self._completed(state_dict)
         check_state_dict(what, self.state_dict(), state_dict, strict)
         for name, module in self.named_modules():
             if isinstance(module, PolicyModule):
@@ -53,7 +69,7 @@ class PolicyModule(nn.Module):
         another number of options or dimension, with a missing key or a non-finite value is
         refused with a message naming it, before anything is copied."""
         self.check_state_dict(state_dict, strict)
-        return super().load_state_dict(state_dict, strict, assign)
+        return super().load_state_dict(self._completed(state_dict), strict, assign)
 
     @torch.no_grad()
     def set_parameters(self, values: Mapping[str, Tensor]) -> None:

@@ -104,16 +104,24 @@ def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
     floor = as_float_tensor("min_variance", min_variance, allow_bool=False).clone()
     if floor.dim() == 0:
         floor = floor.expand(action_dim).clone()
+    check_floor(floor, action_dim, torch.as_tensor(min_variance, dtype=torch.float64).tolist())
+    return floor
+
+
+def check_floor(floor: Tensor, action_dim: int, given: object) -> None:
+    """A ``ValueError`` (naming ``given``) unless the (D,) float64 variance floor is finite
+    and at least the smallest normal float64 (a subnormal floor overflows the refit's scaled
+    covariance)."""
+    tiny = torch.finfo(torch.float64).tiny
     if (
         floor.shape != (action_dim,)
         or not bool(torch.isfinite(floor).all())
-        or bool((floor <= 0).any())
+        or bool((floor < tiny).any())
     ):
         raise ValueError(
-            f"min_variance must be > 0 (a float or a ({action_dim},) tensor), got "
-            f"{torch.as_tensor(min_variance).tolist()}"
+            f"min_variance must be finite and at least {tiny:.4g} (the smallest normal "
+            f"float64; a float or a ({action_dim},) tensor), got {given}"
         )
-    return floor
 
 
 def pseudo_samples(name: str, value: float) -> float:
@@ -275,7 +283,8 @@ class LinearGaussian(PolicyModule):
         self.covariance_prior = prior
         self.in_features = in_features
         self.action_dim = action_dim
-        self.min_variance = floor  # (D,) float64, a float given is broadcast
+        self.min_variance: Tensor
+        self.register_buffer("min_variance", floor)  # (D,) float64, a float given is broadcast
         self.weight = nn.Parameter(torch.zeros(action_dim, in_features, dtype=dtype), False)
         self.bias = nn.Parameter(mean, requires_grad=False)
         self.chol = nn.Parameter(torch.diag(std), requires_grad=False)
@@ -544,8 +553,16 @@ class LinearGaussian(PolicyModule):
         check_finite("cov", c, "")
         self.set_parameters({"chol": self._floored_cholesky(c)})
 
+    OPTIONAL_STATE = ("min_variance",)
+    """Entries a checkpoint may lack (written before they were saved): they keep the
+    module's value, the one its config built."""
+
     def check_state(self, state: Mapping[str, Tensor]) -> None:
-        """A loaded ``chol`` must be lower triangular with a positive diagonal."""
+        """A loaded ``chol`` must be lower triangular with a positive diagonal, a loaded
+        ``min_variance`` a valid floor."""
+        floor = state.get("min_variance")
+        if floor is not None:
+            check_floor(floor.to(torch.float64), self.action_dim, floor.tolist())
         chol = state.get("chol")
         if chol is None:
             return

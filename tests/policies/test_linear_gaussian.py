@@ -140,5 +140,34 @@ def test_per_dimension_variance_floor_keeps_each_parameter_exploring():
     assert torch.all(cov.diagonal() >= floor * (1 - 1e-9))
     scaled = cov / (floor.sqrt()[:, None] * floor.sqrt()[None, :])
     assert torch.linalg.eigvalsh(scaled).min() >= 1 - 1e-9
-    with pytest.raises(ValueError, match=r"min_variance must be > 0 \(a float or a \(3,\)"):
+    with pytest.raises(
+        ValueError, match=r"min_variance must be finite and at least .* a float or a \(3,\)"
+    ):
         LinearGaussian(0, 3, min_variance=torch.tensor([1.0, 0.0, 1.0]))
+
+
+def test_the_variance_floor_travels_with_the_state_dict():
+    """A policy saved with floor 0.5 and loaded into a default one refits with 0.5; a
+    checkpoint written before the floor was saved keeps the loading module's floor."""
+    saved = LinearGaussian(0, 2, min_variance=0.5)
+    loaded = LinearGaussian(0, 2)
+    loaded.load_state_dict(saved.state_dict())
+    theta = torch.zeros(5, 2, dtype=torch.float64)  # no spread: the floor is the covariance
+    new = loaded.fit_parameters(torch.zeros(5, 0), theta, torch.ones(5, dtype=torch.float64))
+    torch.testing.assert_close(
+        new["chol"] @ new["chol"].mT, 0.5 * torch.eye(2, dtype=torch.float64)
+    )
+    old = saved.state_dict()
+    del old["min_variance"]
+    kept = LinearGaussian(0, 2, min_variance=0.3)
+    kept.load_state_dict(old)
+    assert kept.min_variance.tolist() == [0.3, 0.3]
+    bad = saved.state_dict()
+    bad["min_variance"] = torch.tensor([0.5, 5e-324], dtype=torch.float64)
+    with pytest.raises(ValueError, match="min_variance must be finite and at least"):
+        LinearGaussian(0, 2).load_state_dict(bad)
+
+
+def test_a_subnormal_variance_floor_is_refused_naming_it():
+    with pytest.raises(ValueError, match=r"at least 2.225e-308 .* got 5e-324"):
+        LinearGaussian(0, 2, min_variance=5e-324)

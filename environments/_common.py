@@ -26,7 +26,7 @@ from hireps_torch.checks import (
     as_float,
     as_float_tensor,
     check_count,
-    check_device,
+    check_present_device,
     check_seed,
 )
 
@@ -121,7 +121,7 @@ class BatchedTask:
 
     def __init__(self, batch: int, seed: int = 0, device: str | torch.device = "cpu") -> None:
         self.batch = check_count("batch_size", batch, 1)
-        self.device = check_device(device)
+        self.device = check_present_device(device)
         self.gen = torch.Generator()
         self.gen.manual_seed(check_seed("seed", seed))
         self.t = torch.zeros(batch, dtype=torch.long, device=self.device)
@@ -145,7 +145,21 @@ class BatchedTask:
         self.gen.manual_seed(0 if seed is None else check_seed("seed", seed))
 
     def reset(self, mask: Tensor | None = None) -> None:
-        """Restart the masked systems (all when ``mask`` is None)."""
+        """Restart the masked systems (all when ``mask`` is None; else a bool tensor of B
+        entries, (B,) or (B, 1)); a mask of another kind is a ``ValueError`` before anything
+        is drawn."""
+        if mask is not None and (
+            not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.numel() != self.batch
+        ):
+            what = (
+                f"a {mask.dtype} tensor of shape {tuple(mask.shape)}"
+                if isinstance(mask, Tensor)
+                else type(mask).__name__
+            )
+            raise ValueError(
+                f"the reset mask must be a bool tensor of {self.batch} entries ((B,) or (B, 1)), "
+                f"got {what}; nothing was reset"
+            )
         m = torch.ones(self.batch, dtype=torch.bool) if mask is None else mask.reshape(-1).cpu()
         fresh = self.start_states(m).to(self.device)
         md = m.to(self.device)
@@ -178,6 +192,7 @@ class ScalarActionGymEnv(gym.Env):
         self.observation_space = gym.spaces.Box(-hi, hi, dtype=np.float32)
         task.reset(torch.zeros(1, dtype=torch.bool))  # a provisional state, no episode yet
         self._needs_reset = True
+        self._ended = False
 
     def _obs(self) -> np.ndarray:
         return self.task.state[0].numpy().astype(np.float32)
@@ -191,7 +206,7 @@ class ScalarActionGymEnv(gym.Env):
         if seed is not None:
             self.task.seed(seed)
         self.task.reset()
-        self._needs_reset = False
+        self._needs_reset = self._ended = False
         return self._obs(), {"state": self.task.state[0].numpy().copy()}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -202,7 +217,14 @@ class ScalarActionGymEnv(gym.Env):
             raise ValueError(
                 f"action must hold one {self.task.action_name}, got shape {tuple(a.shape)}"
             )
+        if self._ended:  # as gymnasium's own environments say it
+            gym.logger.warn(
+                "You are calling 'step()' even though this environment has already returned "
+                "terminated = True or truncated = True. You should always call 'reset()' once "
+                "you receive either; any further steps are undefined behavior."
+            )
         reward, term, trunc, path = self.task.step(a)
+        self._ended = bool(term[0]) or bool(trunc[0])
         info = {"state": self.task.state[0].numpy().copy(), "path": path[0].numpy()}
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), info
 
@@ -276,6 +298,14 @@ class ScalarActionBatchEnv(EnvBase):
         action = action.to(torch.float64)  # checked by the task's physics
         reward, term, trunc, _ = self.task.step(action)
         return self._td(reward, term, trunc)
+
+    def set_seed(self, seed: int | None = None, static_seed: bool = False) -> int | None:
+        """TorchRL's ``set_seed``, with the seed checked first: TorchRL derives the next seed
+        with numpy, which takes seeds >= 0 (a refused seed changes nothing)."""
+        if seed is not None:
+            check_count("seed", seed, 0)
+        out: int | None = super().set_seed(seed, static_seed)
+        return out
 
     def _set_seed(self, seed: int | None) -> None:
         self.task.seed(seed)

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from experiments.rundir import LoggerName, jsonable
+from hireps_torch.checks import check_present_device
 
 __all__ = [
     "RunOptions",
@@ -89,16 +90,11 @@ def check_run_device(device: str, seeds: str | None) -> torch.device:
     other than the CPU only for a population run (``--seeds``); a ``ValueError`` naming it
     otherwise."""
     try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise option_error("device", device, "a torch device such as cpu or cuda") from None
-    try:
-        torch.empty(0, device=dev)
-    except (RuntimeError, AssertionError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise option_error("device", device, f"a device present here ({first})") from None
-    if dev.type == "meta":
-        raise option_error("device", device, "a device that holds values (meta holds none)")
+        dev = check_present_device(device)
+    except ValueError as exc:
+        raise option_error(
+            "device", device, f"a device torch knows, present here ({exc})"
+        ) from None
     if dev.type != "cpu" and seeds is None:
         raise option_error(
             "device",

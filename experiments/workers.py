@@ -54,6 +54,7 @@ import contextlib
 import ctypes
 import multiprocessing
 import os
+import re
 import socket
 import uuid
 import warnings
@@ -330,24 +331,46 @@ def import_ray() -> Any:
 
 
 def check_ray_address(address: str, timeout: float = 5.0) -> None:
-    """A ``ValueError`` naming ``address`` when nothing accepts connections there within
-    ``timeout`` seconds (``ray.init`` itself can wait minutes). ``"auto"`` is passed on."""
+    """A ``ValueError`` naming ``address`` unless a Ray cluster answers there within
+    ``timeout`` seconds (``ray.init`` itself can wait minutes, also on a port where something
+    else listens): HOST:PORT (a port in 1..65535) or ray://HOST:PORT, where a gRPC server
+    (Ray's GCS and its client server speak gRPC) must answer the HTTP/2 preface with its
+    settings. ``"auto"`` is passed on."""
     if address.lower() == "auto":
         return
     hostport = address.removeprefix("ray://")
     host, sep, port = hostport.rpartition(":")
     host = host.removeprefix("[").removesuffix("]")  # [::1]:6379
-    if not sep or not host or not port.isdigit():
+    if not sep or not host or not re.fullmatch(r"[0-9]{1,5}", port) or not 0 < int(port) < 65536:
         raise ValueError(
-            f"--ray-address must be HOST:PORT, ray://HOST:PORT or 'auto', got {address!r}"
+            f"--ray-address must be HOST:PORT (a port in 1..65535), ray://HOST:PORT or 'auto', "
+            f"got {address!r}"
         )
     try:
-        with socket.create_connection((host, int(port)), timeout=timeout):
-            pass
+        with socket.create_connection((host, int(port)), timeout=timeout) as conn:
+            conn.settimeout(timeout)
+            conn.sendall(_HTTP2_PREFACE)
+            answer = conn.recv(9)
+    except TimeoutError:
+        raise ValueError(
+            f"--ray-address {address!r}: something accepts connections there but gave no "
+            f"answer of a Ray cluster within {timeout:g} s (tried a gRPC handshake); is it "
+            "the cluster's GCS port (ray start --head prints it; 6379 by default)?"
+        ) from None
     except OSError as exc:
         raise ValueError(
             f"cannot reach the Ray cluster at --ray-address {address!r}: {exc}"
         ) from None
+    if len(answer) < 9 or answer[3] != 0x4:  # the first frame of an HTTP/2 server: SETTINGS
+        raise ValueError(
+            f"--ray-address {address!r} is not a Ray cluster: the server there answered "
+            f"{answer[:40]!r} to a gRPC handshake; is it the cluster's GCS port (ray start "
+            "--head prints it; 6379 by default)?"
+        )
+
+
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+"""The HTTP/2 client preface and an empty SETTINGS frame (how every gRPC call begins)."""
 
 
 RAY_ENV = {"env_vars": {"MKL_CBWR": MKL_MODE, "OMP_NUM_THREADS": "1"}}

@@ -22,6 +22,7 @@ __all__ = [
     "as_float_tensor",
     "check_count",
     "check_device",
+    "check_present_device",
     "check_finite",
     "check_float_dtype",
     "check_generator",
@@ -210,6 +211,20 @@ def check_device(device: object) -> torch.device:
         dev: torch.device = torch.device(device)  # type: ignore[call-overload]
     except (RuntimeError, TypeError):
         raise ValueError(f"device must be a torch device or its name, got {device!r}") from None
+    return dev
+
+
+def check_present_device(device: object) -> torch.device:
+    """:func:`check_device`, and a device that holds values (not ``meta``) and is present on
+    this machine (``cuda`` without a GPU is refused); a ``ValueError`` naming it."""
+    dev = check_device(device)
+    if dev.type == "meta":
+        raise ValueError(f"device {device!r} holds no values: use cpu or cuda")
+    try:
+        torch.empty(0, device=dev)
+    except (RuntimeError, AssertionError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"device {device!r} is not available here ({first})") from None
     return dev
 
 

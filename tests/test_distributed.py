@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -365,3 +366,39 @@ def test_reproducible_mkl_leaves_the_environment_as_it_was(monkeypatch):
     with mkl_environment():
         assert os.environ["MKL_CBWR"] == "AVX2"  # the user's choice stands
     assert reproducible_mkl(warn=False) is False and os.environ["MKL_CBWR"] == "AVX2"
+
+
+@pytest.mark.parametrize("address", ["host:\u00b2", "localhost:99999", "localhost:0", "h:-1"])
+def test_a_ray_address_with_a_bad_port_is_refused_naming_it(address):
+    with pytest.raises(ValueError, match="a port in 1..65535"):
+        check_ray_address(address)
+
+
+@pytest.mark.parametrize("banner", [b"", b"SSH-2.0-OpenSSH_9.6\r\n"], ids=["silent", "ssh"])
+def test_a_port_where_something_else_listens_is_not_taken_for_ray(banner):
+    """A server that says nothing, or answers like sshd, is named within the timeout
+    (``ray.init`` would wait minutes)."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    held = []
+
+    def serve():
+        conn, _ = server.accept()
+        held.append(conn)
+        if banner:
+            conn.sendall(banner)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    start = time.monotonic()
+    what = "gave no answer of a Ray cluster" if not banner else "is not a Ray cluster: .*SSH-2.0"
+    with pytest.raises(ValueError, match=what):
+        check_ray_address(f"127.0.0.1:{port}", timeout=1.0)
+    assert time.monotonic() - start < 5
+    thread.join(5)
+    for conn in held:
+        conn.close()
+    server.close()

@@ -26,10 +26,10 @@ from hireps_torch.checks import (
     as_float,
     as_float_tensor,
     check_count,
-    check_device,
     check_finite,
     check_nonnegative_float,
     check_positive_float,
+    check_present_device,
     check_seed,
 )
 from hireps_torch.features import FeatureMap, QuadraticFeatures
@@ -409,13 +409,7 @@ class HiREPSBase:
         noise on every device (moved to ``device``), so its run differs from the CPU's only
         by the device's rounding. A device torch does not know, or one not present, raises a
         ``ValueError`` naming it and moves nothing."""
-        dev = check_device(device)
-        if dev.type == "meta":
-            raise ValueError("device 'meta' holds no values: move the algorithm to cpu or cuda")
-        try:
-            torch.empty(0, device=dev)
-        except (RuntimeError, AssertionError) as exc:
-            raise ValueError(f"device {device!r} is not available here: {exc}") from None
+        dev = check_present_device(device)
         for name, value in list(vars(self).items()):
             if isinstance(value, torch.nn.Module):
                 value.to(dev)

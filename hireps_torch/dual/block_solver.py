@@ -266,7 +266,9 @@ class BlockSolver:
         # (the projection solve does not bound the KL: the safeguard after it does).
         ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
         sunk = self._sunk()
-        clash = todo & (prob.shows_conflict(self.x, self.end.value) | sunk)
+        # a converged solve met every constraint: no conflict, however far v went along
+        # directions the features do not see (near-collinear features)
+        clash = todo & ~self.end.converged & (prob.shows_conflict(self.x, self.end.value) | sunk)
         return clash | (todo & ran_off), clash
 
     def relax(self, x_start: Tensor, need: Tensor) -> Tensor:

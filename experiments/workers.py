@@ -170,6 +170,8 @@ def play_episodes(
 ) -> TensorDictBase:
     """Play ``episodes`` (indices) of exactly ``steps`` decisions each with ``actor`` on the
     TorchRL environment ``env``; episode ``e`` draws from :func:`episode_seeds` ``(seed, e)``.
+    The episodes run on one torch thread (the process's setting is restored after), so they
+    are the same bit for bit whatever the thread settings, in this process or a worker's.
 
     Returns:
         the episodes one after another: a TensorDict of shape ``(len(episodes) * steps,)``
@@ -180,8 +182,11 @@ def play_episodes(
         raise ValueError("play_episodes needs at least one episode index")
     gen = torch.Generator()
     out = []
-    previous = net.generator
+    previous, threads = net.generator, torch.get_num_threads()
     net.generator = gen
+    # one thread, whatever the process was given: an episode's sums then do not depend on
+    # the machine's cores, OMP_NUM_THREADS or the backend (with reproducible MKL, above)
+    torch.set_num_threads(1)
     try:
         for e in episodes:
             env_seed, policy_seed = episode_seeds(seed, e)
@@ -197,6 +202,7 @@ def play_episodes(
             out.append(td)
     finally:
         net.generator = previous
+        torch.set_num_threads(threads)
     return torch.cat(out)
 
 

@@ -402,3 +402,50 @@ def test_a_port_where_something_else_listens_is_not_taken_for_ray(banner):
     for conn in held:
         conn.close()
     server.close()
+
+
+THREADS_SCRIPT = textwrap.dedent(
+    """
+    import os
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+    from functools import partial
+    import torch
+    from environments.hockey import ENV_ID, HockeyParams, demo_action
+    from experiments import hockey
+    from experiments.workers import LocalProcessPool, play_episodes
+    from hireps_torch.rollout import time_indexed_module
+
+    if __name__ == "__main__":
+        cfg = hockey.HockeySequentialConfig()
+        demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
+        torch.manual_seed(0)
+        algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
+        actor = time_indexed_module(list(algo.policies))
+        env = hockey._make_env(ENV_ID, True)
+        played = {}
+        for threads in (1, 2, 4):
+            torch.set_num_threads(threads)
+            played[threads] = play_episodes(env, actor, 93, range(4), 3)
+            assert torch.get_num_threads() == threads  # the process's setting is restored
+        pool = LocalProcessPool(partial(hockey._make_env, ENV_ID, True), workers=2)
+        try:
+            played["worker"] = pool.play(actor, 93, range(4), 3)
+        finally:
+            pool.close()
+        keys = ("observation", "action", ("next", "reward"), ("next", "observation"))
+        for k in (2, 4, "worker"):
+            for key in keys:
+                assert torch.equal(played[1].get(key), played[k].get(key)), (k, key)
+        print("SAME")
+    """
+)
+
+
+def test_hockey_episodes_do_not_depend_on_the_thread_count_or_the_worker(tmp_path):
+    """The same episodes played with 1, 2 and 4 torch threads and on worker processes are
+    equal bit for bit (before: the process's own thread count changed the sums)."""
+    script = tmp_path / "threads.py"
+    script.write_text(THREADS_SCRIPT)
+    out = _run([sys.executable, str(script)], OMP_NUM_THREADS="4")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "SAME" in out.stdout

@@ -293,12 +293,14 @@ class LocalProcessPool:
         return self._executor
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
+        from hireps_torch.rollout import workers_ignore_sigint
+
         chunks = split_episodes(episodes, self.workers)
         for attempt in range(self.max_retries + 1):
             pool = self._pool()
             # workers spawn during submit; one starts MKL while it imports torch, before any
             # initializer could run: it gets the reproducible mode from its environment
-            with mkl_environment():
+            with mkl_environment(), workers_ignore_sigint():
                 futures: list[Future[TensorDictBase]] = [
                     pool.submit(_play_chunk, self.make_env, self.key, actor, seed, c, steps)
                     for c in chunks

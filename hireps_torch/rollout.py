@@ -13,8 +13,10 @@ The library's algorithms take and return tensors; TensorDicts appear only here.
 
 from __future__ import annotations
 
+import contextlib
 import gc
-from collections.abc import Callable
+import signal
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
@@ -36,6 +38,7 @@ __all__ = [
     "shutdown_collector",
     "time_indexed_module",
     "transitions",
+    "workers_ignore_sigint",
 ]
 
 
@@ -201,18 +204,37 @@ def make_collector(
                 f"frames_per_batch = {frames_per_batch} must be divisible by num_workers = "
                 f"{num_workers}"
             )
-        collector = MultiSyncCollector(
-            [create_env_fn] * num_workers,
-            policy,
-            frames_per_batch=frames_per_batch,
-            total_frames=total_frames,
-            cat_results="stack",
-            reset_at_each_iter=reset_at_each_iter,
-            auto_register_policy_transforms=False,
-        )
+        with workers_ignore_sigint():
+            collector = MultiSyncCollector(
+                [create_env_fn] * num_workers,
+                policy,
+                frames_per_batch=frames_per_batch,
+                total_frames=total_frames,
+                cat_results="stack",
+                reset_at_each_iter=reset_at_each_iter,
+                auto_register_policy_transforms=False,
+            )
     if seed is not None:
         collector.set_seed(seed)
     return collector
+
+
+@contextlib.contextmanager
+def workers_ignore_sigint() -> Iterator[None]:
+    """SIGINT ignored while worker processes start, so that they inherit that (Python keeps
+    an inherited ignore): a Ctrl-C, which the terminal sends to the whole process group, then
+    reaches only the main process, which stops at an iteration boundary and shuts the
+    workers down (a worker that died of it made TorchRL fail the run). Outside the main
+    thread nothing changes."""
+    try:
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def shutdown_collector(collector: Any) -> None:

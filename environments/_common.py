@@ -149,10 +149,13 @@ class BatchedTask:
         entries, (B,) or (B, 1)); a mask of another kind is a ``ValueError`` before anything
         is drawn."""
         if mask is not None and (
-            not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.numel() != self.batch
+            not isinstance(mask, Tensor)
+            or mask.dtype != torch.bool
+            or mask.is_meta
+            or tuple(mask.shape) not in ((self.batch,), (self.batch, 1))
         ):
             what = (
-                f"a {mask.dtype} tensor of shape {tuple(mask.shape)}"
+                f"a {mask.dtype} tensor of shape {tuple(mask.shape)} on {mask.device}"
                 if isinstance(mask, Tensor)
                 else type(mask).__name__
             )
@@ -302,9 +305,8 @@ class ScalarActionBatchEnv(EnvBase):
     def set_seed(self, seed: int | None = None, static_seed: bool = False) -> int | None:
         """TorchRL's ``set_seed``, with the seed checked first: TorchRL derives the next seed
         with numpy, which takes seeds >= 0 (a refused seed changes nothing)."""
-        if seed is not None:
-            check_count("seed", seed, 0)
-        out: int | None = super().set_seed(seed, static_seed)
+        checked = None if seed is None else check_count("seed", seed, 0)
+        out: int | None = super().set_seed(checked, static_seed)
         return out
 
     def _set_seed(self, seed: int | None) -> None:

@@ -31,7 +31,13 @@ from experiments.loop import (
     infinite_horizon_update,
     resume_point,
 )
-from experiments.options import RunOptions, check_fourier_bases, check_options, option_error
+from experiments.options import (
+    RunOptions,
+    check_fourier_bases,
+    check_options,
+    check_variance_floor,
+    option_error,
+)
 from experiments.population import Members, TaskPopulation, member_row, population_loop
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.checks import check_positive_float
@@ -228,8 +234,8 @@ def _checked(cfg: BallOnBeamConfig) -> int:
         cfg,
         counts=("fourier_coupling",),
         positive=("init_std", "max_velocity"),
-        nonnegative=("min_variance",),
     )
+    check_variance_floor(cfg)
     check_fourier_bases(cfg, 3 if cfg.value_beam_angle else 2)
     if cfg.fourier_coupling is not None and cfg.fourier_coupling > 3:
         raise option_error("fourier_coupling", cfg.fourier_coupling, "in 1..3 (or None)")

@@ -18,7 +18,7 @@ import torch
 from environments.toy import ContextualTwoGaussians, TwoGaussians
 from experiments.checkpoint import RunState
 from experiments.loop import Run, ask_tell_loop, finish_run, resume_point
-from experiments.options import RunOptions, check_options
+from experiments.options import RunOptions, check_options, check_variance_floor
 from experiments.population import Members, member_row, population_loop
 from experiments.rundir import atomic_write
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
@@ -64,8 +64,8 @@ def _validate(cfg: BimodalConfig) -> None:
         cfg,
         counts=("n_options",),
         positive=("bump_width", "init_std"),
-        nonnegative=("min_variance",),
     )
+    check_variance_floor(cfg)
     if cfg.samples_per_iteration < 2:
         raise ValueError(f"samples_per_iteration must be >= 2, got {cfg.samples_per_iteration}")
     if cfg.episodes < cfg.samples_per_iteration:

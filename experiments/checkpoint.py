@@ -158,6 +158,16 @@ def load_checkpoint(run_dir: Path) -> CheckpointState | None:
     missing = [k for k in CHECKPOINT_KEYS if k not in ckpt]
     if missing:
         raise ValueError(f"{path} is not a complete checkpoint: it has no {missing}")
+    it, rows = ckpt["iteration"], ckpt["rows"]
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise ValueError(f"{path} is damaged: its rows are not a list of metrics.csv rows")
+    if isinstance(it, bool) or not isinstance(it, int) or it != len(rows):
+        raise ValueError(
+            f"{path} is damaged: it is at iteration {it!r} but holds {len(rows)} metrics row(s); "
+            "move it away to restart this run from its first iteration"
+        )
+    if isinstance(ckpt["elapsed"], bool) or not isinstance(ckpt["elapsed"], (int, float)):
+        raise ValueError(f"{path} is damaged: its elapsed time is {ckpt['elapsed']!r}")
     return ckpt
 
 

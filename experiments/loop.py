@@ -90,9 +90,9 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
             + "; ".join(diff)
             + " (pass no options, or the same ones, with --resume)"
         )
+    logged = _logged_rows(run_dir / "metrics.csv")
     ckpt = load_checkpoint(run_dir)
     if ckpt is None:
-        logged = _logged_rows(run_dir / "metrics.csv")
         if logged:
             raise ValueError(
                 f"cannot resume {run_dir}: its metrics.csv holds {logged} row(s) but there is "
@@ -119,11 +119,13 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
 
 
 def _logged_rows(path: Path) -> int:
-    """The data rows of a ``metrics.csv`` (0 if there is none)."""
+    """The data rows of a ``metrics.csv`` (0 if there is none); a ``ValueError`` naming it
+    when it is there but not a file."""
+    if path.exists() and not path.is_file():
+        raise ValueError(f"{path} is not a file; move it away (nothing was changed)")
     if not path.is_file():
         return 0
-    with path.open(newline="") as f:
-        return max(sum(1 for line in f if line.strip()) - 1, 0)
+    return max(sum(1 for line in path.read_bytes().splitlines() if line.strip()) - 1, 0)
 
 
 class Run:

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 
 from experiments.rundir import LoggerName, jsonable
-from hireps_torch.checks import check_present_device
+from hireps_torch.checks import check_device, check_present_device
 
 __all__ = [
     "RunOptions",
@@ -90,11 +90,15 @@ def check_run_device(device: str, seeds: str | None) -> torch.device:
     other than the CPU only for a population run (``--seeds``); a ``ValueError`` naming it
     otherwise."""
     try:
-        dev = check_present_device(device)
+        dev = check_device(device)
+    except ValueError:
+        raise option_error("device", device, "a torch device such as cpu or cuda") from None
+    if dev.type == "meta":
+        raise option_error("device", device, "a device that holds values (meta holds none)")
+    try:
+        check_present_device(dev)
     except ValueError as exc:
-        raise option_error(
-            "device", device, f"a device torch knows, present here ({exc})"
-        ) from None
+        raise option_error("device", device, f"a device present here ({exc})") from None
     if dev.type != "cpu" and seeds is None:
         raise option_error(
             "device",
@@ -251,6 +255,18 @@ def check_options(
         ok = math.isfinite(float(value)) and (value > low if strict else value >= low)
         if not ok:
             raise bad(name, value, "finite and > 0" if strict else "finite and >= 0")
+
+
+def check_variance_floor(cfg: Any) -> None:
+    """``cfg.min_variance`` within the floors the options take
+    (:data:`~hireps_torch.policies.linear_gaussian.FLOOR_RANGE`)."""
+    import math
+
+    from hireps_torch.policies.linear_gaussian import FLOOR_RANGE
+
+    value, (low, high) = cfg.min_variance, FLOOR_RANGE
+    if not (math.isfinite(float(value)) and low <= value <= high):
+        raise option_error("min_variance", value, f"in [{low:g}, {high:g}] (a variance)")
 
 
 def check_fourier_bases(cfg: Any, state_dim: int) -> None:

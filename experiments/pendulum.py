@@ -37,7 +37,13 @@ from experiments.loop import (
     infinite_horizon_update,
     resume_point,
 )
-from experiments.options import RunOptions, check_fourier_bases, check_options, option_error
+from experiments.options import (
+    RunOptions,
+    check_fourier_bases,
+    check_options,
+    check_variance_floor,
+    option_error,
+)
 from experiments.population import Members, TaskPopulation, member_row, population_loop
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
@@ -238,8 +244,9 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
         cfg,
         counts=("eval_rollouts",),
         positive=("episode_seconds", "init_std", "max_velocity", "kp", "epsilon", "epsilon_end"),
-        nonnegative=("kd", "start_noise", "min_variance", "eval_every"),
+        nonnegative=("kd", "start_noise", "eval_every"),
     )
+    check_variance_floor(cfg)
     check_fourier_bases(cfg, 2)
     B = cfg.episodes_per_iteration
     iterations = check_budget(

@@ -161,6 +161,11 @@ class RunWriter:
                 f"run directory {self.dir} already exists and is not empty; pass a new "
                 "--run-dir, or --resume it (nothing was overwritten)"
             )
+        if self.dir.is_symlink() and not self.dir.exists():
+            raise FileExistsError(
+                f"run directory {self.dir} is a link to {os.readlink(self.dir)}, which does not "
+                "exist; pass another --run-dir or create its target (nothing was written)"
+            )
         created = not self.dir.exists()
         self.dir.mkdir(parents=True, exist_ok=True)
         try:

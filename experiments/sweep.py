@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import math
 import multiprocessing
 import multiprocessing.connection
 import statistics
@@ -219,7 +220,7 @@ def run_one(run: SweepRun) -> dict[str, Any]:
     if (d / "config.json").is_file():
         check_same_options(run, cfg)
         if (d / "summary.json").is_file():
-            return {**json.loads((d / "summary.json").read_text()), "reused": True}
+            return {**_finished_summary(run), "reused": True}
         # interrupted: continue from its checkpoint
         cfg = dataclasses.replace(
             saved_config(config_cls, run.experiment, d), progress=False, run_dir=d, resume=d
@@ -230,6 +231,28 @@ def run_one(run: SweepRun) -> dict[str, Any]:
             "started, or something else was written there); delete it and run the sweep again"
         )
     summary: dict[str, Any] = run_fn(cfg)
+    return summary
+
+
+class DamagedSummary(ValueError):
+    """A finished run's ``summary.json`` that cannot be read back."""
+
+
+def _finished_summary(run: SweepRun) -> dict[str, Any]:
+    """A finished run's ``summary.json``, with the number the table needs; a
+    :class:`DamagedSummary` naming the file when it is damaged."""
+    path = Path(run.run_dir) / "summary.json"
+    metric = METRICS[run.experiment][0]
+    try:
+        summary = json.loads(path.read_text())
+        if not isinstance(summary, dict):
+            raise ValueError(f"it holds a JSON {type(summary).__name__}")
+        if summary.get(metric) is not None:  # None: NaN in summary.json (jsonable)
+            float(summary[metric])
+        elif metric not in summary:
+            raise ValueError(f"it has no {metric!r}")
+    except (OSError, UnicodeDecodeError, ValueError, TypeError) as exc:
+        raise DamagedSummary(f"{path} is damaged ({exc}); move it away to run it again") from None
     return summary
 
 
@@ -265,7 +288,9 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
         config_cls = _config_class(run.experiment)
         try:
             with torch.random.fork_rng(devices=[]):  # a check draws nothing a run would see
-                CHECKS[run.experiment](config_cls(**run.options, seed=run.seed, progress=False))
+                cfg = config_cls(**run.options, seed=run.seed, progress=False)
+                cfg.check_run_options()
+                CHECKS[run.experiment](cfg)
         except (ValueError, TypeError) as exc:
             errors.append(f"configuration {run.name} (seed {run.seed}): {exc}")
     if errors:
@@ -434,6 +459,22 @@ def _ray(
             ray.shutdown()
 
 
+def check_backend(backend: str, workers: object, ray_address: str | None) -> None:
+    """A ``ValueError`` naming a bad ``--backend``, ``--workers`` or ``--ray-address`` (and an
+    ``ImportError`` naming the extra when Ray is asked for and missing), before anything
+    runs or is written."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if ray_address is not None and backend != "ray":
+        raise ValueError(f"--ray-address {ray_address!r} needs --backend ray")
+    if ray_address is not None:
+        check_ray_address(ray_address)
+    if backend == "ray":
+        import_ray()  # the extra's name before anything runs
+
+
 def run_sweep(
     runs: Sequence[SweepRun],
     *,
@@ -452,16 +493,7 @@ def run_sweep(
     ``checked``: the caller did). A
     run that fails does not stop the others: :class:`SweepFailed`, raised once all have
     ended, names each failed run and holds the others' summaries."""
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
-    if backend not in ("local", "ray"):
-        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
-    if ray_address is not None and backend != "ray":
-        raise ValueError(f"--ray-address {ray_address!r} needs --backend ray")
-    if ray_address is not None:
-        check_ray_address(ray_address)
-    if backend == "ray":
-        import_ray()  # the extra's name before anything runs
+    check_backend(backend, workers, ray_address)
     keys = [(r.name, r.seed) for r in runs]
     if len(set(keys)) != len(keys):
         raise ValueError("a sweep holds the same (configuration, seed) twice")
@@ -484,7 +516,12 @@ def run_sweep(
     todo = []
     for run in runs:  # finished runs are read here: no worker (and no Ray) for them
         if (Path(run.run_dir) / "summary.json").is_file():
-            done(run, run_one(run))
+            try:
+                summary = run_one(run)
+            except DamagedSummary as exc:  # that run fails; other options stop the sweep
+                failed(run, exc)
+                continue
+            done(run, summary)
         else:
             todo.append(run)
     try:
@@ -539,7 +576,7 @@ def summarize(
     curves: dict[str, list[tuple[list[float], list[float]]]] = {}
     for name in names:
         mine = [r for r in runs if r.name == name]
-        vals = [float(results[(r.name, r.seed)][metric]) for r in mine]
+        vals = [_number(results[(r.name, r.seed)][metric]) for r in mine]
         walls = [float(results[(r.name, r.seed)].get("wall_seconds", float("nan"))) for r in mine]
         per_seed = ", ".join(f"{r.seed}: {v:.3g}" for r, v in zip(mine, vals, strict=True))
         lines.append(
@@ -559,6 +596,11 @@ def summarize(
         atomic_write(out / fname, write)
     _plot(curves, out / f"{stem}.png", f"{experiment}: {curve} (mean ± std over seeds)")
     return table
+
+
+def _number(value: Any) -> float:
+    """A summary's number (None: NaN, as ``summary.json`` writes it)."""
+    return math.nan if value is None else float(value)
 
 
 Curves = Mapping[str, list[tuple[list[float], list[float]]]]
@@ -591,11 +633,10 @@ def _plot(curves: Curves, path: Path, title: str) -> None:
 
 def main(cfg: SweepConfig) -> dict[str, Any]:
     """``train.py sweep``: plan, run (reusing and resuming), summarize; returns what it wrote."""
-    if cfg.backend == "ray" and cfg.ray_address is not None:
-        check_ray_address(cfg.ray_address)
     configurations = parse_grid(cfg.experiment, cfg.grid, cfg.set)
     runs = plan(cfg.experiment, configurations, parse_seeds(cfg.seeds), cfg.out)
-    check_configurations(runs)  # before anything is written
+    check_backend(cfg.backend, cfg.workers, cfg.ray_address)  # before anything is written
+    check_configurations(runs)
     out = Path(cfg.out) / cfg.experiment
     out.mkdir(parents=True, exist_ok=True)
     lock = DirectoryLock(out)  # one sweep per directory (each run also locks its own)

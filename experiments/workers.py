@@ -355,10 +355,26 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
             f"got {address!r}"
         )
     try:
-        with socket.create_connection((host, int(port)), timeout=timeout) as conn:
+        conn = socket.create_connection((host, int(port)), timeout=timeout)
+    except UnicodeError:  # the host name cannot be encoded (a label over 63 characters, ...)
+        raise ValueError(
+            f"--ray-address {address!r}: {host[:80]!r} is not a valid host name"
+        ) from None
+    except OSError as exc:  # refused, no route, unknown host, or no answer within timeout
+        why = f"no answer within {timeout:g} s" if isinstance(exc, TimeoutError) else exc
+        raise ValueError(
+            f"cannot reach the Ray cluster at --ray-address {address!r}: {why}"
+        ) from None
+    try:
+        with conn:
             conn.settimeout(timeout)
             conn.sendall(_HTTP2_PREFACE)
-            answer = conn.recv(9)
+            answer = b""
+            while len(answer) < 9:  # a frame header may come in pieces
+                piece = conn.recv(9 - len(answer))
+                if not piece:
+                    break
+                answer += piece
     except TimeoutError:
         raise ValueError(
             f"--ray-address {address!r}: something accepts connections there but gave no "
@@ -367,14 +383,25 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
         ) from None
     except OSError as exc:
         raise ValueError(
-            f"cannot reach the Ray cluster at --ray-address {address!r}: {exc}"
+            f"--ray-address {address!r} is not a Ray cluster: the connection failed during a "
+            f"gRPC handshake ({exc})"
         ) from None
-    if len(answer) < 9 or answer[3] != 0x4:  # the first frame of an HTTP/2 server: SETTINGS
+    if not _is_settings_frame(answer):  # the first frame of an HTTP/2 server: SETTINGS
         raise ValueError(
             f"--ray-address {address!r} is not a Ray cluster: the server there answered "
             f"{answer[:40]!r} to a gRPC handshake; is it the cluster's GCS port (ray start "
             "--head prints it; 6379 by default)?"
         )
+
+
+def _is_settings_frame(header: bytes) -> bool:
+    """Whether 9 bytes are the header of an HTTP/2 SETTINGS frame (RFC 9113, 6.5): type 4,
+    flags 0 or ACK, stream 0, a payload of whole 6-byte settings (none for an ACK)."""
+    if len(header) != 9 or header[3] != 0x4 or header[4] not in (0, 1):
+        return False
+    length = int.from_bytes(header[:3], "big")
+    stream = int.from_bytes(header[5:9], "big") & 0x7FFFFFFF
+    return stream == 0 and length % 6 == 0 and (header[4] == 0 or length == 0)
 
 
 _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"

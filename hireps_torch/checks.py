@@ -222,7 +222,7 @@ def check_present_device(device: object) -> torch.device:
         raise ValueError(f"device {device!r} holds no values: use cpu or cuda")
     try:
         torch.empty(0, device=dev)
-    except (RuntimeError, AssertionError) as exc:
+    except Exception as exc:  # RuntimeError, AssertionError, a missing backend module, ...
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ValueError(f"device {device!r} is not available here ({first})") from None
     return dev

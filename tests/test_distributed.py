@@ -449,3 +449,46 @@ def test_hockey_episodes_do_not_depend_on_the_thread_count_or_the_worker(tmp_pat
     out = _run([sys.executable, str(script)], OMP_NUM_THREADS="4")
     assert out.returncode == 0, out.stderr[-3000:]
     assert "SAME" in out.stdout
+
+
+def test_a_ray_host_name_that_cannot_be_encoded_is_named():
+    with pytest.raises(ValueError, match="is not a valid host name"):
+        check_ray_address("a" * 70 + ":6379")
+
+
+@pytest.mark.parametrize(
+    ("pieces", "ok"),
+    [
+        ([b"\x00\x00", b"\x06\x04\x00\x00\x00\x00\x00"], True),  # SETTINGS in two writes
+        ([b"xyz\x04abcde"], False),  # type 4 but no SETTINGS header
+        ([b"\x00\x00\x05\x04\x00\x00\x00\x00\x00"], False),  # length not whole settings
+        ([b"\x00\x00\x00\x04\x00\x00\x00\x00\x03"], False),  # a stream other than 0
+    ],
+    ids=["split", "loose", "length", "stream"],
+)
+def test_a_ray_address_needs_a_whole_settings_frame(pieces, ok):
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    held = []
+
+    def serve():
+        conn, _ = server.accept()
+        held.append(conn)
+        for piece in pieces:
+            conn.sendall(piece)
+            time.sleep(0.2)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    if ok:
+        check_ray_address(f"127.0.0.1:{port}", timeout=2.0)
+    else:
+        with pytest.raises(ValueError, match="is not a Ray cluster"):
+            check_ray_address(f"127.0.0.1:{port}", timeout=2.0)
+    thread.join(5)
+    for conn in held:
+        conn.close()
+    server.close()

@@ -497,3 +497,47 @@ def test_ctrl_c_of_a_run_with_workers_ends_it_cleanly_every_time(tmp_path, kind)
                 break
             time.sleep(0.2)
         assert not left.stdout.split(), f"processes left behind: {left.stdout}"
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["rows cut", "iteration ahead", "iteration negative", "iteration text"],
+)
+def test_a_checkpoint_whose_rows_and_iteration_disagree_is_refused(tmp_path, damage):
+    run = _unfinished(tmp_path, "run")
+    path = run / "checkpoint.pt"
+    ckpt = torch.load(path)
+    if damage == "rows cut":
+        ckpt["rows"] = []
+    else:
+        ckpt["iteration"] = {"iteration ahead": 7, "iteration negative": -1}.get(damage, "x")
+    torch.save(ckpt, path)
+    before = _files(run)
+    with pytest.raises(ValueError, match=f"{path} is damaged"):
+        resume_in_process("bimodal", run)
+    assert _files(run) == before
+
+
+@pytest.mark.parametrize("kind", ["not utf-8", "a directory"])
+def test_a_damaged_metrics_csv_is_named_on_resume(tmp_path, kind):
+    run = _unfinished(tmp_path, "run")
+    (run / "checkpoint.pt").unlink()
+    (run / "metrics.csv").unlink()
+    if kind == "a directory":
+        (run / "metrics.csv").mkdir()
+    else:
+        (run / "metrics.csv").write_bytes(b"a\n\xff\xfe\n")
+    before = _files(run)
+    p = train("bimodal", "--resume", str(run), "--no-progress")
+    assert p.returncode == 2, p.stderr
+    assert "metrics.csv" in p.stderr and "Traceback" not in p.stderr
+    assert _files(run) == before
+
+
+def test_a_run_dir_that_is_a_dangling_link_is_named(tmp_path):
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "missing")
+    p = train("bimodal", "--episodes", "400", "--run-dir", str(link), "--no-progress")
+    assert p.returncode == 2
+    assert "is a link to" in p.stderr and "which does not exist" in p.stderr
+    assert not (tmp_path / "missing").exists()

@@ -382,3 +382,39 @@ def test_ctrl_c_of_a_sweep_with_workers_says_how_to_finish_it(tmp_path):
     assert "interrupted: the sweep stopped" in err
     assert "Run the same command again" in err
     assert (out / "bimodal" / "default" / "seed0" / "checkpoint.pt").is_file()
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["--workers", "0"],
+        ["--ray-address", "127.0.0.1:6379"],  # with the local backend
+        ["--grid", "checkpoint_every=0,1"],  # a run option only the run checks
+        ["--grid", "device=cuda,cpu"],  # a device an ordinary run refuses
+    ],
+    ids=["workers", "ray-address", "checkpoint-every", "device"],
+)
+def test_a_refused_sweep_writes_nothing(tmp_path, extra):
+    out = tmp_path / "sw"
+    base = ["--experiment", "bimodal", "--seeds", "0", "--set", "episodes=400", "--out", str(out)]
+    p = _sweep([*base, *extra])
+    assert p.returncode == 2, p.stderr
+    assert "error:" in p.stderr and "Traceback" not in p.stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("damage", ["{bad", "[1]", "{}", '{"final_return": "x"}'])
+def test_a_damaged_summary_of_a_finished_run_is_named_and_the_others_run(tmp_path, damage):
+    out = tmp_path / "sw"
+    args = ["--experiment", "bimodal", "--seeds", "0-1", "--set", "episodes=400", "--out", str(out)]
+    assert _sweep(args).returncode == 0
+    seed1 = out / "bimodal" / "default" / "seed1"
+    for name in ("summary.json", "checkpoint.pt", "metrics.csv"):
+        (seed1 / name).unlink()  # seed 1 must run again
+    bad = out / "bimodal" / "default" / "seed0" / "summary.json"
+    bad.write_text(damage)
+    p = _sweep(args)
+    assert p.returncode == 2, p.stderr
+    assert f"{bad} is damaged" in p.stderr and "Traceback" not in p.stderr
+    assert (seed1 / "summary.json").is_file()  # the other run ran
+    assert bad.read_text() == damage

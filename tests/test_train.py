@@ -639,7 +639,10 @@ def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
         (["pendulum", "--workers", "100000000000000000000"], "workers must be in 1..1024"),
         (["pendulum", "--seeds", "0-99999"], "a range hold at most 10000 seeds"),
         (["bimodal", "--seeds", "0-6000,7000-12000"], "names more than 10000 seeds"),
-        (["bimodal", "--min-variance", "5e-324"], "min_variance must be finite and at least"),
+        (["bimodal", "--min-variance", "5e-324"], "min_variance (--min-variance) must be in"),
+        (["bimodal", "--min-variance", "2.3e-308"], "min_variance (--min-variance) must be in"),
+        (["pendulum", "--min-variance", "1e308"], "min_variance (--min-variance) must be in"),
+        (["ball-on-beam", "--min-variance", "0"], "min_variance (--min-variance) must be in"),
     ],
 )
 def test_absurd_counts_and_floors_are_refused_before_anything_is_written(tmp_path, args, message):

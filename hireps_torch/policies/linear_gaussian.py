@@ -30,6 +30,7 @@ from hireps_torch.policies._population import (
 )
 
 __all__ = [
+    "FLOOR_RANGE",
     "LinearGaussian",
     "covariance_pseudo_samples",
     "initial_std",
@@ -108,19 +109,24 @@ def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
     return floor
 
 
+FLOOR_RANGE = (1e-100, 1e100)
+"""The variance floors :class:`LinearGaussian` takes: the refit divides covariances by the
+floor (a floor near float64's smallest normal overflows that for a covariance of 5), and
+samples of a floor near its largest overflow."""
+
+
 def check_floor(floor: Tensor, action_dim: int, given: object) -> None:
-    """A ``ValueError`` (naming ``given``) unless the (D,) float64 variance floor is finite
-    and at least the smallest normal float64 (a subnormal floor overflows the refit's scaled
-    covariance)."""
-    tiny = torch.finfo(torch.float64).tiny
+    """A ``ValueError`` (naming ``given``) unless the (D,) float64 variance floor is in
+    :data:`FLOOR_RANGE`."""
+    low, high = FLOOR_RANGE
     if (
         floor.shape != (action_dim,)
         or not bool(torch.isfinite(floor).all())
-        or bool((floor < tiny).any())
+        or bool((floor < low).any() | (floor > high).any())
     ):
         raise ValueError(
-            f"min_variance must be finite and at least {tiny:.4g} (the smallest normal "
-            f"float64; a float or a ({action_dim},) tensor), got {given}"
+            f"min_variance must be in [{low:g}, {high:g}] (a float or a ({action_dim},) "
+            f"tensor), got {given}"
         )
 
 

@@ -46,7 +46,7 @@ CREATE = {
         (dict(init_mean=torch.tensor([NAN])), ValueError, "init_mean contains"),
         (dict(init_std=INF), ValueError, "init_std must be finite and > 0"),
         (dict(spread=NAN), ValueError, "spread must be finite"),
-        (dict(min_variance=-1.0), ValueError, "min_variance must be finite and at least"),
+        (dict(min_variance=-1.0), ValueError, "min_variance must be in"),
         (dict(covariance_prior=INF), ValueError, "covariance_prior must be finite"),
         (dict(n_options=0), ValueError, "n_options must be >= 1"),
     ],

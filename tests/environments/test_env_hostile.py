@@ -73,3 +73,37 @@ def test_a_step_after_the_episode_ended_warns_as_gymnasium_does():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a reset starts a fresh episode
         env.step([0.0])
+
+
+@pytest.mark.parametrize("make", BATCHED, ids=["pendulum", "beam"])
+def test_a_tensor_seed_seeds_as_its_integer(make):
+    a, b = make(seed=0), make(seed=0)
+    a.set_seed(torch.tensor(5))
+    b.set_seed(5)
+    assert torch.equal(a.task.gen.get_state(), b.task.gen.get_state())
+
+
+@pytest.mark.parametrize(
+    "mask",
+    [
+        torch.ones(2, 2, dtype=torch.bool),
+        torch.ones(1, 4, dtype=torch.bool),
+        torch.ones(4, 1, 1, dtype=torch.bool),
+        torch.ones(4, dtype=torch.bool, device="meta"),
+    ],
+    ids=["2x2", "1x4", "4x1x1", "meta"],
+)
+def test_a_reset_mask_of_another_shape_or_without_values_is_refused(mask):
+    env = PendulumSwingUpBatchEnv(4, seed=0)
+    env.reset()
+    before = _snapshot(env)
+    with pytest.raises(ValueError, match=r"bool tensor of 4 entries \(\(B,\) or \(B, 1\)\)"):
+        env.task.reset(mask)
+    assert _same(before, _snapshot(env))
+
+
+def test_a_device_whose_backend_is_missing_is_named():
+    from hireps_torch.checks import check_present_device
+
+    with pytest.raises(ValueError, match="device 'hpu' is not available here"):
+        check_present_device("hpu")

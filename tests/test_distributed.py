@@ -5,6 +5,7 @@ also checks that everything exits (a hang fails on the timeout)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -374,34 +375,44 @@ def test_a_ray_address_with_a_bad_port_is_refused_naming_it(address):
         check_ray_address(address)
 
 
-@pytest.mark.parametrize("banner", [b"", b"SSH-2.0-OpenSSH_9.6\r\n"], ids=["silent", "ssh"])
-def test_a_port_where_something_else_listens_is_not_taken_for_ray(banner):
-    """A server that says nothing, or answers like sshd, is named within the timeout
-    (``ray.init`` would wait minutes)."""
+@contextlib.contextmanager
+def _fake_server(pieces, gap=0.0):
+    """A local TCP server that accepts one connection and sends ``pieces`` (``gap`` seconds
+    apart), then stays silent; yields its port."""
     import socket
     import threading
 
     server = socket.create_server(("127.0.0.1", 0))
-    port = server.getsockname()[1]
     held = []
 
     def serve():
         conn, _ = server.accept()
         held.append(conn)
-        if banner:
-            conn.sendall(banner)
+        for piece in pieces:
+            conn.sendall(piece)
+            time.sleep(gap)
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
-    start = time.monotonic()
+    try:
+        yield server.getsockname()[1]
+    finally:
+        thread.join(5)
+        for conn in held:
+            conn.close()
+        server.close()
+
+
+@pytest.mark.parametrize("banner", [b"", b"SSH-2.0-OpenSSH_9.6\r\n"], ids=["silent", "ssh"])
+def test_a_port_where_something_else_listens_is_not_taken_for_ray(banner):
+    """A server that says nothing, or answers like sshd, is named within the timeout
+    (``ray.init`` would wait minutes)."""
     what = "gave no answer of a Ray cluster" if not banner else "is not a Ray cluster: .*SSH-2.0"
-    with pytest.raises(ValueError, match=what):
-        check_ray_address(f"127.0.0.1:{port}", timeout=1.0)
-    assert time.monotonic() - start < 5
-    thread.join(5)
-    for conn in held:
-        conn.close()
-    server.close()
+    with _fake_server([banner] if banner else []) as port:
+        start = time.monotonic()
+        with pytest.raises(ValueError, match=what):
+            check_ray_address(f"127.0.0.1:{port}", timeout=1.0)
+        assert time.monotonic() - start < 5
 
 
 THREADS_SCRIPT = textwrap.dedent(
@@ -441,6 +452,7 @@ THREADS_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_hockey_episodes_do_not_depend_on_the_thread_count_or_the_worker(tmp_path):
     """The same episodes played with 1, 2 and 4 torch threads and on worker processes are
     equal bit for bit (before: the process's own thread count changed the sums)."""
@@ -467,28 +479,9 @@ def test_a_ray_host_name_that_cannot_be_encoded_is_named():
     ids=["split", "loose", "length", "stream"],
 )
 def test_a_ray_address_needs_a_whole_settings_frame(pieces, ok):
-    import socket
-    import threading
-
-    server = socket.create_server(("127.0.0.1", 0))
-    port = server.getsockname()[1]
-    held = []
-
-    def serve():
-        conn, _ = server.accept()
-        held.append(conn)
-        for piece in pieces:
-            conn.sendall(piece)
-            time.sleep(0.2)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    if ok:
-        check_ray_address(f"127.0.0.1:{port}", timeout=2.0)
-    else:
-        with pytest.raises(ValueError, match="is not a Ray cluster"):
+    with _fake_server(pieces, gap=0.2) as port:
+        if ok:
             check_ray_address(f"127.0.0.1:{port}", timeout=2.0)
-    thread.join(5)
-    for conn in held:
-        conn.close()
-    server.close()
+        else:
+            with pytest.raises(ValueError, match="is not a Ray cluster"):
+                check_ray_address(f"127.0.0.1:{port}", timeout=2.0)

@@ -395,26 +395,40 @@ def test_ctrl_c_of_a_sweep_with_workers_says_how_to_finish_it(tmp_path):
     ids=["workers", "ray-address", "checkpoint-every", "device"],
 )
 def test_a_refused_sweep_writes_nothing(tmp_path, extra):
+    """In process (``train.main`` raises what ``train.py`` prints as ``error:``)."""
+    import train
+
     out = tmp_path / "sw"
     base = ["--experiment", "bimodal", "--seeds", "0", "--set", "episodes=400", "--out", str(out)]
-    p = _sweep([*base, *extra])
-    assert p.returncode == 2, p.stderr
-    assert "error:" in p.stderr and "Traceback" not in p.stderr
+    with pytest.raises(ValueError):
+        train.main(["sweep", "--no-progress", *base, *extra])
     assert not out.exists()
 
 
-@pytest.mark.parametrize("damage", ["{bad", "[1]", "{}", '{"final_return": "x"}'])
-def test_a_damaged_summary_of_a_finished_run_is_named_and_the_others_run(tmp_path, damage):
+@pytest.mark.parametrize("damage", ["{bad", "[1]", "{}", '{"final_return": "x"}', ""])
+def test_a_damaged_summary_of_a_finished_run_is_named(tmp_path, damage):
+    from experiments.sweep import DamagedSummary, _finished_summary
+
+    run = plan("bimodal", {"default": {}}, [0], tmp_path)[0]
+    run.run_dir.mkdir(parents=True)
+    (run.run_dir / "summary.json").write_text(damage)
+    with pytest.raises(DamagedSummary, match=f"{run.run_dir / 'summary.json'} is damaged"):
+        _finished_summary(run)
+
+
+def test_a_finished_run_with_a_damaged_summary_fails_alone(tmp_path):
+    """Seed 0's summary.json is damaged: the sweep names it, seed 1 still runs, no
+    traceback (before: a KeyError in the table, or an unnamed JSON error, and nothing ran)."""
     out = tmp_path / "sw"
     args = ["--experiment", "bimodal", "--seeds", "0-1", "--set", "episodes=400", "--out", str(out)]
-    assert _sweep(args).returncode == 0
-    seed1 = out / "bimodal" / "default" / "seed1"
-    for name in ("summary.json", "checkpoint.pt", "metrics.csv"):
-        (seed1 / name).unlink()  # seed 1 must run again
+    from experiments import EXPERIMENTS
+
+    config_cls, run = EXPERIMENTS["bimodal"]
     bad = out / "bimodal" / "default" / "seed0" / "summary.json"
-    bad.write_text(damage)
+    run(config_cls(episodes=400, seed=0, run_dir=bad.parent, progress=False))
+    bad.write_text("{}")
     p = _sweep(args)
     assert p.returncode == 2, p.stderr
     assert f"{bad} is damaged" in p.stderr and "Traceback" not in p.stderr
-    assert (seed1 / "summary.json").is_file()  # the other run ran
-    assert bad.read_text() == damage
+    assert (out / "bimodal" / "default" / "seed1" / "summary.json").is_file()
+    assert bad.read_text() == "{}"

@@ -646,8 +646,11 @@ def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
     ],
 )
 def test_absurd_counts_and_floors_are_refused_before_anything_is_written(tmp_path, args, message):
+    """In process (``train.main`` raises what ``train.py`` prints as ``error:``)."""
+    import train as entry
+
     run = tmp_path / "run"
-    p = train(*args, "--run-dir", str(run), "--no-progress")
-    assert p.returncode == 2, p.stderr
-    assert message in p.stderr
+    with pytest.raises(ValueError) as refused:
+        entry.main([*args, "--run-dir", str(run), "--no-progress"])
+    assert message in str(refused.value)
     assert not run.exists()

@@ -70,9 +70,18 @@ def rows(run):
     return list(csv.DictReader((run / "metrics.csv").open()))
 
 
-def interrupt(args, run, after_rows, sig=signal.SIGINT):
-    """Start ``train.py args --run-dir run``; once metrics.csv holds ``after_rows`` rows,
-    send ``sig``. Returns (returncode, stderr)."""
+@dataclasses.dataclass
+class Stopped:
+    code: int
+    err: str
+    seconds: float  # from the signal to the end
+    pid: int  # also the process group's id with ``group``
+
+
+def stop_run(args, run, after_rows, sig=signal.SIGINT, *, watch=None, group=False):
+    """Start ``train.py args --run-dir run``; once ``watch`` (``run/metrics.csv`` by default)
+    holds ``after_rows`` rows, send ``sig``, to the whole process group with ``group`` (what
+    Ctrl-C in a terminal does)."""
     p = subprocess.Popen(
         [sys.executable, str(ROOT / "train.py"), *args, "--run-dir", str(run), "--no-progress"],
         cwd=ROOT,
@@ -80,16 +89,27 @@ def interrupt(args, run, after_rows, sig=signal.SIGINT):
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "OMP_NUM_THREADS": "1"},
+        start_new_session=group,
     )
+    m = watch or run / "metrics.csv"
     deadline = time.time() + 240
     while p.poll() is None and time.time() < deadline:
-        m = run / "metrics.csv"
         if m.exists() and len(m.read_text().splitlines()) > after_rows:
             break
         time.sleep(0.002)
-    p.send_signal(sig)
+    if group:
+        os.killpg(p.pid, sig)
+    else:
+        p.send_signal(sig)
+    start = time.time()
     _, err = p.communicate(timeout=240)
-    return p.returncode, err
+    return Stopped(p.returncode, err, time.time() - start, p.pid)
+
+
+def interrupt(args, run, after_rows, sig=signal.SIGINT):
+    """:func:`stop_run`'s (returncode, stderr)."""
+    out = stop_run(args, run, after_rows, sig)
+    return out.code, out.err
 
 
 def same_tree(a, b):
@@ -430,23 +450,9 @@ def test_an_interrupted_population_says_what_it_kept_and_how_to_run_again(tmp_pa
     the advice given (another directory) works."""
     run = tmp_path / "pop"
     args = ["bimodal", "--seeds", "0-1", "--episodes", "200000", "--samples-per-iteration", "20"]
-    p = subprocess.Popen(
-        [sys.executable, str(ROOT / "train.py"), *args, "--run-dir", str(run), "--no-progress"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-    )
-    deadline = time.time() + 120
-    first = run / "seed0" / "metrics.csv"
-    while time.time() < deadline and not (
-        first.exists() and len(first.read_text().splitlines()) > 2
-    ):
-        time.sleep(0.01)
-    p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=120)
-    assert p.returncode == 130, err
+    out = stop_run(args, run, 2, watch=run / "seed0" / "metrics.csv")
+    err = out.err
+    assert out.code == 130, err
     assert "checkpoint" not in err.replace("write no checkpoint", "")
     assert "population runs write no checkpoint" in err
     assert f"move {run} away or pass another --run-dir" in err
@@ -468,31 +474,16 @@ def test_ctrl_c_of_a_run_with_workers_ends_it_cleanly_every_time(tmp_path, kind)
     workers (TorchRL collector workers, a local process pool, Ray tasks), three times: each
     ends within seconds with the checkpoint written, no traceback and no process left
     (before: hangs, or TorchRL's "At least one process failed" when a worker died of it)."""
-    args = [*WORKER_RUNS[kind].split(), "--no-progress"]
     for attempt in range(3):
         run = tmp_path / f"run{attempt}"
-        p = subprocess.Popen(
-            [sys.executable, str(ROOT / "train.py"), *args, "--run-dir", str(run)],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env={**os.environ, "OMP_NUM_THREADS": "1"},
-            start_new_session=True,
-        )
-        deadline = time.time() + 180
-        m = run / "metrics.csv"
-        while time.time() < deadline and not (m.exists() and len(m.read_text().splitlines()) > 1):
-            time.sleep(0.05)
-        os.killpg(p.pid, signal.SIGINT)
-        start = time.time()
-        _, err = p.communicate(timeout=120)
-        assert time.time() - start < 30, err
-        assert p.returncode == 130, err
+        out = stop_run(WORKER_RUNS[kind].split(), run, 1, group=True)
+        err = out.err
+        assert out.seconds < 30, err
+        assert out.code == 130, err
         assert "Traceback" not in err and "checkpoint written" in err, err
         assert torch.load(run / "checkpoint.pt")["iteration"] >= 1
         for _ in range(50):
-            left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True)
+            left = subprocess.run(["pgrep", "-g", str(out.pid)], capture_output=True, text=True)
             if not left.stdout.split():
                 break
             time.sleep(0.2)

@@ -27,14 +27,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import (
-    apply_population_refit,
-    apply_refit,
-    option_bound,
-    plan_population_refit,
-    plan_refit,
-    population_bound,
-)
+from hireps_torch.algorithms._options import apply_refit, option_bound, per_member, plan_refit
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
@@ -51,13 +44,12 @@ from hireps_torch.checks import (
     check_finite,
     check_positive_float,
 )
-from hireps_torch.dual import solve_episodic_dual
 from hireps_torch.dual.episodic import episodic_solution
-from hireps_torch.dual.inputs import LOG_RESP_FLOOR, warn_if_degenerate
-from hireps_torch.dual.solutions import single_solution
+from hireps_torch.dual.inputs import warn_if_degenerate
 from hireps_torch.dual.solver import checked_settings
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
+from hireps_torch.policies._population import batch_text
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
@@ -200,87 +192,53 @@ class EpisodicHiREPS(HiREPSBase):
             shape = (*self.policy.batch_shape, count, 0)
             return torch.zeros(shape, dtype=torch.float64, device=self.device)
         c = as_float_tensor("contexts", contexts, device=self.device)
-        if self.population is not None:
-            return self._population_contexts(c)
-        if c.dim() == 1 and self.context_dim == 1:
+        lead, C = self.policy.batch_shape, self.context_dim
+        if not lead and c.dim() == 1 and C == 1:
             c = c[:, None]
-        if c.dim() != 2 or c.shape[1] != self.context_dim:
+        if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
+            names = "(S, N, C) = " if lead else ""
             hint = (
                 " (this algorithm has no context: pass the number of samples, or None to tell)"
-                if self.context_dim == 0
+                if C == 0
                 else ""
             )
             raise ValueError(
-                f"contexts must have shape (N, {self.context_dim}), got {tuple(c.shape)}{hint}"
+                f"contexts must have shape {names}({batch_text(self.population)}N, {C}), got "
+                f"{tuple(c.shape)}{hint}"
             )
-        if c.shape[0] < 1:
+        if c.shape[-2] < 1:
             raise ValueError(f"contexts must hold at least one context, got {tuple(c.shape)}")
         as_finite_f64("contexts", c)
         return c
 
-    def _population_contexts(self, c: Tensor) -> Tensor:
-        """A population's contexts (S, N, C), N >= 1, checked."""
-        S, C = self.population, self.context_dim
-        if c.dim() != 3 or c.shape[0] != S or c.shape[2] != C or c.shape[1] < 1:
-            raise ValueError(
-                f"contexts must have shape (S, N, C) = ({S}, N, {C}) with N >= 1 (one row of "
-                f"contexts per member of the population), got {tuple(c.shape)}"
-            )
-        as_finite_f64("contexts", c)
-        return c
-
-    def _population_samples(
-        self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Checked float64 contexts (S, N, C), params (S, N, D) and returns (S, N)."""
-        S, D = self.population, self.policy.action_dim
-        dev = self.device
-        theta = as_float_tensor("params", params, device=dev)
-        R = as_float_tensor("returns", returns, device=dev)
-        if R.dim() != 2 or R.shape[0] != S:
-            raise ValueError(
-                f"returns must have shape (S, N) = ({S}, N) (one row per member of the "
-                f"population), got {tuple(R.shape)}"
-            )
-        N = R.shape[1]
-        if theta.shape != (S, N, D):
-            raise ValueError(
-                f"params must have shape ({S}, {N}, {D}) to match returns {tuple(R.shape)}, got "
-                f"{tuple(theta.shape)}"
-            )
-        check_finite("returns", R)
-        as_finite_f64("params", theta)
-        c = self._contexts(contexts, n=N)
-        if c.shape[1] != N:
-            raise ValueError(f"got {c.shape[1]} contexts per member for {N} params and returns")
-        return c, theta, R
-
     def _samples(
         self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Checked float64 contexts (N, S), params (N, D) and returns (N,) for :meth:`tell`."""
-        D = self.policy.action_dim
+        """Checked float64 contexts ([S,] N, C), params ([S,] N, D) and returns ([S,] N)."""
+        lead, D = self.policy.batch_shape, self.policy.action_dim
         dev = self.device
         theta = as_float_tensor("params", params, device=dev)
         R = as_float_tensor("returns", returns, device=dev)
-        if R.dim() != 1:
-            n = f"({theta.shape[0]},)" if theta.dim() == 2 else "(N,)"
+        if R.dim() != 1 + len(lead) or R.shape[:-1] != lead:
+            n = f"({theta.shape[-2]},)" if theta.dim() == 2 else "(N,)"
+            if lead:
+                n = f"(S, N) = ({lead[0]}, N)"
             raise ValueError(
                 f"returns must have shape {n} (one return per row of params "
                 f"{tuple(theta.shape)}), got {tuple(R.shape)}"
             )
-        N = R.shape[0]
-        if theta.shape != (N, D):
+        N = R.shape[-1]
+        if theta.shape != (*lead, N, D):
             raise ValueError(
-                f"params must have shape ({N}, {D}) to match returns {tuple(R.shape)}, got "
+                f"params must have shape {(*lead, N, D)} to match returns {tuple(R.shape)}, got "
                 f"{tuple(theta.shape)}"
             )
         if not bool(torch.isfinite(R).all() & torch.isfinite(theta).all()):
             check_finite("returns", R)
             check_finite("params", theta)
         c = self._contexts(contexts, n=N)
-        if c.shape[0] != N:
-            raise ValueError(f"got {c.shape[0]} contexts for {N} params and returns")
+        if c.shape[-2] != N:
+            raise ValueError(f"got {c.shape[-2]} contexts for {N} params and returns")
         if N < 2:
             raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
         return c, theta, R
@@ -329,56 +287,27 @@ class EpisodicHiREPS(HiREPSBase):
             and the policy was left as it is), ``mean_return, max_return, dual_converged,
             dual_iterations, feature_error, iteration``.
         """
-        if self.population is not None:
-            return self._population_tell(*self._population_samples(contexts, params, returns))
         c, theta, R = self._samples(contexts, params, returns)
         bound = option_bound(self.policy, c, theta, self.kappa_rel)
-        N = R.shape[0]
+        lead, N = R.shape[:-1], R.shape[-1]
         warn_if_degenerate([self.epsilon], N, 3)
-        eps = R.new_full((1,), self.epsilon)
-        kappa = None if bound.kappa is None else R.new_full((1,), bound.kappa)
-        lr = bound.log_responsibilities
-        lr = R.new_zeros(N, 1) if lr is None else lr.clamp_min(LOG_RESP_FLOOR)
+        R1 = R.reshape(-1, N)  # the dual's S problems (1 for one run)
+        lr, kappa = bound.dual_inputs(R1)
         phi = None
         if self.context_features is not None:
-            phi = self.context_features(c).to(R)[None]
+            phi = self.context_features(c).to(R).reshape(*R1.shape, -1)
             check_finite("context features", phi)
-        sol = single_solution(
-            episodic_solution(
-                R[None], lr[None], eps[None], phi, None if kappa is None else kappa[None], _SETTINGS
-            )
-        )
+        eps = R.new_full((R1.shape[0], 1), self.epsilon)
+        sol = episodic_solution(R1, lr, eps, phi, kappa, _SETTINGS)
         refit = plan_refit(self.policy, c, theta, sol, bound)
         report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1
-        mean_return, max_return = torch.stack([R.mean(), R.max()]).tolist()
+        mean_return, max_return = torch.stack([R.mean(-1), R.amax(-1)]).tolist()
         return {
-            "iteration": self.iteration,
+            "iteration": per_member(self.iteration, lead),
             **report,
             "mean_return": mean_return,
             "max_return": max_return,
-        }
-
-    def _population_tell(self, c: Tensor, theta: Tensor, R: Tensor) -> dict[str, Any]:
-        """:meth:`tell` of a population: one dual call for all members, one batched refit."""
-        bound = population_bound(self.policy, c, theta, self.kappa_rel)
-        phi = self.context_features(c) if self.context_features is not None else None
-        sol = solve_episodic_dual(
-            R,
-            epsilon=self.epsilon,
-            log_responsibilities=bound.log_responsibilities,
-            context_features=phi,
-            kappa=bound.kappa,
-            population=True,
-        )
-        refit = plan_population_refit(self.policy, c, theta, sol, bound)
-        report = apply_population_refit(self.policy, c, refit, self.prune_threshold)
-        self.iteration += 1
-        return {
-            "iteration": [self.iteration] * R.shape[0],
-            **report,
-            "mean_return": R.mean(-1).tolist(),
-            "max_return": R.amax(-1).tolist(),
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------

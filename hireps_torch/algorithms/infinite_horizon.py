@@ -30,14 +30,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import (
-    apply_population_refit,
-    apply_refit,
-    option_bound,
-    plan_population_refit,
-    plan_refit,
-    population_bound,
-)
+from hireps_torch.algorithms._options import apply_refit, option_bound, per_member, plan_refit
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
@@ -56,10 +49,8 @@ from hireps_torch.checks import (
     check_finite,
     check_positive_float,
 )
-from hireps_torch.dual import solve_infinite_horizon_dual
 from hireps_torch.dual.infinite_horizon import infinite_horizon_solution
-from hireps_torch.dual.inputs import LOG_RESP_FLOOR, warn_if_degenerate
-from hireps_torch.dual.solutions import single_solution
+from hireps_torch.dual.inputs import warn_if_degenerate
 from hireps_torch.dual.solver import checked_settings
 from hireps_torch.features import FeatureMap, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
@@ -207,8 +198,6 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,) (a
         population: (S, N, S_dim) -> (S, N))."""
         phi = self.value_features(self._states(states))
-        if self.population is None:
-            return phi @ self.value_weights
         return (phi @ self.value_weights[..., None])[..., 0]
 
     def _transitions(
@@ -298,60 +287,35 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         if term is not None:
             phi0 = self.initial_features.unsqueeze(-2)  # ([S,] 1, F)
             next_features = torch.where(term[..., None], phi0, next_features)
-        if self.population is not None:
-            return self._population_update(s, a, R, next_features)
         bound = option_bound(self.policy, s, a, self.kappa_rel)
-        N = R.shape[0]
+        lead, N = R.shape[:-1], R.shape[-1]
         warn_if_degenerate([self.epsilon], N, 3)
-        phi = self.value_features(s).to(R)
-        next_features = next_features.to(R)
+        R1 = R.reshape(-1, N)  # the dual's S problems (1 for one run)
+        lr, kappa = bound.dual_inputs(R1)
+        phi = self.value_features(s).to(R).reshape(*R1.shape, -1)
+        next_features = next_features.to(R).reshape(phi.shape)
         check_finite("value features", phi)
         check_finite("value features of next_states", next_features)
-        lr = bound.log_responsibilities
-        lr = R.new_zeros(N, 1) if lr is None else lr.clamp_min(LOG_RESP_FLOOR)
-        kappa = None if bound.kappa is None else R.new_full((1, 1), bound.kappa)
-        phi0 = self.initial_features.to(R)[None]
-        sol = single_solution(
-            infinite_horizon_solution(
-                R[None],
-                lr[None],
-                R.new_full((1, 1), self.epsilon),
-                phi[None],
-                next_features[None],
-                phi0,
-                self.gamma,
-                kappa,
-                _SETTINGS,
-            )
+        sol = infinite_horizon_solution(
+            R1,
+            lr,
+            R.new_full((R1.shape[0], 1), self.epsilon),
+            phi,
+            next_features,
+            self.initial_features.to(R).expand(*lead, -1).reshape(R1.shape[0], -1),
+            self.gamma,
+            kappa,
+            _SETTINGS,
         )
         refit = plan_refit(self.policy, s, a, sol, bound)
-        self.value_weights = sol.v.clone()
+        self.value_weights = sol.v.reshape(*lead, -1).clone()
         report = apply_refit(self.policy, s, refit, self.prune_threshold)
         self.iteration += 1
-        return {"iteration": self.iteration, **report, "mean_reward": float(R.mean())}
-
-    def _population_update(
-        self, s: Tensor, a: Tensor, R: Tensor, next_features: Tensor
-    ) -> dict[str, Any]:
-        """:meth:`update` of a population: one dual call for all members, one batched refit."""
-        bound = population_bound(self.policy, s, a, self.kappa_rel)
-        sol = solve_infinite_horizon_dual(
-            R,
-            self.value_features(s),
-            next_features,
-            self.initial_features,
-            gamma=self.gamma,
-            epsilon=self.epsilon,
-            log_responsibilities=bound.log_responsibilities,
-            kappa=bound.kappa,
-            population=True,
-        )
-        refit = plan_population_refit(self.policy, s, a, sol, bound)
-        self.value_weights = sol.v.clone()
-        report = apply_population_refit(self.policy, s, refit, self.prune_threshold)
-        self.iteration += 1
-        S = R.shape[0]
-        return {"iteration": [self.iteration] * S, **report, "mean_reward": R.mean(-1).tolist()}
+        return {
+            "iteration": per_member(self.iteration, lead),
+            **report,
+            "mean_reward": R.mean(-1).tolist(),
+        }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     @property

@@ -30,7 +30,6 @@ Steps are indexed k = 0..K-1 in the code (1..K in the equations above).
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -38,14 +37,12 @@ import torch
 from torch import Tensor
 
 from hireps_torch.algorithms._options import (
-    apply_population_refit,
     apply_refit,
+    each,
     option_bound,
-    plan_population_refit,
+    per_member,
     plan_refit,
-    population_bound,
     stack_bounds,
-    stack_population_bounds,
 )
 from hireps_torch.algorithms.base import (
     Experience,
@@ -64,12 +61,12 @@ from hireps_torch.checks import (
     check_count,
     check_finite,
 )
-from hireps_torch.dual import solve_time_indexed_dual
-from hireps_torch.dual.inputs import LOG_RESP_FLOOR, warn_if_degenerate
+from hireps_torch.dual.inputs import warn_if_degenerate
 from hireps_torch.dual.solver import checked_settings
-from hireps_torch.dual.time_indexed import single_time_indexed, time_indexed_solution
+from hireps_torch.dual.time_indexed import time_indexed_solution
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
+from hireps_torch.policies._population import batch_text
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
@@ -257,22 +254,18 @@ class TimeIndexedHiREPS(HiREPSBase):
         return check_step(step, self.n_steps)
 
     def _contexts(self, contexts: Tensor) -> Tensor:
-        S = self.value_features.in_features
+        """States ([S,] N, C) at one step, N >= 1, as checked float64."""
+        C, lead = self.value_features.in_features, self.policies[0].batch_shape
         c = as_float_tensor("contexts", contexts, device=self.device)
-        if self.population is not None:
-            P = self.population
-            if c.dim() != 3 or c.shape[0] != P or c.shape[2] != S or c.shape[1] < 1:
-                raise ValueError(
-                    f"contexts must have shape (population, N, S) = ({P}, N, {S}) with N >= 1, "
-                    f"got {tuple(c.shape)}"
-                )
-            as_finite_f64("contexts", c)
-            return c
-        if c.dim() == 1 and S == 1:
+        if not lead and c.dim() == 1 and C == 1:
             c = c[:, None]
-        if c.dim() != 2 or c.shape[1] != S:
-            raise ValueError(f"contexts must have shape (N, {S}), got {tuple(c.shape)}")
-        if c.shape[0] < 1:
+        if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
+            names = "(population, N, S) = " if lead else ""
+            raise ValueError(
+                f"contexts must have shape {names}({batch_text(self.population)}N, {C}), got "
+                f"{tuple(c.shape)}"
+            )
+        if c.shape[-2] < 1:
             raise ValueError(f"contexts must hold at least one state, got {tuple(c.shape)}")
         as_finite_f64("contexts", c)
         return c
@@ -330,9 +323,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         """
         k = self._step(step)
         phi = self.value_features(self._contexts(contexts))
-        if self.population is None:
-            return phi @ self.value_weights[k]
-        return (phi @ self.value_weights[:, k, :, None])[..., 0]
+        return (phi @ self.value_weights[..., k, :, None])[..., 0]
 
     @torch.no_grad()
     def tell(self, states: Tensor, params: Tensor, rewards: Tensor) -> dict[str, Any]:
@@ -352,91 +343,52 @@ class TimeIndexedHiREPS(HiREPSBase):
             episodes of the summed rewards), ``max_return, iteration``.
         """
         s, theta, R = self._episodes(states, params, rewards)
-        if self.population is not None:
-            return self._population_tell(s, theta, R)
-        N = R.shape[0]
+        lead, (N, K) = R.shape[:-2], R.shape[-2:]
         bounds = [
-            option_bound(pol, s[:, k], theta[:, k], self.kappa_rel)
+            option_bound(pol, s[..., k, :], theta[..., k, :], self.kappa_rel)
             for k, pol in enumerate(self.policies)
         ]
-        log_resp, kappa = stack_bounds(bounds, N, self.device)
-        K = R.shape[1]
         warn_if_degenerate(self.epsilon, N, 3)
-        phi = self.value_features(s).to(R)  # (N, K, F)
+        lr, kappa = stack_bounds(bounds, self.policies, N, R)
+        phi = self.value_features(s).to(R)  # ([S,] N, K, F)
         check_finite("value features", phi)
-        lr = R.new_zeros(N, K, 1) if log_resp is None else log_resp.clamp_min(LOG_RESP_FLOOR)
-        sol = single_time_indexed(
-            time_indexed_solution(
-                R.T[None],
-                lr.transpose(0, 1)[None],
-                R.new_tensor(self.epsilon)[None],
-                phi.transpose(0, 1)[None],
-                None,
-                None if kappa is None else kappa[None],
-                _SETTINGS,
-            )
-        )
-        refits = []  # every step's refit first: a failing step leaves all policies unchanged
-        for k, (pol, bound) in enumerate(zip(self.policies, bounds, strict=True)):
-            step = sol.step(k)
-            step = dataclasses.replace(step, weights=step.weights[:, : bound.n_columns])
-            refits.append(plan_refit(pol, s[:, k], theta[:, k], step, bound))
-        self.value_weights = sol.v.clone()
-        reports = [
-            apply_refit(pol, s[:, k], refit, self.prune_threshold)
-            for k, (pol, refit) in enumerate(zip(self.policies, refits, strict=True))
-        ]
-        self.iteration += 1
-        returns = R.sum(1)
-        return {
-            "iteration": self.iteration,
-            **{key: [r[key] for r in reports] for key in _PER_STEP},
-            "feature_error": sol.feature_error,
-            "dual_converged": sol.converged,
-            "dual_iterations": sol.iterations,
-            "mean_rewards": R.mean(0).tolist(),
-            "mean_return": float(returns.mean()),
-            "max_return": float(returns.max()),
-        }
-
-    def _population_tell(self, s: Tensor, theta: Tensor, R: Tensor) -> dict[str, Any]:
-        """:meth:`tell` of a population (states (S, N, K, C), params (S, N, K, D), rewards
-        (S, N, K)): one dual call for all members and steps; member s's diagnostics are
-        those :meth:`tell` reports for it alone, as lists of S entries."""
-        S, N, K = R.shape
-        bounds = [
-            population_bound(pol, s[:, :, k], theta[:, :, k], self.kappa_rel)
-            for k, pol in enumerate(self.policies)
-        ]
-        log_resp, kappa = stack_population_bounds(bounds, self.policies)
-        sol = solve_time_indexed_dual(
-            R,
-            self.value_features(s),
-            epsilon=torch.tensor(self.epsilon, dtype=torch.float64, device=self.device),
-            log_responsibilities=log_resp,
-            kappa=kappa,
-            population=True,
+        S = lr.shape[0]  # the dual's problems (1 for one run)
+        sol = time_indexed_solution(
+            R.reshape(S, N, K).transpose(1, 2),
+            lr.transpose(1, 2),
+            R.new_tensor(self.epsilon).expand(S, K),
+            phi.reshape(S, N, K, -1).transpose(1, 2),
+            None,
+            kappa,
+            _SETTINGS,
         )
         refits = [  # every step's refit first: a failing step leaves all policies unchanged
-            plan_population_refit(pol, s[:, :, k], theta[:, :, k], sol, bounds[k], block=k)
+            plan_refit(pol, s[..., k, :], theta[..., k, :], sol, bounds[k], block=k)
             for k, pol in enumerate(self.policies)
         ]
-        self.value_weights = sol.v.reshape(S, K, -1).clone()
+        self.value_weights = sol.v.reshape(*lead, K, -1).clone()
         reports = [
-            apply_population_refit(pol, s[:, :, k], refit, self.prune_threshold)
+            apply_refit(pol, s[..., k, :], refit, self.prune_threshold)
             for k, (pol, refit) in enumerate(zip(self.policies, refits, strict=True))
         ]
         self.iteration += 1
         returns = R.sum(-1)
+        per_step = {key: [r[key] for r in reports] for key in _PER_STEP}
+        if lead:  # member s's entries: one per step
+            per_step = {key: [list(x) for x in zip(*v, strict=True)] for key, v in per_step.items()}
+        means, mean_return, max_return = (
+            R.mean(-2).tolist(),
+            *torch.stack([returns.mean(-1), returns.amax(-1)]).tolist(),
+        )
         return {
-            "iteration": [self.iteration] * S,
-            **{key: [[r[key][m] for r in reports] for m in range(S)] for key in _PER_STEP},
-            "feature_error": sol.feature_error.tolist(),
-            "dual_converged": sol.converged.tolist(),
-            "dual_iterations": [sol.iterations] * S,
-            "mean_rewards": R.mean(1).tolist(),
-            "mean_return": returns.mean(-1).tolist(),
-            "max_return": returns.amax(-1).tolist(),
+            "iteration": per_member(self.iteration, lead),
+            **per_step,
+            "feature_error": sol.feature_error.reshape(lead).tolist(),
+            "dual_converged": each(sol.converged.reshape(lead).tolist(), bool),
+            "dual_iterations": per_member(sol.iterations, lead),
+            "mean_rewards": means,
+            "mean_return": mean_return,
+            "max_return": max_return,
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------

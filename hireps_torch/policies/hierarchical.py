@@ -27,7 +27,6 @@ from hireps_torch.policies._population import (
     categorical,
     check_members,
     check_population_generators,
-    normal,
 )
 from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import (
@@ -310,45 +309,21 @@ class HierarchicalPolicy(PolicyModule):
         """
         gen = check_population_generators(self.population, generator)
         gf, pf = self._features(context)
-        if self.population is not None:
-            return self._population_sample(gf, pf, gen)
-        assert not isinstance(gen, list)
         probs = self.gating.probs(gf)
-        N = pf.shape[0]
+        lead, N = pf.shape[:-2], pf.shape[-2]
         dtype = self.sub_policies[0].bias.dtype
         if N == 0:
-            empty = torch.zeros(0, dtype=torch.long, device=pf.device)
-            return pf.new_empty((0, self.action_dim), dtype=dtype), empty
-        option = categorical(probs, gen)
-        used = torch.bincount(option, minlength=self.n_options).tolist()
-        theta = pf.new_empty((N, self.action_dim), dtype=dtype)
-        for o, opt in enumerate(self.sub_policies):
-            if used[o]:
-                rows = option == o
-                theta[rows] = opt.sample(pf, gen)[rows]
-            else:  # unchosen option: only advance the generator as its sample would have
-                b = opt.bias
-                normal((N, self.action_dim), gen, b.dtype, b.device)
-        return theta, option
-
-    def _population_sample(
-        self, gf: Tensor, pf: Tensor, gen: torch.Generator | list[torch.Generator] | None
-    ) -> tuple[Tensor, Tensor]:
-        """:meth:`sample` of a population: features (S, N, .)."""
-        probs = self.gating.probs(gf)
-        S, N = pf.shape[:2]
-        dtype = self.sub_policies[0].bias.dtype
-        if N == 0:
-            empty = torch.zeros(S, 0, dtype=torch.long, device=pf.device)
-            return pf.new_empty((S, 0, self.action_dim), dtype=dtype), empty
+            empty = torch.zeros((*lead, 0), dtype=torch.long, device=pf.device)
+            return pf.new_empty((*lead, 0, self.action_dim), dtype=dtype), empty
         if isinstance(gen, list):
             host = probs.to(gen[0].device)  # one transfer; each member draws with its own
             drawn = [categorical(p, g) for p, g in zip(host, gen, strict=True)]
             option = torch.stack(drawn).to(probs.device)
         else:
             option = categorical(probs, gen)
-        theta = pf.new_zeros((S, N, self.action_dim), dtype=dtype)
-        for o, opt in enumerate(self.sub_policies):
+        # every option draws its noise for all samples (the same draws whichever is chosen)
+        theta = self.sub_policies[0].sample(pf, gen)
+        for o, opt in enumerate(self.sub_policies[1:], 1):
             theta = torch.where((option == o)[..., None], opt.sample(pf, gen), theta)
         return theta, option
 
@@ -414,39 +389,23 @@ class HierarchicalPolicy(PolicyModule):
             norm = ws / ws.sum(-1, keepdim=True)
             x = gf.to(torch.float64)
             new = {f"gating.{k}": v for k, v in self.gating.fit_checked(x, targets, norm).items()}
-        if self.population is not None:
-            return new | self._population_option_fits(pf, t, w)
-        mass, active = w.sum(-2).tolist(), self.active.tolist()
+        total = w.sum((-2, -1))
+        fitted = self.active & (w.sum(-2) > 1e-12 * total[..., None])  # ([S,] O)
+        flags = fitted.reshape(-1, self.n_options).T.tolist()  # per option, per member
         x = pf.to(torch.float64)
         for o, opt in enumerate(self.sub_policies):
-            if active[o] and mass[o] > 1e-12 * sum(mass):
-                try:
-                    fit = opt.fit_checked(x, t, w[:, o])
-                except ValueError as exc:
-                    raise ValueError(f"option {o}: {exc}") from None
-                new.update({f"options.{o}.{k}": v for k, v in fit.items()})
-        return new
-
-    def _population_option_fits(self, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
-        """The options' refits of a population (features (S, N, F), theta (S, N, D), weights
-        (S, N, O)): each option is fitted for all members in one call; a member where it is
-        pruned or has no weight keeps its parameters."""
-        new: dict[str, Tensor] = {}
-        total = w.sum((-2, -1))
-        for o, opt in enumerate(self.sub_policies):
-            col = w[..., o]
-            fitted = self.active[:, o] & (col.sum(-1) > 1e-12 * total)
-            if not bool(fitted.any()):
+            if not any(flags[o]):  # no weight (or pruned) in every member: left to pruning
                 continue
-            safe = torch.where(fitted[:, None], col, 1.0)  # the others' fits are discarded
+            every = all(flags[o])
+            col = w[..., o] if every else torch.where(fitted[..., o, None], w[..., o], 1.0)
             try:
-                fit = opt.fit_parameters(pf, t, safe)
+                fit = opt.fit_checked(x, t, col)
             except ValueError as exc:
                 raise ValueError(f"option {o}: {exc}") from None
             for k, v in fit.items():
-                old = getattr(opt, k)
-                keep = fitted.view(-1, *[1] * (v.dim() - 1))
-                new[f"options.{o}.{k}"] = torch.where(keep, v, old)
+                if not every:  # the members without weight on it keep their values
+                    v = torch.where(fitted[:, o].view(-1, *[1] * (v.dim() - 1)), v, getattr(opt, k))
+                new[f"options.{o}.{k}"] = v
         return new
 
     @torch.no_grad()
@@ -468,11 +427,14 @@ class HierarchicalPolicy(PolicyModule):
         self.set_parameters(self.fit_parameters(context, theta, weights))
 
     @torch.no_grad()
-    def prune(self, context: Tensor, threshold: float = 1e-4) -> list[int] | list[list[int]]:
+    def prune(
+        self, context: Tensor, threshold: float = 1e-4, members: Tensor | None = None
+    ) -> list[int] | list[list[int]]:
         """Deactivate options whose prior mass ``mean_i pi(o | s_i)`` is below ``threshold``.
 
-        The most probable option is never pruned. Returns the indices pruned by this call
-        (a population: one list per member).
+        The most probable option is never pruned; ``members`` (([S,]) bool) limits pruning to
+        the members where it is True. Returns the indices pruned by this call (a population:
+        one list per member).
         """
         limit = as_float("threshold", threshold)
         if not 0.0 <= limit < 1.0:
@@ -483,6 +445,8 @@ class HierarchicalPolicy(PolicyModule):
         prior = self.gating.probs(self.gating_features(c)).mean(-2)
         drop = self.active & (prior < limit)
         drop.scatter_(-1, prior.argmax(-1, keepdim=True), False)
+        if members is not None:
+            drop &= members[..., None]
         if bool(drop.any()):
             self.gating.active &= ~drop
         if self.population is None:

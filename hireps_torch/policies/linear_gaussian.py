@@ -519,9 +519,9 @@ class LinearGaussian(PolicyModule):
         eye = torch.eye(scaled.shape[-1], dtype=scaled.dtype, device=scaled.device)
         above = torch.linalg.cholesky_ex(scaled - eye).info == 0
         factor = torch.linalg.cholesky_ex(cov)
-        if bool(ok & torch.isfinite(scaled).all() & above.all() & (factor.info == 0).all()):
-            return factor.L
-        return None
+        chol: Tensor = factor.L
+        good = ok & torch.isfinite(scaled).all() & above.all() & (factor.info == 0).all()
+        return chol if bool(good) else None
 
     def _floored_cholesky(self, cov: Tensor) -> Tensor:
         """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""

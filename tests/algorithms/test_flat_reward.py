@@ -16,7 +16,7 @@ from hireps_torch.algorithms import (
     InfiniteHorizonHiREPS,
     TimeIndexedHiREPS,
 )
-from hireps_torch.algorithms._options import OptionBound, carries_information
+from hireps_torch.algorithms._options import OptionBound, informed_members
 from hireps_torch.dual import solve_episodic_dual
 from hireps_torch.features import FourierFeatures
 
@@ -100,13 +100,18 @@ def test_only_weights_equal_to_the_sampling_distribution_carry_no_information():
     lr = torch.log_softmax(
         torch.randn(20, 3, generator=torch.Generator().manual_seed(0), dtype=f64), -1
     )
-    bound = OptionBound(lr, 0.0, None)
+
+    def informed(sol, lr):
+        bound = OptionBound(lr, torch.zeros(()), None)
+        active = torch.ones(sol.weights.shape[-1], dtype=torch.bool)
+        return bool(informed_members(sol.weights, torch.tensor(sol.eta), bound, active))
+
     flat = solve_episodic_dual(torch.zeros(20), epsilon=0.5, log_responsibilities=lr)
-    assert math.isinf(flat.eta) and not carries_information(flat, bound)
+    assert math.isinf(flat.eta) and not informed(flat, lr)
     informative = solve_episodic_dual(torch.arange(20.0), epsilon=1e-4, log_responsibilities=lr)
-    assert carries_information(informative, bound)  # even a tiny KL bound moves the weights
+    assert informed(informative, lr)  # even a tiny KL bound moves the weights
     one = solve_episodic_dual(torch.ones(20), epsilon=0.5)
-    assert not carries_information(one, OptionBound(None, 0.0, None))
+    assert not informed(one, None)
 
 
 def test_an_informative_update_after_flat_ones_still_learns():

@@ -6,7 +6,7 @@
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
    (each unique configuration runs once per seed and is shared between figures). By default
    each configuration's seeds run as one population (``train.py pendulum --seeds 0-4``: one
-   process, the seeds' duals solved together; :mod:`experiments.population`), one
+   process, one batched simulation; :class:`experiments.loop.Members`), one
    configuration after the other. With ``--separate``, as one sweep of separate runs
    (:mod:`experiments.sweep`): ``--workers`` runs at a time, 2 by default, one per core of the
    2-core reference machine, in local processes or (``--backend ray``) as Ray tasks, on this

@@ -11,6 +11,7 @@ and actions give the same trajectory in both.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, TypeVar
 
 import gymnasium as gym
@@ -174,6 +175,72 @@ class BatchedTask:
         self.state, reward, terminated, path = self.transition(self.state, action)
         self.t += 1
         return reward, terminated, self.truncated(terminated), path
+
+
+class MemberTasks(BatchedTask):
+    """The tasks of S members (each of B systems with its own generator, as one seed's run
+    holds it) as one task of S B systems, member after member. Starts, restarts and
+    truncation of member s's systems draw from its own task (a member whose systems are not
+    restarted draws nothing), so its systems do not depend on its companions; one physics
+    call steps all of them.
+
+    Args:
+        tasks: one task per member, of one kind, batch size, constants and device.
+    """
+
+    def __init__(self, tasks: Sequence[BatchedTask]) -> None:
+        self.tasks = list(tasks)
+        if not self.tasks:
+            raise ValueError("MemberTasks needs at least one task")
+        first = self.tasks[0]
+        for s, task in enumerate(self.tasks[1:], 1):
+            if type(task) is not type(first) or (task.batch, task.device) != (
+                first.batch,
+                first.device,
+            ):
+                raise ValueError(
+                    f"tasks[{s}] is a {type(task).__name__} of {task.batch} systems on "
+                    f"{task.device}, tasks[0] a {type(first).__name__} of {first.batch} on "
+                    f"{first.device}: members share one kind, size and device"
+                )
+        self.state_dim, self.action_name = first.state_dim, first.action_name
+        self.action_limit = first.action_limit
+        self.members, self.per_member = len(self.tasks), first.batch
+        self.batch, self.device = self.members * self.per_member, first.device
+        self.t = torch.zeros(self.batch, dtype=torch.long, device=self.device)
+        self.state = torch.zeros(
+            self.batch, self.state_dim, dtype=torch.float64, device=self.device
+        )
+
+    def _member(self, x: Tensor, s: int) -> Tensor:
+        """Member s's rows of an (S B, ...) tensor."""
+        return x[s * self.per_member : (s + 1) * self.per_member]
+
+    def seed(self, seed: int | None) -> None:
+        if self.members > 1:
+            raise ValueError("the members' tasks are seeded one by one (each its own seed)")
+        self.tasks[0].seed(seed)
+
+    def start_states(self, mask: Tensor) -> Tensor:
+        parts = []
+        for s, task in enumerate(self.tasks):
+            m = self._member(mask, s)
+            if bool(m.any()):
+                task.t = self._member(self.t, s)  # the systems that took a decision
+                parts.append(task.start_states(m).to(self.device, torch.float64))
+            else:
+                parts.append(self._member(self.state, s))
+        return torch.cat(parts)
+
+    def transition(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return self.tasks[0].transition(state, action)
+
+    def truncated(self, terminated: Tensor) -> Tensor:
+        parts = []
+        for s, task in enumerate(self.tasks):
+            task.t = self._member(self.t, s)
+            parts.append(task.truncated(self._member(terminated, s)))
+        return torch.cat(parts)
 
 
 class ScalarActionGymEnv(gym.Env):

@@ -94,7 +94,6 @@ __all__ = [
     "BeamParams",
     "beam_step",
     "evaluate_beam",
-    "evaluate_beam_members",
     "goal_distance",
     "sample_start",
     "step_reward",
@@ -393,18 +392,22 @@ def evaluate_beam(
     n_episodes: int = 10,
     hold_seconds: float = 5.0,
     tolerance: float = 0.03,
-    seed: int = 12345,
-) -> BeamEvaluation:
+    seed: int | Sequence[int] = 12345,
+) -> Any:
     """Run ``n_episodes`` full episodes of a policy, alternating start sides (right first).
 
     Args:
         act: callable ``states (E, 3) float64 -> desired angles (E,) or (E, 1)``, e.g. the
-            noise-free hierarchical policy.
+            noise-free hierarchical policy; for S seeds ``(S, E, 3) -> (S, E[, 1])``.
         params: task constants.
         n_episodes: E, run together.
         hold_seconds: final window in which the ball must stay near a goal for a success.
         tolerance: distance to the closer goal (m) that counts as "at the goal".
-        seed: seed of the start noise.
+        seed: seed of the start noise; a sequence of S seeds evaluates the S members of a
+            population at once, member s from the start noise of ``seed[s]``.
+
+    Returns:
+        A :class:`BeamEvaluation`, or for S seeds a list of S.
     """
     p = check_params(params, BeamParams)
     n_episodes = check_count("n_episodes", n_episodes, 1)
@@ -413,46 +416,19 @@ def evaluate_beam(
         raise ValueError(
             f"hold_seconds must be <= episode_seconds = {p.episode_seconds}, got {hold_seconds}"
         )
-    gen = torch.Generator()
-    gen.manual_seed(check_seed("seed", seed))
-    sides = torch.where(torch.arange(n_episodes) % 2 == 0, 1.0, -1.0)
-    start = sample_start(sides, p, gen)[None]
-    (result,) = _episodes_of_members(lambda x: act(x[0])[None], p, start, hold_seconds, tolerance)
-    return result
-
-
-def evaluate_beam_members(
-    act: Any,
-    params: BeamParams | None = None,
-    *,
-    seeds: Sequence[int],
-    n_episodes: int = 10,
-    hold_seconds: float = 5.0,
-    tolerance: float = 0.03,
-) -> list[BeamEvaluation]:
-    """:func:`evaluate_beam` of S policies at once (a population), member s from the start
-    noise of ``seeds[s]`` (that :func:`evaluate_beam` draws with that seed).
-
-    Args:
-        act: callable ``states (S, E, 3) float64 -> desired angles (S, E) or (S, E, 1)``.
-        seeds: one start-noise seed per member.
-    """
-    p = check_params(params, BeamParams)
-    n_episodes = check_count("n_episodes", n_episodes, 1)
-    check_durations(hold_seconds=hold_seconds, tolerance=tolerance)
-    if hold_seconds > p.episode_seconds:
-        raise ValueError(
-            f"hold_seconds must be <= episode_seconds = {p.episode_seconds}, got {hold_seconds}"
-        )
+    many = isinstance(seed, Sequence)
+    seeds = list(seed) if isinstance(seed, Sequence) else [seed]
+    if not seeds:
+        raise ValueError("seed must name at least one member")
     sides = torch.where(torch.arange(n_episodes) % 2 == 0, 1.0, -1.0)
     starts = []
-    for k, seed in enumerate(seeds):
+    for k, one in enumerate(seeds):
         gen = torch.Generator()
-        gen.manual_seed(check_seed(f"seeds[{k}]", seed))
+        gen.manual_seed(check_seed(f"seed[{k}]" if many else "seed", one))
         starts.append(sample_start(sides, p, gen))
-    if not starts:
-        raise ValueError("seeds must name at least one member")
-    return _episodes_of_members(act, p, torch.stack(starts), hold_seconds, tolerance)
+    policy = act if many else lambda x: act(x[0])[None]
+    results = _episodes_of_members(policy, p, torch.stack(starts), hold_seconds, tolerance)
+    return results if many else results[0]
 
 
 def _episodes_of_members(

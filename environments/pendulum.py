@@ -96,7 +96,6 @@ __all__ = [
     "SwingUpEvaluation",
     "energy",
     "evaluate_swing_up",
-    "evaluate_swing_up_members",
     "mirror_decisions",
     "mirror_states",
     "pd_torque",
@@ -243,18 +242,19 @@ def mirror_decisions(
     (``mirror_samples``) so that the policy learns both swing directions.
 
     Args:
-        states: (N, 2); actions: (N, 1) desired angles; rewards: (N,); next_states: (N, 2);
-            terminated: (N,) bool.
+        states: ([S,] N, 2); actions: ([S,] N, 1) desired angles; rewards: ([S,] N);
+            next_states: ([S,] N, 2); terminated: ([S,] N) bool (a population's members
+            along a leading S).
 
     Returns:
-        The same five arrays with 2N rows: the originals, then the mirrored ones.
+        The same five arrays with 2N decisions: the originals, then the mirrored ones.
     """
     return (
-        torch.cat([states, mirror_states(states)]),
-        torch.cat([actions, -actions]),
-        torch.cat([rewards, rewards]),
-        torch.cat([next_states, mirror_states(next_states)]),
-        torch.cat([terminated, terminated]),
+        torch.cat([states, mirror_states(states)], -2),
+        torch.cat([actions, -actions], -2),
+        torch.cat([rewards, rewards], -1),
+        torch.cat([next_states, mirror_states(next_states)], -2),
+        torch.cat([terminated, terminated], -1),
     )
 
 
@@ -382,20 +382,24 @@ def evaluate_swing_up(
     hold_seconds: float = 1.0,
     angle_tol: float = 0.1,
     velocity_tol: float = 1.0,
-    seed: int = 12345,
-) -> SwingUpEvaluation:
+    seed: int | Sequence[int] = 12345,
+) -> Any:
     """Roll a policy out from the standard start distribution, without restarts.
 
     Args:
         act: callable ``states (B, 2) float64 -> desired angles (B,) or (B, 1)``, e.g. the
-            noise-free hierarchical policy.
+            noise-free hierarchical policy; for S seeds ``(S, B, 2) -> (S, B[, 1])``.
         params: task constants (their ``steps_per_decision`` sets how long a decision holds).
         n_rollouts: B, rolled out together.
         seconds: rollout length.
         hold_seconds: the final window that must stay upright for a success.
         angle_tol: |theta| bound for "upright" (rad).
         velocity_tol: |theta'| bound for "upright" (rad/s).
-        seed: seed of the start states.
+        seed: seed of the start states; a sequence of S seeds evaluates the S members of a
+            population at once, member s from the start states of ``seed[s]``.
+
+    Returns:
+        A :class:`SwingUpEvaluation`, or for S seeds a list of S.
     """
     p = check_params(params, PendulumParams)
     n_rollouts = check_count("n_rollouts", n_rollouts, 1)
@@ -403,49 +407,20 @@ def evaluate_swing_up(
     if hold_seconds > seconds:
         raise ValueError(f"hold_seconds must be <= seconds = {seconds}, got {hold_seconds}")
     check_durations(angle_tol=angle_tol, velocity_tol=velocity_tol)
-    gen = torch.Generator()
-    gen.manual_seed(check_seed("seed", seed))
-    start = sample_start(n_rollouts, p, gen)[None]
-    (result,) = _rollout_members(
-        lambda x: act(x[0])[None], p, start, seconds, hold_seconds, angle_tol, velocity_tol
-    )
-    return result
-
-
-def evaluate_swing_up_members(
-    act: Any,
-    params: PendulumParams | None = None,
-    *,
-    seeds: Sequence[int],
-    n_rollouts: int = 50,
-    seconds: float = 5.0,
-    hold_seconds: float = 1.0,
-    angle_tol: float = 0.1,
-    velocity_tol: float = 1.0,
-) -> list[SwingUpEvaluation]:
-    """:func:`evaluate_swing_up` of S policies at once (a population), member s from the start
-    states of ``seeds[s]`` (those :func:`evaluate_swing_up` draws with that seed).
-
-    Args:
-        act: callable ``states (S, B, 2) float64 -> desired angles (S, B) or (S, B, 1)``.
-        seeds: one start-state seed per member.
-    """
-    p = check_params(params, PendulumParams)
-    n_rollouts = check_count("n_rollouts", n_rollouts, 1)
-    check_durations(seconds=seconds, hold_seconds=hold_seconds)
-    if hold_seconds > seconds:
-        raise ValueError(f"hold_seconds must be <= seconds = {seconds}, got {hold_seconds}")
-    check_durations(angle_tol=angle_tol, velocity_tol=velocity_tol)
+    many = isinstance(seed, Sequence)
+    seeds = list(seed) if isinstance(seed, Sequence) else [seed]
+    if not seeds:
+        raise ValueError("seed must name at least one member")
     starts = []
-    for k, seed in enumerate(seeds):
+    for k, one in enumerate(seeds):
         gen = torch.Generator()
-        gen.manual_seed(check_seed(f"seeds[{k}]", seed))
+        gen.manual_seed(check_seed(f"seed[{k}]" if many else "seed", one))
         starts.append(sample_start(n_rollouts, p, gen))
-    if not starts:
-        raise ValueError("seeds must name at least one member")
-    return _rollout_members(
-        act, p, torch.stack(starts), seconds, hold_seconds, angle_tol, velocity_tol
+    policy = act if many else lambda x: act(x[0])[None]
+    results = _rollout_members(
+        policy, p, torch.stack(starts), seconds, hold_seconds, angle_tol, velocity_tol
     )
+    return results if many else results[0]
 
 
 def _rollout_members(

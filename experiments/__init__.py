@@ -2,7 +2,8 @@
 
 ``EXPERIMENTS`` maps each command-line name to ``(Config, run)``; ``train.py`` turns it into
 tyro subcommands. Every ``run(cfg)`` writes one run directory (see :mod:`experiments.rundir`)
-and returns the summary it wrote to ``summary.json``. To add an experiment, copy the module
+(one seed, or a population of seeds: see :class:`experiments.loop.Members`) and returns
+the summary it wrote to ``summary.json``. To add an experiment, copy the module
 closest to it (``bimodal.py`` for an ask/tell objective, ``ball_on_beam.py`` for a batched
 TorchRL environment, ``hockey.py`` for a gymnasium environment with whole episodes) and add
 one line here.
@@ -14,9 +15,8 @@ from collections.abc import Callable
 from typing import Any
 
 from experiments import ball_on_beam, bimodal, hockey, pendulum
-from experiments.population import PopulationRun, run_population
 
-__all__ = ["CHECKS", "EXPERIMENTS", "POPULATIONS", "run_experiment"]
+__all__ = ["CHECKS", "EXPERIMENTS", "run_experiment"]
 
 EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
     "bimodal": (bimodal.BimodalConfig, bimodal.run),
@@ -38,22 +38,11 @@ CHECKS: dict[str, Callable[[Any], None]] = {
 """Each experiment's check of a config: what its ``run`` refuses, refused without a run
 (a sweep checks every configuration before its first run)."""
 
-POPULATIONS: dict[str, PopulationRun] = {
-    "bimodal": bimodal.run_population,
-    "pendulum": pendulum.run_population,
-    "ball-on-beam": ball_on_beam.run_population,
-}
-"""The experiments that run a population of seeds in one process (``--seeds``)."""
-
 
 def run_experiment(cfg: Any) -> dict[str, Any]:
-    """Run the experiment whose config class ``cfg`` is an instance of (exact class); with
-    ``seeds`` its population (:func:`experiments.population.run_population`)."""
-    for name, (config_cls, run) in EXPERIMENTS.items():
+    """Run the experiment whose config class ``cfg`` is an instance of (exact class)."""
+    for config_cls, run in EXPERIMENTS.values():
         if type(cfg) is config_cls:
-            if getattr(cfg, "seeds", None) is not None:
-                summary: dict[str, Any] = run_population(name, cfg, POPULATIONS)
-                return summary
             return run(cfg)
     known = ", ".join(cls.__name__ for cls, _ in EXPERIMENTS.values())
     raise TypeError(f"no experiment takes a {type(cfg).__name__}; known configs: {known}")

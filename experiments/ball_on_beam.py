@@ -6,18 +6,17 @@ one infinite-horizon update per batch, a noise-free evaluation after every itera
 
 from __future__ import annotations
 
-import statistics
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 
+from environments._common import MemberTasks, ScalarActionBatchEnv
 from environments.ball_on_beam import (
-    BallOnBeamBatchEnv,
+    BeamEvaluation,
     BeamParams,
     BeamTask,
     evaluate_beam,
-    evaluate_beam_members,
     sample_start,
 )
 from experiments.checkpoint import RunState
@@ -36,9 +35,10 @@ from experiments.options import (
     check_fourier_bases,
     check_options,
     check_variance_floor,
+    member_seeds,
     option_error,
+    stream_seed,
 )
-from experiments.population import Members, TaskPopulation, member_row, population_loop
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.checks import check_positive_float
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
@@ -51,7 +51,6 @@ __all__ = [
     "closer_goal",
     "build_ball_on_beam_policy",
     "run",
-    "run_population",
     "value_features",
 ]
 
@@ -211,20 +210,23 @@ def value_features(cfg: BallOnBeamConfig) -> FeatureMap:
     return ConcatFeatures(fourier, GoalBowlFeatures(BeamParams(), cfg.max_velocity))
 
 
-def _make_algorithm(cfg: BallOnBeamConfig, params: BeamParams) -> InfiniteHorizonHiREPS:
-    """Seed everything from ``cfg.seed`` and build the policy and the algorithm (Fourier value
-    features, 1000 start states alternating sides for phi_hat_0)."""
-    torch.manual_seed(cfg.seed)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    policy = build_ball_on_beam_policy(cfg, gen)
+def _make_algorithm(
+    cfg: BallOnBeamConfig, params: BeamParams, seeds: list[int]
+) -> InfiniteHorizonHiREPS:
+    """The members' policies and the algorithm (Fourier value features, 1000 start states
+    alternating sides per member for phi_hat_0), member s's from the streams of
+    ``seeds[s]``."""
+    gens = [torch.Generator().manual_seed(stream_seed(s, "policy")) for s in seeds]
+    policy = HierarchicalPolicy.stack([build_ball_on_beam_policy(cfg, g) for g in gens])
     sides = torch.where(torch.arange(1000) % 2 == 0, 1.0, -1.0)
     return InfiniteHorizonHiREPS(
         policy,
         value_features(cfg),
-        sample_start(sides, params, gen),
+        torch.stack([sample_start(sides, params, g) for g in gens]),
         gamma=params.gamma,
         epsilon=cfg.epsilon,
         kappa_rel=cfg.kappa_rel,
+        seed=[stream_seed(s, "sampling") for s in seeds],
     )
 
 
@@ -250,59 +252,76 @@ def _checked(cfg: BallOnBeamConfig) -> int:
 def check(cfg: BallOnBeamConfig) -> None:
     """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
     _checked(cfg)
-    _make_algorithm(cfg, BeamParams())
+    _make_algorithm(cfg, BeamParams(), member_seeds(cfg)[:1])
 
 
 def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
-    """Infinite-horizon HiREPS on the simulated ball on a beam; returns the summary."""
+    """Infinite-horizon HiREPS on the simulated ball on a beam, one seed or a population;
+    returns the summary."""
     from hireps_torch.rollout import make_collector, policy_module
 
     B = cfg.episodes_per_iteration
     iterations = _checked(cfg)
     resume = resume_point("ball_on_beam", cfg)
     params = BeamParams()
-    algo = _make_algorithm(cfg, params)
-    policy = algo.policy
-    frames = B * params.decisions_per_episode
-    env_seed = cfg.seed + 1
+    seeds = member_seeds(cfg)
+    algo = _make_algorithm(cfg, params, seeds).to(cfg.device)
+    policy, dev = algo.policy, algo.device
+    frames = len(seeds) * B * params.decisions_per_episode
+    actor = policy_module(policy)
+    actor.module.generator = algo.generator  # each member explores with its own generator
     collector = make_collector(
-        lambda: BallOnBeamBatchEnv(B, params, seed=env_seed),
-        policy_module(policy),
+        lambda: ScalarActionBatchEnv(
+            MemberTasks(
+                [BeamTask(B, params, seed=stream_seed(s, "env"), device=dev) for s in seeds]
+            )
+        ),
+        actor,
         frames_per_batch=frames,
         total_frames=frames * iterations,
         reset_at_each_iter=True,
-        seed=env_seed,
     )
+    eval_seeds = [stream_seed(s, "eval") for s in seeds]
 
-    def act(states: torch.Tensor) -> torch.Tensor:
-        return policy.mean_action(states)[0]
-
-    def row(r: torch.Tensor, terminated: torch.Tensor) -> dict[str, Any]:
-        ev = evaluate_beam(act, params, n_episodes=cfg.eval_episodes, seed=cfg.seed + 777)
-        return {
-            "average_return": float(r.sum()) / B,
-            "falls": int(terminated.sum()),
-            "eval_return": ev.average_return,
-            "eval_success_rate": ev.success_rate,
-        }
+    def rows(r: torch.Tensor, terminated: torch.Tensor) -> list[dict[str, Any]]:
+        evs: list[BeamEvaluation] = evaluate_beam(
+            lambda x: policy.mean_action(x.to(dev))[0].cpu(),
+            params,
+            n_episodes=cfg.eval_episodes,
+            seed=eval_seeds,
+        )
+        average, falls = (r.sum(-1) / B).tolist(), terminated.sum(-1).tolist()
+        return [
+            {
+                "average_return": average[m],
+                "falls": int(falls[m]),
+                "eval_return": ev.average_return,
+                "eval_success_rate": ev.success_rate,
+            }
+            for m, ev in enumerate(evs)
+        ]
 
     label = f"ball_on_beam/{cfg.n_options}opt"
     state = RunState(algo, env=BatchedTaskState(collector, carry=False))
     session = collector_loop(
         collector,
         lambda: Run("ball_on_beam", cfg, state, resume),
-        infinite_horizon_update(algo, row),
+        infinite_horizon_update(algo, rows),
         iterations=iterations,
         episodes_per_iteration=B,
         label=label,
         postfix=infinite_horizon_postfix,
         progress=cfg.progress,
     )
+    active = policy.active.sum(-1).tolist()
     return finish_run(
         session,
         curve=CURVE,
         title=label,
-        summary=_summary(cfg, session.rows, iterations, int(policy.active.sum())),
+        summaries=[
+            _summary(c, r, iterations, int(n))
+            for c, r, n in zip(session.members.configs, session.rows, active, strict=True)
+        ],
     )
 
 
@@ -329,75 +348,3 @@ def _summary(
         "episodes_to_success": first_success,
         "n_active_options": n_active,
     }
-
-
-def run_population(cfg: BallOnBeamConfig, members: Members) -> list[dict[str, Any]]:
-    """``train.py ball-on-beam --seeds ...``: the seeds as one population (see
-    :mod:`experiments.population`): all members' beams in one batched simulation, member s's
-    policy and start states for phi_hat_0 those of ``--seed s``, its exploration and its beams'
-    start noise from its own generators. Returns the members' summaries."""
-    iterations = _checked(cfg)
-    params = BeamParams()
-    seeds = members.seeds
-    S, B = len(seeds), cfg.episodes_per_iteration
-    gens = [torch.Generator().manual_seed(s) for s in seeds]
-    policy = HierarchicalPolicy.stack([build_ball_on_beam_policy(cfg, g) for g in gens])
-    sides = torch.where(torch.arange(1000) % 2 == 0, 1.0, -1.0)
-    algo = InfiniteHorizonHiREPS(
-        policy,
-        value_features(cfg),
-        torch.stack([sample_start(sides, params, g) for g in gens]),
-        gamma=params.gamma,
-        epsilon=cfg.epsilon,
-        kappa_rel=cfg.kappa_rel,
-        seed=[s + 1 for s in seeds],
-    )
-    dev = torch.device(cfg.device)
-    algo.to(dev)  # the policy with it
-    env = TaskPopulation([BeamTask(B, params, seed=s + 1, device=dev) for s in seeds])
-
-    def step(it: int) -> list[dict[str, Any]]:
-        env.reset()  # every iteration starts B new episodes, as the ordinary run
-        data = env.collect(algo.sample, params.decisions_per_episode)
-        diag = algo.update(*data)
-        evs = evaluate_beam_members(
-            lambda x: policy.mean_action(x.to(dev))[0].cpu(),
-            params,
-            seeds=[s + 777 for s in seeds],
-            n_episodes=cfg.eval_episodes,
-        )
-        r, terminated = data[2], data[4]
-        return [
-            {
-                "iteration": it + 1,
-                "episodes": (it + 1) * B,
-                "average_return": float(r[m].sum()) / B,
-                "falls": int(terminated[m].sum()),
-                "eval_return": evs[m].average_return,
-                "eval_success_rate": evs[m].success_rate,
-            }
-            | member_row(diag, m)
-            for m in range(S)
-        ]
-
-    population_loop(
-        members,
-        step,
-        iterations=iterations,
-        label=f"ball_on_beam/{cfg.n_options}opt/{S} seeds",
-        postfix=lambda rows: {
-            "ret": f"{statistics.fmean(r['eval_return'] for r in rows):.1f}",
-            "success": f"{statistics.fmean(r['eval_success_rate'] for r in rows):.2f}",
-        },
-        progress=cfg.progress,
-    )
-    active = policy.active.sum(-1).tolist()
-    rows = [w.rows for w in members.writers]
-    return members.finish(
-        [
-            _summary(c, r, iterations, int(n))
-            for c, r, n in zip(members.configs, rows, active, strict=True)
-        ],
-        curve=CURVE,
-        title=f"ball_on_beam/{cfg.n_options}opt",
-    )

@@ -7,7 +7,6 @@ environment process), the option table and a picture of the options over the rew
 from __future__ import annotations
 
 import math
-import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +17,13 @@ import torch
 from environments.toy import ContextualTwoGaussians, TwoGaussians
 from experiments.checkpoint import RunState
 from experiments.loop import Run, ask_tell_loop, finish_run, resume_point
-from experiments.options import RunOptions, check_options, check_variance_floor
-from experiments.population import Members, member_row, population_loop
+from experiments.options import (
+    RunOptions,
+    check_options,
+    check_variance_floor,
+    member_seeds,
+    stream_seed,
+)
 from experiments.rundir import atomic_write
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 
@@ -29,7 +33,6 @@ __all__ = [
     "option_summary",
     "plot_bimodal_options",
     "run",
-    "run_population",
 ]
 
 
@@ -76,17 +79,15 @@ def _validate(cfg: BimodalConfig) -> None:
 
 
 def _make_algorithm(
-    cfg: BimodalConfig,
-    task: TwoGaussians | ContextualTwoGaussians,
-    seeds: list[int] | None = None,
+    cfg: BimodalConfig, task: TwoGaussians | ContextualTwoGaussians, seeds: list[int]
 ) -> EpisodicHiREPS:
-    """The algorithm of ``cfg`` (a population of ``seeds`` when given)."""
+    """The algorithm of ``cfg`` for the members with ``seeds`` (their policy streams)."""
     common: dict[str, Any] = dict(
         context_dim=task.context_dim,
         init_std=cfg.init_std,
         epsilon=cfg.epsilon,
         min_variance=cfg.min_variance,
-        seed=cfg.seed if seeds is None else seeds,
+        seed=[stream_seed(s, "policy") for s in seeds],
     )
     if cfg.algorithm == "reps":
         return REPS.create(task.param_dim, **common)
@@ -98,38 +99,52 @@ def _make_algorithm(
 def check(cfg: BimodalConfig) -> None:
     """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
     _validate(cfg)
-    _make_algorithm(cfg, _task(cfg))
+    _make_algorithm(cfg, _task(cfg), member_seeds(cfg)[:1])
 
 
 def run(cfg: BimodalConfig) -> dict[str, Any]:
-    """HiREPS or REPS on the (contextual) two-Gaussians task; returns the summary."""
+    """HiREPS or REPS on the (contextual) two-Gaussians task, one seed or a population;
+    returns the summary."""
     _validate(cfg)
     resume = resume_point("bimodal", cfg)
     task = _task(cfg)
-    algo = _make_algorithm(cfg, task)
-    ctx_gen = torch.Generator().manual_seed(cfg.seed + 10_000)
+    seeds = member_seeds(cfg)
+    S, n = len(seeds), cfg.samples_per_iteration
+    algo = _make_algorithm(cfg, task, seeds).to(cfg.device)
+    dev = algo.device
+    ctx_gens = {
+        f"contexts{m}": torch.Generator().manual_seed(stream_seed(s, "contexts"))
+        for m, s in enumerate(seeds)
+    }
     eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
 
-    def evaluate() -> float:
-        """Mean return of the noise-free policy (over a context grid when contextual)."""
+    def score(ctx: torch.Tensor | None, theta: torch.Tensor) -> torch.Tensor:
+        """The task's returns (S, N) on the algorithm's device (the task computes on the CPU)."""
+        flat = theta.reshape(-1, task.param_dim).cpu()
         if isinstance(task, ContextualTwoGaussians):
-            assert eval_ctx is not None
-            return float(task(eval_ctx, algo.act(eval_ctx)).mean())
-        return float(task(algo.act(1)).mean())
+            assert ctx is not None
+            out = task(ctx.reshape(-1, 1).cpu(), flat)
+        else:
+            out = task(flat)
+        return out.reshape(theta.shape[:2]).to(dev)
 
-    n = cfg.samples_per_iteration
-
-    def step(it: int) -> dict[str, Any]:
+    def step(it: int) -> list[dict[str, Any]]:
+        ctx = None
         if isinstance(task, ContextualTwoGaussians):
-            ctx = task.sample_contexts(n, ctx_gen)
+            ctx = torch.stack([task.sample_contexts(n, g) for g in ctx_gens.values()]).to(dev)
             theta = algo.ask(ctx)
-            diag = algo.tell(ctx, theta, task(ctx, theta))
         else:
             theta = algo.ask(n)
-            diag = algo.tell(None, theta, task(theta))
-        return {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evaluate(), **diag}
+        diag = algo.tell(ctx, theta, score(ctx, theta))
+        grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1).to(dev)
+        evals = score(grid, algo.act(1 if grid is None else grid)).mean(-1).tolist()
+        return [
+            {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evals[m]}
+            | {key: value[m] for key, value in diag.items()}
+            for m in range(S)
+        ]
 
-    session = Run("bimodal", cfg, RunState(algo, generators={"contexts": ctx_gen}), resume)
+    session = Run("bimodal", cfg, RunState(algo, generators=ctx_gens), resume)
     iterations = cfg.episodes // n
     ask_tell_loop(
         session,
@@ -143,12 +158,21 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
         },
         progress=cfg.progress,
     )
+    solo = [
+        (REPS if cfg.algorithm == "reps" else EpisodicHiREPS)(
+            algo.policy.member(m).cpu(), context_dim=task.context_dim, epsilon=cfg.epsilon
+        )
+        for m in range(S)
+    ]
     return finish_run(
         session,
         curve=CURVE,
         title=_title(cfg),
-        extra_plots=_plots(algo, task),
-        summary=_summary(cfg, algo, task, session.rows, iterations),
+        extra_plots=[_plots(a, task) for a in solo],
+        summaries=[
+            _summary(c, a, task, r, iterations)
+            for c, a, r in zip(session.members.configs, solo, session.rows, strict=True)
+        ],
     )
 
 
@@ -194,72 +218,6 @@ def _summary(
         "modes_covered": modes_covered(options, task),
         "options": options,
     }
-
-
-def run_population(cfg: BimodalConfig, members: Members) -> list[dict[str, Any]]:
-    """``train.py bimodal --seeds ...``: the seeds as one population (see
-    :mod:`experiments.population`); member s draws and learns what ``--seed s`` does (to
-    round-off). Returns the members' summaries."""
-    _validate(cfg)
-    task = _task(cfg)
-    seeds = members.seeds
-    S, n = len(seeds), cfg.samples_per_iteration
-    dev = torch.device(cfg.device)
-    algo = _make_algorithm(cfg, task, seeds).to(dev)
-    ctx_gens = [torch.Generator().manual_seed(s + 10_000) for s in seeds]
-    eval_ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None] if cfg.contextual else None
-
-    def score(ctx: torch.Tensor | None, theta: torch.Tensor) -> torch.Tensor:
-        """The task's returns (S, N) on the algorithm's device (the task computes on the CPU)."""
-        flat = theta.reshape(-1, task.param_dim).cpu()
-        if isinstance(task, ContextualTwoGaussians):
-            assert ctx is not None
-            out = task(ctx.reshape(-1, 1).cpu(), flat)
-        else:
-            out = task(flat)
-        return out.reshape(theta.shape[:2]).to(dev)
-
-    def step(it: int) -> list[dict[str, Any]]:
-        ctx = None
-        if isinstance(task, ContextualTwoGaussians):
-            ctx = torch.stack([task.sample_contexts(n, g) for g in ctx_gens]).to(dev)
-            theta = algo.ask(ctx)
-        else:
-            theta = algo.ask(n)
-        diag = algo.tell(ctx, theta, score(ctx, theta))
-        grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1).to(dev)
-        evals = score(grid, algo.act(1 if grid is None else grid)).mean(-1).tolist()
-        return [
-            {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evals[s]}
-            | member_row(diag, s)
-            for s in range(S)
-        ]
-
-    iterations = cfg.episodes // n
-    population_loop(
-        members,
-        step,
-        iterations=iterations,
-        label=f"bimodal/{cfg.algorithm}/{S} seeds",
-        postfix=lambda rows: {"ret": f"{statistics.fmean(r['mean_return'] for r in rows):.3f}"},
-        progress=cfg.progress,
-    )
-    solo = [
-        (REPS if cfg.algorithm == "reps" else EpisodicHiREPS)(
-            algo.policy.member(s).cpu(), context_dim=task.context_dim, epsilon=cfg.epsilon
-        )
-        for s in range(S)
-    ]
-    rows = [w.rows for w in members.writers]
-    return members.finish(
-        [
-            _summary(c, a, task, r, iterations)
-            for c, a, r in zip(members.configs, solo, rows, strict=True)
-        ],
-        curve=CURVE,
-        title=_title(cfg),
-        extra_plots=[_plots(a, task) for a in solo],
-    )
 
 
 def option_summary(

@@ -5,12 +5,12 @@ SIGINT/SIGTERM, and at the end) holds everything its next iteration depends on:
 
 - ``algorithm``: the algorithm's ``state_dict`` (policies, value weights, its generator,
   iteration);
-- ``rng``: the global torch generator (the TorchRL actors sample with it) and every other
-  named generator of the experiment (e.g. the contexts of the bimodal task);
+- ``rng``: the global torch generator (TorchRL actors with worker processes sample with it)
+  and every other named generator of the experiment (e.g. the contexts of the bimodal task);
 - ``env``: the running state of the environments that carry over between iterations (the
-  pendulums run on; every task's start-state generator);
-- ``rows``: the ``metrics.csv`` rows so far; ``iteration``, ``elapsed`` (seconds so far),
-  ``config``, ``experiment``, ``finished``.
+  pendulums run on; every member's start-state generator);
+- ``rows``: each member's ``metrics.csv`` rows so far (one list for a run of one seed);
+  ``iteration``, ``elapsed`` (seconds so far), ``config``, ``experiment``, ``finished``.
 
 Only tensors, numbers, strings, lists and dicts: ``torch.load(path)`` with its default
 ``weights_only=True`` reads it.
@@ -44,7 +44,7 @@ __all__ = [
     "stop_on_signals",
 ]
 
-FORMAT = 1
+FORMAT = 2
 CHECKPOINT_KEYS = ("algorithm", "rng", "env", "rows", "iteration", "elapsed")
 """The entries of a checkpoint that a resume reads (besides ``format``)."""
 RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every", "backend", "ray_address")
@@ -158,13 +158,21 @@ def load_checkpoint(run_dir: Path) -> CheckpointState | None:
     missing = [k for k in CHECKPOINT_KEYS if k not in ckpt]
     if missing:
         raise ValueError(f"{path} is not a complete checkpoint: it has no {missing}")
-    it, rows = ckpt["iteration"], ckpt["rows"]
-    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-        raise ValueError(f"{path} is damaged: its rows are not a list of metrics.csv rows")
-    if isinstance(it, bool) or not isinstance(it, int) or it != len(rows):
+    it, members = ckpt["iteration"], ckpt["rows"]
+    if not (
+        isinstance(members, list)
+        and members
+        and all(isinstance(rows, list) for rows in members)
+        and all(isinstance(r, dict) for rows in members for r in rows)
+    ):
         raise ValueError(
-            f"{path} is damaged: it is at iteration {it!r} but holds {len(rows)} metrics row(s); "
-            "move it away to restart this run from its first iteration"
+            f"{path} is damaged: its rows are not one list of metrics.csv rows per member"
+        )
+    counts = sorted({len(rows) for rows in members})
+    if isinstance(it, bool) or not isinstance(it, int) or counts != [it]:
+        raise ValueError(
+            f"{path} is damaged: it is at iteration {it!r} but holds {counts} metrics row(s) "
+            "per member; move it away to restart this run from its first iteration"
         )
     if isinstance(ckpt["elapsed"], bool) or not isinstance(ckpt["elapsed"], (int, float)):
         raise ValueError(f"{path} is damaged: its elapsed time is {ckpt['elapsed']!r}")

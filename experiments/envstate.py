@@ -42,8 +42,22 @@ def _warn_not_exact(what: str) -> None:
     )
 
 
+def _tensors(obj: Any) -> dict[str, torch.Tensor]:
+    return {k: v for k, v in vars(obj).items() if isinstance(v, torch.Tensor)}
+
+
+def _check_fits(saved: Mapping[str, Any], now: Mapping[str, torch.Tensor]) -> None:
+    if set(saved) != set(now) or any(saved[k].shape != now[k].shape for k in now):
+        shapes = {k: tuple(v.shape) for k, v in saved.items()}
+        raise ValueError(
+            f"the checkpoint's environment state {shapes} does not fit this run's "
+            f"{ {k: tuple(v.shape) for k, v in now.items()} }"
+        )
+
+
 class BatchedTaskState:
-    """Adapter for :class:`environments._common.ScalarActionBatchEnv` tasks in a collector."""
+    """Adapter for :class:`environments._common.ScalarActionBatchEnv` over the members'
+    tasks (:class:`environments._common.MemberTasks`) in a collector."""
 
     def __init__(self, collector: Any, carry: bool) -> None:
         self.collector = collector
@@ -57,25 +71,37 @@ class BatchedTaskState:
         task = self._task()
         if task is None:
             return None
-        tensors = {k: v.clone() for k, v in vars(task).items() if isinstance(v, torch.Tensor)}
-        return {"tensors": tensors, "gen": task.gen.get_state()}
+        return {
+            "tensors": {k: v.clone() for k, v in _tensors(task).items()},
+            "members": [
+                {
+                    "tensors": {k: v.clone() for k, v in _tensors(m).items()},
+                    "gen": m.gen.get_state(),
+                }
+                for m in task.tasks
+            ],
+        }
 
     def load_state_dict(self, state: Mapping[str, Any] | None) -> None:
         task = self._task()
         if task is None or state is None:
             _warn_not_exact("environment states")
             return
-        saved = state["tensors"]
-        now = {k: v for k, v in vars(task).items() if isinstance(v, torch.Tensor)}
-        if set(saved) != set(now) or any(saved[k].shape != now[k].shape for k in now):
-            shapes = {k: tuple(v.shape) for k, v in saved.items()}
+        _check_fits(state["tensors"], _tensors(task))
+        if len(state["members"]) != len(task.tasks):
             raise ValueError(
-                f"the checkpoint's environment state {shapes} does not fit this run's "
-                f"{ {k: tuple(v.shape) for k, v in now.items()} }"
+                f"the checkpoint's environment holds {len(state['members'])} member(s), this "
+                f"run's {len(task.tasks)}"
             )
-        for name, value in saved.items():
+        for saved, member in zip(state["members"], task.tasks, strict=True):
+            _check_fits(saved["tensors"], _tensors(member))
+            torch.Generator().set_state(saved["gen"])  # checked before anything is set
+        for name, value in state["tensors"].items():
             setattr(task, name, value.clone())
-        task.gen.set_state(state["gen"])
+        for saved, member in zip(state["members"], task.tasks, strict=True):
+            for name, value in saved["tensors"].items():
+                setattr(member, name, value.clone())
+            member.gen.set_state(saved["gen"])
         if self.carry:
             carrier = getattr(self.collector, "_carrier", None)
             if carrier is None:  # pragma: no cover - a torchrl version without it

@@ -18,7 +18,7 @@ import torch
 
 from experiments.checkpoint import RunState
 from experiments.loop import Run, check_budget, collector_loop, finish_run, resume_point
-from experiments.options import RunOptions, check_options
+from experiments.options import RunOptions, check_options, option_error
 from experiments.workers import Backend, EpisodeCollector, make_pool, reproducible_mkl
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
 
@@ -253,6 +253,15 @@ def _check(cfg: HockeyConfig) -> int:
             f"run_hockey needs a HockeySequentialConfig or HockeyEpisodicConfig, got "
             f"{type(cfg).__name__}"
         )
+    if cfg.seeds is not None:
+        raise option_error(
+            "seeds",
+            cfg.seeds,
+            f"left out: hockey runs one seed per process (train.py sweep --experiment ... "
+            f"--seeds {cfg.seeds} runs them side by side)",
+        )
+    if torch.device(cfg.device).type != "cpu":
+        raise option_error("device", cfg.device, "cpu: hockey (pybullet) runs on the CPU")
     check_options(
         cfg,
         positive=("init_std_position", "init_std_velocity", "min_velocity_std"),
@@ -331,7 +340,7 @@ def _update(
     continues the schedule)."""
     from hireps_torch.rollout import episodes
 
-    def update(batch: Any) -> dict[str, Any]:
+    def update(batch: Any) -> list[dict[str, Any]]:
         s, a, r, final = episodes(batch, K)
         if floor is not None:
             low = floor(algo.iteration)
@@ -346,7 +355,7 @@ def _update(
             if isinstance(diag.get(key), (list, tuple))
             for k in range(len(diag[key]))
         }
-        return {**_hockey_rows(r, final, zones), **scalars, **steps}
+        return [{**_hockey_rows(r, final, zones), **scalars, **steps}]
 
     return update
 
@@ -464,9 +473,9 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
         },
         progress=cfg.progress,
     )
-    last = session.rows[-1]
+    last = session.rows[0][-1]
     shots = iterations * B * params.n_shots
-    elapsed = session.writer.elapsed()
+    elapsed = session.root.elapsed()
     n_eval = B if cfg.final_eval_episodes is None else cfg.final_eval_episodes
     evaluation = evaluate_final_policy(cfg, policies, params, n_eval) if n_eval > 0 else {}
     return finish_run(
@@ -474,18 +483,20 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
         curve=("episodes", ["average_reward"]),
         title=label,
         ylabel="average reward per episode",
-        summary={
-            "experiment": experiment,
-            "n_options": cfg.n_options,
-            "seed": cfg.seed,
-            "episodes": iterations * B,
-            "iterations": iterations,
-            "final_average_reward": last["average_reward"],
-            "final_return": last["average_reward"],
-            "zone3_share": last["zone3_share"],
-            "final_zone_reward": last["zone_reward"],
-            "n_active_options": [int(p.active.sum()) for p in policies],
-            "seconds_per_shot": elapsed / shots,
-            **evaluation,
-        },
+        summaries=[
+            {
+                "experiment": experiment,
+                "n_options": cfg.n_options,
+                "seed": cfg.seed,
+                "episodes": iterations * B,
+                "iterations": iterations,
+                "final_average_reward": last["average_reward"],
+                "final_return": last["average_reward"],
+                "zone3_share": last["zone3_share"],
+                "final_zone_reward": last["zone_reward"],
+                "n_active_options": [int(p.active.sum()) for p in policies],
+                "seconds_per_shot": elapsed / shots,
+                **evaluation,
+            }
+        ],
     )

@@ -17,6 +17,8 @@ object beyond the shared :class:`RunOptions`.
 
 from __future__ import annotations
 
+import dataclasses
+import statistics
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import repeat
@@ -37,10 +39,11 @@ from experiments.checkpoint import (
     read_config,
     stop_on_signals,
 )
-from experiments.options import RunOptions, config_dict
+from experiments.options import RunOptions, config_dict, member_seeds, parse_seeds
 from experiments.rundir import RunWriter, default_run_dir
 
 __all__ = [
+    "Members",
     "Postfix",
     "Resume",
     "Run",
@@ -90,15 +93,19 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
             + "; ".join(diff)
             + " (pass no options, or the same ones, with --resume)"
         )
-    logged = _logged_rows(run_dir / "metrics.csv")
+    seeds = saved.get("seeds")
+    dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
+    logged = {d: _logged_rows(d / "metrics.csv") for d in dirs}
     ckpt = load_checkpoint(run_dir)
     if ckpt is None:
-        if logged:
-            raise ValueError(
-                f"cannot resume {run_dir}: its metrics.csv holds {logged} row(s) but there is "
-                f"no {run_dir / 'checkpoint.pt'} to continue them from; restore the checkpoint, "
-                "or move the directory away and start a new run (nothing was changed)"
-            )
+        for d, n in logged.items():
+            if n:
+                raise ValueError(
+                    f"cannot resume {run_dir}: {d / 'metrics.csv'} holds {n} row(s) but there "
+                    f"is no {run_dir / 'checkpoint.pt'} to continue them from; restore the "
+                    "checkpoint, or move the directory away and start a new run (nothing was "
+                    "changed)"
+                )
     else:
         theirs = ckpt.get("config")
         if not isinstance(theirs, dict) or ckpt.get("experiment") != experiment:
@@ -128,8 +135,51 @@ def _logged_rows(path: Path) -> int:
     return max(sum(1 for line in path.read_bytes().splitlines() if line.strip()) - 1, 0)
 
 
+@dataclass(frozen=True)
+class Members:
+    """The seeds a run learns and where each writes.
+
+    One seed (``--seed``) writes the run directory itself. A population (``--seeds``) writes
+    member s in ``<root>/seed<s>`` what ``--seed s`` writes in its run directory (its own
+    ``config.json`` with its seed, ``metrics.csv``, plots, ``summary.json``); the root holds
+    the population's ``config.json``, ``checkpoint.pt``, ``summary.json`` and the table and
+    band plot of the members.
+
+    Attributes:
+        seeds: the members' seeds.
+        root: the run directory.
+        configs: each member's config (its seed and run directory, no ``seeds``).
+        population: whether the run is a population (``--seeds``, even of one seed).
+    """
+
+    seeds: list[int]
+    root: Path
+    configs: list[Any]
+    population: bool
+
+    @classmethod
+    def of(cls, experiment: str, cfg: RunOptions, resume: Resume | None = None) -> Members:
+        """The members of ``cfg`` (written under ``resume.run_dir`` when resuming)."""
+        root = Path(
+            resume.run_dir
+            if resume is not None
+            else cfg.run_dir
+            if cfg.run_dir is not None
+            else default_run_dir(experiment)
+        )
+        if cfg.seeds is None:
+            return cls([cfg.seed], root, [dataclasses.replace(cfg, run_dir=root)], False)
+        seeds = member_seeds(cfg)
+        configs = [
+            dataclasses.replace(cfg, seed=s, seeds=None, resume=None, run_dir=root / f"seed{s}")
+            for s in seeds
+        ]
+        return cls(seeds, root, configs, True)
+
+
 class Run:
-    """An open run directory (new, or reopened from a checkpoint) and the state it saves.
+    """An open run (new, or reopened from a checkpoint): its members' run directories and
+    the state it saves.
 
     Args:
         experiment: the experiment's name (``config.json``'s ``experiment``).
@@ -143,27 +193,57 @@ class Run:
     ) -> None:
         self.experiment = experiment
         self.config = config_dict(experiment, cfg)
+        self.members = members = Members.of(experiment, cfg, resume)
         self.state = state
         self.every = cfg.checkpoint_every
         ckpt = None if resume is None else resume.checkpoint
         self.start_iteration = 0
         if ckpt is not None:  # first: a checkpoint that does not fit changes no file
+            if len(ckpt["rows"]) != len(members.seeds):
+                raise ValueError(
+                    f"{members.root / 'checkpoint.pt'} holds {len(ckpt['rows'])} member(s), "
+                    f"this run {len(members.seeds)}; nothing was changed"
+                )
             state.load_state_dict(ckpt)
             self.start_iteration = int(ckpt["iteration"])
-        if resume is None:
-            run_dir = cfg.run_dir or default_run_dir(experiment)
-            self.writer = RunWriter(run_dir, self.config, cfg.logger)
-        else:
-            rows = [] if ckpt is None else ckpt["rows"]
+        rows: list[Any] = [None] * len(members.seeds)  # None: a new run
+        elapsed = 0.0
+        if resume is not None:
+            rows = [[] for _ in members.seeds] if ckpt is None else ckpt["rows"]
             elapsed = 0.0 if ckpt is None else float(ckpt["elapsed"])
-            self.writer = RunWriter(
-                resume.run_dir, self.config, cfg.logger, rows=rows, elapsed=elapsed
-            )
+        pop = members.population
+        first = rows[0] if not pop else None if resume is None else []
+        self.root = RunWriter(
+            members.root, self.config, "csv" if pop else cfg.logger, rows=first, elapsed=elapsed
+        )
+        self.writers = [self.root]
+        if pop:
+            try:
+                self.writers = [
+                    RunWriter(
+                        c.run_dir, config_dict(experiment, c), c.logger, rows=r, elapsed=elapsed
+                    )
+                    for c, r in zip(members.configs, rows, strict=True)
+                ]
+            except BaseException:
+                self.release()
+                raise
         self._unsaved: CheckpointState | None = None
 
     @property
-    def rows(self) -> list[dict[str, Any]]:
-        return self.writer.rows
+    def rows(self) -> list[list[dict[str, Any]]]:
+        """Each member's rows so far."""
+        return [w.rows for w in self.writers]
+
+    def log(self, rows: Sequence[Mapping[str, Any]]) -> None:
+        """One row per member, in the order of the seeds."""
+        for writer, row in zip(self.writers, rows, strict=True):
+            writer.log(row)
+
+    def release(self) -> None:
+        """Every writer of the run writes no more (their locks dropped)."""
+        for writer in {id(w): w for w in [*getattr(self, "writers", []), self.root]}.values():
+            writer.release()
 
     def snapshot(self, iteration: int, finished: bool = False) -> CheckpointState:
         """The checkpoint of this iteration boundary."""
@@ -174,8 +254,8 @@ class Run:
             "iteration": iteration,
             "finished": finished,
             **self.state.state_dict(),
-            "rows": [dict(r) for r in self.writer.rows],
-            "elapsed": self.writer.elapsed(),
+            "rows": [[dict(r) for r in rows] for rows in self.rows],
+            "elapsed": self.root.elapsed(),
         }
 
     def end_iteration(self, iteration: int, force: bool = False) -> None:
@@ -183,54 +263,69 @@ class Run:
         error or a second interrupt before the next checkpoint can still write it."""
         snap = self.snapshot(iteration)
         if force or iteration % self.every == 0:
-            self.writer.checkpoint(snap)
+            self.root.checkpoint(snap)
             self._unsaved = None
         else:
             self._unsaved = snap
 
     def save_unsaved(self) -> None:
         if self._unsaved is not None:
-            self.writer.checkpoint(self._unsaved)
+            self.root.checkpoint(self._unsaved)
             self._unsaved = None
 
 
 def _iterate(
     run: Run,
     items: Iterable[Any],
-    step: Callable[[int, Any], dict[str, Any]],
+    step: Callable[[int, Any], list[dict[str, Any]]],
     *,
     iterations: int,
     label: str,
     postfix: Postfix,
     progress: bool,
 ) -> None:
-    """Iterations ``run.start_iteration .. iterations - 1``: ``step(it, item)`` gives the
-    row; log it, checkpoint, and stop cleanly at a boundary after SIGINT/SIGTERM."""
+    """Iterations ``run.start_iteration .. iterations - 1``: ``step(it, item)`` gives one row
+    per member; log them, checkpoint, and stop cleanly at a boundary after SIGINT/SIGTERM.
+    The progress bar shows ``postfix`` of the members' mean row."""
+    S = len(run.writers)
+    if S > 1:
+        label = f"{label}/{S} seeds"
     bar = tqdm(total=iterations, initial=run.start_iteration, desc=label, disable=not progress)
     try:
         with stop_on_signals() as stop:
             for it, item in zip(range(run.start_iteration, iterations), items, strict=False):
-                row = step(it, item)
-                run.writer.log(row)
+                rows = step(it, item)
+                run.log(rows)
                 bar.update(1)
-                bar.set_postfix(**postfix(row))
+                bar.set_postfix(**postfix(_mean_row(rows)))
                 run.end_iteration(it + 1, force=stop.signame is not None)
                 if stop.signame is not None and it + 1 < iterations:
-                    raise RunInterrupted(run.writer.dir, it + 1, stop.signame)
+                    raise RunInterrupted(run.root.dir, it + 1, stop.signame)
     except BaseException:
         try:
             run.save_unsaved()
         finally:
-            run.writer.release()
+            run.release()
         raise
     finally:
         bar.close()
 
 
+def _mean_row(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The members' rows as one: the mean of each number (the row itself for one member)."""
+    if len(rows) == 1:
+        return dict(rows[0])
+    out = dict(rows[0])
+    for key, value in rows[0].items():
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            out[key] = statistics.fmean(float(r[key]) for r in rows)
+    return out
+
+
 def collector_loop(
     collector: Any,
     open_run: Callable[[], Run],
-    update: Callable[[Any], dict[str, Any]],
+    update: Callable[[Any], list[dict[str, Any]]],
     *,
     iterations: int,
     episodes_per_iteration: int,
@@ -243,21 +338,23 @@ def collector_loop(
 
     Opens the run (``open_run()``; a resumed run restores its state there), then for every
     collected batch: ``update(batch)`` (the policy update; returns the iteration's logged
-    fields), a weight sync to the worker processes when ``sync_weights``, one logged row
-    (``iteration``, ``episodes`` and the fields), a checkpoint when due and a progress-bar
-    step showing ``postfix(row)``. The collector is shut down however the loop ends (also
-    when the run cannot be opened). Returns the run for :func:`finish_run`.
+    fields, one dict per member), a weight sync to the worker processes when
+    ``sync_weights``, one logged row per member (``iteration``, ``episodes`` and the
+    fields), a checkpoint when due and a progress-bar step showing ``postfix(row)``. The
+    collector is shut down however the loop ends (also when the run cannot be opened).
+    Returns the run for :func:`finish_run`.
     """
     from hireps_torch.rollout import shutdown_collector
 
     try:
         run = open_run()
 
-        def step(it: int, batch: Any) -> dict[str, Any]:
-            fields = update(batch)
+        def step(it: int, batch: Any) -> list[dict[str, Any]]:
+            members = update(batch)
             if sync_weights:
                 collector.update_policy_weights_()
-            return {"iteration": it + 1, "episodes": (it + 1) * episodes_per_iteration, **fields}
+            count = {"iteration": it + 1, "episodes": (it + 1) * episodes_per_iteration}
+            return [count | fields for fields in members]
 
         _iterate(
             run,
@@ -275,7 +372,7 @@ def collector_loop(
 
 def ask_tell_loop(
     run: Run,
-    step: Callable[[int], dict[str, Any]],
+    step: Callable[[int], list[dict[str, Any]]],
     *,
     iterations: int,
     label: str,
@@ -283,7 +380,8 @@ def ask_tell_loop(
     progress: bool = True,
 ) -> Run:
     """Rounds ``run.start_iteration .. iterations - 1`` of ``step(it)`` (ask, evaluate, tell;
-    returns the logged row), one row, a checkpoint when due and one progress-bar step each.
+    returns the logged row of each member), a checkpoint when due and one progress-bar step
+    each.
     Returns the run for :func:`finish_run`."""
     _iterate(
         run,
@@ -299,21 +397,26 @@ def ask_tell_loop(
 
 def infinite_horizon_update(
     algo: Any,
-    row: Callable[[torch.Tensor, torch.Tensor], dict[str, Any]],
+    row: Callable[[torch.Tensor, torch.Tensor], list[dict[str, Any]]],
     augment: Callable[..., tuple[torch.Tensor, ...]] | None = None,
-) -> Callable[[Any], dict[str, Any]]:
-    """The per-batch step of the pendulum and the beam: one ``algo.update`` on the batch's
-    decisions (terminal ones flagged; passed through ``augment(s, a, r, s', terminated)``
-    first when given), then ``row(rewards, terminated)`` on the collected decisions for the
-    task's own columns (after the update) followed by the update's diagnostics."""
+) -> Callable[[Any], list[dict[str, Any]]]:
+    """The per-batch step of the pendulum and the beam: one ``algo.update`` of all members
+    on the batch's decisions ((S B, T) systems, member after member; terminal ones flagged;
+    passed through ``augment(s, a, r, s', terminated)`` first when given), then
+    ``row(rewards, terminated)`` ((S, B T) collected decisions) for the task's own columns
+    (after the update), each member's followed by its update diagnostics."""
     from hireps_torch.rollout import transitions
 
-    def update(batch: Any) -> dict[str, Any]:
+    def update(batch: Any) -> list[dict[str, Any]]:
+        S = algo.population
         s, a, r, s_next, _ = transitions(batch, "state")
         terminated = batch["next", "terminated"].reshape(-1)
-        data = (s, a, r, s_next, terminated)
+        data = tuple(x.reshape(S, -1, *x.shape[1:]) for x in (s, a, r, s_next, terminated))
         diag = algo.update(*(augment(*data) if augment is not None else data))
-        return {**row(r, terminated), **diag}
+        return [
+            fields | {key: value[m] for key, value in diag.items()}
+            for m, fields in enumerate(row(data[2], data[4]))
+        ]
 
     return update
 
@@ -323,21 +426,54 @@ def finish_run(
     *,
     curve: tuple[str, Sequence[str]],
     title: str,
-    summary: Mapping[str, Any],
+    summaries: Sequence[Mapping[str, Any]],
     ylabel: str = "return",
-    extra_plots: Iterable[Callable[[Path], None]] = (),
+    extra_plots: Sequence[Iterable[Callable[[Path], None]]] | None = None,
 ) -> dict[str, Any]:
-    """The ending of every run: the final ``checkpoint.pt`` (``finished``), the learning
-    curve ``learning_curve.png`` (columns ``curve[1]`` of ``metrics.csv`` against
-    ``curve[0]``), any ``extra_plots`` (each called with the run directory), then
-    ``summary.json`` (plus ``wall_seconds``), which marks the run finished. Returns the
-    summary."""
-    writer = run.writer
-    writer.checkpoint(run.snapshot(len(writer.rows), finished=True))
-    writer.plot_learning_curve(curve[0], list(curve[1]), title=title, ylabel=ylabel)
-    for plot in extra_plots:
-        plot(writer.dir)
-    return writer.finish(summary)
+    """The ending of every run: the final ``checkpoint.pt`` (``finished``); for each member
+    its learning curve ``learning_curve.png`` (columns ``curve[1]`` of ``metrics.csv``
+    against ``curve[0]``), its ``extra_plots`` (each called with its run directory), then its
+    ``summary.json`` (plus ``wall_seconds``), which marks it finished; for a population the
+    members' table and band plot and the population's ``summary.json``. Returns the summary
+    (of the one member, or of the population)."""
+    run.root.checkpoint(run.snapshot(len(run.writers[0].rows), finished=True))
+    plots = extra_plots or [[] for _ in run.writers]
+    written = []
+    for writer, summary, mine in zip(run.writers, summaries, plots, strict=True):
+        writer.plot_learning_curve(curve[0], list(curve[1]), title=title, ylabel=ylabel)
+        for plot in mine:
+            plot(writer.dir)
+        written.append(writer.finish(summary))
+    if not run.members.population:
+        return written[0]
+    return _population_summary(run, written)
+
+
+def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, Any]:
+    """``population.md``, ``population.json`` and ``population.png`` of the members (as a
+    sweep writes them), then the population's ``summary.json``; returns it."""
+    from experiments.sweep import METRICS, SweepRun, summarize
+
+    experiment, seeds, root = run.experiment.replace("_", "-"), run.members.seeds, run.root.dir
+    runs = [SweepRun(experiment, experiment, s, {}, root / f"seed{s}") for s in seeds]
+    results = {(experiment, s): summary for s, summary in zip(seeds, summaries, strict=True)}
+    print(summarize(runs, results, root, stem="population"))
+    metric = METRICS[experiment][0]
+    values = [float(s[metric]) for s in summaries]
+    out: dict[str, Any] = run.root.finish(
+        {
+            "experiment": experiment,
+            "seeds": seeds,
+            "metric": metric,
+            "mean": statistics.fmean(values),
+            "std": statistics.stdev(values) if len(values) > 1 else 0.0,
+            "per_seed": dict(zip(map(str, seeds), values, strict=True)),
+            "run_dir": str(root),
+            "summary": str(root / "population.md"),
+            "plot": str(root / "population.png"),
+        }
+    )
+    return out
 
 
 MAX_COUNT = 10**9

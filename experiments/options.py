@@ -24,7 +24,9 @@ __all__ = [
     "check_types",
     "config_dict",
     "option_error",
+    "member_seeds",
     "parse_seeds",
+    "stream_seed",
 ]
 
 
@@ -36,9 +38,9 @@ class RunOptions:
     """Seed of every random generator of the run (same seed, same run)."""
     seeds: str | None = None
     """Run these seeds as one population in one process (0-19, 0,3,7 or 0-2,9; bimodal,
-    pendulum and ball-on-beam): one ordinary run directory per seed, <run-dir>/seed<S>, plus
-    population.md, population.json and population.png (mean +- std band) in <run-dir>.
-    Replaces --seed."""
+    pendulum and ball-on-beam): member s writes what --seed s writes, in <run-dir>/seed<s>;
+    <run-dir> gets the population's config.json, checkpoint.pt, summary.json, population.md
+    and population.png (mean +- std band). Replaces --seed."""
     run_dir: Path | None = None
     """Where to write the run (default runs/<experiment>/<timestamp>); must not exist or be
     empty."""
@@ -52,10 +54,9 @@ class RunOptions:
     logger: LoggerName = "csv"
     """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
     device: str = "cpu"
-    """Where a population run (--seeds) computes: cpu, cuda, cuda:1, ... The policies, the
-    batched simulation and the float64 duals live there; the sampling generators stay on
-    the CPU, so a seed draws the same noise on every device. Ordinary runs and hockey
-    (pybullet) run on the CPU."""
+    """Where the run computes: cpu, cuda, cuda:1, ... The policies, the batched simulation
+    and the float64 duals live there; the sampling generators stay on the CPU, so a seed
+    draws the same noise on every device. Hockey (pybullet) runs on the CPU."""
 
     def check_run_options(self) -> None:
         """Refuse bad run options before anything is built or written: every option of the
@@ -67,12 +68,7 @@ class RunOptions:
             raise ValueError(f"seed must be an integer in [-2**62, 2**62], got {self.seed}")
         if self.seeds is not None:
             parse_seeds(self.seeds)
-            if self.resume is not None:
-                raise ValueError(
-                    "--seeds starts a population run; resume its members one by one, or run "
-                    "the population again (--resume takes one run directory)"
-                )
-        check_run_device(self.device, self.seeds)
+        check_run_device(self.device)
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
         if self.resume is not None and self.run_dir is not None:
@@ -85,10 +81,9 @@ class RunOptions:
             check_new_run_dir(Path(self.run_dir))
 
 
-def check_run_device(device: str, seeds: str | None) -> torch.device:
-    """``--device`` as a ``torch.device``: a name torch knows, present on this machine, and
-    other than the CPU only for a population run (``--seeds``); a ``ValueError`` naming it
-    otherwise."""
+def check_run_device(device: str) -> torch.device:
+    """``--device`` as a ``torch.device``: a name torch knows, present on this machine; a
+    ``ValueError`` naming it otherwise."""
     try:
         dev = check_device(device)
     except ValueError:
@@ -99,14 +94,27 @@ def check_run_device(device: str, seeds: str | None) -> torch.device:
         check_present_device(dev)
     except ValueError as exc:
         raise option_error("device", device, f"a device present here ({exc})") from None
-    if dev.type != "cpu" and seeds is None:
-        raise option_error(
-            "device",
-            device,
-            "cpu for an ordinary run (a population run takes another device: --seeds S "
-            "--device cuda runs seed S alone on it)",
-        )
     return dev
+
+
+STREAMS = ("policy", "sampling", "env", "eval", "contexts")
+"""The named random streams of a run, each seeded by :func:`stream_seed`."""
+
+
+def stream_seed(seed: int, stream: str) -> int:
+    """The seed of stream ``stream`` (one of :data:`STREAMS`) of the run with ``seed``, in
+    [0, 2**32) (what torch, numpy and TorchRL's workers all take): the one place where a
+    run's generators get their seeds (numpy's ``SeedSequence`` of ``(seed, stream index)``:
+    streams of one run, and of neighbouring seeds, are unrelated)."""
+    import numpy as np
+
+    entropy = (seed % 2**64, STREAMS.index(stream))
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
+
+
+def member_seeds(cfg: RunOptions) -> list[int]:
+    """The seeds a run learns: ``--seeds`` (a population), else ``[--seed]``."""
+    return [cfg.seed] if cfg.seeds is None else parse_seeds(cfg.seeds)
 
 
 def check_new_run_dir(run_dir: Path) -> None:

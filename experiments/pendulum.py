@@ -9,20 +9,18 @@ at the end.
 from __future__ import annotations
 
 import math
-import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
 
+from environments._common import MemberTasks, ScalarActionBatchEnv
 from environments.pendulum import (
     PendulumParams,
-    PendulumSwingUpBatchEnv,
     PendulumTask,
     SwingUpEvaluation,
     evaluate_swing_up,
-    evaluate_swing_up_members,
     mirror_decisions,
     sample_start,
 )
@@ -42,9 +40,10 @@ from experiments.options import (
     check_fourier_bases,
     check_options,
     check_variance_floor,
+    member_seeds,
     option_error,
+    stream_seed,
 )
-from experiments.population import Members, TaskPopulation, member_row, population_loop
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy
@@ -56,7 +55,6 @@ __all__ = [
     "pendulum_quadratic_features",
     "pendulum_value_features",
     "run",
-    "run_population",
 ]
 
 
@@ -194,47 +192,58 @@ def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> Hi
     )
 
 
-def _make_algorithm(cfg: PendulumConfig, params: PendulumParams) -> InfiniteHorizonHiREPS:
-    """Seed everything from ``cfg.seed`` and build the policy and the algorithm (value
-    features, 1000 start states for phi_hat_0)."""
-    torch.manual_seed(cfg.seed)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    policy = build_pendulum_policy(cfg, gen)
+def _make_algorithm(
+    cfg: PendulumConfig, params: PendulumParams, seeds: list[int]
+) -> InfiniteHorizonHiREPS:
+    """The members' policies and the algorithm (value features, 1000 start states per member
+    for phi_hat_0), member s's from the streams of ``seeds[s]``."""
+    gens = [torch.Generator().manual_seed(stream_seed(s, "policy")) for s in seeds]
+    policy = HierarchicalPolicy.stack([build_pendulum_policy(cfg, g) for g in gens])
     return InfiniteHorizonHiREPS(
         policy,
         pendulum_value_features(cfg),
-        sample_start(1000, params, gen),
+        torch.stack([sample_start(1000, params, g) for g in gens]),
         gamma=params.gamma,
         epsilon=cfg.epsilon,
         kappa_rel=cfg.kappa_rel if cfg.gating == "learned" else None,
         prune_threshold=1e-4 if cfg.gating == "learned" else 0.0,
+        seed=[stream_seed(s, "sampling") for s in seeds],
     )
 
 
 def _make_collector(
-    cfg: PendulumConfig, policy: HierarchicalPolicy, params: PendulumParams, iterations: int
+    cfg: PendulumConfig,
+    algo: InfiniteHorizonHiREPS,
+    params: PendulumParams,
+    iterations: int,
+    seeds: list[int],
 ) -> Any:
-    """``episodes_per_iteration`` pendulums (split over the workers), ``episode_seconds`` of
-    decisions each per batch."""
+    """``episodes_per_iteration`` pendulums per member (split over the workers for one
+    member), ``episode_seconds`` of decisions each per batch."""
     from hireps_torch.rollout import make_collector, policy_module
 
-    B = cfg.episodes_per_iteration
+    B, dev = cfg.episodes_per_iteration, torch.device(cfg.device)
     decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
     per_worker = B // cfg.workers
-    env_seed = cfg.seed + 1
 
-    def make_env() -> PendulumSwingUpBatchEnv:
-        return PendulumSwingUpBatchEnv(per_worker, params, seed=env_seed)
+    def make_env() -> ScalarActionBatchEnv:
+        tasks = [
+            PendulumTask(per_worker, params, seed=stream_seed(s, "env"), device=dev) for s in seeds
+        ]
+        return ScalarActionBatchEnv(MemberTasks(tasks))
 
-    frames = B * decisions
+    actor = policy_module(algo.policy)
+    if cfg.workers == 1:  # each member explores with its own generator
+        actor.module.generator = algo.generator
+    frames = len(seeds) * B * decisions
     return make_collector(
         make_env,
-        policy_module(policy),
+        actor,
         frames_per_batch=frames,
         total_frames=frames * iterations,
         num_workers=cfg.workers,
         reset_at_each_iter=cfg.reset_each_iteration,
-        seed=env_seed,
+        seed=stream_seed(seeds[0], "env") if cfg.workers > 1 else None,
     )
 
 
@@ -265,6 +274,8 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
             cfg.episode_seconds,
             f"at most {MAX_DECISIONS:.0e} decisions of {params.decision_seconds} s",
         )
+    if cfg.workers > 1 and cfg.seeds is not None:
+        raise option_error("workers", cfg.workers, "1 for a population (one batched process)")
     if cfg.workers > 1 and B % cfg.workers:
         raise ValueError(
             f"episodes_per_iteration ({B}) must be divisible by workers ({cfg.workers})"
@@ -275,33 +286,43 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
 def check(cfg: PendulumConfig) -> None:
     """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
     params, _ = _checked(cfg)
-    _make_algorithm(cfg, params)
+    _make_algorithm(cfg, params, member_seeds(cfg)[:1])
 
 
 def run(cfg: PendulumConfig) -> dict[str, Any]:
-    """Infinite-horizon HiREPS on the swing-up; returns the summary."""
+    """Infinite-horizon HiREPS on the swing-up, one seed or a population; returns the
+    summary."""
     params, iterations = _checked(cfg)
     B = cfg.episodes_per_iteration
     resume = resume_point("pendulum", cfg)
-    algo = _make_algorithm(cfg, params)
-    policy = algo.policy
-    collector = _make_collector(cfg, policy, params, iterations)
+    seeds = member_seeds(cfg)
+    algo = _make_algorithm(cfg, params, seeds).to(cfg.device)
+    policy, dev = algo.policy, algo.device
+    collector = _make_collector(cfg, algo, params, iterations, seeds)
     label = _label(cfg)
     state = RunState(algo, env=BatchedTaskState(collector, carry=not cfg.reset_each_iteration))
+    eval_seeds = [stream_seed(s, "eval") for s in seeds]
 
-    def act(states: torch.Tensor) -> torch.Tensor:
-        return policy.mean_action(states)[0]
+    def evaluate() -> list[SwingUpEvaluation]:
+        return evaluate_swing_up(
+            lambda x: policy.mean_action(x.to(dev))[0].cpu(),
+            params,
+            n_rollouts=cfg.eval_rollouts,
+            seed=eval_seeds,
+        )
 
-    def evaluate() -> Any:
-        return evaluate_swing_up(act, params, n_rollouts=cfg.eval_rollouts, seed=cfg.seed + 777)
-
-    def row(r: torch.Tensor, _: torch.Tensor) -> dict[str, Any]:
-        out = {"average_return": float(r.mean()) / params.steps_per_decision}
+    def rows(r: torch.Tensor, _: torch.Tensor) -> list[dict[str, Any]]:
         due = cfg.eval_every > 0 and algo.iteration % cfg.eval_every == 0
-        ev = evaluate() if due else None
-        out["eval_success_rate"] = ev.success_rate if ev is not None else math.nan
-        out["eval_return"] = ev.average_return if ev is not None else math.nan
-        return out
+        evs = evaluate() if due else None
+        average = (r.mean(-1) / params.steps_per_decision).tolist()
+        return [
+            {
+                "average_return": average[m],
+                "eval_success_rate": math.nan if evs is None else evs[m].success_rate,
+                "eval_return": math.nan if evs is None else evs[m].average_return,
+            }
+            for m in range(len(seeds))
+        ]
 
     session = collector_loop(
         collector,
@@ -310,7 +331,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
             cfg,
             algo,
             iterations,
-            infinite_horizon_update(algo, row, mirror_decisions if cfg.mirror_samples else None),
+            infinite_horizon_update(algo, rows, mirror_decisions if cfg.mirror_samples else None),
         ),
         iterations=iterations,
         episodes_per_iteration=B,
@@ -319,12 +340,18 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         sync_weights=cfg.workers > 1,
         progress=cfg.progress,
     )
-
+    final = evaluate()
+    active = policy.active.sum(-1).tolist()
     return finish_run(
         session,
         curve=("episodes", ["average_return"]),
         title=label,
-        summary=_summary(cfg, session.rows, evaluate(), iterations, int(policy.active.sum())),
+        summaries=[
+            _summary(c, r, ev, iterations, int(n))
+            for c, r, ev, n in zip(
+                session.members.configs, session.rows, final, active, strict=True
+            )
+        ],
     )
 
 
@@ -375,103 +402,3 @@ def _summary(
         "reached_upright_share": ev.reached_share,
         "n_active_options": n_active,
     }
-
-
-def run_population(cfg: PendulumConfig, members: Members) -> list[dict[str, Any]]:
-    """``train.py pendulum --seeds ...``: the seeds as one population (see
-    :mod:`experiments.population`). All members' ``S x episodes_per_iteration`` pendulums
-    are stepped in one batched simulation (no TorchRL collector, no workers); member s's
-    policy, value features and start states are those of ``--seed s``, its exploration and
-    its pendulums' restarts come from its own generators. Returns the members' summaries."""
-    if cfg.workers != 1:
-        raise option_error("workers", cfg.workers, "1 for a population (one batched process)")
-    params, iterations = _checked(cfg)
-    seeds = members.seeds
-    S, B = len(seeds), cfg.episodes_per_iteration
-    gens = [torch.Generator().manual_seed(s) for s in seeds]
-    for s in seeds:
-        torch.manual_seed(s)  # as the ordinary run: nothing of the population draws from it
-    policy = HierarchicalPolicy.stack([build_pendulum_policy(cfg, g) for g in gens])
-    algo = InfiniteHorizonHiREPS(
-        policy,
-        pendulum_value_features(cfg),
-        torch.stack([sample_start(1000, params, g) for g in gens]),
-        gamma=params.gamma,
-        epsilon=cfg.epsilon,
-        kappa_rel=cfg.kappa_rel if cfg.gating == "learned" else None,
-        prune_threshold=1e-4 if cfg.gating == "learned" else 0.0,
-        seed=[s + 1 for s in seeds],
-    )
-    dev = torch.device(cfg.device)
-    algo.to(dev)  # the policy with it
-    env = TaskPopulation([PendulumTask(B, params, seed=s + 1, device=dev) for s in seeds])
-    decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
-    eval_seeds = [s + 777 for s in seeds]
-
-    def evaluate() -> list[SwingUpEvaluation]:
-        return evaluate_swing_up_members(
-            lambda x: policy.mean_action(x.to(dev))[0].cpu(),
-            params,
-            seeds=eval_seeds,
-            n_rollouts=cfg.eval_rollouts,
-        )
-
-    def step(it: int) -> list[dict[str, Any]]:
-        algo.epsilon = epsilon_at(cfg, algo.iteration, iterations)
-        if cfg.reset_each_iteration:
-            env.reset()
-        data = env.collect(algo.sample, decisions)
-        if cfg.mirror_samples:
-            data = mirror_members(*data)
-        diag = algo.update(*data)
-        due = cfg.eval_every > 0 and algo.iteration % cfg.eval_every == 0
-        evs = evaluate() if due else None
-        r = data[2][:, : B * decisions]  # the collected decisions (the mirror images follow)
-        return [
-            {
-                "iteration": it + 1,
-                "episodes": (it + 1) * B,
-                "average_return": float(r[m].mean()) / params.steps_per_decision,
-                "eval_success_rate": math.nan if evs is None else evs[m].success_rate,
-                "eval_return": math.nan if evs is None else evs[m].average_return,
-            }
-            | member_row(diag, m)
-            for m in range(S)
-        ]
-
-    population_loop(
-        members,
-        step,
-        iterations=iterations,
-        label=f"{_label(cfg)}/{S} seeds",
-        postfix=lambda rows: {
-            "ret": f"{statistics.fmean(r['average_return'] for r in rows):.1f}",
-            "kl": f"{statistics.fmean(r['kl'] for r in rows):.2f}",
-        },
-        progress=cfg.progress,
-    )
-    final = evaluate()
-    active = policy.active.sum(-1).tolist()
-    rows = [w.rows for w in members.writers]
-    return members.finish(
-        [
-            _summary(c, r, ev, iterations, int(n))
-            for c, r, ev, n in zip(members.configs, rows, final, active, strict=True)
-        ],
-        curve=("episodes", ["average_return"]),
-        title=_label(cfg),
-    )
-
-
-def mirror_members(
-    states: torch.Tensor,
-    actions: torch.Tensor,
-    rewards: torch.Tensor,
-    next_states: torch.Tensor,
-    terminated: torch.Tensor,
-) -> tuple[torch.Tensor, ...]:
-    """:func:`~environments.pendulum.mirror_decisions` of each member: (S, N, ...) ->
-    (S, 2 N, ...), the mirror images after the decisions."""
-    data = (states, actions, rewards, next_states, terminated)
-    both = mirror_decisions(*(x.transpose(0, 1) for x in data))
-    return tuple(x.transpose(0, 1).contiguous() for x in both)

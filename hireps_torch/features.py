@@ -138,11 +138,11 @@ class FourierFeatures(FeatureMap):
     c = 0 is left out (see the module docstring). The paper's value functions use five bases.
 
     Args:
-        low: (S,) lower corner of the state box.
-        high: (S,) upper corner, > low.
-        n_bases: frequencies per dimension, >= 2; or (S,) counts >= 1 per dimension, at
+        low: (C,) lower corner of the state box.
+        high: (C,) upper corner, > low.
+        n_bases: frequencies per dimension, >= 2; or (C,) counts >= 1 per dimension, at
             least one of them >= 2.
-        periodic: (S,) bools, or None for none.
+        periodic: (C,) bools, or None for none.
         coupling: most dimensions one term may couple, in 1..S; None: all (S).
     """
 
@@ -163,8 +163,8 @@ class FourierFeatures(FeatureMap):
         hi = as_float_tensor("high", high)
         if lo.dim() != 1 or lo.shape != hi.shape:
             raise ValueError(
-                f"low and high must both have shape (S,), got {tuple(lo.shape)} and "
-                f"{tuple(hi.shape)}"
+                f"low and high must both have shape (C,) (C: the state dimension), got "
+                f"{tuple(lo.shape)} and {tuple(hi.shape)}"
             )
         finite = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all())
         if lo.shape != hi.shape or not finite or not bool((hi > lo).all()):

@@ -43,12 +43,14 @@ __all__ = [
 
 
 class PolicyActor(nn.Module):
-    """``observation (B, S) -> action (B, A), option (B,)`` for a :class:`HierarchicalPolicy`.
+    """``observation (B, C) -> action (B, A), option (B,)`` for a :class:`HierarchicalPolicy`.
 
     At each call (each decision) an option is drawn from the gating and an action from that
     option (from ``self.generator`` when set, else the global torch RNG, so
     ``torch.manual_seed`` makes runs repeat); with ``deterministic=True`` the mean of the most
-    probable option is returned instead. The action has the observation's dtype.
+    probable option is returned instead. The action has the observation's dtype. A
+    population of S policies takes the S B systems of its members, member after member
+    (observation (S B, C)), and may sample with one generator per member.
     """
 
     def __init__(self, policy: HierarchicalPolicy, deterministic: bool = False) -> None:
@@ -56,12 +58,13 @@ class PolicyActor(nn.Module):
         _check_policies([policy])
         self.policy = policy
         self.deterministic = deterministic
-        self.generator: torch.Generator | None = None
+        self.generator: torch.Generator | list[torch.Generator] | None = None
 
     @torch.no_grad()
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         lead = observation.shape[:-1]
-        s = observation.reshape(-1, observation.shape[-1]).to(torch.float64)
+        members = self.policy.batch_shape
+        s = observation.reshape(*members, -1, observation.shape[-1]).to(torch.float64)
         if self.deterministic:
             a, o = self.policy.mean_action(s)
         else:
@@ -268,7 +271,7 @@ def episodes(
     gathers them from episodes of exactly K steps); the ``done`` flags are checked.
 
     Returns:
-        states (N, K, S), actions (N, K, A), rewards (N, K) and final states (N, S), float64.
+        states (N, K, C), actions (N, K, A), rewards (N, K) and final states (N, C), float64.
     """
     K = check_count("K", K, 1)
     flat = batch.reshape(-1)
@@ -293,7 +296,7 @@ def transitions(
     """Flatten a collected (..., T) batch into decision samples.
 
     Returns:
-        states (N, S), actions (N, A), rewards (N,), next_states (N, S) (float64; the state
+        states (N, C), actions (N, A), rewards (N,), next_states (N, C) (float64; the state
         reached by the decision, before a reset) and options (N,) int64.
     """
     flat = batch.reshape(-1)

@@ -33,6 +33,7 @@ from environments import (
 from environments.ball_on_beam import BeamParams, beam_step, evaluate_beam
 from environments.ball_on_beam import sample_start as beam_start
 from environments.pendulum import PendulumParams, evaluate_swing_up, pendulum_step, sample_start
+from experiments.checkpoint import FORMAT
 from hireps_torch import EpisodicHiREPS, Experience, InfiniteHorizonHiREPS, TimeIndexedHiREPS
 from hireps_torch.dual import (
     solve_episodic_dual,
@@ -987,7 +988,11 @@ def unfinished_copy(finished_run, tmp_path, name="run"):
         (lambda d: (d / "config.json").write_text("{nope"), r"config.json cannot be read as JSON"),
         (lambda d: (d / "config.json").write_text("[1, 2]"), "holds a JSON list, not the options"),
         (lambda d: torch.save([1, 2], d / "checkpoint.pt"), "holds a list, not a checkpoint"),
-        (lambda d: torch.save({"format": 1}, d / "checkpoint.pt"), "not a complete checkpoint"),
+        (
+            lambda d: torch.save({"format": FORMAT}, d / "checkpoint.pt"),
+            "not a complete checkpoint",
+        ),
+        (lambda d: torch.save({"format": 1}, d / "checkpoint.pt"), "another version of this code"),
         (
             lambda d: torch.save(
                 {

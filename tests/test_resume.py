@@ -124,12 +124,15 @@ def same_tree(a, b):
     return a == b
 
 
-def assert_same_run(run, reference):
+def assert_same_run(run, reference, checkpoint=True):
     assert (run / "metrics.csv").read_bytes() == (reference / "metrics.csv").read_bytes()
     sa, sb = (json.loads((d / "summary.json").read_text()) for d in (run, reference))
     for key in TIMING:
         sa.pop(key, None), sb.pop(key, None)
     assert sa == sb
+    assert not list(run.glob(".*.tmp")), "a temporary file was left behind"
+    if not checkpoint:
+        return
     ca, cb = (torch.load(d / "checkpoint.pt") for d in (run, reference))  # weights_only=True
     assert same_tree(ca["algorithm"], cb["algorithm"])
     assert ca["finished"] and cb["finished"]
@@ -271,10 +274,11 @@ def test_the_final_checkpoint_loads_with_weights_only_and_gives_the_same_actions
     ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     assert ckpt["iteration"] == summary["iterations"] == 3 and ckpt["finished"]
     task = bimodal.ContextualTwoGaussians(width=1.0)  # the config's bump_width
-    algo = bimodal._make_algorithm(bimodal.BimodalConfig(contextual=True), task)
-    algo.load_state_dict(ckpt["algorithm"])
+    algo = bimodal._make_algorithm(bimodal.BimodalConfig(contextual=True), task, [0])
+    algo.load_state_dict(ckpt["algorithm"])  # a population of one member
     ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None]  # the evaluation grid
-    assert float(task(ctx, algo.act(ctx)).mean()) == pytest.approx(summary["final_return"], abs=0.0)
+    acts = algo.act(ctx[None])[0]
+    assert float(task(ctx, acts).mean()) == pytest.approx(summary["final_return"], abs=0.0)
 
 
 @pytest.mark.parametrize("keep", [100, 0], ids=["truncated", "empty"])
@@ -445,18 +449,33 @@ def test_two_resumes_at_once_log_every_iteration_once(tmp_path):
     assert [int(r["iteration"]) for r in rows(run)] == list(range(1, 31))
 
 
-def test_an_interrupted_population_says_what_it_kept_and_how_to_run_again(tmp_path):
-    """SIGINT to a population: no word of a checkpoint it does not write, the rows kept, and
-    the advice given (another directory) works."""
-    run = tmp_path / "pop"
-    args = ["bimodal", "--seeds", "0-1", "--episodes", "200000", "--samples-per-iteration", "20"]
-    out = stop_run(args, run, 2, watch=run / "seed0" / "metrics.csv")
-    err = out.err
-    assert out.code == 130, err
-    assert "checkpoint" not in err.replace("write no checkpoint", "")
-    assert "population runs write no checkpoint" in err
-    assert f"move {run} away or pass another --run-dir" in err
-    assert len(rows(run / "seed1")) >= 1 and not (run / "seed0" / "checkpoint.pt").exists()
+POPULATIONS = {
+    "pendulum": ({"episodes": 120, "episode_seconds": 1.0, "eval_rollouts": 1}, 2),
+    "ball-on-beam": ({"episodes": 15, "eval_episodes": 2}, 2),
+}
+
+
+@pytest.mark.parametrize("name", list(POPULATIONS))
+def test_an_interrupted_and_resumed_population_equals_the_uninterrupted_one(tmp_path, name):
+    """SIGINT to a population of three seeds mid-run, then --resume of its directory: every
+    member's metrics.csv, summary.json (but its wall time) and final policy, and the
+    population's checkpoint, as without the interruption."""
+    options, after = POPULATIONS[name]
+    options = {**options, "seeds": "4,7,9"}
+    in_process(name, tmp_path / "full", **options)
+    run = tmp_path / "run"
+    out = stop_run([name, *cli(options)], run, after, watch=run / "seed9" / "metrics.csv")
+    assert out.code == 130, out.err
+    assert f"--resume {run}" in out.err
+    ckpt = torch.load(run / "checkpoint.pt")
+    assert 0 < ckpt["iteration"] < len(rows(tmp_path / "full" / "seed4"))
+    assert not (run / "summary.json").exists()
+    resume_in_process(name, run)
+    for seed in (4, 7, 9):
+        assert_same_run(run / f"seed{seed}", tmp_path / "full" / f"seed{seed}", checkpoint=False)
+    ca, cb = (torch.load(d / "checkpoint.pt") for d in (run, tmp_path / "full"))
+    assert same_tree(ca["algorithm"], cb["algorithm"]) and ca["finished"]
+    assert (run / "population.md").is_file() and (run / "summary.json").is_file()
 
 
 WORKER_RUNS = {

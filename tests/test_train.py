@@ -317,27 +317,33 @@ def test_pendulum_policy_and_value_features_follow_the_config():
 
 
 def test_pendulum_update_can_add_the_mirrored_decisions():
+    """The update of a population of two: each member's decisions (its systems, after the
+    other's in the batch), then their mirror images; the rows see the collected ones only."""
     from environments.pendulum import PendulumSwingUpBatchEnv, mirror_decisions, mirror_states
     from experiments.loop import infinite_horizon_update
 
     seen = {}
 
     class Recorder:
+        population = 2
+
         def update(self, *data):
             seen["data"] = data
-            return {"eta": 1.0}
+            return {"eta": [1.0, 2.0]}
 
-    env = PendulumSwingUpBatchEnv(4, seed=0)
+    env = PendulumSwingUpBatchEnv(4, seed=0)  # two members of two pendulums
     batch = env.rollout(3, break_when_any_done=False)
     batch["option"] = torch.zeros(4, 3, dtype=torch.int64)
-    row = infinite_horizon_update(Recorder(), lambda r, _: {"n": r.numel()}, mirror_decisions)(
-        batch
-    )
-    assert row == {"n": 12, "eta": 1.0}  # the row sees the collected decisions only
+    rows = infinite_horizon_update(
+        Recorder(), lambda r, _: [{"n": x.numel()} for x in r], mirror_decisions
+    )(batch)
+    assert rows == [{"n": 6, "eta": 1.0}, {"n": 6, "eta": 2.0}]
     s, a, r, s_next, term = seen["data"]
-    assert s.shape == (24, 2) and a.shape == (24, 1) and term.shape == (24,)
-    assert torch.equal(s[12:], mirror_states(s[:12])) and torch.equal(a[12:], -a[:12])
-    assert torch.equal(r[12:], r[:12]) and torch.equal(s_next[12:], mirror_states(s_next[:12]))
+    assert s.shape == (2, 12, 2) and a.shape == (2, 12, 1) and term.shape == (2, 12)
+    states = batch["state"].to(torch.float64).reshape(2, 6, 2)  # member after member
+    assert torch.equal(s[:, :6], states) and torch.equal(s[:, 6:], mirror_states(states))
+    assert torch.equal(a[:, 6:], -a[:, :6]) and torch.equal(r[:, 6:], r[:, :6])
+    assert torch.equal(s_next[:, 6:], mirror_states(s_next[:, :6]))
 
 
 def test_every_experiment_is_registered_with_its_config_and_run():

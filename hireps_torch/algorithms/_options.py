@@ -252,9 +252,15 @@ def apply_refit(
         "pruned": pruned,
         "refitted": each(informed, bool),
         "dual_converged": each(converged, bool),
-        "dual_iterations": per_member(sol.iterations, lead),
+        "dual_iterations": dual_iterations(sol, lead),
         "feature_error": error,
     }
+
+
+def dual_iterations(sol: PopulationDualSolution, lead: tuple[int, ...]) -> Any:
+    """Each member's dual iterations (one number for one run)."""
+    counts = [sol.iterations_of(m) for m in range(math.prod(lead))]
+    return counts if lead else counts[0]
 
 
 def each(values: Any, fn: Any) -> Any:

@@ -64,12 +64,12 @@ class Experience:
     N samples (episodes, or decisions for the infinite horizon) of K decision steps each.
 
     Attributes:
-        states: (N, K, S): contexts (episodic, K = 1; S = 0 without context), the state at
+        states: (N, K, C): contexts (episodic, K = 1; C = 0 without context), the state at
             each decision step (time-indexed), decision states (infinite horizon, K = 1).
         actions: (N, K, D) the parameters / actions drawn with :meth:`Algorithm.sample`.
         rewards: (N, K) returns (episodic), per-step rewards (time-indexed), the reward of each
             decision (infinite horizon). Higher is better.
-        next_states: (N, K, S) the states the decisions led to: infinite horizon only.
+        next_states: (N, K, C) the states the decisions led to: infinite horizon only.
         terminated: (N, K) bool, the decision ended in a terminal state: infinite horizon
             only, optional.
     """
@@ -104,7 +104,7 @@ class Algorithm(Protocol):
         ...
 
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """Exploring actions (N, D) for states (N, S) at decision step ``step``, drawn with the
+        """Exploring actions (N, D) for states (N, C) at decision step ``step``, drawn with the
         algorithm's own seeded generator."""
         ...
 
@@ -220,7 +220,7 @@ def fresh_policies(
     Args:
         means: each policy's ``init_mean``: (D,), (O, D) or None (zeros).
         n_options: options per policy.
-        state_dim: S (0: no context).
+        state_dim: C (0: no context).
         action_dim: D.
         seed: seed of the initial option means.
         **policy_kwargs: see :class:`PolicyKwargs`.
@@ -301,8 +301,8 @@ def check_experience(
 ) -> int:
     """Check the shapes of ``experience`` for an algorithm with K = ``n_steps`` steps.
 
-    States (N, K, S), actions (N, K, D), rewards (N, K); with ``transitions`` next_states
-    (N, K, S) and optionally terminated (N, K) bool, which must be None otherwise; a
+    States (N, K, C), actions (N, K, D), rewards (N, K); with ``transitions`` next_states
+    (N, K, C) and optionally terminated (N, K) bool, which must be None otherwise; a
     population of P puts P in front of every shape. The values are checked by the update
     itself. Returns N.
     """

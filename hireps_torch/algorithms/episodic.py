@@ -147,7 +147,7 @@ class EpisodicHiREPS(HiREPSBase):
 
         Args:
             param_dim: D.
-            context_dim: S (0: no context).
+            context_dim: C (0: no context).
             n_options: O.
             init_mean: (D,) or (O, D) initial option means; zeros by default.
             epsilon: KL bound.
@@ -178,7 +178,7 @@ class EpisodicHiREPS(HiREPSBase):
 
     # ---- input handling ---------------------------------------------------------------------
     def _contexts(self, contexts: Tensor | int | None, n: int | None = None) -> Tensor:
-        """Contexts (N, S) as checked float64, from a tensor, or from a count / None without
+        """Contexts (N, C) as checked float64, from a tensor, or from a count / None without
         context (``n``: the number of samples that None stands for)."""
         if _is_count(contexts):
             if self.context_dim > 0:
@@ -249,7 +249,7 @@ class EpisodicHiREPS(HiREPSBase):
         """Sample one parameter vector per context.
 
         Args:
-            contexts: (N, S) contexts, or the number of samples N >= 1 when there is no
+            contexts: (N, C) contexts, or the number of samples N >= 1 when there is no
                 context; a population: (S, N, C) or the count.
 
         Returns:
@@ -274,7 +274,7 @@ class EpisodicHiREPS(HiREPSBase):
         failing refit raises and leaves the algorithm as it was.
 
         Args:
-            contexts: (N, S) contexts of the samples (None or N without context).
+            contexts: (N, C) contexts of the samples (None or N without context).
             params: (N, D) parameters returned by :meth:`ask`.
             returns: (N,) their returns (higher is better); exactly (N,): an (N, 1) or
                 (1, N) tensor is refused.
@@ -317,12 +317,12 @@ class EpisodicHiREPS(HiREPSBase):
         return (self.policy,)
 
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`ask` for contexts (N, S) (S = 0 without context); ``step`` must be 0."""
+        """:meth:`ask` for contexts (N, C) (C = 0 without context); ``step`` must be 0."""
         check_step(step, 1)
         return self.ask(states)
 
     def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`act` for contexts (N, S); ``step`` must be 0."""
+        """:meth:`act` for contexts (N, C); ``step`` must be 0."""
         check_step(step, 1)
         return self.act(states)
 

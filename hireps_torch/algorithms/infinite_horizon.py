@@ -76,8 +76,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
     Args:
         policy: the hierarchical policy (updated in place); its context is the state.
         value_features: features phi(s) of the value function (e.g. :class:`FourierFeatures`).
-        initial_states: (M, S) draws from the start distribution; phi_hat_0 is their mean
-            feature vector (a population: shared, or (P, M, S), one set per member).
+        initial_states: (M, C) draws from the start distribution; phi_hat_0 is their mean
+            feature vector (a population: shared, or (S, M, C), one set per member).
         gamma: 1 - restart probability per decision, in (0, 1).
         epsilon: KL bound per iteration, > 0.
         kappa_rel: entropy bound as a fraction of the current mean option entropy; None: off.
@@ -117,7 +117,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         if policy.context_dim != S:
             raise ValueError(
                 f"the policy takes states of dimension {policy.context_dim} but the value "
-                f"features take S = {S}"
+                f"features take C = {S}"
             )
         self.policy = policy
         self.value_features = value_features.to(self.device)  # where the policy is
@@ -152,10 +152,10 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         randn`` (see :meth:`HierarchicalPolicy.create`).
 
         Args:
-            state_dim: S, >= 1.
+            state_dim: C, the state dimension, >= 1.
             action_dim: A.
             value_features: features phi(s) of the value function, ``in_features = S``.
-            initial_states: (M, S) draws from the start distribution.
+            initial_states: (M, C) draws from the start distribution.
             gamma: 1 - restart probability per decision, in (0, 1).
             n_options: O.
             init_mean: (A,) or (O, A) initial option means; zeros by default.
@@ -195,7 +195,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         )
 
     def value(self, states: Tensor) -> Tensor:
-        """Current value estimate v^T phi(s) (from the last dual solve): (N, S) -> (N,) (a
+        """Current value estimate v^T phi(s) (from the last dual solve): (N, C) -> (N,) (a
         population: (S, N, S_dim) -> (S, N))."""
         phi = self.value_features(self._states(states))
         return (phi @ self.value_weights[..., None])[..., 0]
@@ -267,10 +267,10 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         failing refit raises and leaves the algorithm as it was.
 
         Args:
-            states: (N, S) states where the decisions were taken.
+            states: (N, C) states where the decisions were taken.
             actions: (N, A) actions taken.
             rewards: (N,) reward of each decision (exactly (N,): (N, 1) is refused).
-            next_states: (N, S) states reached (before any restart).
+            next_states: (N, C) states reached (before any restart).
             terminated: optional (N,) bool, the decision ended the episode in a terminal state
                 (e.g. a ball that fell off). The process then restarts for sure, so the next
                 state's expected features are those of the start distribution, phi_hat_0,
@@ -339,7 +339,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
     @torch.no_grad()
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """Exploring actions (N, A) for states (N, S), drawn with the algorithm's generator;
+        """Exploring actions (N, A) for states (N, C), drawn with the algorithm's generator;
         ``step`` must be 0."""
         check_step(step, 1)
         return self.policy.sample(self._states(states), self.generator)[0]

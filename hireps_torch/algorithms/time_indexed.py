@@ -7,7 +7,7 @@ R_k is received; the next state s_{k+1} depends on s_k and theta_k. Each iterati
 Neumann & Peters, "Hierarchical Relative Entropy Policy Search", time-indexed formulation):
 
 1. ``ask(k, states)`` / rollout: the caller runs N episodes, drawing theta_k,i ~ pi_k(. | s_k,i)
-   step after step, and records states (N, K, S), parameters (N, K, D) and rewards (N, K).
+   step after step, and records states (N, K, C), parameters (N, K, D) and rewards (N, K).
 2. ``tell``: per step, the responsibilities p~_k,io = p_k(o | s_k,i, theta_k,i) of the sampling
    policy and the entropy bound kappa_k = kappa_rel * mean_i H[p~_k,i.]; the time-indexed dual
    (:func:`hireps_torch.dual.solve_time_indexed_dual`) gives per-step weights
@@ -38,6 +38,7 @@ from torch import Tensor
 
 from hireps_torch.algorithms._options import (
     apply_refit,
+    dual_iterations,
     each,
     option_bound,
     per_member,
@@ -166,7 +167,7 @@ class TimeIndexedHiREPS(HiREPSBase):
             if dims != (S, S):
                 raise ValueError(
                     f"policy {k} sees states of dimension {dims} (gating, options) but the value "
-                    f"features take S = {S}"
+                    f"features take C = {S}"
                 )
         if len({pol.action_dim for pol in policies}) != 1:
             raise ValueError(
@@ -202,7 +203,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         Args:
             K: number of decision steps, >= 1.
             param_dim: D, parameters per decision.
-            context_dim: S, state dimension, >= 1.
+            context_dim: C, the state dimension, >= 1.
             n_options: options per step.
             init_mean: (D,) shared by all steps or (K, D) per step; zeros by default. Option
                 means start at ``init_mean + spread * init_std * randn`` (see
@@ -260,7 +261,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         if not lead and c.dim() == 1 and C == 1:
             c = c[:, None]
         if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
-            names = "(population, N, S) = " if lead else ""
+            names = "(population, N, C) = " if lead else ""
             raise ValueError(
                 f"contexts must have shape {names}({batch_text(self.population)}N, {C}), got "
                 f"{tuple(c.shape)}"
@@ -273,7 +274,7 @@ class TimeIndexedHiREPS(HiREPSBase):
     def _episodes(
         self, states: Tensor, params: Tensor, rewards: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Checked float64 states (N, K, S), params (N, K, D) and rewards (N, K) of
+        """Checked float64 states (N, K, C), params (N, K, D) and rewards (N, K) of
         :meth:`tell` (exactly these shapes)."""
         K = self.n_steps
         lead = self.policies[0].batch_shape
@@ -301,7 +302,7 @@ class TimeIndexedHiREPS(HiREPSBase):
 
         Args:
             step: decision step k in [0, K).
-            contexts: (N, S) states at that step.
+            contexts: (N, C) states at that step.
 
         Returns:
             theta: (N, D) float64.
@@ -317,7 +318,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         return self.policies[k].mean_action(self._contexts(contexts))[0]
 
     def value(self, step: int, contexts: Tensor) -> Tensor:
-        """Value estimate V_k(s) = v_k^T phi(s) from the last update: (N, S) -> (N,).
+        """Value estimate V_k(s) = v_k^T phi(s) from the last update: (N, C) -> (N,).
 
         V_k is defined up to a constant (phi has no constant column).
         """
@@ -330,7 +331,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         """Update every step's policy from N episodes drawn with the current policies.
 
         Args:
-            states: (N, K, S) state at each decision step (s_{k+1} is where decision k led).
+            states: (N, K, C) state at each decision step (s_{k+1} is where decision k led).
             params: (N, K, D) parameters returned by :meth:`ask` at each step.
             rewards: (N, K) reward of each decision (higher is better).
 
@@ -385,7 +386,7 @@ class TimeIndexedHiREPS(HiREPSBase):
             **per_step,
             "feature_error": sol.feature_error.reshape(lead).tolist(),
             "dual_converged": each(sol.converged.reshape(lead).tolist(), bool),
-            "dual_iterations": per_member(sol.iterations, lead),
+            "dual_iterations": dual_iterations(sol, lead),
             "mean_rewards": means,
             "mean_return": mean_return,
             "max_return": max_return,
@@ -393,7 +394,7 @@ class TimeIndexedHiREPS(HiREPSBase):
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`ask` with the arguments in the interface's order: states (N, S) at ``step``."""
+        """:meth:`ask` with the arguments in the interface's order: states (N, C) at ``step``."""
         return self.ask(step, states)
 
     def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
@@ -401,7 +402,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         return self.act(step, states)
 
     def learn(self, experience: Experience) -> dict[str, Any]:
-        """:meth:`tell` from states (N, K, S), parameters (N, K, D) and rewards (N, K)."""
+        """:meth:`tell` from states (N, K, C), parameters (N, K, D) and rewards (N, K)."""
         S, D = self.value_features.in_features, self.policies[0].action_dim
         name = type(self).__name__
         check_experience(

@@ -22,14 +22,10 @@ there (:meth:`BlockSolver.unstick`), and a solve that LBFGS leaves short of its 
 Newton steps with the exact curvature (:meth:`BlockSolver.polish`). None of this changes a solve
 that LBFGS completes with every eta above its floor.
 
-The solver holds a population of S independent problems (:class:`DualProblem`): each phase
-runs one LBFGS call over the problems that need it, every decision (a KKT phase, a resumed
-LBFGS, the ridge fallback, Newton steps) is taken per problem, and a phase run for some
-problems leaves the others exactly as they were. The Newton steps are each problem's own, and a
-solve ends with Newton steps that take each converged problem's gradient from the tolerance to
-round-off: its solution then does not depend on which other problems shared an LBFGS call. A
-problem that a shared call leaves unconverged, or flags as a conflict, is solved again alone,
-and the ridge fallback runs for each problem alone.
+The solver's tensors carry a leading S = 1 (the problem dimension of
+:func:`~hireps_torch.dual.solver.solve_blocks`, which solves a population's problems one after
+the other, so that each answer is its own). A solve ends with Newton steps that take a
+converged problem's gradient from the tolerance to round-off.
 """
 
 from __future__ import annotations
@@ -121,8 +117,8 @@ class _Whitened:
     def __call__(self) -> Tensor:
         g, grad = self.prob.value_and_grad(self.x())
         # below its floor a dual running off to -infinity counts only logarithmically, so that
-        # it cannot drag the line search, which all problems of the call share, with it (the
-        # transform is monotone and C1: the problem itself still runs off, and is caught)
+        # it cannot drag the line search with it (the transform is monotone and C1: the
+        # problem itself still runs off, and is caught)
         below = (self.floor - g).clamp_min(0.0)
         g = torch.where(below > 0, self.floor - torch.log1p(below), g)
         grad = grad / (1.0 + below)[:, None]
@@ -133,9 +129,8 @@ class _Whitened:
 
 
 class BlockSolver:
-    """LBFGS on S standardised problems; ``x`` (S, n) holds the current points,
-    ``iterations`` the LBFGS iterations of all phases so far (shared LBFGS calls counted
-    once)."""
+    """Newton steps and LBFGS on one standardised problem (S = 1); ``x`` (S, n) holds the
+    current point, ``iterations`` the LBFGS iterations and Newton steps of all phases so far."""
 
     def __init__(
         self,
@@ -202,36 +197,10 @@ class BlockSolver:
             todo = torch.ones_like(todo)
         if not bool(todo.any()):
             return self.end, texts
-        need, conflict = torch.zeros_like(todo), torch.zeros_like(todo)
         if not prob.P:
             self.solve(todo)
-            if int(todo.sum()) > 1:  # see below: an unconverged problem is solved again alone
-                for s in (todo & ~self.end.converged).nonzero().flatten().tolist():
-                    self.x = torch.where(_only(s, todo)[:, None], x_start, self.x)
-                    self.solve(_only(s, todo))
             return self.end, texts
-        # A dual running off to -infinity can drag the LBFGS call it shares (one line search
-        # for all): the problems it flagged are solved again without it, and each problem
-        # flagged in a shared call is solved again alone before it counts as a conflict.
-        suspects, first = torch.zeros_like(todo), todo.clone()
-        while bool(todo.any()):
-            now, clash = self._solve_and_detect(todo, x_start)
-            if int(todo.sum()) == 1:
-                need |= now
-                conflict |= clash
-                break
-            suspects |= now
-            todo &= ~now
-            if not bool(now.any()):
-                break
-        # A problem that a shared call left unconverged ends where the shared line searches
-        # left it: it is solved again alone, so that its answer is its own.
-        if int(first.sum()) > 1:
-            suspects |= first & ~self.end.converged & ~need
-        for s in suspects.nonzero().flatten().tolist():
-            now, clash = self._solve_and_detect(_only(s, todo), x_start)
-            need |= now
-            conflict |= clash
+        need, conflict = self._solve_and_detect(todo, x_start)
         if not bool(need.any()):
             return self.end, texts
         kept = self.relax(x_start, need)
@@ -284,15 +253,13 @@ class BlockSolver:
         policy).
         """
         kept = torch.zeros_like(need)
-        for s in need.nonzero().flatten().tolist():  # each alone: its answer is its own
-            pending = _only(s, need)
-            for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
-                self.prob.ridge = torch.where(pending, factor * _CONFLICT_RIDGE, self.prob.ridge)
-                self.x = torch.where(pending[:, None], x_start, self.x)
-                self.solve(pending)
-                if not bool(self.breaks_kl(self.end.weights)[s]):
-                    kept[s] = True
-                    break
+        for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
+            self.prob.ridge = torch.where(need, factor * _CONFLICT_RIDGE, self.prob.ridge)
+            self.x = torch.where(need[:, None], x_start, self.x)
+            self.solve(need)
+            kept = need & ~self.breaks_kl(self.end.weights)
+            if bool(kept[need].all()):
+                break
         return kept
 
     def breaks_kl(self, w: Tensor) -> Tensor:
@@ -302,8 +269,7 @@ class BlockSolver:
     def solve(self, mask: Tensor) -> None:
         """The phases (Newton steps, then LBFGS) of the problems in ``mask`` (S,): the entropy
         bound's KKT phases, then up to two resumes of a phase that stopped short, then the
-        polish where it still did, and the Newton refinement of those that converged (their
-        answer then does not depend on the other problems of a shared LBFGS call); a problem
+        polish where it still did, and the Newton refinement of those that converged; a problem
         whose dual fell below the weak-duality bound is left to the ridge fallback."""
         kkt = mask & self.entropy_bound
         if bool(kkt.any()):
@@ -524,18 +490,10 @@ class BlockSolver:
     def phase(self, mask: Tensor) -> None:
         """One phase over the problems in ``mask`` (S,): Newton steps (:meth:`descend`), then, for
         the problems they leave short of the tolerance, at most ``max_iter`` LBFGS iterations,
-        run as LBFGS calls of at most ``_CHUNK`` iterations, each on the problems not yet
-        converged and whitened by their curvature where it starts (see :class:`_Whitened`);
-        a call that stops on its own (converged, or stalled) ends the phase, unless it was
-        shared and some of its problems converged in it: the others then go on without them.
-
-        Re-whitening matters for a population: one LBFGS call over S problems shares its
-        history (20 pairs) among all of them, so it captures their curvature only while each
-        problem's Hessian in the whitened coordinates stays near I. Measured on 100 episodic
-        duals (N = 30, 3 options, entropy bound, 4 features): one call of 300 iterations left
-        all 100 short of the tolerance; calls of 25 re-whitened ones converged them all in
-        fewer iterations in total. A single problem that converges within 25 iterations is
-        solved exactly as before.
+        run as LBFGS calls of at most ``_CHUNK`` iterations, each whitened by the curvature
+        where it starts (see :class:`_Whitened`); a call that stops on its own (converged, or
+        stalled) ends the phase. A problem that converges within 25 iterations is solved as
+        by one call.
         """
         self.unstick(mask)
         self.descend(mask)
@@ -546,13 +504,8 @@ class BlockSolver:
         while True:  # torch's budgets for one call: max_iter iterations, 1.25 x evaluations
             used, spent, stalled = self._lbfgs(todo, min(left, _CHUNK), min(evals, _CHUNK * 5 // 4))
             left, evals = left - used, evals - spent
-            before = todo.clone()
             todo &= ~self.end.converged & self._finite() & ~self._sunk()
-            if left <= 0 or evals <= 0 or not bool(todo.any()):
-                return
-            # a call shared by several problems stalls when the progress of the last ones
-            # drowns in the round-off of their summed dual: those go on without the others
-            if stalled and (int(before.sum()) == 1 or torch.equal(todo, before)):
+            if left <= 0 or evals <= 0 or not bool(todo.any()) or stalled:
                 return
 
     def _lbfgs(self, mask: Tensor, max_iter: int, max_eval: int) -> tuple[int, int, bool]:
@@ -561,15 +514,11 @@ class BlockSolver:
         budget ran out.
         LBFGS runs in coordinates whitened by the curvature at the call's start (see
         :class:`_Whitened`)."""
-        every = bool(mask.all())
-        idx = mask.nonzero().flatten()
-        prob = self.prob if every else self.prob.take(idx)
-        x0 = self.x.clone() if every else self.x[idx]
+        prob, x0 = self.prob, self.x.clone()
         L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
         eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
         L = torch.where((info == 0)[:, None, None], L, eye)  # no whitening where it fails
         floor = torch.where(self.prob.ridge > 0, -math.inf, self.floor)  # see descend
-        floor = floor if every else floor[idx]
         objective = _Whitened(prob, x0, L, floor)
         opt = torch.optim.LBFGS(
             [objective.z],
@@ -594,23 +543,9 @@ class BlockSolver:
         x = objective.x()
         g, grad, P = prob.evaluate(x)
         conv = grad.abs().amax(-1) <= self.settings.converged_grad
-        if every:
-            self.x = x
-            self._set(mask, conv, g, P)
-            return used, spent, stalled
-        self.x[idx] = x
-        e = self.end
-        cs, gs, ws = e.converged.clone(), e.value.clone(), e.weights.clone()
-        cs[idx], gs[idx], ws[idx] = conv, g, P
-        self.end = _End(cs, gs, ws)
+        self.x = x
+        self._set(mask, conv, g, P)
         return used, spent, stalled
-
-
-def _only(s: int, like: Tensor) -> Tensor:
-    """(S,) mask of problem s alone."""
-    mask = torch.zeros_like(like)
-    mask[s] = True
-    return mask
 
 
 def _newton_step(

@@ -67,21 +67,6 @@ class DualProblem:
         self.log_eta_min = R.new_full((self.S, self.K), LOG_ETA_MIN)
         self.ridge = R.new_zeros(self.S)
 
-    def take(self, idx: Tensor) -> DualProblem:
-        """The sub-population ``idx`` (a 1-d index tensor) as a problem of its own (the flags
-        copied: changing them there leaves this problem as it is)."""
-        sub = DualProblem(
-            self.R[idx],
-            None if self.D is None else self.D[idx],
-            None if self.c is None else self.c[idx],
-            self.lr[idx],
-            self.eps[idx],
-            self.kappa[idx],
-        )
-        sub.xi_on, sub.eta_on = self.xi_on[idx].clone(), self.eta_on[idx].clone()
-        sub.log_eta_min, sub.ridge = self.log_eta_min[idx].clone(), self.ridge[idx].clone()
-        return sub
-
     def start(self) -> Tensor:
         """x (S, n) at v = 0 with eta from KL ≈ Var(delta) / (2 eta^2) (the small-epsilon
         solution) and xi = 0.1; good starts save LBFGS iterations, which dominate the cost."""

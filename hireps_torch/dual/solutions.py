@@ -103,8 +103,10 @@ class PopulationDualSolution:
         feature_error: (S,) max abs violation of each problem's feature constraints.
         dual_value: (S,) dual values at the optima.
         converged: (S,) bool, per problem as :attr:`RepsDualSolution.converged`.
-        iterations: LBFGS iterations of all phases (a call shared by several problems counts
-            once).
+        iterations: LBFGS iterations of all phases (Newton steps counted as iterations),
+            the most of any problem.
+        problem_iterations: each problem's iterations, where the problems were solved one by
+            one (empty for one problem: ``iterations`` is its count).
     """
 
     eta: Tensor
@@ -121,6 +123,11 @@ class PopulationDualSolution:
     numbers: tuple[float, ...] | None = None
     """Where S = K = 1 and the solver has them as floats: (eta, xi, kl, cross_entropy,
     effective_sample_size, feature_error, dual_value) (:func:`single_solution` reads them)."""
+    problem_iterations: tuple[int, ...] = ()
+
+    def iterations_of(self, s: int) -> int:
+        """Problem s's iterations."""
+        return self.problem_iterations[s] if self.problem_iterations else self.iterations
 
     @property
     def sample_weights(self) -> Tensor:
@@ -143,7 +150,7 @@ class PopulationDualSolution:
             feature_error=float(self.feature_error[s]),
             dual_value=float(self.dual_value[s]),
             converged=bool(self.converged[s]),
-            iterations=self.iterations,
+            iterations=self.iterations_of(s),
         )
 
 
@@ -283,6 +290,31 @@ def single_solution(sol: PopulationDualSolution) -> DualSolution:
         dual_value=dual_value,
         converged=bool(sol.converged[0]),
         iterations=sol.iterations,
+    )
+
+
+def stack_solutions(parts: list[PopulationDualSolution]) -> PopulationDualSolution:
+    """The solutions of problems solved one by one (each S = 1) as one population's."""
+    if len(parts) == 1:
+        return parts[0]
+
+    def cat(name: str) -> Tensor:
+        return torch.cat([getattr(p, name) for p in parts])
+
+    counts = tuple(p.iterations for p in parts)
+    return PopulationDualSolution(
+        eta=cat("eta"),
+        xi=cat("xi"),
+        v=cat("v"),
+        weights=cat("weights"),
+        kl=cat("kl"),
+        cross_entropy=cat("cross_entropy"),
+        effective_sample_size=cat("effective_sample_size"),
+        feature_error=torch.stack([p.feature_error.reshape(()) for p in parts]),
+        dual_value=torch.stack([p.dual_value.reshape(()) for p in parts]),
+        converged=cat("converged"),
+        iterations=max(counts),
+        problem_iterations=counts,
     )
 
 

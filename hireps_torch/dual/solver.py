@@ -39,6 +39,7 @@ from hireps_torch.dual.solutions import (
     PopulationDualSolution,
     RepsDualSolution,
     finish,
+    stack_solutions,
 )
 from hireps_torch.dual.temperature import solve_temperature
 
@@ -135,19 +136,43 @@ def solve_blocks(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
+    prefix: str = "",
 ) -> PopulationDualSolution:
     """:func:`solve_reps_dual` on a population of S problems in float64 that the caller has
     already checked: R (S, K, N), log_resp (S, K, N, O), eps (S, K), D (S, K, N, P), c (S, P),
-    kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged on its
-    own; the LBFGS phases of problems that need the same phase share one LBFGS call. Warnings
+    kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged alone,
+    one after the other, so that its answer is the one it gets alone, whatever its companions
+    (shared LBFGS calls gave answers that differ at the solver's tolerance, and cost more
+    than separate solves on the pendulum's 8000 x 53 duals: benchmarks/README.md). Warnings
     (one per problem that did not converge, prefixed "problem s" when S > 1) are attributed
     ``stacklevel`` frames up (2: the caller of this function)."""
     S, K = R.shape[:2]
+    if S > 1:
+
+        def one(x: Tensor | None, s: int) -> Tensor | None:
+            return None if x is None else x[s : s + 1]
+
+        return stack_solutions(
+            [
+                solve_blocks(
+                    R[s : s + 1],
+                    log_resp[s : s + 1],
+                    eps[s : s + 1],
+                    one(D, s),
+                    one(c, s),
+                    one(kappa, s),
+                    settings,
+                    stacklevel + 1,
+                    f"problem {s}: ",
+                )
+                for s in range(S)
+            ]
+        )
     if D is not None and D.shape[-1] == 0:  # zero-width features are no features
         D = c = None
     unbounded = kappa is None or not bool(torch.isfinite(kappa).any())
     if log_resp.shape[-1] > 1 and unbounded:
-        return _factorised(R, log_resp, eps, D, c, settings, stacklevel + 1)
+        return _factorised(R, log_resp, eps, D, c, settings, stacklevel + 1, prefix)
     if S == 1 and K == 1 and D is None and unbounded:  # one option column: plain REPS
         sol = solve_temperature(R[0, 0], float(eps[0, 0]), settings)
         if sol is not None:
@@ -193,7 +218,7 @@ def solve_blocks(
                 f"the KL bound was enforced after the solve on block(s) {_where(moved[s])}"
             )
         infeasible = bool(unreachable[s].any()) or relaxed[s] is not None
-        _warn(verdict, notes, infeasible, f"problem {s}: " if S > 1 else "", stacklevel + 1)
+        _warn(verdict, notes, infeasible, prefix, stacklevel + 1)
     eta, xi, v, dual = _caller_units(st, eta_s, xi_s, u, g)
     converged = torch.tensor([vd.converged for vd in verdicts], device=R.device)
     return finish(
@@ -218,12 +243,13 @@ def _factorised(
     c: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int,
+    prefix: str,
 ) -> PopulationDualSolution:
     """Without an entropy bound (xi = 0) the options enter the dual only through
     sum_o p~_io: P_io = w_i p~_io, with w the one-option solution. Solving that is exact and O
     times cheaper (e.g. 100 hard-gated options); KL(P || q p~) = KL(w || q)."""
     row = torch.logsumexp(log_resp, dim=-1, keepdim=True)
-    one = solve_blocks(R, row, eps, D, c, None, settings, stacklevel + 1)
+    one = solve_blocks(R, row, eps, D, c, None, settings, stacklevel + 1, prefix)
     w = one.weights * torch.exp(log_resp - row)
     w = w / w.sum(dim=(-2, -1), keepdim=True)
     return finish(

@@ -45,7 +45,7 @@ class HierarchicalPolicy(PolicyModule):
     """Mixture policy ``pi(theta | s) = sum_o pi(o | s) pi(theta | s, o)``.
 
     The gating sees ``gating_features(s)``, every option sees ``policy_features(s)``.
-    Shapes: ``context: (N, S)`` (S may be 0), ``theta: (N, D)``, options ``(N,)`` int64.
+    Shapes: ``context: (N, C)`` (C may be 0), ``theta: (N, D)``, options ``(N,)`` int64.
     Contexts and parameters may be bool, integer or floating tensors (used as float64); a
     wrong shape, a non-finite entry or a tensor on another device raises a ``ValueError``
     naming it. :meth:`weighted_fit`, :meth:`prune` and :meth:`load_state_dict` either
@@ -238,14 +238,14 @@ class HierarchicalPolicy(PolicyModule):
         return self.gating.active
 
     def _context(self, context: Tensor) -> Tensor:
-        """context as a checked float64 ([population,] N, S) tensor."""
+        """context as a checked float64 ([S,] N, C) tensor."""
         device = self.sub_policies[0].bias.device
         c = as_float_tensor("context", context, device=device)
         C, lead = self.context_dim, self.batch_shape
         if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
             names, sizes = ("population, ", batch_text(self.population)) if lead else ("", "")
             raise ValueError(
-                f"context must have shape ({names}N, S) = ({sizes}N, {C}), got {tuple(c.shape)}"
+                f"context must have shape ({names}N, C) = ({sizes}N, {C}), got {tuple(c.shape)}"
             )
         check_finite("context", c, "")
         if not bool(self.active.any(-1).all()):

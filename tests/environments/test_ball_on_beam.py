@@ -240,48 +240,54 @@ def test_bad_counts_params_and_states_are_named(make, error, match):
         make()
 
 
-def test_a_population_of_beams_alternates_sides_over_iterations():
-    """TaskPopulation (population runs: a reset at each iteration after the end-of-episode
-    restarts) gives every member R L R, then L R L, as its ordinary run's collector."""
+def _episodes(env, decisions, act):
+    """``decisions`` decisions of every system of ``env`` with ``act`` (states -> actions),
+    each system restarted where its episode ended (as a TorchRL collector does)."""
+    for _ in range(decisions):
+        _, term, trunc, _ = env.step(act(env.state))
+        if bool((term | trunc).any()):
+            env.reset(term | trunc)
+
+
+def test_members_of_a_population_of_beams_alternate_sides_over_iterations():
+    """MemberTasks (a reset at each iteration after the end-of-episode restarts) gives every
+    member R L R, then L R L, as its ordinary run's collector."""
+    from environments._common import MemberTasks
     from environments.ball_on_beam import BeamTask
-    from experiments.population import TaskPopulation
 
     p = BeamParams()
-    env = TaskPopulation([BeamTask(3, p, seed=1), BeamTask(3, p, seed=2)])
+    env = MemberTasks([BeamTask(3, p, seed=1), BeamTask(3, p, seed=2)])
     sides = []
     for _ in range(3):
         env.reset()
-        sides.append(torch.sign(env.state[..., 0]).tolist())
-        env.collect(lambda obs: torch.zeros(*obs.shape[:2], 1), p.decisions_per_episode)
+        sides.append(torch.sign(env.state[:, 0]).reshape(2, 3).tolist())
+        _episodes(env, p.decisions_per_episode, lambda s: torch.zeros(s.shape[0]))
     r, l = [1.0, -1.0, 1.0], [-1.0, 1.0, -1.0]
     assert sides == [[r, r], [l, l], [r, r]]
 
 
-def test_a_population_collects_the_state_reached_before_a_restart():
-    """TaskPopulation.collect's next states are those the transitions reached: for the
-    decision that ends an episode (truncated, then restarted) the ball where the episode
-    ended, not the fresh start that follows it, as in the ordinary run's collector."""
+@pytest.mark.parametrize("kind", ["beam", "pendulum"])
+def test_a_member_task_steps_as_it_does_alone(kind):
+    """Member 1 of MemberTasks draws its starts and restarts from its own task: its systems
+    are those of its task alone, bit for bit, whatever the other member does."""
+    from environments._common import MemberTasks
     from environments.ball_on_beam import BeamTask
-    from experiments.population import TaskPopulation
+    from environments.pendulum import PendulumParams, PendulumTask
 
-    p = BeamParams()
-    env = TaskPopulation([BeamTask(2, p, seed=1), BeamTask(2, p, seed=2)])
-    n = p.decisions_per_episode
+    def task(seed):
+        if kind == "beam":
+            return BeamTask(3, BeamParams(), seed=seed)
+        return PendulumTask(3, PendulumParams(), seed=seed)
 
-    def pd(obs):  # holds the ball on the beam
-        return (0.2 * obs[..., 0] + 0.3 * obs[..., 1])[..., None]
-
-    states, actions, _, s_next, terminated = env.collect(pd, n + 1)
-    assert not bool(terminated.any())
-    for s in range(2):
-        for b in range(2):
-            rows = slice(b * (n + 1), (b + 1) * (n + 1))
-            x, a, y = states[s, rows], actions[s, rows], s_next[s, rows]
-            reached, _, _, _ = beam_step(x, a, p)
-            torch.testing.assert_close(y, reached, rtol=0, atol=0)
-            assert torch.equal(y[:-2], x[1:-1])  # within the episode: the next decision's state
-            assert not torch.equal(y[n - 1], x[n])  # the end of the episode: then a restart
-            assert abs(float(x[n, 0])) > 0.3  # the restart at an end of the beam
+    pair, alone = MemberTasks([task(1), task(2)]), MemberTasks([task(2)])
+    g = torch.Generator().manual_seed(0)
+    for env in (pair, alone):
+        env.reset()
+    for _ in range(3):
+        a = 0.3 * torch.randn(6, generator=g, dtype=torch.float64)
+        _episodes(pair, 150, lambda s, a=a: a)
+        _episodes(alone, 150, lambda s, a=a: a[3:])
+        assert torch.equal(pair.state[3:], alone.state) and torch.equal(pair.t[3:], alone.t)
 
 
 def test_beam_step_returns_a_state_that_shares_no_memory_with_its_path():

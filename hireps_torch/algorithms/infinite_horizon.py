@@ -113,11 +113,11 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         )
         if check_feature_map("value_features", value_features) is None:
             raise TypeError("value_features must be a feature map (e.g. FourierFeatures)")
-        S = value_features.in_features
-        if policy.context_dim != S:
+        C = value_features.in_features
+        if policy.context_dim != C:
             raise ValueError(
                 f"the policy takes states of dimension {policy.context_dim} but the value "
-                f"features take C = {S}"
+                f"features take C = {C}"
             )
         self.policy = policy
         self.value_features = value_features.to(self.device)  # where the policy is
@@ -154,7 +154,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         Args:
             state_dim: C, the state dimension, >= 1.
             action_dim: A.
-            value_features: features phi(s) of the value function, ``in_features = S``.
+            value_features: features phi(s) of the value function, ``in_features = C``.
             initial_states: (M, C) draws from the start distribution.
             gamma: 1 - restart probability per decision, in (0, 1).
             n_options: O.
@@ -196,7 +196,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
     def value(self, states: Tensor) -> Tensor:
         """Current value estimate v^T phi(s) (from the last dual solve): (N, C) -> (N,) (a
-        population: (S, N, S_dim) -> (S, N))."""
+        population: (S, N, C) -> (S, N))."""
         phi = self.value_features(self._states(states))
         return (phi @ self.value_weights[..., None])[..., 0]
 
@@ -324,13 +324,13 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         return (self.policy,)
 
     def _states(self, states: Tensor, name: str = "states", *, population: bool = True) -> Tensor:
-        """States ([S,] N, S_dim), N >= 1, as checked float64 (the population's leading S
+        """States ([S,] N, C), N >= 1, as checked float64 (the population's leading S
         unless ``population`` is False)."""
-        S = self.value_features.in_features
+        C = self.value_features.in_features
         s = as_float_tensor(name, states, device=self.device)
         lead = self.policy.batch_shape if population else ()
-        if s.dim() != 2 + len(lead) or s.shape[:-2] != lead or s.shape[-1] != S:
-            shape = ", ".join(map(str, (*lead, "N", S)))
+        if s.dim() != 2 + len(lead) or s.shape[:-2] != lead or s.shape[-1] != C:
+            shape = ", ".join(map(str, (*lead, "N", C)))
             raise ValueError(f"{name} must have shape ({shape}), got {tuple(s.shape)}")
         if s.shape[-2] < 1:
             raise ValueError(f"{name} must hold at least one state, got {tuple(s.shape)}")
@@ -351,12 +351,12 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         return self.policy.mean_action(self._states(states))[0]
 
     def learn(self, experience: Experience) -> dict[str, Any]:
-        """:meth:`update` from decisions: states, next_states (N, 1, S), actions (N, 1, A),
+        """:meth:`update` from decisions: states, next_states (N, 1, C), actions (N, 1, A),
         rewards (N, 1) and optionally terminated (N, 1)."""
-        S, A = self.value_features.in_features, self.policy.action_dim
+        C, A = self.value_features.in_features, self.policy.action_dim
         name = type(self).__name__
         check_experience(
-            experience, 1, S, A, transitions=True, algorithm=name, population=self.population
+            experience, 1, C, A, transitions=True, algorithm=name, population=self.population
         )
         e = experience
         assert e.next_states is not None  # checked above

@@ -114,7 +114,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         policies: K hierarchical policies, policy k acting at step k (updated in place); their
             context is the state, and all share the parameter dimension D.
         value_features: features phi(s) of the per-step value functions V_k(s) = v_k^T phi(s);
-            ``in_features`` is the state dimension S.
+            ``in_features`` is the state dimension C.
         epsilon: KL bound per iteration, > 0: one float for every step or K floats.
         kappa_rel: entropy bound of each step as a fraction of that step's current mean option
             entropy of the responsibilities (0.8-0.9 in the paper); None disables the bound.
@@ -157,17 +157,17 @@ class TimeIndexedHiREPS(HiREPSBase):
         )
         if check_feature_map("value_features", value_features) is None:
             raise TypeError("value_features must be a feature map (e.g. QuadraticFeatures)")
-        S = value_features.in_features
+        C = value_features.in_features
         for k, pol in enumerate(policies):
             if not isinstance(pol, HierarchicalPolicy):
                 raise TypeError(
                     f"policy {k} must be a HierarchicalPolicy, got {type(pol).__name__}"
                 )
             dims = (pol.gating_features.in_features, pol.policy_features.in_features)
-            if dims != (S, S):
+            if dims != (C, C):
                 raise ValueError(
                     f"policy {k} sees states of dimension {dims} (gating, options) but the value "
-                    f"features take C = {S}"
+                    f"features take C = {C}"
                 )
         if len({pol.action_dim for pol in policies}) != 1:
             raise ValueError(
@@ -287,10 +287,10 @@ class TimeIndexedHiREPS(HiREPSBase):
         N = R.shape[-2]
         if N < 2:
             raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
-        S, D = self.value_features.in_features, self.policies[0].action_dim
+        C, D = self.value_features.in_features, self.policies[0].action_dim
         dev = self.device
         states_t = as_float_tensor("states", states, device=dev)
-        s = as_finite_f64("states", states_t, (*lead, N, K, S))
+        s = as_finite_f64("states", states_t, (*lead, N, K, C))
         params_t = as_float_tensor("params", params, device=dev)
         theta = as_finite_f64("params", params_t, (*lead, N, K, D))
         return s, theta, R
@@ -403,12 +403,12 @@ class TimeIndexedHiREPS(HiREPSBase):
 
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from states (N, K, C), parameters (N, K, D) and rewards (N, K)."""
-        S, D = self.value_features.in_features, self.policies[0].action_dim
+        C, D = self.value_features.in_features, self.policies[0].action_dim
         name = type(self).__name__
         check_experience(
             experience,
             self.n_steps,
-            S,
+            C,
             D,
             transitions=False,
             algorithm=name,

@@ -97,6 +97,12 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
     dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
     logged = {d: _logged_rows(d / "metrics.csv") for d in dirs}
     ckpt = load_checkpoint(run_dir)
+    parent = run_dir.resolve().parent
+    if ckpt is None and seeds is None and (parent / "checkpoint.pt").is_file():
+        raise ValueError(
+            f"cannot resume {run_dir}: it is a member of the population in {parent}; resume "
+            f"that directory (--resume {parent}) (nothing was changed)"
+        )
     if ckpt is None:
         for d, n in logged.items():
             if n:

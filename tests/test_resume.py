@@ -478,6 +478,19 @@ def test_an_interrupted_and_resumed_population_equals_the_uninterrupted_one(tmp_
     assert (run / "population.md").is_file() and (run / "summary.json").is_file()
 
 
+def test_resuming_a_member_of_a_population_points_to_the_population(tmp_path):
+    """--resume of a member directory (it has no checkpoint of its own) names the
+    population's directory to resume instead, and changes nothing."""
+    run = tmp_path / "pop"
+    args = ["bimodal", "--seeds", "0-1", "--episodes", "200000", "--samples-per-iteration", "20"]
+    out = stop_run(args, run, 2, watch=run / "seed1" / "metrics.csv")
+    assert out.code == 130, out.err
+    before = _files(run), _files(run / "seed1")
+    with pytest.raises(ValueError, match=rf"member of the population in .*{run.name}; resume"):
+        resume_in_process("bimodal", run / "seed1")
+    assert (_files(run), _files(run / "seed1")) == before
+
+
 WORKER_RUNS = {
     "pendulum": "pendulum --workers 2 --episodes 20000 --episode-seconds 1 --eval-rollouts 2",
     "hockey-local": "hockey-sequential --workers 2 --episodes 3000 --episodes-per-iteration 6",

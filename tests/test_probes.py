@@ -223,7 +223,7 @@ def test_duals_take_numbers_and_arrays_of_any_kind():
 FEATURE_PROBES = {
     "Fourier (1, S) low": (
         lambda: FourierFeatures([[0.0, 0.0]], [[1.0, 1.0]]),
-        r"low and high must both have shape \(S,\), got \(1, 2\)",
+        r"low and high must both have shape \(C,\) \(C: the state dimension\), got \(1, 2\)",
     ),
     "Fourier periodic string": (
         lambda: FourierFeatures([0.0, 0.0], [1.0, 1.0], periodic="ab"),

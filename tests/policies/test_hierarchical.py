@@ -81,7 +81,7 @@ def test_mean_action_uses_most_probable_option(gen):
 
 def test_bad_input_raises(gen):
     pol = make(gen)
-    with pytest.raises(ValueError, match=r"context must have shape \(N, S\)"):
+    with pytest.raises(ValueError, match=r"context must have shape \(N, C\)"):
         pol.sample(torch.zeros(3), gen)
     with pytest.raises(ValueError, match="non-finite"):
         pol.sample(torch.tensor([[float("nan")]]), gen)

@@ -103,7 +103,7 @@ def test_hierarchical_fit_failing_late_changes_nothing(gen):
         ((s[:3], theta, w), r"theta must have shape \(3, 2\)"),
         ((s * NAN, theta, w), "context contains"),
         ((s, theta.masked_fill(theta > 0, INF), w), "theta contains"),
-        ((torch.zeros(40, 2), theta, w), r"context must have shape \(N, S\) = \(N, 1\)"),
+        ((torch.zeros(40, 2), theta, w), r"context must have shape \(N, C\) = \(N, 1\)"),
     ]:
         expect_unchanged(pol, lambda a=args: pol.weighted_fit(*a), match=match)
 

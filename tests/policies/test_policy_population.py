@@ -176,7 +176,7 @@ def test_bad_population_inputs_name_the_value():
     pop = HierarchicalPolicy.stack(pols)
     ctx, theta, w = data()
     with pytest.raises(
-        ValueError, match=r"context must have shape \(population, N, S\) = \(3, N, 2\)"
+        ValueError, match=r"context must have shape \(population, N, C\) = \(3, N, 2\)"
     ):
         pop.sample(ctx[:2], gens())
     with pytest.raises(ValueError, match="needs one generator per member, got 2"):

@@ -142,8 +142,7 @@ def solve_blocks(
     already checked: R (S, K, N), log_resp (S, K, N, O), eps (S, K), D (S, K, N, P), c (S, P),
     kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged alone,
     one after the other, so that its answer is the one it gets alone, whatever its companions
-    (shared LBFGS calls gave answers that differ at the solver's tolerance, and cost more
-    than separate solves on the pendulum's 8000 x 53 duals: benchmarks/README.md). Warnings
+    (why: benchmarks/README.md, "One path"). Warnings
     (one per problem that did not converge, prefixed "problem s" when S > 1) are attributed
     ``stacklevel`` frames up (2: the caller of this function)."""
     S, K = R.shape[:2]

@@ -40,6 +40,7 @@ from environments.ball_on_beam import BeamParams, evaluate_beam  # noqa: E402
 from experiments.ball_on_beam import BallOnBeamConfig, build_ball_on_beam_policy  # noqa: E402
 from experiments.ball_on_beam import run as run_ball_on_beam  # noqa: E402
 from experiments.rundir import atomic_write  # noqa: E402
+from hireps_torch.policies import HierarchicalPolicy  # noqa: E402
 
 
 def plot_curves(results: list[dict[str, Any]], out: Path) -> None:
@@ -74,9 +75,10 @@ def plot_episode(run: dict[str, Any], out: Path) -> None:
 
     p = BeamParams()
     cfg = BallOnBeamConfig(seed=run["seed"])
-    policy = build_ball_on_beam_policy(cfg)
+    policy = HierarchicalPolicy.stack([build_ball_on_beam_policy(cfg)])  # a run of one seed
     ckpt = torch.load(Path(run["run_dir"]) / "checkpoint.pt")
     policy.load_state_dict(ckpt["algorithm"]["policy"])
+    policy = policy.member(0)
     ev = evaluate_beam(lambda s: policy.mean_action(s)[0], p, n_episodes=2, seed=0)
     t = p.dt * torch.arange(1, ev.positions.shape[1] + 1)
     fig, ax = plt.subplots(figsize=(7, 3.5))

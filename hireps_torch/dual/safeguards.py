@@ -103,6 +103,27 @@ def _bisect_log_t(lr: Tensor, target: Tensor, use_kl: bool) -> Tensor:
     return hi
 
 
+def _spends_more(lr: Tensor, kappa: Tensor, eps: Tensor, mask: Tensor) -> Tensor:
+    """(S, K) where ``mask``: whether the tilt that meets kappa spends more KL than eps. The
+    bisection for that tilt stops where its interval decides it: a tilt that meets kappa
+    within eps (KL rises and CE falls with t), or one short of kappa already beyond it."""
+    lo = torch.full_like(eps, _LOG_T_RANGE[0])
+    hi = torch.full_like(eps, _LOG_T_RANGE[1])
+    out, decided = torch.zeros_like(mask), ~mask
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        kl, ce = _tilt(lr, mid)
+        meets = ce <= kappa
+        beyond = ~decided & ~meets & (kl > eps)
+        out |= beyond
+        decided |= beyond | (meets & (kl <= eps))
+        if bool(decided.all()):
+            return out
+        lo, hi = torch.where(meets, lo, mid), torch.where(meets, mid, hi)
+    kl_meet, _ = _tilt(lr, hi)
+    return out | (~decided & (kl_meet > eps))
+
+
 def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Whether each entropy bound can be met within its KL bound (features aside).
 
@@ -128,9 +149,7 @@ def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Ten
     need = torch.isfinite(kappa) & (ce0 > kappa)
     if not bool(need.any()):
         return kappa, need, ce0
-    t_meet = _bisect_log_t(lr, torch.where(need, kappa, 0.0), use_kl=False)
-    kl_meet, _ = _tilt(lr, t_meet)
-    unreachable = need & ((ce_top > kappa) | (kl_meet > eps))
+    unreachable = need & ((ce_top > kappa) | _spends_more(lr, kappa, eps, need & (ce_top <= kappa)))
     if not bool(unreachable.any()):  # (``best`` is only read where a bound is unreachable)
         return kappa, unreachable, ce0
     budget = torch.minimum(eps, kl_top)

@@ -15,6 +15,33 @@ from typing import Any
 
 import torch
 
+FIGURES = Path(__file__).resolve().parents[1] / "docs" / "figures"
+"""Where the README's figures live; a benchmark run with ``--figures`` writes its own there."""
+
+
+def add_figures_option(ap: Any) -> None:
+    """``--figures DIR``: also write the benchmark's figures to DIR under fixed names (the
+    README's are regenerated with ``--figures docs/figures``)."""
+    ap.add_argument(
+        "--figures",
+        type=Path,
+        default=None,
+        help=f"also copy the figures to this folder under fixed names (the README's: {FIGURES})",
+    )
+
+
+def publish(figures: Path | None, made: dict[str, Path]) -> None:
+    """Copy each made figure to ``figures/<name>`` (atomically; nothing without ``--figures``)."""
+    if figures is None:
+        return
+    from hireps_torch.experiments.rundir import atomic_write
+
+    figures.mkdir(parents=True, exist_ok=True)
+    for name, src in made.items():
+        data = src.read_bytes()
+        atomic_write(figures / name, lambda p, data=data: p.write_bytes(data))
+        print(f"figure: {figures / name}")
+
 
 @contextlib.contextmanager
 def baseline_worktree(root: Path, commit: str) -> Iterator[Path]:
@@ -67,7 +94,7 @@ def plot_band(ax: Any, x: list[float], curves: list[list[float]], label: str) ->
 
 def write_results(out: Path, results: Any, total_seconds: float, table: str) -> None:
     """results.json (every run) and results.md (the printed table), each written atomically."""
-    from experiments.rundir import atomic_write
+    from hireps_torch.experiments.rundir import atomic_write
 
     payload = json.dumps({"results": results, "total_seconds": total_seconds})
     atomic_write(out / "results.json", lambda p: p.write_text(payload))

@@ -30,16 +30,18 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import (  # noqa: E402
+    add_figures_option,
     mean_std,
     plot_band,
+    publish,
     read_curve,
     start_benchmark,
     write_results,
 )
-from environments.ball_on_beam import BeamParams, evaluate_beam  # noqa: E402
-from experiments.ball_on_beam import BallOnBeamConfig, build_ball_on_beam_policy  # noqa: E402
-from experiments.ball_on_beam import run as run_ball_on_beam  # noqa: E402
-from experiments.rundir import atomic_write  # noqa: E402
+from hireps_torch.envs.ball_on_beam import BeamParams, evaluate_beam  # noqa: E402
+from hireps_torch.experiments.ball_on_beam import BallOnBeamConfig, build_ball_on_beam_policy  # noqa: E402
+from hireps_torch.experiments.ball_on_beam import run as run_ball_on_beam  # noqa: E402
+from hireps_torch.experiments.rundir import atomic_write  # noqa: E402
 from hireps_torch.policies import HierarchicalPolicy  # noqa: E402
 
 
@@ -107,6 +109,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--episodes", type=int, default=BallOnBeamConfig.episodes)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "ball_on_beam_benchmark")
+    add_figures_option(ap)
     args = ap.parse_args()
     out = start_benchmark(args.out, args.seeds)
 
@@ -165,6 +168,10 @@ def main() -> None:
     shown = next((r for r in results if r["episodes_to_success"] is not None), results[0])
     plot_episode(shown, out)
     write_results(out, results, total, table)
+    publish(
+        args.figures,
+        {"fig19_ball_on_beam.png": out / "learning_curve.png", "fig19_episode.png": out / "episode.png"},
+    )
 
 
 if __name__ == "__main__":

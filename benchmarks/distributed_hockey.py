@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 import os
 
-os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # before torch: see experiments.workers
+os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # before torch (experiments/workers.py)
 import math
 import sys
 import time
@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import start_benchmark, write_results  # noqa: E402
-from experiments import hockey  # noqa: E402
+from hireps_torch.experiments import hockey  # noqa: E402
 
 
 class TimedPool:

@@ -20,7 +20,7 @@
         [--workers 2] [--final-eval-episodes 200] [--backend local|ray]
         [--ray-address ADDR] [--resume DIR]
 
-The runs are one sweep (:mod:`experiments.sweep`): ``--workers`` at a time, in local
+The runs are one sweep (:mod:`hireps_torch.experiments.sweep`): ``--workers`` at a time, in local
 processes or as Ray tasks; ``--resume DIR`` finishes an interrupted benchmark.
 """
 
@@ -30,7 +30,7 @@ import argparse
 import math
 import os
 
-os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # before torch: see experiments.workers
+os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # before torch (experiments/workers.py)
 import statistics
 import sys
 import time
@@ -44,22 +44,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import (  # noqa: E402
+    add_figures_option,
     mean_std,
     plot_band,
+    publish,
     read_curve,
     start_benchmark,
     write_results,
 )
-from environments.hockey import ENV_ID, demo_action  # noqa: E402
-from experiments.hockey import HockeySequentialConfig  # noqa: E402
-from experiments.rundir import atomic_write  # noqa: E402
-from experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
 from hireps_torch.algorithms import TimeIndexedHiREPS  # noqa: E402
+from hireps_torch.envs.hockey import ENV_ID, demo_action  # noqa: E402
+from hireps_torch.experiments.hockey import HockeySequentialConfig  # noqa: E402
+from hireps_torch.experiments.rundir import atomic_write  # noqa: E402
+from hireps_torch.experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
 
 
 def time_simulation(n_episodes: int) -> dict[str, float]:
     """Seconds per shot and per episode of the gymnasium env (demo shot + noise)."""
-    from environments.hockey import RobotHockeyEnv
+    from hireps_torch.envs.hockey import RobotHockeyEnv
 
     env = RobotHockeyEnv()
     rng = np.random.default_rng(0)
@@ -112,8 +114,8 @@ def plot_curves(
 
 def load_sequential(run_dir: Path) -> tuple[Any, Any]:
     """A finished sequential run's config and algorithm, built as the run built it."""
-    from experiments.checkpoint import saved_config
-    from experiments.hockey import _make_algorithm, hockey_params
+    from hireps_torch.experiments.checkpoint import saved_config
+    from hireps_torch.experiments.hockey import _make_algorithm, hockey_params
 
     cfg = saved_config(HockeySequentialConfig, "hockey-sequential", run_dir)
     params = hockey_params(cfg)
@@ -127,8 +129,8 @@ def load_sequential(run_dir: Path) -> tuple[Any, Any]:
 def describe_strategy(run_dir: Path, n_episodes: int = 10) -> list[list[float]]:
     """The learned sequential policy's shots, noise-free, on ``n_episodes`` fresh starts: per
     episode the target's distance from the robot at the start and after each shot (m)."""
-    from experiments.hockey import _make_env, hockey_params
-    from experiments.workers import play_episodes
+    from hireps_torch.experiments.hockey import _make_env, hockey_params
+    from hireps_torch.experiments.workers import play_episodes
     from hireps_torch.rollout import episodes, time_indexed_module
 
     cfg, algo = load_sequential(run_dir)
@@ -151,8 +153,8 @@ def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from environments.hockey import RobotHockeyEnv
-    from experiments.hockey import hockey_params
+    from hireps_torch.envs.hockey import RobotHockeyEnv
+    from hireps_torch.experiments.hockey import hockey_params
 
     cfg, algo = load_sequential(run_dir)  # the run's policy, and its task below
     env = RobotHockeyEnv(hockey_params(cfg), render_mode="rgb_array", frame_every=12)
@@ -202,6 +204,7 @@ def main() -> None:
         "spreads over -1.5 .. 3: 30 leave a std of ~0.2 on the mean)",
     )
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "hockey_benchmark")
+    add_figures_option(ap)
     ap.add_argument("--workers", type=int, default=1, help="runs at the same time")
     ap.add_argument("--backend", choices=["local", "ray"], default="local")
     ap.add_argument("--ray-address", default=None, help="an existing Ray cluster (--backend ray)")
@@ -312,6 +315,14 @@ def main() -> None:
         )
     shown = {**shown, "strategy": strategy}
     write_results(out, {"timing": timing, "runs": results, "episode": shown}, total, table)
+    publish(
+        args.figures,
+        {
+            "fig14_hockey.png": out / "learning_curve.png",
+            "fig15b_fixed_start.png": out / "fig15b_fixed_start.png",
+            "hockey_episode.png": out / "episode.png",
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -6,12 +6,12 @@
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
    (each unique configuration runs once per seed and is shared between figures). By default
    each configuration's seeds run as one population (``train.py pendulum --seeds 0-4``: one
-   process, one batched simulation; :class:`experiments.loop.Members`), one
+   process, one batched simulation; :class:`hireps_torch.experiments.loop.Members`), one
    configuration after the other. With ``--separate``, as one sweep of separate runs
-   (:mod:`experiments.sweep`): ``--workers`` runs at a time, 2 by default, one per core of the
-   2-core reference machine, in local processes or (``--backend ray``) as Ray tasks, on this
-   machine or a cluster (``--ray-address``). ``--resume`` of an interrupted ablation reuses
-   what finished:
+   (:mod:`hireps_torch.experiments.sweep`): ``--workers`` runs at a time, 2 by default,
+   one per core of the 2-core reference machine, in local processes or (``--backend ray``)
+   as Ray tasks, on this machine or a cluster (``--ray-address``). ``--resume`` of an
+   interrupted ablation reuses what finished:
 
    - 16a: options 1 / 2 / 5 / 10 (d = 5)
    - 16b: d = 1 / 2 / 5 / 10 (5 options)
@@ -45,16 +45,18 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import (  # noqa: E402
+    add_figures_option,
     mean_std,
     plot_band,
+    publish,
     read_curve,
     start_benchmark,
     write_results,
 )
-from environments.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
-from experiments.pendulum import PendulumConfig  # noqa: E402
-from experiments.rundir import atomic_write  # noqa: E402
-from experiments.sweep import SweepRun, check_same_options, plan, run_sweep  # noqa: E402
+from hireps_torch.envs.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
+from hireps_torch.experiments.pendulum import PendulumConfig  # noqa: E402
+from hireps_torch.experiments.rundir import atomic_write  # noqa: E402
+from hireps_torch.experiments.sweep import SweepRun, check_same_options, plan, run_sweep  # noqa: E402
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "learned-1": {"n_options": 1},
@@ -158,7 +160,7 @@ def run_populations(runs: list[SweepRun], report: Any) -> dict[tuple[str, int], 
     default changed since). Returns every run's summary."""
     import json
 
-    from experiments import run_experiment
+    from hireps_torch.experiments import run_experiment
 
     done: dict[tuple[str, int], dict[str, Any]] = {}
     for name in dict.fromkeys(r.name for r in runs):
@@ -186,6 +188,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--episodes", type=int, default=PendulumConfig.episodes)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "pendulum_ablations")
+    add_figures_option(ap)
     ap.add_argument("--configs", nargs="*", default=list(CONFIGS), help="subset to run")
     ap.add_argument("--skip-speed", action="store_true")
     ap.add_argument(
@@ -273,10 +276,11 @@ def main() -> None:
         walls = ", ".join(f"{r['wall_seconds']:.1f}" for r in std_runs)
         print(f"standard configuration (5 options, d = 5, {args.episodes} episodes): {walls} s")
     print(f"whole ablation: {total / 60:.1f} min for {sum(map(len, results.values()))} runs")
-    for name, fig_lines in FIGURES.items():
-        if all(k in results for _, k in fig_lines):
-            plot_figure(name, fig_lines, results, out)
+    drawn = [name for name, lines in FIGURES.items() if all(k in results for _, k in lines)]
+    for name in drawn:
+        plot_figure(name, FIGURES[name], results, out)
     write_results(out, results, total, table)
+    publish(args.figures, {f"{name}.png": out / f"{name}.png" for name in drawn})
 
 
 if __name__ == "__main__":

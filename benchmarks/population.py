@@ -31,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import start_benchmark  # noqa: E402
-from experiments import run_experiment  # noqa: E402
-from experiments.pendulum import PendulumConfig  # noqa: E402
+from hireps_torch.experiments import run_experiment  # noqa: E402
+from hireps_torch.experiments.pendulum import PendulumConfig  # noqa: E402
 
 
 def separate_results(folder: Path) -> dict[int, float]:
@@ -80,8 +80,8 @@ def main() -> None:
     print("  " + ", ".join(f"{s}: {v:.2f}" for s, v in success.items()))
     separate = None
     if args.run_separate:
-        from experiments.sweep import SweepConfig
-        from experiments.sweep import main as sweep
+        from hireps_torch.experiments.sweep import SweepConfig
+        from hireps_torch.experiments.sweep import main as sweep
 
         folder = out / "separate"
         sweep(

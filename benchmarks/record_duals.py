@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 import hireps_torch.dual.episodic as episodic_dual  # noqa: E402
 import hireps_torch.dual.infinite_horizon as infinite_dual  # noqa: E402
 import hireps_torch.dual.time_indexed as time_dual  # noqa: E402
-from experiments import EXPERIMENTS  # noqa: E402
+from hireps_torch.experiments import EXPERIMENTS  # noqa: E402
 
 # (experiment, seeds, options): short runs that still reach the late, ill-conditioned updates
 RUNS: list[tuple[str, tuple[int, ...], dict[str, Any]]] = [

@@ -75,7 +75,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from environments._common import (
+from hireps_torch.checks import as_float, check_count, check_generator, check_seed
+from hireps_torch.envs._common import (
     BatchedTask,
     ScalarActionBatchEnv,
     ScalarActionGymEnv,
@@ -85,7 +86,7 @@ from environments._common import (
     check_scalar_action,
     check_state,
 )
-from hireps_torch.checks import as_float, check_count, check_generator, check_seed
+from hireps_torch.registration import BALL_ON_BEAM_ID
 
 __all__ = [
     "BallOnBeamBatchEnv",
@@ -99,7 +100,7 @@ __all__ = [
     "step_reward",
 ]
 
-ENV_ID = "hireps/BallOnBeam-v0"  # registered by ``import environments``
+ENV_ID = BALL_ON_BEAM_ID  # registered by ``import hireps_torch``
 MAX_STEPS = 10**7
 """The most control steps per decision and decisions per episode :class:`BeamParams` allows."""
 

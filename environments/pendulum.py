@@ -77,7 +77,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from environments._common import (
+from hireps_torch.checks import as_float, check_count, check_generator, check_seed
+from hireps_torch.envs._common import (
     BatchedTask,
     ScalarActionBatchEnv,
     ScalarActionGymEnv,
@@ -87,7 +88,7 @@ from environments._common import (
     check_scalar_action,
     check_state,
 )
-from hireps_torch.checks import as_float, check_count, check_generator, check_seed
+from hireps_torch.registration import PENDULUM_ID
 
 __all__ = [
     "PendulumParams",
@@ -105,7 +106,7 @@ __all__ = [
     "wrap_angle",
 ]
 
-ENV_ID = "hireps/PendulumSwingUp-v0"  # registered by ``import environments``
+ENV_ID = PENDULUM_ID  # registered by ``import hireps_torch``
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,11 @@
-"""The paper's experiments, one module each: a typed config, its builders and its ``run``.
+"""The paper's experiments, installed as ``hireps_torch.experiments``, one module each: a
+typed config, its builders and its ``run``.
 
-``EXPERIMENTS`` maps each command-line name to ``(Config, run)``; ``train.py`` turns it into
-tyro subcommands. Every ``run(cfg)`` writes one run directory (see :mod:`experiments.rundir`)
-(one seed, or a population of seeds: see :class:`experiments.loop.Members`) and returns
-the summary it wrote to ``summary.json``. To add an experiment, copy the module
+``EXPERIMENTS`` maps each command-line name to ``(Config, run)``; :mod:`hireps_torch.cli`
+turns it into tyro subcommands. Every ``run(cfg)`` writes one run directory (see
+:mod:`hireps_torch.experiments.rundir`) (one seed, or a population of seeds: see
+:class:`hireps_torch.experiments.loop.Members`) and returns the summary it wrote to
+``summary.json``. To add an experiment, copy the module
 closest to it (``bimodal.py`` for an ask/tell objective, ``ball_on_beam.py`` for a batched
 TorchRL environment, ``hockey.py`` for a gymnasium environment with whole episodes) and add
 one line here.
@@ -11,12 +13,19 @@ one line here.
 
 from __future__ import annotations
 
+if __name__ != "hireps_torch.experiments":  # the folder experiments/ is installed so
+    raise ImportError(
+        f"import the experiments as hireps_torch.experiments, not {__name__!r}: one name, one "
+        "copy of each class"
+    )
+
 from collections.abc import Callable
 from typing import Any
 
-from experiments import ball_on_beam, bimodal, hockey, pendulum
+from hireps_torch.algorithms import Algorithm
+from hireps_torch.experiments import ball_on_beam, bimodal, hockey, pendulum
 
-__all__ = ["CHECKS", "EXPERIMENTS", "run_experiment"]
+__all__ = ["ALGORITHMS", "EXPERIMENTS", "run_experiment"]
 
 EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
     "bimodal": (bimodal.BimodalConfig, bimodal.run),
@@ -27,16 +36,17 @@ EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
     "hockey-fixed-start": (hockey.HockeyFixedStartConfig, hockey.run),
 }
 
-CHECKS: dict[str, Callable[[Any], None]] = {
-    "bimodal": bimodal.check,
-    "pendulum": pendulum.check,
-    "ball-on-beam": ball_on_beam.check,
-    "hockey-sequential": hockey.check,
-    "hockey-episodic": hockey.check,
-    "hockey-fixed-start": hockey.check,
+ALGORITHMS: dict[str, Callable[[Any], Algorithm]] = {
+    "bimodal": bimodal.algorithm,
+    "pendulum": pendulum.algorithm,
+    "ball-on-beam": ball_on_beam.algorithm,
+    "hockey-sequential": hockey.algorithm,
+    "hockey-episodic": hockey.algorithm,
+    "hockey-fixed-start": hockey.algorithm,
 }
-"""Each experiment's check of a config: what its ``run`` refuses, refused without a run
-(a sweep checks every configuration before its first run)."""
+"""Each experiment's config checked and its untrained algorithm built, as its ``run`` does,
+without a run directory (sweeps check every run's config before the first starts;
+:func:`~hireps_torch.experiments.saved.load_run` loads a run's state into it)."""
 
 
 def run_experiment(cfg: Any) -> dict[str, Any]:

@@ -11,17 +11,19 @@ from typing import Any
 
 import torch
 
-from environments._common import MemberTasks, ScalarActionBatchEnv
-from environments.ball_on_beam import (
+from hireps_torch.algorithms import InfiniteHorizonHiREPS
+from hireps_torch.checks import check_positive_float
+from hireps_torch.envs._common import MemberTasks, ScalarActionBatchEnv
+from hireps_torch.envs.ball_on_beam import (
     BeamEvaluation,
     BeamParams,
     BeamTask,
     evaluate_beam,
     sample_start,
 )
-from experiments.checkpoint import RunState
-from experiments.envstate import BatchedTaskState
-from experiments.loop import (
+from hireps_torch.experiments.checkpoint import RunState
+from hireps_torch.experiments.envstate import BatchedTaskState
+from hireps_torch.experiments.loop import (
     Run,
     check_budget,
     collector_loop,
@@ -30,7 +32,7 @@ from experiments.loop import (
     infinite_horizon_update,
     resume_point,
 )
-from experiments.options import (
+from hireps_torch.experiments.options import (
     RunOptions,
     check_fourier_bases,
     check_options,
@@ -39,8 +41,6 @@ from experiments.options import (
     option_error,
     stream_seed,
 )
-from hireps_torch.algorithms import InfiniteHorizonHiREPS
-from hireps_torch.checks import check_positive_float
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -249,10 +249,11 @@ def _checked(cfg: BallOnBeamConfig) -> int:
     )
 
 
-def check(cfg: BallOnBeamConfig) -> None:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
+def algorithm(cfg: BallOnBeamConfig) -> InfiniteHorizonHiREPS:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
+    :func:`run` starts from (its members' policies); writes nothing."""
     _checked(cfg)
-    _make_algorithm(cfg, BeamParams(), member_seeds(cfg)[:1])
+    return _make_algorithm(cfg, BeamParams(), member_seeds(cfg))
 
 
 def run(cfg: BallOnBeamConfig) -> dict[str, Any]:

@@ -14,18 +14,18 @@ from typing import Any, Literal
 
 import torch
 
-from environments.toy import ContextualTwoGaussians, TwoGaussians
-from experiments.checkpoint import RunState
-from experiments.loop import Run, ask_tell_loop, finish_run, resume_point
-from experiments.options import (
+from hireps_torch.algorithms import REPS, EpisodicHiREPS
+from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
+from hireps_torch.experiments.checkpoint import RunState
+from hireps_torch.experiments.loop import Run, ask_tell_loop, finish_run, resume_point
+from hireps_torch.experiments.options import (
     RunOptions,
     check_options,
     check_variance_floor,
     member_seeds,
     stream_seed,
 )
-from experiments.rundir import atomic_write
-from hireps_torch.algorithms import REPS, EpisodicHiREPS
+from hireps_torch.experiments.rundir import atomic_write
 
 __all__ = [
     "BimodalConfig",
@@ -96,10 +96,11 @@ def _make_algorithm(
     )
 
 
-def check(cfg: BimodalConfig) -> None:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
+def algorithm(cfg: BimodalConfig) -> EpisodicHiREPS:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
+    :func:`run` starts from (its members' policies); writes nothing."""
     _validate(cfg)
-    _make_algorithm(cfg, _task(cfg), member_seeds(cfg)[:1])
+    return _make_algorithm(cfg, _task(cfg), member_seeds(cfg))
 
 
 def run(cfg: BimodalConfig) -> dict[str, Any]:

@@ -40,6 +40,7 @@ __all__ = [
     "changed_options",
     "load_checkpoint",
     "read_config",
+    "run_config",
     "saved_config",
     "stop_on_signals",
 ]
@@ -73,7 +74,7 @@ class Stateful(Protocol):
 
 
 class EnvState(Protocol):
-    """The running state of a run's environments (see :mod:`experiments.envstate`)."""
+    """The running state of a run's environments (see :mod:`hireps_torch.experiments.envstate`)."""
 
     def state_dict(self) -> dict[str, Any] | None: ...
     def load_state_dict(self, state: Mapping[str, Any] | None) -> None: ...
@@ -133,15 +134,16 @@ class RunState:
 CheckpointState = dict[str, Any]
 
 
-def load_checkpoint(run_dir: Path) -> CheckpointState | None:
-    """The run's checkpoint (None if it stopped before its first iteration finished)."""
+def load_checkpoint(run_dir: Path, map_location: str | None = None) -> CheckpointState | None:
+    """The run's checkpoint (None if it stopped before its first iteration finished), its
+    tensors on the devices they were saved from (or on ``map_location``)."""
     path = run_dir / "checkpoint.pt"
     if path.exists() and not path.is_file():
         raise ValueError(f"{path} is not a file; move it away (nothing was changed)")
     if not path.is_file():
         return None
     try:
-        ckpt: CheckpointState = torch.load(path)
+        ckpt: CheckpointState = torch.load(path, map_location=map_location)
     except Exception as exc:  # truncated, empty, not a torch file, pickled objects, ...
         why = next(iter(str(exc).splitlines()), "")[:200] or "no message"
         raise ValueError(
@@ -212,29 +214,42 @@ def changed_options(
     return out
 
 
-def saved_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
+def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
     """The config a run directory was started with (``config.json``), as a ``config_cls``,
-    with ``resume`` set: the defaults for ``--resume RUN_DIR`` on the command line."""
+    with ``run_dir`` set to where it is now and no ``resume``."""
     path = run_dir / "config.json"
     if not path.is_file():
-        raise ValueError(f"--resume {run_dir}: no config.json there; is it a run directory?")
+        raise ValueError(f"{run_dir}: no config.json there; is it a run directory?")
     data = read_config(run_dir)
     if data.get("experiment") not in (None, experiment.replace("-", "_")):
         raise ValueError(
-            f"--resume {run_dir}: that run is a {data.get('experiment')!r} run, not {experiment!r}"
+            f"{run_dir}: that run is a {data.get('experiment')!r} run, not {experiment!r}"
         )
-    from experiments.options import ABSENT_MEANS
+    from hireps_torch.experiments.options import ABSENT_MEANS
 
     fields = {f.name for f in dataclasses.fields(config_cls)}
     values = {k: v for k, v in data.items() if k in fields}
     for key, before in ABSENT_MEANS.items():  # left out of config.json at that value
         if key in fields and key not in data:
             values[key] = before
-    # the run continues where it is now: a moved or copied run directory, or one named by
-    # another (relative / absolute) path, is resumed in place (run_dir is a run-only option)
-    values["run_dir"] = None
-    values["resume"] = run_dir
-    return config_cls(**values)
+    values["run_dir"] = run_dir
+    values["resume"] = None
+    try:
+        return config_cls(**values)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path} does not hold the options of a {experiment} run: {exc}") from None
+
+
+def saved_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
+    """The config a run directory was started with, with ``resume`` set: the defaults for
+    ``--resume RUN_DIR`` on the command line. The run continues where it is now: a moved or
+    copied run directory, or one named by another (relative / absolute) path, is resumed in
+    place (``run_dir`` is a run-only option)."""
+    try:
+        cfg = run_config(config_cls, experiment, run_dir)
+    except ValueError as exc:
+        raise ValueError(f"--resume {exc}") from None
+    return dataclasses.replace(cfg, run_dir=None, resume=run_dir)
 
 
 @dataclasses.dataclass

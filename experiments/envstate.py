@@ -10,7 +10,7 @@ serializable"), so each kind of task gets a small adapter over the collector's e
   restored states too.
 
 Robot hockey needs none: its episodes draw everything from (seed, episode index), see
-:mod:`experiments.workers`.
+:mod:`hireps_torch.experiments.workers`.
 
 With worker processes the environments live in other processes: their state is not saved,
 and a resumed run continues from fresh environment states (it warns that it is then not
@@ -56,8 +56,8 @@ def _check_fits(saved: Mapping[str, Any], now: Mapping[str, torch.Tensor]) -> No
 
 
 class BatchedTaskState:
-    """Adapter for :class:`environments._common.ScalarActionBatchEnv` over the members'
-    tasks (:class:`environments._common.MemberTasks`) in a collector."""
+    """Adapter for :class:`hireps_torch.envs._common.ScalarActionBatchEnv` over the members'
+    tasks (:class:`hireps_torch.envs._common.MemberTasks`) in a collector."""
 
     def __init__(self, collector: Any, carry: bool) -> None:
         self.collector = collector

@@ -16,11 +16,17 @@ from typing import Any, Literal
 
 import torch
 
-from experiments.checkpoint import RunState
-from experiments.loop import Run, check_budget, collector_loop, finish_run, resume_point
-from experiments.options import RunOptions, check_options, option_error
-from experiments.workers import Backend, EpisodeCollector, make_pool, reproducible_mkl
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
+from hireps_torch.experiments.checkpoint import RunState
+from hireps_torch.experiments.loop import (
+    Run,
+    check_budget,
+    collector_loop,
+    finish_run,
+    resume_point,
+)
+from hireps_torch.experiments.options import RunOptions, check_options, option_error
+from hireps_torch.experiments.workers import Backend, EpisodeCollector, make_pool, reproducible_mkl
 
 __all__ = [
     "HockeyConfig",
@@ -159,7 +165,7 @@ def _hockey_rows(
     rewards: torch.Tensor, final: torch.Tensor, zones: tuple[float, float, float, float]
 ) -> dict[str, Any]:
     """Per-iteration hockey metrics of N episodes: rewards (N, K), final positions (N, 2)."""
-    from environments.hockey import zone_reward
+    from hireps_torch.envs.hockey import zone_reward
 
     zone = zone_reward(final.norm(dim=-1), zones)
     returns = rewards.sum(-1)
@@ -199,7 +205,7 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params:
         seed=cfg.seed,
     )
     if cfg.option_features == "aim":
-        from environments.hockey.aim import AimFeatures
+        from hireps_torch.envs.hockey.aim import AimFeatures
 
         common["policy_features"] = AimFeatures(params.geometry)
     algo: Algorithm
@@ -222,7 +228,7 @@ def _aim_options(algo: Algorithm, demo: torch.Tensor, params: Any) -> None:
     the target sends it along the line from the control puck's spot, so the later shots of an
     episode (and the episodic variant's 3 x 14 numbers, on the start position) need the same
     turn: every shot gets the same W."""
-    from environments.hockey.aim import AimFeatures, aim_slopes, turn_derivative
+    from hireps_torch.envs.hockey.aim import AimFeatures, aim_slopes, turn_derivative
     from hireps_torch.features import IdentityFeatures
 
     p0 = torch.tensor(params.target_mean, dtype=torch.float64)  # f0: its features
@@ -296,7 +302,7 @@ def _check(cfg: HockeyConfig) -> int:
 
 def hockey_params(cfg: HockeyConfig) -> Any:
     """The task constants of a run: HockeyParams with the config's start and physics."""
-    from environments.hockey import HockeyParams
+    from hireps_torch.envs.hockey import HockeyParams
 
     return HockeyParams(
         target_std=cfg.start_std,
@@ -310,7 +316,7 @@ def _make_env(env_id: str, sequential: bool, params: Any = None) -> Any:
     """The gymnasium env through TorchRL; the sequential variant counts its shots."""
     from torchrl.envs import GymEnv, StepCounter, TransformedEnv
 
-    import environments  # noqa: F401  (registers the ids in worker processes)
+    import hireps_torch.envs  # noqa: F401  (registers the ids in worker processes)
 
     env = GymEnv(env_id) if params is None else GymEnv(env_id, params=params)
     return TransformedEnv(env, StepCounter()) if sequential else env
@@ -362,7 +368,8 @@ def _update(
 
 EVAL_FIRST_EPISODE = 10**9
 """Index of the first evaluation episode: its start and noise come from ``(seed, index)``
-(:func:`~experiments.workers.episode_seeds`), and no run plays a billion training episodes."""
+(:func:`~hireps_torch.experiments.workers.episode_seeds`), and no run plays a billion
+training episodes."""
 
 
 def evaluate_final_policy(
@@ -373,8 +380,8 @@ def evaluate_final_policy(
     exploration on the same starts. Returns ``eval_average_reward``,
     ``eval_zone3_share``, ``eval_zone_reward`` (noise-free) and ``final_policy_average_reward``
     (exploring)."""
-    from environments.hockey import ENV_ID, EPISODIC_ENV_ID
-    from experiments.workers import play_episodes
+    from hireps_torch.envs.hockey import ENV_ID, EPISODIC_ENV_ID
+    from hireps_torch.experiments.workers import play_episodes
     from hireps_torch.rollout import episodes, policy_module, time_indexed_module
 
     sequential = isinstance(cfg, HockeySequentialConfig)
@@ -402,23 +409,24 @@ def evaluate_final_policy(
     return out
 
 
-def check(cfg: HockeyConfig) -> None:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
-    from environments.hockey import demo_action
+def algorithm(cfg: HockeyConfig) -> Algorithm:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
+    :func:`run` starts from (its members' policies); writes nothing."""
+    from hireps_torch.envs.hockey import demo_action
 
     _check(cfg)
     params = hockey_params(cfg)
     demo = torch.as_tensor(demo_action(params), dtype=torch.float64)
-    _make_algorithm(cfg, params.n_shots, demo, params)
+    return _make_algorithm(cfg, params.n_shots, demo, params)
 
 
 def run(cfg: HockeyConfig) -> dict[str, Any]:
     """Sequential or episodic HiREPS on the simulated robot hockey task; returns the summary."""
-    from environments.hockey import ENV_ID, EPISODIC_ENV_ID, demo_action
+    from hireps_torch.envs.hockey import ENV_ID, EPISODIC_ENV_ID, demo_action
     from hireps_torch.rollout import policy_module, time_indexed_module
 
     iterations = _check(cfg)
-    # before any arithmetic (see experiments.workers); a warning only matters with workers
+    # before any arithmetic (see experiments/workers.py); a warning only matters with workers
     reproducible_mkl(warn=cfg.workers > 1 or cfg.backend == "ray")
     sequential = isinstance(cfg, HockeySequentialConfig)
     experiment = (

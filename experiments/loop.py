@@ -28,7 +28,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from experiments.checkpoint import (
+from hireps_torch.experiments.checkpoint import (
     FORMAT,
     CheckpointState,
     RunFinished,
@@ -39,8 +39,8 @@ from experiments.checkpoint import (
     read_config,
     stop_on_signals,
 )
-from experiments.options import RunOptions, config_dict, member_seeds, parse_seeds
-from experiments.rundir import RunWriter, default_run_dir
+from hireps_torch.experiments.options import RunOptions, config_dict, member_seeds, parse_seeds
+from hireps_torch.experiments.rundir import RunWriter, default_run_dir
 
 __all__ = [
     "Members",
@@ -458,7 +458,7 @@ def finish_run(
 def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, Any]:
     """``population.md``, ``population.json`` and ``population.png`` of the members (as a
     sweep writes them), then the population's ``summary.json``; returns it."""
-    from experiments.sweep import METRICS, SweepRun, summarize
+    from hireps_torch.experiments.sweep import METRICS, SweepRun, summarize
 
     experiment, seeds, root = run.experiment.replace("_", "-"), run.members.seeds, run.root.dir
     runs = [SweepRun(experiment, experiment, s, {}, root / f"seed{s}") for s in seeds]

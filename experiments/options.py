@@ -13,8 +13,8 @@ from typing import Any
 
 import torch
 
-from experiments.rundir import LoggerName, jsonable
 from hireps_torch.checks import check_device, check_present_device
+from hireps_torch.experiments.rundir import LoggerName, jsonable
 
 __all__ = [
     "RunOptions",
@@ -187,7 +187,7 @@ ABSENT_MEANS = {
 """Options added after run directories were first written, with the value that reproduces
 the runs from before they existed. ``config.json`` leaves an option out at that value, so old
 and new run directories compare equal (resume, sweeps), and an old run directory without the
-option is resumed with it (:func:`experiments.checkpoint.saved_config`), even where the
+option is resumed with it (:func:`hireps_torch.experiments.checkpoint.saved_config`), even where the
 default has changed since (``option_goal_offset``)."""
 
 

@@ -15,8 +15,9 @@ from typing import Any, Literal
 
 import torch
 
-from environments._common import MemberTasks, ScalarActionBatchEnv
-from environments.pendulum import (
+from hireps_torch.algorithms import InfiniteHorizonHiREPS
+from hireps_torch.envs._common import MemberTasks, ScalarActionBatchEnv
+from hireps_torch.envs.pendulum import (
     PendulumParams,
     PendulumTask,
     SwingUpEvaluation,
@@ -24,9 +25,9 @@ from environments.pendulum import (
     mirror_decisions,
     sample_start,
 )
-from experiments.checkpoint import RunState
-from experiments.envstate import BatchedTaskState
-from experiments.loop import (
+from hireps_torch.experiments.checkpoint import RunState
+from hireps_torch.experiments.envstate import BatchedTaskState
+from hireps_torch.experiments.loop import (
     Run,
     check_budget,
     collector_loop,
@@ -35,7 +36,7 @@ from experiments.loop import (
     infinite_horizon_update,
     resume_point,
 )
-from experiments.options import (
+from hireps_torch.experiments.options import (
     RunOptions,
     check_fourier_bases,
     check_options,
@@ -44,7 +45,6 @@ from experiments.options import (
     option_error,
     stream_seed,
 )
-from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy
 
@@ -283,10 +283,11 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
     return params, iterations
 
 
-def check(cfg: PendulumConfig) -> None:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, without writing anything."""
+def algorithm(cfg: PendulumConfig) -> InfiniteHorizonHiREPS:
+    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
+    :func:`run` starts from (its members' policies); writes nothing."""
     params, _ = _checked(cfg)
-    _make_algorithm(cfg, params, member_seeds(cfg)[:1])
+    return _make_algorithm(cfg, params, member_seeds(cfg))
 
 
 def run(cfg: PendulumConfig) -> dict[str, Any]:

@@ -40,9 +40,9 @@ from typing import Annotated, Any
 import tyro
 from tqdm.auto import tqdm
 
-from experiments.options import parse_seeds
-from experiments.rundir import DirectoryLock
-from experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
+from hireps_torch.experiments.options import parse_seeds
+from hireps_torch.experiments.rundir import DirectoryLock
+from hireps_torch.experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
 
 __all__ = [
     "SweepConfig",
@@ -111,7 +111,7 @@ class SweepRun:
 
 
 def _config_class(experiment: str) -> type:
-    from experiments import EXPERIMENTS
+    from hireps_torch.experiments import EXPERIMENTS
 
     if experiment not in EXPERIMENTS:
         raise ValueError(
@@ -211,8 +211,8 @@ def plan(
 def run_one(run: SweepRun) -> dict[str, Any]:
     """Run, resume or reuse one run of a sweep; returns its ``summary.json`` (plus
     ``"reused": True`` when it had finished before)."""
-    from experiments import EXPERIMENTS
-    from experiments.checkpoint import saved_config
+    from hireps_torch.experiments import EXPERIMENTS
+    from hireps_torch.experiments.checkpoint import saved_config
 
     config_cls, run_fn = EXPERIMENTS[run.experiment]
     d = Path(run.run_dir)
@@ -259,8 +259,8 @@ def _finished_summary(run: SweepRun) -> dict[str, Any]:
 def check_same_options(run: SweepRun, cfg: Any) -> None:
     """A ValueError naming every option in which the run already in ``run.run_dir`` differs
     from the one the sweep asks for (e.g. another ``--set``): nothing is reused or mixed."""
-    from experiments.checkpoint import changed_options, read_config
-    from experiments.options import config_dict
+    from hireps_torch.experiments.checkpoint import changed_options, read_config
+    from hireps_torch.experiments.options import config_dict
 
     saved = read_config(Path(run.run_dir))
     now = config_dict(str(saved.get("experiment", run.experiment)), cfg)
@@ -278,7 +278,7 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
     seed), before any run starts: a ``ValueError`` naming each bad configuration and why."""
     import torch
 
-    from experiments import CHECKS
+    from hireps_torch.experiments import ALGORITHMS
 
     errors, seen = [], set()
     for run in runs:
@@ -290,7 +290,7 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
             with torch.random.fork_rng(devices=[]):  # a check draws nothing a run would see
                 cfg = config_cls(**run.options, seed=run.seed, progress=False)
                 cfg.check_run_options()
-                CHECKS[run.experiment](cfg)
+                ALGORITHMS[run.experiment](cfg)
         except (ValueError, TypeError) as exc:
             errors.append(f"configuration {run.name} (seed {run.seed}): {exc}")
     if errors:
@@ -373,7 +373,7 @@ def _in_worker(run: SweepRun, send: Any) -> None:
     """A local worker process: one run, its outcome sent back as (kind, value). A SIGINT
     before the run's own handler takes it is kept for the run (which then stops after its
     first iteration with its checkpoint written): the process never stops half-way."""
-    from experiments.checkpoint import record_early_stops
+    from hireps_torch.experiments.checkpoint import record_early_stops
 
     record_early_stops()
     try:
@@ -418,7 +418,7 @@ def _ray(
     if address is not None:
         check_ray_address(address)
     owns = not ray.is_initialized()
-    # hockey needs reproducible MKL in every process (experiments.workers); the rest one thread
+    # hockey needs reproducible MKL in every process (experiments/workers.py); the rest one thread
     hockey = runs[0].experiment.startswith("hockey")
     env = RAY_ENV if hockey else {"env_vars": {"OMP_NUM_THREADS": "1"}}
     if owns:
@@ -561,7 +561,7 @@ def summarize(
     """Write ``sweep.md`` (table), ``sweep.json`` (summaries) and ``sweep.png`` (bands) to
     ``out`` (``stem`` names the files) and return the table. ``metric`` / ``curve`` default
     to the experiment's (:data:`METRICS`)."""
-    from experiments.rundir import atomic_write
+    from hireps_torch.experiments.rundir import atomic_write
 
     if not runs:
         raise ValueError("nothing to summarize: the sweep has no runs")
@@ -613,7 +613,7 @@ def _plot(curves: Curves, path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from experiments.rundir import atomic_write
+    from hireps_torch.experiments.rundir import atomic_write
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, runs in curves.items():

@@ -12,7 +12,7 @@ workers writes the same ``metrics.csv`` as the run in one process.
     pool.close()
 
 :class:`EpisodeCollector` turns a pool into the iterable of per-iteration batches that
-:func:`experiments.loop.collector_loop` consumes, like a TorchRL collector with
+:func:`hireps_torch.experiments.loop.collector_loop` consumes, like a TorchRL collector with
 ``reset_at_each_iter=True``.
 
 Backends:
@@ -496,7 +496,8 @@ def make_pool(
 
 
 class EpisodeCollector:
-    """Batches of whole episodes by iteration, for :func:`experiments.loop.collector_loop`.
+    """Batches of whole episodes by iteration, for
+    :func:`hireps_torch.experiments.loop.collector_loop`.
 
     Iteration ``i`` (from ``start_iteration`` to ``iterations - 1``) plays episodes
     ``i * B .. (i + 1) * B - 1`` with the actor as it is then (the pool ships the current

@@ -1,4 +1,10 @@
-"""hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch."""
+"""hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch.
+
+``hireps_torch.load_run(run_dir)`` loads a trained run back
+(:func:`hireps_torch.experiments.saved.load_run`).
+"""
+
+from typing import Any
 
 from hireps_torch.algorithms import (
     REPS,
@@ -17,8 +23,21 @@ from hireps_torch.dual import (
     solve_time_indexed_dual,
 )
 from hireps_torch.policies import HierarchicalPolicy, LinearGaussian, SoftmaxGating
+from hireps_torch.registration import register_envs
 
 __version__ = "0.1.0"
+register_envs()
+
+
+def __getattr__(name: str) -> Any:
+    # load_run needs the experiments (torchrl and the tasks): imported when first asked for
+    if name == "load_run":
+        from hireps_torch.experiments.saved import load_run
+
+        return load_run
+    raise AttributeError(f"module 'hireps_torch' has no attribute {name!r}")
+
+
 __all__ = [
     "DMP",
     "REPS",
@@ -34,6 +53,7 @@ __all__ = [
     "SoftmaxGating",
     "TimeIndexedDualSolution",
     "TimeIndexedHiREPS",
+    "load_run",
     "solve_episodic_dual",
     "solve_time_indexed_dual",
 ]

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from experiments.options import config_dict
-from experiments.pendulum import PendulumConfig
-from experiments.sweep import SweepRun
+from hireps_torch.experiments.options import config_dict
+from hireps_torch.experiments.pendulum import PendulumConfig
+from hireps_torch.experiments.sweep import SweepRun
 
 ROOT = Path(__file__).resolve().parents[1]
 

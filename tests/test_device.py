@@ -185,8 +185,8 @@ def test_algorithm_refuses_samples_on_another_device():
 def test_options_added_later_are_left_out_of_config_json_at_their_default():
     """Run directories written before ``device`` and ``final_eval_episodes`` existed compare
     equal to today's defaults (resume, sweeps); set, they are saved."""
-    from experiments.hockey import HockeySequentialConfig
-    from experiments.options import config_dict
+    from hireps_torch.experiments.hockey import HockeySequentialConfig
+    from hireps_torch.experiments.options import config_dict
 
     plain = config_dict("hockey_sequential", HockeySequentialConfig())
     assert "device" not in plain and "final_eval_episodes" not in plain

@@ -18,8 +18,8 @@ import torch
 
 pytest.importorskip("pybullet")
 
-from experiments import hockey  # noqa: E402
-from experiments.workers import (  # noqa: E402
+from hireps_torch.experiments import hockey  # noqa: E402
+from hireps_torch.experiments.workers import (  # noqa: E402
     InProcessPool,
     check_ray_address,
     episode_seeds,
@@ -63,7 +63,7 @@ def _assert_ray_gone() -> None:
 
 
 def _actor_and_env() -> tuple[object, object]:
-    from environments.hockey import ENV_ID, HockeyParams, demo_action
+    from hireps_torch.envs.hockey import ENV_ID, HockeyParams, demo_action
     from hireps_torch.rollout import time_indexed_module
 
     cfg = hockey.HockeySequentialConfig(n_options=2, episodes=4, episodes_per_iteration=2)
@@ -96,9 +96,9 @@ HISTORY_SCRIPT = textwrap.dedent(
     import os
     os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     import torch
-    from environments.hockey import ENV_ID, HockeyParams, demo_action
-    from experiments import hockey
-    from experiments.workers import play_episodes
+    from hireps_torch.envs.hockey import ENV_ID, HockeyParams, demo_action
+    from hireps_torch.experiments import hockey
+    from hireps_torch.experiments.workers import play_episodes
     from hireps_torch.algorithms import Experience
     from hireps_torch.rollout import episodes, time_indexed_module
 
@@ -129,7 +129,7 @@ def test_an_episode_is_the_same_whatever_else_the_worker_played(tmp_path):
     """Episodes 12..17 of a learned policy played twice in a row, on their own after other
     episodes, and on a fresh environment give the same steps, bit for bit: the environment
     carries nothing from one episode to the next (with reproducible MKL, see
-    experiments.workers; without it these replays differed by up to 4e-3 rad)."""
+    hireps_torch.experiments.workers; without it these replays differed by up to 4e-3 rad)."""
     script = tmp_path / "history.py"
     script.write_text(HISTORY_SCRIPT)
     out = _run([sys.executable, str(script)])
@@ -143,7 +143,7 @@ def test_reproducible_mkl_reports_whether_it_is_in_force():
         "import os; os.environ.pop('MKL_CBWR', None)\n"
         "import torch, warnings\n"
         "torch.ones(3, 3, dtype=torch.float64) @ torch.ones(3, 3, dtype=torch.float64)\n"
-        "from experiments.workers import _mkl_mode, reproducible_mkl\n"
+        "from hireps_torch.experiments.workers import _mkl_mode, reproducible_mkl\n"
         "if _mkl_mode() is None: print('NO MKL'); raise SystemExit\n"
         "with warnings.catch_warnings(record=True) as w:\n"
         "    warnings.simplefilter('always')\n"
@@ -155,7 +155,11 @@ def test_reproducible_mkl_reports_whether_it_is_in_force():
         pytest.skip("torch without MKL")
     assert late.stdout.split() == ["False", "True"]
     early = _run(
-        [sys.executable, "-c", "import experiments.workers as w; print(w.reproducible_mkl())"],
+        [
+            sys.executable,
+            "-c",
+            "import hireps_torch.experiments.workers as w; print(w.reproducible_mkl())",
+        ],
         MKL_CBWR="COMPATIBLE",
     )
     assert early.stdout.split() == ["True"], early.stderr
@@ -299,9 +303,9 @@ KILL_SCRIPT = textwrap.dedent(
     os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # as train.py does for hockey
     import torch
     from tensordict.nn import TensorDictModule
-    from environments.hockey import ENV_ID, HockeyParams, demo_action
-    from experiments import hockey
-    from experiments.workers import InProcessPool, make_pool
+    from hireps_torch.envs.hockey import ENV_ID, HockeyParams, demo_action
+    from hireps_torch.experiments import hockey
+    from hireps_torch.experiments.workers import InProcessPool, make_pool
     from hireps_torch.rollout import TimeIndexedActor, time_indexed_module
 
     MARK = sys.argv[2]
@@ -355,7 +359,7 @@ def test_a_worker_killed_mid_iteration_loses_and_duplicates_no_episode(tmp_path,
 
 def test_reproducible_mkl_leaves_the_environment_as_it_was(monkeypatch):
     """A hockey run in a user's process must not change what its later subprocesses get."""
-    from experiments.workers import mkl_environment, reproducible_mkl
+    from hireps_torch.experiments.workers import mkl_environment, reproducible_mkl
 
     monkeypatch.delenv("MKL_CBWR", raising=False)
     reproducible_mkl(warn=False)
@@ -421,9 +425,9 @@ THREADS_SCRIPT = textwrap.dedent(
     os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     from functools import partial
     import torch
-    from environments.hockey import ENV_ID, HockeyParams, demo_action
-    from experiments import hockey
-    from experiments.workers import LocalProcessPool, play_episodes
+    from hireps_torch.envs.hockey import ENV_ID, HockeyParams, demo_action
+    from hireps_torch.experiments import hockey
+    from hireps_torch.experiments.workers import LocalProcessPool, play_episodes
     from hireps_torch.rollout import time_indexed_module
 
     if __name__ == "__main__":

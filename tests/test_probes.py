@@ -21,8 +21,14 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-import environments
-from environments import (
+from hireps_torch import EpisodicHiREPS, Experience, InfiniteHorizonHiREPS, TimeIndexedHiREPS, envs
+from hireps_torch.dual import (
+    solve_episodic_dual,
+    solve_infinite_horizon_dual,
+    solve_reps_dual,
+    solve_time_indexed_dual,
+)
+from hireps_torch.envs import (
     BallOnBeamBatchEnv,
     BallOnBeamEnv,
     ContextualTwoGaussians,
@@ -30,17 +36,15 @@ from environments import (
     PendulumSwingUpEnv,
     TwoGaussians,
 )
-from environments.ball_on_beam import BeamParams, beam_step, evaluate_beam
-from environments.ball_on_beam import sample_start as beam_start
-from environments.pendulum import PendulumParams, evaluate_swing_up, pendulum_step, sample_start
-from experiments.checkpoint import FORMAT
-from hireps_torch import EpisodicHiREPS, Experience, InfiniteHorizonHiREPS, TimeIndexedHiREPS
-from hireps_torch.dual import (
-    solve_episodic_dual,
-    solve_infinite_horizon_dual,
-    solve_reps_dual,
-    solve_time_indexed_dual,
+from hireps_torch.envs.ball_on_beam import BeamParams, beam_step, evaluate_beam
+from hireps_torch.envs.ball_on_beam import sample_start as beam_start
+from hireps_torch.envs.pendulum import (
+    PendulumParams,
+    evaluate_swing_up,
+    pendulum_step,
+    sample_start,
 )
+from hireps_torch.experiments.checkpoint import FORMAT
 from hireps_torch.features import (
     ConcatFeatures,
     FourierFeatures,
@@ -732,7 +736,7 @@ def test_gym_env_step_before_reset_is_refused(kind):
     env.step(np.zeros(1, np.float32))
 
 
-@pytest.mark.parametrize("env_id", [environments.PENDULUM_ID, environments.BALL_ON_BEAM_ID])
+@pytest.mark.parametrize("env_id", [envs.PENDULUM_ID, envs.BALL_ON_BEAM_ID])
 def test_gym_make_with_params_of_the_wrong_type(env_id):
     expect(lambda: gym.make(env_id, params="x"), "params must be a")
 
@@ -769,8 +773,8 @@ def test_batch_env_step_before_reset_and_without_action(kind):
 
 def test_hockey_probes():
     pytest.importorskip("pybullet")
-    from environments.hockey import HockeyParams, RobotHockeyEnv, RobotHockeyEpisodicEnv
-    from environments.hockey.kinematics import ArmGeometry
+    from hireps_torch.envs.hockey import HockeyParams, RobotHockeyEnv, RobotHockeyEpisodicEnv
+    from hireps_torch.envs.hockey.kinematics import ArmGeometry
 
     for call, match in [
         (lambda: HockeyParams(puck_radius="1"), "HockeyParams.puck_radius must be a number"),
@@ -849,15 +853,15 @@ def test_rollout_probes(name):
 
 
 # ---- experiments in process -----------------------------------------------------------------
-from experiments.ball_on_beam import BallOnBeamConfig  # noqa: E402
-from experiments.ball_on_beam import run as beam_run  # noqa: E402
-from experiments.bimodal import BimodalConfig  # noqa: E402
-from experiments.bimodal import run as bimodal_run  # noqa: E402
-from experiments.checkpoint import RunFinished  # noqa: E402
-from experiments.hockey import HockeyEpisodicConfig  # noqa: E402
-from experiments.hockey import run as hockey_run  # noqa: E402
-from experiments.pendulum import PendulumConfig  # noqa: E402
-from experiments.pendulum import run as pendulum_run  # noqa: E402
+from hireps_torch.experiments.ball_on_beam import BallOnBeamConfig  # noqa: E402
+from hireps_torch.experiments.ball_on_beam import run as beam_run  # noqa: E402
+from hireps_torch.experiments.bimodal import BimodalConfig  # noqa: E402
+from hireps_torch.experiments.bimodal import run as bimodal_run  # noqa: E402
+from hireps_torch.experiments.checkpoint import RunFinished  # noqa: E402
+from hireps_torch.experiments.hockey import HockeyEpisodicConfig  # noqa: E402
+from hireps_torch.experiments.hockey import run as hockey_run  # noqa: E402
+from hireps_torch.experiments.pendulum import PendulumConfig  # noqa: E402
+from hireps_torch.experiments.pendulum import run as pendulum_run  # noqa: E402
 
 SMALL = {
     "bimodal": (BimodalConfig, bimodal_run, dict(episodes=400)),

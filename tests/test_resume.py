@@ -31,7 +31,7 @@ def train(*args, timeout=300):
 
 def in_process(name, run_dir, **options):
     """Run experiment ``name`` in this process (no interpreter start-up)."""
-    from experiments import EXPERIMENTS
+    from hireps_torch.experiments import EXPERIMENTS
 
     config_cls, run = EXPERIMENTS[name]
     return run(config_cls(progress=False, run_dir=run_dir, **options))
@@ -39,8 +39,8 @@ def in_process(name, run_dir, **options):
 
 def resume_in_process(name, run_dir):
     """What ``train.py NAME --resume RUN_DIR`` does, in this process."""
-    from experiments import EXPERIMENTS, run_experiment
-    from experiments.checkpoint import saved_config
+    from hireps_torch.experiments import EXPERIMENTS, run_experiment
+    from hireps_torch.experiments.checkpoint import saved_config
 
     cfg = saved_config(EXPERIMENTS[name][0], name, run_dir)
     return run_experiment(dataclasses.replace(cfg, progress=False))
@@ -254,8 +254,8 @@ def test_resuming_with_changed_options_is_refused_and_names_them(tmp_path):
     assert p.returncode == 2
     assert "epsilon (run: 1.0, now: 0.3)" in p.stderr and "seed (run: 0, now: 9)" in p.stderr
     assert {q.name: q.read_bytes() for q in run.iterdir()} == before
-    from experiments import EXPERIMENTS
-    from experiments.checkpoint import saved_config
+    from hireps_torch.experiments import EXPERIMENTS
+    from hireps_torch.experiments.checkpoint import saved_config
 
     with pytest.raises(ValueError, match="'bimodal' run, not 'pendulum'"):
         saved_config(EXPERIMENTS["pendulum"][0], "pendulum", run)  # what --resume parses
@@ -266,7 +266,7 @@ def test_resuming_with_changed_options_is_refused_and_names_them(tmp_path):
 
 def test_the_final_checkpoint_loads_with_weights_only_and_gives_the_same_actions(tmp_path):
     """A finished run's checkpoint restores the policy: the same noise-free actions."""
-    from experiments import bimodal
+    from hireps_torch.experiments import bimodal
 
     summary = bimodal.run(
         bimodal.BimodalConfig(contextual=True, episodes=600, progress=False, run_dir=tmp_path / "r")
@@ -311,7 +311,7 @@ def test_a_run_with_worker_processes_resumes_with_a_warning_and_exits_cleanly(tm
 
 
 def test_a_write_that_fails_is_named_and_keeps_the_previous_file(tmp_path):
-    from experiments.rundir import atomic_write
+    from hireps_torch.experiments.rundir import atomic_write
 
     path = tmp_path / "checkpoint.pt"
     path.write_bytes(b"the previous checkpoint")
@@ -411,7 +411,7 @@ def test_a_run_directory_has_one_writer_and_a_crash_leaves_no_lock(tmp_path):
     """A resume of a directory that another process is writing is refused and changes
     nothing; once that process is gone (here: its lock dropped, as a crash drops it) the
     resume goes ahead."""
-    from experiments.rundir import DirectoryLock
+    from hireps_torch.experiments.rundir import DirectoryLock
 
     run = _unfinished(tmp_path, "run")
     before = _files(run)

@@ -4,7 +4,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from environments.pendulum import PendulumParams, PendulumSwingUpBatchEnv, pendulum_step
+from hireps_torch.envs.pendulum import PendulumParams, PendulumSwingUpBatchEnv, pendulum_step
 from hireps_torch.policies import HierarchicalPolicy
 from hireps_torch.rollout import (
     episodes,

@@ -13,7 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from experiments.sweep import SweepFailed, parse_grid, parse_seeds, plan, run_sweep, summarize
+from hireps_torch.experiments.sweep import (
+    SweepFailed,
+    parse_grid,
+    parse_seeds,
+    plan,
+    run_sweep,
+    summarize,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -304,7 +311,7 @@ def test_a_failing_run_is_named_and_the_others_still_run(tmp_path):
     out = tmp_path / "sw"
     args = ["--experiment", "bimodal", "--seeds", "0-2", "--set", "episodes=400", "--out", str(out)]
     bad = out / "bimodal" / "default" / "seed1"
-    from experiments import EXPERIMENTS
+    from hireps_torch.experiments import EXPERIMENTS
 
     config_cls, run = EXPERIMENTS["bimodal"]
     run(config_cls(episodes=400, seed=1, run_dir=bad, progress=False))
@@ -326,7 +333,7 @@ def test_a_failing_run_is_named_and_the_others_still_run(tmp_path):
 
 
 def test_a_sweep_directory_has_one_sweep_at_a_time(tmp_path):
-    from experiments.rundir import DirectoryLock
+    from hireps_torch.experiments.rundir import DirectoryLock
 
     out = tmp_path / "sw"
     (out / "bimodal").mkdir(parents=True)
@@ -407,7 +414,7 @@ def test_a_refused_sweep_writes_nothing(tmp_path, extra):
 
 @pytest.mark.parametrize("damage", ["{bad", "[1]", "{}", '{"final_return": "x"}', ""])
 def test_a_damaged_summary_of_a_finished_run_is_named(tmp_path, damage):
-    from experiments.sweep import DamagedSummary, _finished_summary
+    from hireps_torch.experiments.sweep import DamagedSummary, _finished_summary
 
     run = plan("bimodal", {"default": {}}, [0], tmp_path)[0]
     run.run_dir.mkdir(parents=True)
@@ -421,7 +428,7 @@ def test_a_finished_run_with_a_damaged_summary_fails_alone(tmp_path):
     traceback (before: a KeyError in the table, or an unnamed JSON error, and nothing ran)."""
     out = tmp_path / "sw"
     args = ["--experiment", "bimodal", "--seeds", "0-1", "--set", "episodes=400", "--out", str(out)]
-    from experiments import EXPERIMENTS
+    from hireps_torch.experiments import EXPERIMENTS
 
     config_cls, run = EXPERIMENTS["bimodal"]
     bad = out / "bimodal" / "default" / "seed0" / "summary.json"

@@ -60,7 +60,7 @@ def test_bimodal_subprocess_writes_the_run_directory(tmp_path):
 
 def in_process(name, tmp_path, run_name, **options):
     """Run experiment ``name`` in this process (no interpreter start-up) into tmp_path/run_name."""
-    from experiments import EXPERIMENTS
+    from hireps_torch.experiments import EXPERIMENTS
 
     config_cls, run = EXPERIMENTS[name]
     return run(config_cls(progress=False, run_dir=tmp_path / run_name, **options))
@@ -138,7 +138,7 @@ def test_pendulum_baselines_run(tmp_path, gating):
 def run_in_process(tmp_path, name, experiment, **cfg):
     """Run ``experiment`` ("pendulum" / "ball_on_beam") in this process into tmp_path/name;
     returns (metrics.csv text, the checkpointed policy state)."""
-    from experiments import ball_on_beam, pendulum
+    from hireps_torch.experiments import ball_on_beam, pendulum
 
     config_cls, run = {
         "pendulum": (pendulum.PendulumConfig, pendulum.run),
@@ -169,7 +169,7 @@ def test_ball_on_beam_subprocess_writes_the_run_directory(tmp_path):
     assert 0.0 <= summary["success_rate"] <= 1.0
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     assert len(rows) == 2  # 3 episodes per iteration
-    from experiments.ball_on_beam import BallOnBeamConfig
+    from hireps_torch.experiments.ball_on_beam import BallOnBeamConfig
 
     assert abs(float(rows[0]["kl"]) - BallOnBeamConfig.epsilon) < 1e-3  # the bound is met
     for key in ("eta", "xi", "effective_sample_size", "policy_entropy", "falls", "eval_return"):
@@ -209,7 +209,7 @@ def test_hockey_sequential_subprocess_writes_the_run_directory(tmp_path):
 
 def test_hockey_same_seed_same_run(tmp_path):
     pytest.importorskip("pybullet")
-    from experiments import hockey
+    from hireps_torch.experiments import hockey
 
     def run(name, cls, seed):
         cfg = cls(
@@ -236,7 +236,7 @@ def test_hockey_exploration_floor_moves_linearly_to_its_end_value():
     """The options' variance floor is (f std)^2 with f going from exploration_floor at the
     first update to exploration_floor_end at the last, linearly; None keeps it constant; it
     never goes below min_variance."""
-    from experiments.hockey import HockeySequentialConfig, variance_floor
+    from hireps_torch.experiments.hockey import HockeySequentialConfig, variance_floor
 
     std = torch.tensor([0.02, 0.3], dtype=torch.float64)
     cfg = HockeySequentialConfig(exploration_floor=0.25, exploration_floor_end=0.1)
@@ -259,7 +259,7 @@ def test_hockey_update_sets_the_floor_of_the_coming_update_before_learning(monke
     import types
 
     import hireps_torch.rollout
-    from experiments import hockey
+    from hireps_torch.experiments import hockey
 
     N, K = 4, 3
     fake = (torch.zeros(N, K, 2), torch.zeros(N, K, 14), torch.zeros(N, K), torch.zeros(N, 2))
@@ -285,7 +285,7 @@ def test_hockey_update_sets_the_floor_of_the_coming_update_before_learning(monke
 
 
 def test_run_hockey_refuses_the_base_config(tmp_path):
-    from experiments import hockey
+    from hireps_torch.experiments import hockey
 
     with pytest.raises(ValueError, match="HockeySequentialConfig or HockeyEpisodicConfig"):
         hockey.run(hockey.HockeyConfig(run_dir=tmp_path / "r"))
@@ -295,7 +295,7 @@ def test_run_hockey_refuses_the_base_config(tmp_path):
 def test_pendulum_policy_and_value_features_follow_the_config():
     import math
 
-    from experiments import pendulum
+    from hireps_torch.experiments import pendulum
 
     cfg = pendulum.PendulumConfig(n_options=4)
     pol = pendulum.build_pendulum_policy(cfg, torch.Generator().manual_seed(0))
@@ -319,8 +319,8 @@ def test_pendulum_policy_and_value_features_follow_the_config():
 def test_pendulum_update_can_add_the_mirrored_decisions():
     """The update of a population of two: each member's decisions (its systems, after the
     other's in the batch), then their mirror images; the rows see the collected ones only."""
-    from environments.pendulum import PendulumSwingUpBatchEnv, mirror_decisions, mirror_states
-    from experiments.loop import infinite_horizon_update
+    from hireps_torch.envs.pendulum import PendulumSwingUpBatchEnv, mirror_decisions, mirror_states
+    from hireps_torch.experiments.loop import infinite_horizon_update
 
     seen = {}
 
@@ -349,7 +349,7 @@ def test_pendulum_update_can_add_the_mirrored_decisions():
 def test_every_experiment_is_registered_with_its_config_and_run():
     import typing
 
-    from experiments import EXPERIMENTS, run_experiment
+    from hireps_torch.experiments import EXPERIMENTS, run_experiment
 
     assert set(EXPERIMENTS) == {
         "bimodal",
@@ -373,7 +373,7 @@ def test_every_experiment_is_registered_with_its_config_and_run():
 
 
 def test_unknown_or_missing_logger_is_refused_before_anything_is_written(tmp_path, monkeypatch):
-    from experiments.rundir import RunWriter, make_logger
+    from hireps_torch.experiments.rundir import RunWriter, make_logger
 
     with pytest.raises(ValueError, match="logger must be one of csv, tensorboard, wandb, got 'tb'"):
         make_logger("tb", tmp_path / "r", "x")
@@ -447,7 +447,7 @@ def test_bad_option_values_are_named_before_anything_is_written(tmp_path, name, 
 def test_ball_on_beam_value_features_couple_position_and_velocity_and_skip_the_angle():
     """The default value features: 4 x 4 - 1 coupled Fourier terms of (x, x') that do not
     change with the beam angle; ``value_beam_angle`` brings the angle in."""
-    from experiments.ball_on_beam import BallOnBeamConfig, value_features
+    from hireps_torch.experiments.ball_on_beam import BallOnBeamConfig, value_features
 
     phi = value_features(BallOnBeamConfig(value_goal_bowl=False))
     assert phi.in_features == 3 and phi.out_features == 15
@@ -471,8 +471,8 @@ def test_ball_on_beam_goal_bowl_features_are_the_quadratic_form_around_the_close
     """[e^2, e v, v^2] with e the offset from the closer goal over the half length and v the
     velocity over max_velocity, against values computed by hand; zero at rest on either goal,
     equal on mirrored states, the angle ignored; a bad max_velocity is refused by name."""
-    from environments.ball_on_beam import BeamParams
-    from experiments.ball_on_beam import GoalBowlFeatures
+    from hireps_torch.envs.ball_on_beam import BeamParams
+    from hireps_torch.experiments.ball_on_beam import GoalBowlFeatures
 
     phi = GoalBowlFeatures(BeamParams(), max_velocity=2.0)
     s = torch.tensor(
@@ -497,8 +497,8 @@ def test_ball_on_beam_goal_offset_features_are_the_state_seen_from_the_closer_go
     """[x - g, x', alpha] with g the goal on the ball's side (+goal at x = 0): zero offset at
     either goal, mirrored states give mirrored features; the default beam policy's options are
     linear in them, --no-option-goal-offset in the state itself."""
-    from environments.ball_on_beam import BeamParams
-    from experiments.ball_on_beam import (
+    from hireps_torch.envs.ball_on_beam import BeamParams
+    from hireps_torch.experiments.ball_on_beam import (
         BallOnBeamConfig,
         GoalOffsetFeatures,
         build_ball_on_beam_policy,
@@ -529,9 +529,9 @@ def test_old_ball_on_beam_run_directories_resume_with_options_linear_in_the_posi
     off, the behaviour of that time, although the default is now on; a new run saves it."""
     import json
 
-    from experiments.ball_on_beam import BallOnBeamConfig
-    from experiments.checkpoint import saved_config
-    from experiments.options import config_dict
+    from hireps_torch.experiments.ball_on_beam import BallOnBeamConfig
+    from hireps_torch.experiments.checkpoint import saved_config
+    from hireps_torch.experiments.options import config_dict
 
     new = config_dict("ball_on_beam", BallOnBeamConfig())
     assert new["option_goal_offset"] is True
@@ -547,9 +547,9 @@ def test_old_hockey_run_directories_resume_with_a_constant_exploration_floor(tmp
     constant (None), although the default now anneals it to 0.1; a new run saves 0.1."""
     import json
 
-    from experiments.checkpoint import saved_config
-    from experiments.hockey import HockeySequentialConfig
-    from experiments.options import config_dict
+    from hireps_torch.experiments.checkpoint import saved_config
+    from hireps_torch.experiments.hockey import HockeySequentialConfig
+    from hireps_torch.experiments.options import config_dict
 
     assert (
         config_dict("hockey_sequential", HockeySequentialConfig())["exploration_floor_end"] == 0.1
@@ -598,9 +598,9 @@ def test_old_pendulum_run_directories_resume_with_a_constant_kl_bound(tmp_path):
     resumed run itself: tests/test_resume.py)."""
     import json
 
-    from experiments.checkpoint import saved_config
-    from experiments.options import config_dict
-    from experiments.pendulum import PendulumConfig
+    from hireps_torch.experiments.checkpoint import saved_config
+    from hireps_torch.experiments.options import config_dict
+    from hireps_torch.experiments.pendulum import PendulumConfig
 
     assert config_dict("pendulum", PendulumConfig())["epsilon_end"] == 0.1
     old = config_dict("pendulum", PendulumConfig(epsilon_end=None))
@@ -617,7 +617,7 @@ def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
     schedule from its checkpoint."""
     import types
 
-    from experiments import pendulum
+    from hireps_torch.experiments import pendulum
 
     PendulumConfig, epsilon_at = pendulum.PendulumConfig, pendulum.epsilon_at
     cfg = PendulumConfig(epsilon=0.6, epsilon_end=0.2)
@@ -660,3 +660,56 @@ def test_absurd_counts_and_floors_are_refused_before_anything_is_written(tmp_pat
         entry.main([*args, "--run-dir", str(run), "--no-progress"])
     assert message in str(refused.value)
     assert not run.exists()
+
+
+def test_the_installed_command_runs_an_experiment(tmp_path):
+    command = Path(sys.executable).with_name("hireps-train")
+    if not command.is_file():
+        pytest.skip("hireps-train is not installed next to this interpreter")
+    run = tmp_path / "run"
+    p = subprocess.run(
+        [str(command), "bimodal", "--episodes", "200", "--run-dir", str(run), "--no-progress"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stderr
+    assert json.loads((run / "summary.json").read_text())["episodes"] == 200
+    bad = subprocess.run(
+        [str(command), "bimodal", "--episodes", "-3"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert bad.returncode == 2 and "episodes" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_command_puts_hockey_runs_in_reproducible_mkl_before_torch_computes():
+    code = (
+        "import os, sys\n"
+        "os.environ.pop('MKL_CBWR', None)\n"
+        "sys.argv = ['hireps-train', 'hockey-sequential', '--episodes', '-1']\n"
+        "from hireps_torch.cli import entry\n"
+        "try:\n"
+        "    entry()\n"
+        "except SystemExit as stop:\n"
+        "    assert stop.code == 2, stop.code\n"
+        "from hireps_torch.experiments.workers import _mkl_mode\n"
+        "print(os.environ.get('MKL_CBWR'), _mkl_mode())\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    variable, mode = p.stdout.split()
+    assert variable == "COMPATIBLE"
+    assert mode in ("None", "2", "3")  # None: a torch without MKL; 1 would be MKL's default
+
+
+def test_calling_main_in_a_process_leaves_its_environment_alone(tmp_path, monkeypatch):
+    import train
+
+    monkeypatch.delenv("MKL_CBWR", raising=False)
+    with pytest.raises(ValueError, match="episodes"):
+        train.main(["hockey-sequential", "--episodes", "-1"])
+    assert "MKL_CBWR" not in __import__("os").environ

@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = textwrap.dedent(
     """
     import torch
-    from environments.pendulum import PendulumSwingUpBatchEnv
+    from hireps_torch.envs.pendulum import PendulumSwingUpBatchEnv
     from hireps_torch.policies import HierarchicalPolicy
     from hireps_torch.rollout import make_collector, policy_module, shutdown_collector
 

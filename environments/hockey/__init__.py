@@ -1,17 +1,17 @@
-"""Robot hockey with a KUKA iiwa in pybullet (see :mod:`environments.hockey.env` for the spec).
+"""Robot hockey with a KUKA iiwa in pybullet (see :mod:`hireps_torch.envs.hockey.env` for the spec).
 
-``import environments`` registers the gymnasium ids; pybullet and pytorch-kinematics (the
+``import hireps_torch.envs`` registers the gymnasium ids; pybullet and pytorch-kinematics (the
 ``robot`` extra) are only needed when an environment is created.
 """
 
-from environments.hockey.aim import (
+from hireps_torch.envs.hockey.aim import (
     AimFeatures,
     aim_angle,
     aim_slopes,
     aimed_shot,
     turn_derivative,
 )
-from environments.hockey.env import (
+from hireps_torch.envs.hockey.env import (
     ENV_ID,
     EPISODIC_ENV_ID,
     RobotHockeyEnv,
@@ -19,9 +19,9 @@ from environments.hockey.env import (
     clip_action,
     zone_reward,
 )
-from environments.hockey.kinematics import ArmGeometry, ArmKinematics, demonstration
-from environments.hockey.params import HockeyParams
-from environments.hockey.sim import HockeySim, ShotResult, demo_action, shot_dmp
+from hireps_torch.envs.hockey.kinematics import ArmGeometry, ArmKinematics, demonstration
+from hireps_torch.envs.hockey.params import HockeyParams
+from hireps_torch.envs.hockey.sim import HockeySim, ShotResult, demo_action, shot_dmp
 
 __all__ = [
     "ENV_ID",

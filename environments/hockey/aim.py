@@ -21,8 +21,8 @@ import math
 import torch
 from torch import Tensor
 
-from environments.hockey.kinematics import ArmGeometry, arm_kinematics
 from hireps_torch.checks import as_finite_f64, as_float
+from hireps_torch.envs.hockey.kinematics import ArmGeometry, arm_kinematics
 from hireps_torch.features import FeatureMap
 
 __all__ = [
@@ -85,7 +85,7 @@ def aimed_shot(demo: Tensor, phi: float, geometry: ArmGeometry = _GEOMETRY) -> T
 
     Args:
         demo: (14,) the demo shot's action ``[goal, goal velocity]`` (see
-            :func:`~environments.hockey.demo_action`).
+            :func:`~hireps_torch.envs.hockey.demo_action`).
         phi: the turn (rad, counter-clockwise seen from above; positive aims toward +y).
         geometry: the arm's stick and demo geometry.
 

@@ -2,7 +2,7 @@
 
 Spec sheet
 ==========
-Scene (:class:`~environments.hockey.sim.HockeySim`)
+Scene (:class:`~hireps_torch.envs.hockey.sim.HockeySim`)
     A KUKA LBR iiwa (7 DoF, pybullet_data's ``kuka_iiwa/model.urdf``, base at the origin) holds
     a hockey stick (0.55 m shaft mounted on the flange at 0.6 rad, a 2 x 14 x 8 cm box blade, as
     tall as an ice-hockey blade, centred 4 cm above the floor at the puck).
@@ -91,10 +91,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from environments._common import ResetNeeded, check_params
-from environments.hockey.params import HockeyParams
-from environments.hockey.sim import HockeySim, demo_action
 from hireps_torch.checks import as_finite_f64, as_float_tensor, check_count
+from hireps_torch.envs._common import ResetNeeded, check_params
+from hireps_torch.envs.hockey.params import HockeyParams
+from hireps_torch.envs.hockey.sim import HockeySim, demo_action
+from hireps_torch.registration import HOCKEY_EPISODIC_ID, HOCKEY_ID
 
 __all__ = [
     "ENV_ID",
@@ -105,9 +106,9 @@ __all__ = [
     "zone_reward",
 ]
 
-# gymnasium ids, registered by ``import environments``
-ENV_ID = "hireps/RobotHockey-v0"
-EPISODIC_ENV_ID = "hireps/RobotHockeyEpisodic-v0"
+# gymnasium ids, registered by ``import hireps_torch``
+ENV_ID = HOCKEY_ID
+EPISODIC_ENV_ID = HOCKEY_EPISODIC_ID
 
 
 def zone_reward(distance: Tensor, zones: tuple[float, float, float, float]) -> Tensor:

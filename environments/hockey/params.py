@@ -6,8 +6,8 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from environments.hockey.kinematics import ArmGeometry
 from hireps_torch.checks import as_float, check_count
+from hireps_torch.envs.hockey.kinematics import ArmGeometry
 
 __all__ = ["HockeyParams"]
 

@@ -5,8 +5,8 @@
 joint goals and goal velocities on the simulation grid, lets the arm's position servos track it
 (then a follow-through that brakes the joints exponentially from the goal velocity), steps until
 both pucks rest, and reports the minimum gap between the pucks. Every physical constant is in
-:class:`~environments.hockey.params.HockeyParams`; the rules (rewards, zones, episode) are in
-:mod:`environments.hockey.env`.
+:class:`~hireps_torch.envs.hockey.params.HockeyParams`; the rules (rewards, zones, episode) are in
+:mod:`hireps_torch.envs.hockey.env`.
 """
 
 from __future__ import annotations
@@ -18,14 +18,14 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from environments.hockey.kinematics import (
+from hireps_torch.dmp import DMP
+from hireps_torch.envs.hockey.kinematics import (
     arm_kinematics,
     arm_urdf,
     demonstration,
     require_robot_extra,
 )
-from environments.hockey.params import HockeyParams
-from hireps_torch.dmp import DMP
+from hireps_torch.envs.hockey.params import HockeyParams
 
 __all__ = ["HockeyParams", "HockeySim", "ShotResult", "demo_action", "shot_dmp"]
 
@@ -110,7 +110,7 @@ class HockeySim:
         """Build the world from nothing (``resetSimulation``): plane, arm, pucks and, with
         ``marks``, the zone marks; the pucks rest at their start spots.
 
-        Called at every episode start (:class:`~environments.hockey.env.RobotHockeyEnv`
+        Called at every episode start (:class:`~hireps_torch.envs.hockey.env.RobotHockeyEnv`
         ``reset``): pybullet keeps state that ``restoreState`` does not restore (contact
         caches of other pairs, deactivation timers, the broadphase's pair cache), so in a
         reused world an episode's outcome depended on the episodes played before it

@@ -94,9 +94,12 @@ class Algorithm(Protocol):
 
     Attributes:
         iteration: number of updates so far.
+        population: S for a population of S members (every shape gains a leading S), None
+            for one.
     """
 
     iteration: int
+    population: int | None
 
     @property
     def policies(self) -> Sequence[HierarchicalPolicy]:

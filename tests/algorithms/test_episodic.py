@@ -3,9 +3,9 @@ import math
 import pytest
 import torch
 
-from environments.toy import ContextualTwoGaussians, TwoGaussians
-from experiments.bimodal import modes_covered, option_summary
 from hireps_torch import REPS, DegenerateWeightsWarning, EpisodicHiREPS
+from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
+from hireps_torch.experiments.bimodal import modes_covered, option_summary
 
 
 def quadratic(theta):

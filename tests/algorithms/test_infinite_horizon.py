@@ -5,9 +5,9 @@ import math
 import pytest
 import torch
 
-from environments.pendulum import PendulumParams, pendulum_step, sample_start
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.dual import solve_infinite_horizon_dual
+from hireps_torch.envs.pendulum import PendulumParams, pendulum_step, sample_start
 from hireps_torch.features import FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 

@@ -9,7 +9,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 from torchrl.envs.utils import check_env_specs
 
-from environments.ball_on_beam import (
+from hireps_torch.envs.ball_on_beam import (
     ENV_ID,
     BallOnBeamBatchEnv,
     BallOnBeamEnv,
@@ -252,8 +252,8 @@ def _episodes(env, decisions, act):
 def test_members_of_a_population_of_beams_alternate_sides_over_iterations():
     """MemberTasks (a reset at each iteration after the end-of-episode restarts) gives every
     member R L R, then L R L, as its ordinary run's collector."""
-    from environments._common import MemberTasks
-    from environments.ball_on_beam import BeamTask
+    from hireps_torch.envs._common import MemberTasks
+    from hireps_torch.envs.ball_on_beam import BeamTask
 
     p = BeamParams()
     env = MemberTasks([BeamTask(3, p, seed=1), BeamTask(3, p, seed=2)])
@@ -270,9 +270,9 @@ def test_members_of_a_population_of_beams_alternate_sides_over_iterations():
 def test_a_member_task_steps_as_it_does_alone(kind):
     """Member 1 of MemberTasks draws its starts and restarts from its own task: its systems
     are those of its task alone, bit for bit, whatever the other member does."""
-    from environments._common import MemberTasks
-    from environments.ball_on_beam import BeamTask
-    from environments.pendulum import PendulumParams, PendulumTask
+    from hireps_torch.envs._common import MemberTasks
+    from hireps_torch.envs.ball_on_beam import BeamTask
+    from hireps_torch.envs.pendulum import PendulumParams, PendulumTask
 
     def task(seed):
         if kind == "beam":

@@ -7,8 +7,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from environments.ball_on_beam import BallOnBeamBatchEnv
-from environments.pendulum import PendulumSwingUpBatchEnv, PendulumSwingUpEnv
+from hireps_torch.envs.ball_on_beam import BallOnBeamBatchEnv
+from hireps_torch.envs.pendulum import PendulumSwingUpBatchEnv, PendulumSwingUpEnv
 
 BATCHED = [lambda **k: PendulumSwingUpBatchEnv(4, **k), lambda **k: BallOnBeamBatchEnv(4, **k)]
 

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 pytest.importorskip("pybullet")
 pytest.importorskip("pytorch_kinematics")
 
-from environments.hockey import (  # noqa: E402
+from hireps_torch.envs.hockey import (  # noqa: E402
     ENV_ID,
     EPISODIC_ENV_ID,
     ArmKinematics,
@@ -20,7 +20,7 @@ from environments.hockey import (  # noqa: E402
     demonstration,
     zone_reward,
 )
-from environments.hockey import kinematics as kin_module  # noqa: E402
+from hireps_torch.envs.hockey import kinematics as kin_module  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -238,7 +238,7 @@ def test_flat_pucks_stay_flat_in_hard_shots():
     """Swings up to 2.5x the demo's goal velocity: with flat_pucks neither puck tilts by more
     than half a degree (with the real inertia such hits tipped 2 of 30 pucks, one onto its
     edge), and the pucks still slide and spin."""
-    from environments.hockey import HockeySim, demo_action
+    from hireps_torch.envs.hockey import HockeySim, demo_action
 
     p = HockeyParams(flat_pucks=True)
     sim = HockeySim(p, marks=False)
@@ -270,7 +270,11 @@ def test_a_fixed_start_puts_the_target_at_the_same_spot_every_episode():
 
 
 def test_the_run_options_reach_the_task_constants():
-    from experiments.hockey import HockeyFixedStartConfig, HockeySequentialConfig, hockey_params
+    from hireps_torch.experiments.hockey import (
+        HockeyFixedStartConfig,
+        HockeySequentialConfig,
+        hockey_params,
+    )
 
     cfg = HockeySequentialConfig(
         start_std=0.03, puck_restitution=0.3, floor_friction=0.025, flat_pucks=True
@@ -290,8 +294,8 @@ def test_the_run_options_reach_the_task_constants():
 def test_goal_velocity_exploration_scaled_to_each_joint():
     """velocity_std_fraction: each joint's goal-velocity std follows the demo's goal velocity
     of that joint (joints the demo keeps still get the minimum); 0 keeps one std for all."""
-    from environments.hockey import demo_action
-    from experiments.hockey import HockeySequentialConfig, _exploration_std
+    from hireps_torch.envs.hockey import demo_action
+    from hireps_torch.experiments.hockey import HockeySequentialConfig, _exploration_std
 
     demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
     cfg = HockeySequentialConfig(velocity_std_fraction=0.2, min_velocity_std=0.04)

@@ -10,15 +10,15 @@ import torch
 pytest.importorskip("pybullet")
 pytest.importorskip("pytorch_kinematics")
 
-from environments.hockey import ArmGeometry, HockeyParams, HockeySim, demo_action  # noqa: E402
-from environments.hockey.aim import (  # noqa: E402
+from hireps_torch.envs.hockey import ArmGeometry, HockeyParams, HockeySim, demo_action  # noqa: E402
+from hireps_torch.envs.hockey.aim import (  # noqa: E402
     aim_angle,
     aim_slopes,
     aimed_shot,
     blade_twist,
     rotation_z,
 )
-from environments.hockey.kinematics import arm_kinematics  # noqa: E402
+from hireps_torch.envs.hockey.kinematics import arm_kinematics  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +129,7 @@ def test_aim_slopes_option_start_keeps_the_means_at_the_start_mean(demo, variant
     """aim_slopes (the default) with options on (x, y): every option's slopes are the
     mapping's (stacked per shot), and at the start mean every option's mean is what it is
     without them (--no-aim-slopes)."""
-    from experiments import hockey
+    from hireps_torch.experiments import hockey
 
     Config = (
         hockey.HockeySequentialConfig if variant == "sequential" else hockey.HockeyEpisodicConfig
@@ -149,7 +149,7 @@ def test_aim_slopes_option_start_keeps_the_means_at_the_start_mean(demo, variant
 
 
 def test_aim_features_are_the_angle_and_distance_from_the_puck_spot():
-    from environments.hockey.aim import AimFeatures
+    from hireps_torch.envs.hockey.aim import AimFeatures
 
     f = AimFeatures(ArmGeometry())
     p = torch.tensor([[1.1, 0.0], [1.2, 0.65], [0.55, -0.3]], dtype=torch.float64)
@@ -166,8 +166,8 @@ def test_options_on_aim_features_turn_by_the_angle_at_any_distance(demo):
     """option_features = "aim" (the default): each option's mean is the demo shot plus the
     turn's derivative times the target's aim angle, the same first-order aim near the start
     mean and twice as far out (where slopes on (x, y) fitted at the start mean over-turn)."""
-    from environments.hockey.aim import turn_derivative
-    from experiments import hockey
+    from hireps_torch.envs.hockey.aim import turn_derivative
+    from hireps_torch.experiments import hockey
 
     params = HockeyParams()
     algo = hockey._make_algorithm(hockey.HockeySequentialConfig(seed=2), 3, demo, params)

@@ -9,7 +9,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 from torchrl.envs.utils import check_env_specs
 
-from environments.pendulum import (
+from hireps_torch.envs.pendulum import (
     ENV_ID,
     PendulumParams,
     PendulumSwingUpBatchEnv,

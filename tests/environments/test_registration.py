@@ -1,4 +1,4 @@
-"""gymnasium ids: ``import environments`` registers every id once, cheaply."""
+"""gymnasium ids: ``import hireps_torch`` registers every id once, cheaply."""
 
 import importlib
 import subprocess
@@ -9,28 +9,31 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 
-import environments
+from hireps_torch import envs, registration
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_id_is_registered_once_with_a_string_entry_point():
-    assert set(environments.ENV_IDS) == {
+    assert set(envs.ENV_IDS) == {
         "hireps/PendulumSwingUp-v0",
         "hireps/BallOnBeam-v0",
         "hireps/RobotHockey-v0",
         "hireps/RobotHockeyEpisodic-v0",
     }
-    for env_id in environments.ENV_IDS:
+    for env_id in envs.ENV_IDS:
         spec = gym.spec(env_id)
-        assert isinstance(spec.entry_point, str) and spec.entry_point.startswith("environments.")
+        assert isinstance(spec.entry_point, str)
+        assert spec.entry_point.startswith("hireps_torch.envs.")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # gymnasium warns when an id is overridden
-        importlib.reload(environments)
+        importlib.reload(registration).register_envs()
     assert sum(k.startswith("hireps/") for k in gym.registry) == 4
 
 
 @pytest.mark.parametrize(
     "env_id, obs_shape",
-    [(environments.PENDULUM_ID, (2,)), (environments.BALL_ON_BEAM_ID, (3,))],
+    [(envs.PENDULUM_ID, (2,)), (envs.BALL_ON_BEAM_ID, (3,))],
 )
 def test_gym_make_builds_the_torch_tasks(env_id, obs_shape):
     env = gym.make(env_id)
@@ -42,11 +45,44 @@ def test_gym_make_builds_the_torch_tasks(env_id, obs_shape):
     env.close()
 
 
-def test_import_registers_without_pybullet():
-    code = (
-        "import sys, gymnasium as gym, environments; "
-        "assert 'pybullet' not in sys.modules and 'pytorch_kinematics' not in sys.modules; "
-        "assert all(i in gym.registry for i in environments.ENV_IDS)"
+def _python(code: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-W", "error::UserWarning", "-c", code],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
     )
-    root = Path(__file__).resolve().parents[2]
-    subprocess.run([sys.executable, "-W", "error::UserWarning", "-c", code], check=True, cwd=root)
+
+
+def test_importing_the_library_registers_the_ids_without_importing_the_tasks(tmp_path):
+    code = (
+        "import sys, gymnasium as gym, hireps_torch; "
+        "assert 'hireps_torch.envs' not in sys.modules and 'pybullet' not in sys.modules; "
+        "assert all(i in gym.registry for i in hireps_torch.registration.ENV_IDS)"
+    )
+    done = _python(code, tmp_path)
+    assert done.returncode == 0, done.stderr
+
+
+def test_the_module_form_of_an_id_works_with_nothing_imported(tmp_path):
+    code = (
+        "import gymnasium as gym; "
+        "env = gym.make('hireps_torch:hireps/PendulumSwingUp-v0'); "
+        "assert env.reset(seed=0)[0].shape == (2,)"
+    )
+    done = _python(code, tmp_path)
+    assert done.returncode == 0, done.stderr
+
+
+@pytest.mark.parametrize(
+    "folder, name",
+    [("environments", "hireps_torch.envs"), ("experiments", "hireps_torch.experiments")],
+)
+def test_a_folder_imported_under_its_own_name_is_refused_with_the_installed_name(folder, name):
+    """From the repository root the folders are importable by their own names; that would
+    load a second copy of every class (and register nothing twice only by luck)."""
+    done = _python(f"import {folder}", ROOT)
+    assert done.returncode != 0
+    assert f"import the {'tasks' if folder == 'environments' else 'experiments'} as {name}" in (
+        done.stderr
+    )

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from environments.toy import ContextualTwoGaussians, TwoGaussians
+from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
 
 
 def test_bumps_peak_at_the_modes():

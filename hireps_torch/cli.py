@@ -1,0 +1,87 @@
+"""Run the paper's experiments: ``hireps-train <experiment> [--options]`` (or ``python train.py
+<experiment> [--options]`` in the repository).
+
+The experiments live in :mod:`hireps_torch.experiments` (one module each); this module is
+the command line only. ``hireps-train <experiment> --help`` lists an experiment's options.
+Every run writes a run directory (default ``runs/<experiment>/<timestamp>``, ``--run-dir``
+overrides) with ``config.json``, ``metrics.csv`` (one row per iteration), ``checkpoint.pt``
+(after every iteration and on Ctrl-C), ``learning_curve.png`` and, when it finished,
+``summary.json``.
+``hireps-train <experiment> --resume RUN_DIR`` continues an interrupted run exactly.
+``hireps-train sweep --experiment E --seeds 0-4 --grid OPTION=V1,V2 [--backend ray]`` runs
+a grid of configurations x seeds (see :mod:`hireps_torch.experiments.sweep`); run it again
+to finish an interrupted sweep.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+__all__ = ["entry", "main", "parse"]
+
+
+def _resume_dir(argv: list[str]) -> Path | None:
+    for i, arg in enumerate(argv):
+        if arg.startswith("--resume="):
+            return Path(arg.split("=", 1)[1])
+        if arg == "--resume" and i + 1 < len(argv):
+            return Path(argv[i + 1])
+    return None
+
+
+def parse(argv: list[str]) -> Any:
+    """The config of the chosen experiment; with ``--resume RUN_DIR`` the run's saved
+    options are the defaults (options given again must agree with them)."""
+    import tyro
+
+    from hireps_torch.experiments import EXPERIMENTS
+    from hireps_torch.experiments.checkpoint import saved_config
+    from hireps_torch.experiments.sweep import SweepConfig
+
+    resume = _resume_dir(argv)
+    if argv and argv[0] in EXPERIMENTS and resume is not None:
+        config_cls = EXPERIMENTS[argv[0]][0]
+        default = saved_config(config_cls, argv[0], resume)
+        return tyro.cli(config_cls, default=default, args=argv[1:], description=__doc__)
+    commands: dict[str, Callable[..., Any]] = {name: c for name, (c, _) in EXPERIMENTS.items()}
+    commands["sweep"] = SweepConfig
+    return tyro.extras.subcommand_cli_from_dict(commands, args=argv, description=__doc__)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Parse the command line, run the chosen experiment, print its summary."""
+    argv = sys.argv[1:] if argv is None else argv
+    from hireps_torch.experiments import run_experiment
+    from hireps_torch.experiments.sweep import SweepConfig
+    from hireps_torch.experiments.sweep import main as run_sweep
+
+    cfg = parse(argv)
+    summary = run_sweep(cfg) if isinstance(cfg, SweepConfig) else run_experiment(cfg)
+    print(json.dumps({k: v for k, v in summary.items() if k != "options"}, indent=2))
+    return summary
+
+
+def entry() -> None:
+    """``hireps-train``: :func:`main` as a process's entry point: hockey in MKL's reproducible
+    mode (``MKL_CBWR=COMPATIBLE`` unless set; see :mod:`hireps_torch.experiments.workers`), and
+    the exit codes of a command (130 on Ctrl-C, after the checkpoint is written; 2 on bad
+    options or an unwritable run directory)."""
+    if any("hockey-" in arg for arg in sys.argv[1:]):  # before MKL's first call
+        os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+    from hireps_torch.experiments.checkpoint import RunFinished
+
+    try:
+        main()
+    except RunFinished as done:
+        print(done, file=sys.stderr)
+    except KeyboardInterrupt as stop:  # RunInterrupted: the checkpoint is written
+        print(f"\ninterrupted: {stop}", file=sys.stderr)
+        raise SystemExit(130) from None
+    except (ValueError, TypeError, OSError, ImportError) as exc:  # OSError: FileExistsError,
+        print(f"error: {exc}", file=sys.stderr)  # a --run-dir that cannot be written
+        raise SystemExit(2) from None

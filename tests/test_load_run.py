@@ -1,0 +1,147 @@
+"""``hireps_torch.load_run``: a run directory loaded back as its config and its algorithm,
+for finished and interrupted runs of every experiment and for a member of a population."""
+
+import dataclasses
+import json
+import os
+import signal
+from pathlib import Path
+
+import pytest
+import torch
+
+import hireps_torch
+from hireps_torch.experiments import EXPERIMENTS
+from hireps_torch.experiments.checkpoint import RunInterrupted
+
+SHORT = {
+    "bimodal": {"episodes": 600},
+    "pendulum": {"episodes": 20, "episode_seconds": 2.0, "eval_rollouts": 2},
+    "ball-on-beam": {"episodes": 6, "eval_episodes": 2},
+    "hockey-sequential": {"episodes": 6, "episodes_per_iteration": 3, "final_eval_episodes": 1},
+}
+
+
+def same_tree(a, b):
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b)
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(same_tree(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(same_tree(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def train(name, run_dir, **options):
+    config_cls, run = EXPERIMENTS[name]
+    cfg = config_cls(progress=False, run_dir=run_dir, **{**SHORT[name], **options})
+    run(cfg)
+    return cfg
+
+
+def states_for(loaded, n=5):
+    return torch.zeros(n, loaded.algorithm.policies[0].context_dim, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("name", list(SHORT))
+def test_a_finished_run_loads_back_as_its_config_and_its_saved_algorithm(tmp_path, name):
+    if name.startswith("hockey"):
+        pytest.importorskip("pybullet")
+    run_dir = tmp_path / "run"
+    cfg = train(name, run_dir)
+    loaded = hireps_torch.load_run(run_dir)
+    assert loaded.experiment == name and loaded.finished
+    assert loaded.config == dataclasses.replace(cfg, run_dir=run_dir)
+    ckpt = torch.load(run_dir / "checkpoint.pt")
+    assert same_tree(loaded.algorithm.state_dict(), ckpt["algorithm"])
+    assert loaded.iteration == ckpt["iteration"] == len(loaded.metrics)
+    states = states_for(loaded)
+    actions = loaded.mean_action(states)
+    assert actions.shape[0] == 5 and torch.isfinite(actions).all()
+    if loaded.algorithm.population is None:  # hockey: one ordinary algorithm
+        expected = loaded.algorithm.mean_action(states)
+    else:  # the batched experiments: a population of one
+        assert loaded.algorithm.population == 1
+        expected = loaded.algorithm.mean_action(states[None])[0]
+    assert torch.equal(actions, expected)
+    assert loaded.sample(states).shape == actions.shape
+
+
+def test_config_json_round_trips_into_its_config_class(tmp_path):
+    from hireps_torch.experiments.checkpoint import run_config
+
+    cfg = train("bimodal", tmp_path / "run", seed=4, contextual=True, epsilon=0.7)
+    again = run_config(EXPERIMENTS["bimodal"][0], "bimodal", tmp_path / "run")
+    assert again == cfg
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["experiment"] == "bimodal"
+
+
+def test_a_population_member_loads_as_its_part_of_the_population(tmp_path):
+    root = tmp_path / "pop"
+    train("bimodal", root, seeds="3,5,8")
+    population = torch.load(root / "checkpoint.pt")
+    loaded = hireps_torch.load_run(root / "seed5")
+    assert loaded.config.seed == 5 and loaded.config.seeds is None
+    state = loaded.algorithm.state_dict()
+    assert state["policy"]["gating.weight"].shape[0] == 1
+    for key, value in state["policy"].items():
+        whole = population["algorithm"]["policy"][key]
+        assert torch.equal(value, whole[1:2] if whole.shape != value.shape else whole), key
+    assert loaded.metrics == population["rows"][1]
+    with pytest.raises(ValueError, match="is a population .*load one member"):
+        hireps_torch.load_run(root)
+
+
+class _Interrupting:
+    """tqdm that sends this process SIGINT after ``after`` iterations, as Ctrl-C would."""
+
+    def __init__(self, *args, after, **kwargs):
+        self.after, self.n = after, 0
+
+    def update(self, k):
+        self.n += k
+        if self.n == self.after:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def set_postfix(self, **_):
+        pass
+
+    def close(self):
+        pass
+
+
+def test_an_interrupted_run_loads_at_its_last_checkpoint(tmp_path, monkeypatch):
+    import hireps_torch.experiments.loop as loop
+
+    monkeypatch.setattr(loop, "tqdm", lambda *a, **k: _Interrupting(after=2))
+    with pytest.raises(RunInterrupted):
+        train("pendulum", tmp_path / "run", episodes=40, episodes_per_iteration=10)
+    loaded = hireps_torch.load_run(tmp_path / "run")
+    assert not loaded.finished and loaded.iteration == 2 and len(loaded.metrics) == 2
+    ckpt = torch.load(tmp_path / "run" / "checkpoint.pt")
+    assert same_tree(loaded.algorithm.state_dict(), ckpt["algorithm"])
+
+
+def test_directories_that_are_not_loadable_runs_get_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="holds no config.json"):
+        hireps_torch.load_run(tmp_path / "nowhere")
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.json").write_text(json.dumps({"experiment": "chess"}))
+    with pytest.raises(ValueError, match="names the experiment 'chess'"):
+        hireps_torch.load_run(other)
+    early = tmp_path / "early"
+    early.mkdir()
+    (early / "config.json").write_text(json.dumps({"experiment": "bimodal", "seed": 1}))
+    with pytest.raises(ValueError, match="no checkpoint.pt: the run stopped before"):
+        hireps_torch.load_run(early)
+    before = sorted(p.name for p in early.iterdir())
+    assert before == ["config.json"]  # loading wrote nothing
+
+
+def test_a_checkpoint_of_another_experiment_is_refused(tmp_path):
+    train("bimodal", tmp_path / "run")
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    (tmp_path / "run" / "config.json").write_text(json.dumps({**config, "experiment": "pendulum"}))
+    with pytest.raises(ValueError, match="checkpoint.pt is of a .bimodal. run, but"):
+        hireps_torch.load_run(Path(tmp_path / "run"))

@@ -1,0 +1,103 @@
+"""The wheel as a user installs it: one top-level name, ``hireps_torch``, and the command
+``hireps-train``; the tasks and experiments import from it alone."""
+
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    """The wheel built from the files git would commit (a copy: the build leaves nothing
+    in the working tree)."""
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("needs the git checkout")
+    tracked = (
+        subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=ROOT,
+            capture_output=True,
+            check=True,
+        )
+        .stdout.decode()
+        .split("\0")
+    )
+    src = tmp_path_factory.mktemp("src")
+    for name in filter(None, tracked):
+        path = ROOT / name
+        if not path.is_symlink() and not path.exists():
+            continue  # deleted in the working tree, not yet committed
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(path, src / name, follow_symlinks=False)
+    out = tmp_path_factory.mktemp("wheel")
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(out),
+            str(src),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    (whl,) = out.glob("*.whl")
+    return whl
+
+
+def test_the_wheel_installs_one_top_level_package_and_the_command(wheel):
+    with zipfile.ZipFile(wheel) as z:
+        names = z.namelist()
+        (entry_points,) = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
+        scripts = z.read(entry_points).decode()
+    top = {n.split("/")[0] for n in names if ".dist-info/" not in n}
+    assert top == {"hireps_torch"}
+    for module in ["envs/pendulum.py", "envs/hockey/env.py", "experiments/loop.py", "cli.py"]:
+        assert f"hireps_torch/{module}" in names
+    assert "hireps-train = hireps_torch.cli:entry" in scripts
+
+
+def test_the_installed_wheel_imports_the_tasks_and_runs_the_command(wheel, tmp_path):
+    site = tmp_path / "site"
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(site)
+    # -S: no site-packages processing, so the editable install of this checkout is not on the
+    # path; the dependencies come from this interpreter's site-packages as a plain entry
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(site), sysconfig.get_paths()["purelib"]]),
+    }
+    code = (
+        "import sys, gymnasium as gym, hireps_torch, hireps_torch.envs, hireps_torch.experiments\n"
+        f"assert hireps_torch.__file__.startswith({str(site)!r}), hireps_torch.__file__\n"
+        "assert gym.make('hireps/BallOnBeam-v0').reset(seed=0)[0].shape == (3,)\n"
+        "for name in ('environments', 'experiments'):\n"
+        "    try:\n"
+        "        __import__(name)\n"
+        "    except ImportError:\n"
+        "        pass\n"
+        "    else:\n"
+        "        raise SystemExit(name + ' is importable')\n"
+        "sys.argv = ['hireps-train', '--help']\n"
+        "from hireps_torch.cli import entry\n"
+        "entry()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-S", "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    for experiment in ["bimodal", "pendulum", "ball-on-beam", "hockey-sequential", "sweep"]:
+        assert experiment in done.stdout

@@ -170,7 +170,10 @@ def main() -> None:
     write_results(out, results, total, table)
     publish(
         args.figures,
-        {"fig19_ball_on_beam.png": out / "learning_curve.png", "fig19_episode.png": out / "episode.png"},
+        {
+            "fig19_ball_on_beam.png": out / "learning_curve.png",
+            "fig19_episode.png": out / "episode.png",
+        },
     )
 
 

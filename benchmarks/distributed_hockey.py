@@ -1,5 +1,5 @@
 """Robot hockey on Ray: one hockey-sequential run with 1 local worker against the same run
-with W Ray workers, side by side in one process (issue 15).
+with W Ray workers, side by side in one process.
 
 Measures, per run: the wall time, the time spent playing episodes (inside the episode pool)
 and the rest of each iteration (the update, logging, checkpoint). From those parts:

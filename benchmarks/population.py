@@ -1,4 +1,4 @@
-"""A population of seeds in one process against one seed alone (issue 14), side by side.
+"""A population of seeds in one process against one seed alone, side by side.
 
 1. ``train.py pendulum --seed 0`` (the ordinary run, TorchRL collector) and
    ``train.py pendulum --seeds 0-(S-1)`` (one population), the same episodes, one after the

@@ -5,10 +5,10 @@ typed config, its builders and its ``run``.
 turns it into tyro subcommands. Every ``run(cfg)`` writes one run directory (see
 :mod:`hireps_torch.experiments.rundir`) (one seed, or a population of seeds: see
 :class:`hireps_torch.experiments.loop.Members`) and returns the summary it wrote to
-``summary.json``. To add an experiment, copy the module
-closest to it (``bimodal.py`` for an ask/tell objective, ``ball_on_beam.py`` for a batched
-TorchRL environment, ``hockey.py`` for a gymnasium environment with whole episodes) and add
-one line here.
+``summary.json``. To add an experiment, copy the module closest to it (``bimodal.py`` for
+an ask/tell objective, ``ball_on_beam.py`` for a batched TorchRL environment, ``hockey.py``
+for a gymnasium environment with whole episodes) and name it in :data:`EXPERIMENTS`,
+:data:`ALGORITHMS` and the sweeps' ``METRICS`` (:mod:`hireps_torch.experiments.sweep`).
 """
 
 from __future__ import annotations

@@ -60,55 +60,37 @@ class BallOnBeamConfig(RunOptions):
     """Ball on a beam with infinite-horizon HiREPS (paper Fig 19): 3 episodes per iteration."""
 
     n_options: int = 5
-    """Number of linear-Gaussian options (the paper does not say; 5 as in its other tasks)."""
+    """Number of linear-Gaussian options."""
     episodes: int = 30
     """Total episodes (20 s of experience per beam each)."""
     episodes_per_iteration: int = 3
     """Episodes per policy update = parallel beams."""
     epsilon: float = 1.0
-    """KL bound per iteration (the paper does not give it for the beam). 1.0: 10 updates
-    in 30 episodes leave the learned position gain weak at 0.5, so the ball settles slowly
-    (with the goal-bowl value features, seeds 0-59: 53/60 keep success at episode 30 with
-    epsilon 1.0 against 49/60 with 0.5; see benchmarks/README.md)."""
+    """KL bound per iteration (nats; why 1.0: benchmarks/README.md, "Ball on a beam
+    defaults")."""
     kappa_rel: float | None = None
-    """Entropy bound relative to the mean responsibility entropy (None: off). Off by default
-    here: with 120 decisions per iteration the bound (0.9) sharpened an over-fitted gating and
-    only 3 of 10 seeds reached success in 30 episodes, against 10 of 10 without it (see
-    benchmarks/README.md)."""
+    """Entropy bound as a fraction of the mean responsibility entropy (None: off, the default
+    here; why: benchmarks/README.md, "Ball on a beam defaults")."""
     init_std: float = 0.05
     """Initial exploration std of the desired beam angle (rad)."""
     min_variance: float = 1e-6
     """Floor on the option variance (rad^2)."""
     fourier_bases: int = 4
-    """Fourier bases per state dimension of the value features (4 x 4 - 1 = 15 features on
-    (x, x'); the paper's five bases per dimension coupled give 24, too many for the 120
-    decisions of one iteration: 4 of 10 seeds kept success, see benchmarks/README.md)."""
+    """Fourier bases per state dimension of the value features (4: 4 x 4 - 1 = 15 coupled
+    features on (x, x'))."""
     fourier_coupling: int | None = None
-    """Most state dimensions one Fourier term may couple (None: all). The value of a ball's
-    velocity depends on where the ball is (rolling toward the goal or away from it): with
-    uncoupled terms (1) the value function cannot say so, every velocity looks costly and the
-    learned velocity gain grows past the point where the 0.5 s decisions make the loop
-    oscillate (the old default, 5 uncoupled bases of (x, x', alpha): 4 of 10 seeds kept
-    success; see benchmarks/README.md)."""
+    """Most state dimensions one Fourier term may couple (None: all; 1: no products, so the
+    value of a velocity cannot depend on the position)."""
     value_beam_angle: bool = False
-    """Include the beam angle in the value features. Off: the servo (tau = 0.1 s) reaches the
-    commanded angle within the first fifth of a decision, so the angle at a decision is the
-    last command and moves the ball by ~1 mm; the value is a function of (x, x')."""
+    """Include the beam angle in the value features (off: the value is a function of the
+    ball's position and velocity)."""
     value_goal_bowl: bool = True
     """Add :class:`GoalBowlFeatures` (e^2, e x', x'^2 of the offset e from the closer goal)
-    to the value features. The value's local shape at a goal is the reward's quadratic bowl,
-    3 cm wide at the success tolerance, which 4 cosines over the 1 m beam cannot place: the
-    learned rest point then drifts with the sampling noise (seeds 0-59, epsilon 1.0: 53/60
-    keep success with the bowl, 49/60 without; see benchmarks/README.md)."""
+    to the value features."""
     option_goal_offset: bool = True
     """Options linear in the ball's offset from the closer goal, its velocity and the beam
     angle (:class:`GoalOffsetFeatures`) instead of its position: each option is a PD law that
-    can rest at either goal. An option linear in x rests at one point for both start sides,
-    and the gating did not learn to split the sides from 120 decisions per update (e.g. all
-    five options of a failing seed rested at the centre, between the goals). Seeds 0-89 as
-    populations: 90/90 keep success at episode 30 against 81/90 with
-    --no-option-goal-offset, where the failing seeds hold one side only (see
-    benchmarks/README.md)."""
+    can rest at either goal (--no-option-goal-offset: linear in the state itself)."""
     max_velocity: float = 1.0
     """Ball speed (m/s) the value and gating features are scaled to."""
     eval_episodes: int = 10

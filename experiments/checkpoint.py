@@ -221,7 +221,7 @@ def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
     if not path.is_file():
         raise ValueError(f"{run_dir}: no config.json there; is it a run directory?")
     data = read_config(run_dir)
-    if data.get("experiment") not in (None, experiment.replace("-", "_")):
+    if str(data.get("experiment", experiment)).replace("-", "_") != experiment.replace("-", "_"):
         raise ValueError(
             f"{run_dir}: that run is a {data.get('experiment')!r} run, not {experiment!r}"
         )

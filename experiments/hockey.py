@@ -81,22 +81,15 @@ class HockeyConfig(RunOptions):
     14-dim options from collapsing onto the few effective samples of an update); 0: off."""
     exploration_floor_end: float | None = 0.1
     """The floor's fraction at the last update: it moves linearly from exploration_floor at the
-    first update to this one at the last (None: constant). Late updates refine a strategy the
-    early ones found and need less exploration than the search; a floor of 0.1 from the start
-    collapsed options early (sequential, seeds 0-4: noise-free 2.62 against 2.89 at 0.25),
-    while the constant 0.25 leaves the final policy's exploration costing ~0.6 of its reward
-    (benchmarks/README.md)."""
+    first update to this one at the last (None: constant; why: benchmarks/README.md, "Robot
+    hockey defaults")."""
     covariance_prior: float = 0.0
     """Pseudo-samples of the prior that shrinks each option's refit covariance toward the
     previous one (0: plain weighted maximum likelihood)."""
     mean_prior: float = 4.0
     """Pseudo-samples of the Gaussian prior that holds each option's mean coefficients (bias
-    and slopes on the target position, on centred and scaled features) near the previous ones
-    (0: weighted least squares; see ``LinearGaussian``). An option fitted from 2-4 effective
-    samples otherwise takes slopes that move its mean by many exploration stds across the
-    start distribution (with option_features = "aim": on the angle and distance); with the
-    aim slopes it keeps the aim from being fitted away (sequential, 5 seeds: 0.62 -> 1.11,
-    benchmarks/README.md)."""
+    and slopes on centred and scaled features) near the previous ones (0: weighted least
+    squares; see ``LinearGaussian``; why 4: benchmarks/README.md, "Robot hockey defaults")."""
     workers: int = 1
     """Workers that play each iteration's episodes (1 with the local backend: in this
     process). Episode e draws its start and its noise from (seed, e) alone, so the result
@@ -110,8 +103,8 @@ class HockeyConfig(RunOptions):
     """Std (m) of the target puck's start in x and y (paper Fig 14: 10 cm; 0: a fixed
     start, the real robot's setting of Fig 15b)."""
     puck_restitution: float = 0.3
-    """Restitution of the pucks and the blade (Bullet multiplies the two bodies' values; the
-    spec sheet in environments/hockey/env.py says why 0.3)."""
+    """Restitution of the pucks and the blade (Bullet multiplies the two bodies' values; why
+    0.3: the spec sheet of :mod:`hireps_torch.envs.hockey.env`)."""
     floor_friction: float = 0.025
     """Puck-floor Coulomb friction (ice-like)."""
     flat_pucks: bool = True
@@ -119,25 +112,17 @@ class HockeyConfig(RunOptions):
     --no-flat-pucks: solid cylinders)."""
     option_features: Literal["position", "aim"] = "aim"
     """What the options are linear in: aim, the target's angle and distance seen from the
-    control puck's spot (environments/hockey/aim.py AimFeatures), so that the aim slopes turn
-    the shot by the right angle at any distance (a hit moves the target along the angle, out
-    in distance); position, its (x, y), where slopes fitted at the start mean over-turn for a
-    target further out (sequential, 5 seeds: 1.11 with position, 2.29 with aim;
-    benchmarks/README.md)."""
+    control puck's spot (:class:`hireps_torch.envs.hockey.aim.AimFeatures`); position, its
+    (x, y) in m."""
     final_eval_episodes: int | None = None
     """Episodes on which the final policy is evaluated after training (None: one iteration's
     worth, episodes_per_iteration; 0: none), both noise-free (``eval_average_reward`` in
     summary.json) and with its exploration (``final_policy_average_reward``, the paper's
-    "average reward", of the final policy), from starts that no training episode used. The
-    last iteration's average alone is one draw of 30 episodes of the policy before the last
-    update (seed 0 of the defaults: 1.76 there, 2.57 for the final policy on 60 fresh
-    episodes; benchmarks/README.md)."""
+    "average reward", of the final policy), from starts that no training episode used."""
     aim_slopes: bool = True
     """Start every option's mean with the slopes of the kinematic aim mapping
-    (environments/hockey/aim.py): the demo swing turned about the control puck's spot toward
-    the observed target, linearised at the start distribution's mean; the options then aim
-    from the first iteration and learning refines the map (the demo shot misses a target
-    15 cm off its line; sequential, 5 seeds: 0.26 -> 0.62, benchmarks/README.md).
+    (:mod:`hireps_torch.envs.hockey.aim`): the demo swing turned about the control puck's
+    spot toward the observed target, linearised at the start distribution's mean.
     --no-aim-slopes: slopes start at zero (the demo shot wherever the target is)."""
 
 
@@ -263,7 +248,7 @@ def _check(cfg: HockeyConfig) -> int:
         raise option_error(
             "seeds",
             cfg.seeds,
-            f"left out: hockey runs one seed per process (train.py sweep --experiment ... "
+            f"left out: hockey runs one seed per process (hireps-train sweep --experiment ... "
             f"--seeds {cfg.seeds} runs them side by side)",
         )
     if torch.device(cfg.device).type != "cpu":

@@ -75,9 +75,8 @@ class PendulumConfig(RunOptions):
     episodes_per_iteration: int = 20
     """Episodes per policy update = parallel pendulums."""
     episode_seconds: float = 10.0
-    """Simulated time per episode: one pendulum's experience between two updates (the mean
-    time between restarts is 12.5 s at d = 5). 10 s learned in 19 of 20 seeds, 5 s in 15 of
-    20 (benchmarks/README.md)."""
+    """Simulated time per episode (s): one pendulum's experience between two updates (the
+    mean time between restarts is 12.5 s at d = 5)."""
     kp: float = 60.0
     """PD controller stiffness (N m / rad)."""
     kd: float = 10.0
@@ -89,21 +88,19 @@ class PendulumConfig(RunOptions):
     pendulums run on across iterations, restarting only at the restart probability, so the
     samples follow the restart process's stationary distribution, as the dual assumes."""
     epsilon: float = 0.5
-    """KL bound of the first update."""
+    """KL bound of the first update (nats)."""
     epsilon_end: float | None = 0.1
-    """KL bound of the last update: the bound moves linearly from ``epsilon`` at the first
-    update to this at the last (None: ``epsilon`` throughout). The early updates must find the
-    swing-up; once the pendulums balance, the samples sit upright, and a bound held at 0.5 lets
-    the rarely visited swing-up states drift, so the noise-free policy lost a swing-up it had
-    found in 6 of 60 seeds (benchmarks/README.md)."""
+    """KL bound of the last update (nats): the bound moves linearly from ``epsilon`` at the
+    first update to this at the last (None: ``epsilon`` throughout; why 0.1:
+    benchmarks/README.md, "Pendulum defaults")."""
     kappa_rel: float = 0.9
     """Entropy bound relative to the mean responsibility entropy (learned gating only)."""
     init_std: float = 1.5
     """Initial exploration std of the desired angle (rad)."""
     mirror_samples: bool = True
-    """Also update on the mirror image (-theta, -theta', -desired angle) of every decision:
-    the task is symmetric under it, and without it the policy often commits to pushing one
-    way and never swings up (see benchmarks/README.md)."""
+    """Also update on the mirror image (-theta, -theta', -desired angle) of every decision,
+    under which the task is symmetric (not in the paper; why: benchmarks/README.md, "Pendulum
+    defaults")."""
     init_means: Literal["spaced", "random"] = "spaced"
     """Initial option means (desired angles, no feedback yet): spaced evenly over
     [-2 pi, 2 pi] (one option per cell centre, so there are options that push either way at

@@ -25,7 +25,12 @@ import torch
 from torch import Tensor
 
 from hireps_torch.algorithms import Algorithm
-from hireps_torch.experiments.checkpoint import load_checkpoint, read_config, run_config
+from hireps_torch.experiments.checkpoint import (
+    changed_options,
+    load_checkpoint,
+    read_config,
+    run_config,
+)
 
 __all__ = ["LoadedRun", "load_run"]
 
@@ -53,20 +58,33 @@ class LoadedRun:
     finished: bool
     metrics: list[dict[str, Any]]
 
-    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
+    def mean_action(self, states: Tensor | int, step: int = 0) -> Tensor:
         """The learned policy's mean action: states (N, C) -> (N, D) (at decision ``step`` of
-        a time-indexed policy). No exploration: the action the run evaluates."""
+        a time-indexed policy; N itself for a task without states, C = 0). No exploration:
+        the action the run evaluates."""
         return self._one(self.algorithm.mean_action, states, step)
 
-    def sample(self, states: Tensor, step: int = 0) -> Tensor:
+    def sample(self, states: Tensor | int, step: int = 0) -> Tensor:
         """Exploratory actions (N, C) -> (N, D) from the learned policy, drawn with the
         algorithm's generator (its state the run's, so samples continue the run's stream)."""
         return self._one(self.algorithm.sample, states, step)
 
-    def _one(self, act: Callable[[Tensor, int], Tensor], states: Tensor, step: int) -> Tensor:
+    def _one(self, act: Callable[[Tensor, int], Tensor], states: Tensor | int, step: int) -> Tensor:
+        C = self.algorithm.policies[0].context_dim
+        if isinstance(states, int) and not isinstance(states, bool) and C == 0 and states > 0:
+            x = torch.zeros(states, 0, dtype=torch.float64)
+        else:
+            try:
+                x = torch.as_tensor(states, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                raise ValueError(
+                    f"states must be a (N, {C}) tensor, got {type(states).__name__}"
+                ) from None
+            if x.dim() != 2 or x.shape[-1] != C:
+                raise ValueError(f"states must have shape (N, {C}), got {tuple(x.shape)}")
         if self.algorithm.population is None:  # hockey: one ordinary algorithm
-            return act(states, step)
-        return act(torch.as_tensor(states)[None], step)[0]
+            return act(x, step)
+        return act(x[None], step)[0]
 
 
 def load_run(run_dir: str | Path) -> LoadedRun:
@@ -74,7 +92,7 @@ def load_run(run_dir: str | Path) -> LoadedRun:
     ``hireps-train``; a ``ValueError`` names what is wrong with a directory that is not one,
     that holds no checkpoint yet, or whose checkpoint does not fit its config. Loading
     changes nothing on disk."""
-    from hireps_torch.experiments import ALGORITHMS, EXPERIMENTS
+    from hireps_torch.experiments import EXPERIMENTS
 
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
@@ -86,27 +104,30 @@ def load_run(run_dir: str | Path) -> LoadedRun:
             f"{run_dir / 'config.json'} names the experiment {saved.get('experiment')!r}; "
             f"this code knows {sorted(EXPERIMENTS)}"
         )
-    config = run_config(EXPERIMENTS[name][0], name, run_dir)
     if saved.get("seeds") is not None:
         raise ValueError(
             f"{run_dir} is a population (seeds {saved['seeds']}); load one member, e.g. "
             f"load_run({str(run_dir / 'seed<s>')!r})"
         )
+    config, algorithm = _build(name, run_dir)
     root, member = _checkpoint_dir(run_dir, config.seed)
     ckpt = load_checkpoint(root, map_location="cpu")
     if ckpt is None:
         raise ValueError(
-            f"{root} holds no checkpoint.pt: the run stopped before its first iteration "
-            "ended, so nothing was learned"
+            f"{root} holds no checkpoint.pt: the run had not finished its first iteration, "
+            "so nothing was learned yet"
         )
-    _check_same_run(run_dir, root, ckpt, saved)
-    population = ALGORITHMS[name](run_config(EXPERIMENTS[name][0], name, root)) if member else None
-    algorithm = ALGORITHMS[name](config)
+    _check_same_run(root, ckpt, saved if member is None else read_config(root))
     state = ckpt["algorithm"]
-    if population is not None and member is not None:
+    if member is not None:
+        _check_member(run_dir, root, saved)
+        population = _build(name, root)[1]
         population.load_state_dict(state)
         state = _member_state(population.state_dict(), algorithm.state_dict(), *member)
-    algorithm.load_state_dict(state)
+    try:
+        algorithm.load_state_dict(state)
+    except ValueError as exc:
+        raise ValueError(f"{root / 'checkpoint.pt'} does not fit its run: {exc}") from None
     return LoadedRun(
         run_dir=run_dir,
         experiment=name,
@@ -118,27 +139,73 @@ def load_run(run_dir: str | Path) -> LoadedRun:
     )
 
 
+def _build(name: str, run_dir: Path) -> tuple[Any, Algorithm]:
+    """The config in ``run_dir/config.json`` and the untrained algorithm of it; a
+    ``ValueError`` naming the file for options this code refuses."""
+    from hireps_torch.experiments import ALGORITHMS, EXPERIMENTS
+
+    config = run_config(EXPERIMENTS[name][0], name, run_dir)
+    try:
+        return config, ALGORITHMS[name](config)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"{run_dir / 'config.json'} does not hold the options of a {name} run: {exc}"
+        ) from None
+
+
 def _checkpoint_dir(run_dir: Path, seed: int) -> tuple[Path, tuple[int, int] | None]:
-    """Where the run's checkpoint is, and for a population member (index, S)."""
-    parent = run_dir.resolve().parent
-    if (run_dir / "checkpoint.pt").exists() or not (parent / "config.json").is_file():
+    """Where the run's checkpoint is, and for a population member (its index, S)."""
+    if (run_dir / "checkpoint.pt").exists():
+        return run_dir, None
+    real = run_dir.resolve()
+    parent = real.parent
+    if not (parent / "config.json").is_file():
+        return run_dir, None
+    seeds = read_config(parent).get("seeds")
+    if seeds is None:
         return run_dir, None
     from hireps_torch.experiments.options import parse_seeds
 
-    seeds = read_config(parent).get("seeds")
-    if seeds is None or seed not in parse_seeds(seeds) or run_dir.name != f"seed{seed}":
-        return run_dir, None
-    members = parse_seeds(seeds)
+    try:
+        members = parse_seeds(seeds)
+    except ValueError as exc:
+        raise ValueError(f"{parent / 'config.json'}: its seeds {seeds!r}: {exc}") from None
+    if real.name != f"seed{seed}" or seed not in members:
+        raise ValueError(
+            f"{run_dir} is inside the population {parent} (seeds {seeds}) but is not one of "
+            f"its members: its config.json has seed {seed}, and member s lives in seed<s>"
+        )
     return parent, (members.index(seed), len(members))
 
 
-def _check_same_run(
-    run_dir: Path, root: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any]
-) -> None:
+def _check_same_run(root: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any]) -> None:
+    """The checkpoint in ``root`` was written by the run ``saved`` (its config.json) says."""
     if ckpt.get("experiment") != saved.get("experiment"):
         raise ValueError(
             f"{root / 'checkpoint.pt'} is of a {ckpt.get('experiment')!r} run, but "
-            f"{run_dir / 'config.json'} of a {saved.get('experiment')!r} run"
+            f"{root / 'config.json'} of a {saved.get('experiment')!r} run"
+        )
+    theirs = ckpt.get("config")
+    diff = changed_options(
+        theirs if isinstance(theirs, dict) else {}, saved, ("checkpoint.pt", "config.json")
+    )
+    if diff:
+        raise ValueError(
+            f"{root / 'checkpoint.pt'} was written by a run with other options than "
+            f"{root / 'config.json'} holds: " + "; ".join(diff)
+        )
+
+
+def _check_member(run_dir: Path, root: Path, saved: Mapping[str, Any]) -> None:
+    """A member's config.json is its population's with its own seed."""
+    population = {k: v for k, v in read_config(root).items() if k not in ("seed", "seeds")}
+    diff = changed_options(
+        population, {k: v for k, v in saved.items() if k != "seed"}, ("population", "member")
+    )
+    if diff:
+        raise ValueError(
+            f"{run_dir / 'config.json'} does not match its population's {root / 'config.json'}: "
+            + "; ".join(diff)
         )
 
 

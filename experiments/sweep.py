@@ -1,6 +1,6 @@
 """Sweeps: a grid of configurations x seeds, each run an ordinary run directory.
 
-    python train.py sweep --experiment pendulum --seeds 0-4 \\
+    hireps-train sweep --experiment pendulum --seeds 0-4 \\
         --grid n_options=1,2,5 --grid steps_per_decision=1,5 --set episodes=200 \\
         --out runs/sweep --backend ray --workers 2
 
@@ -632,7 +632,7 @@ def _plot(curves: Curves, path: Path, title: str) -> None:
 
 
 def main(cfg: SweepConfig) -> dict[str, Any]:
-    """``train.py sweep``: plan, run (reusing and resuming), summarize; returns what it wrote."""
+    """``hireps-train sweep``: plan, run (reusing, resuming), summarize; returns what it wrote."""
     configurations = parse_grid(cfg.experiment, cfg.grid, cfg.set)
     runs = plan(cfg.experiment, configurations, parse_seeds(cfg.seeds), cfg.out)
     check_backend(cfg.backend, cfg.workers, cfg.ray_address)  # before anything is written

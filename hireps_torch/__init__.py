@@ -4,7 +4,7 @@
 (:func:`hireps_torch.experiments.saved.load_run`).
 """
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from hireps_torch.algorithms import (
     REPS,
@@ -29,13 +29,21 @@ __version__ = "0.1.0"
 register_envs()
 
 
-def __getattr__(name: str) -> Any:
+if TYPE_CHECKING:
+    from hireps_torch.experiments.saved import load_run
+
+
+def __getattr__(name: str) -> object:
     # load_run needs the experiments (torchrl and the tasks): imported when first asked for
     if name == "load_run":
         from hireps_torch.experiments.saved import load_run
 
         return load_run
     raise AttributeError(f"module 'hireps_torch' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), "load_run"})
 
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""Devices (issue 14): the duals, policies and algorithms compute where their inputs are.
+"""Devices: the duals, policies and algorithms compute where their inputs are.
 
 Without a GPU the device paths are checked on the CPU by making torch's default device
 ``meta``: a tensor the library creates without naming a device then lands on ``meta`` and

@@ -1,4 +1,4 @@
-"""Episodes by index on worker processes and Ray (experiments/workers.py, issue 15).
+"""Episodes by index on worker processes and Ray (experiments/workers.py).
 
 The Ray tests start a local Ray instance with 2 CPUs inside a subprocess, so that the test
 also checks that everything exits (a hang fails on the timeout)."""

@@ -19,6 +19,7 @@ SHORT = {
     "pendulum": {"episodes": 20, "episode_seconds": 2.0, "eval_rollouts": 2},
     "ball-on-beam": {"episodes": 6, "eval_episodes": 2},
     "hockey-sequential": {"episodes": 6, "episodes_per_iteration": 3, "final_eval_episodes": 1},
+    "hockey-episodic": {"episodes": 6, "episodes_per_iteration": 3, "final_eval_episodes": 1},
 }
 
 
@@ -133,7 +134,7 @@ def test_directories_that_are_not_loadable_runs_get_a_clear_error(tmp_path):
     early = tmp_path / "early"
     early.mkdir()
     (early / "config.json").write_text(json.dumps({"experiment": "bimodal", "seed": 1}))
-    with pytest.raises(ValueError, match="no checkpoint.pt: the run stopped before"):
+    with pytest.raises(ValueError, match="no checkpoint.pt: the run had not finished its first iteration"):
         hireps_torch.load_run(early)
     before = sorted(p.name for p in early.iterdir())
     assert before == ["config.json"]  # loading wrote nothing
@@ -145,3 +146,61 @@ def test_a_checkpoint_of_another_experiment_is_refused(tmp_path):
     (tmp_path / "run" / "config.json").write_text(json.dumps({**config, "experiment": "pendulum"}))
     with pytest.raises(ValueError, match="checkpoint.pt is of a .bimodal. run, but"):
         hireps_torch.load_run(Path(tmp_path / "run"))
+
+
+def _edit(path, **changes):
+    data = json.loads(path.read_text())
+    path.write_text(json.dumps({**data, **changes}))
+
+
+def test_a_checkpoint_that_another_run_wrote_is_refused(tmp_path):
+    import shutil
+
+    train("bimodal", tmp_path / "a", seed=0)
+    train("bimodal", tmp_path / "b", seed=3)
+    shutil.copy(tmp_path / "b" / "checkpoint.pt", tmp_path / "a" / "checkpoint.pt")
+    with pytest.raises(ValueError, match=r"other options than .*seed \(checkpoint.pt: 3"):
+        hireps_torch.load_run(tmp_path / "a")
+    _edit(tmp_path / "b" / "config.json", epsilon=0.5)
+    with pytest.raises(ValueError, match="epsilon"):
+        hireps_torch.load_run(tmp_path / "b")
+
+
+def test_a_member_directory_that_does_not_fit_its_population_is_named(tmp_path):
+    root = tmp_path / "pop"
+    train("bimodal", root, seeds="3,5")
+    (root / "seed5").rename(root / "seed9")
+    with pytest.raises(ValueError, match=r"inside the population .* not one of its members"):
+        hireps_torch.load_run(root / "seed9")
+    (root / "seed9").rename(root / "seed5")
+    _edit(root / "seed5" / "config.json", epsilon=0.3)
+    with pytest.raises(ValueError, match="does not match its population"):
+        hireps_torch.load_run(root / "seed5")
+    _edit(root / "config.json", seeds="5,3")
+    with pytest.raises(ValueError, match="seeds"):
+        hireps_torch.load_run(root / "seed3")
+
+
+def test_options_of_the_wrong_type_in_config_json_name_the_file(tmp_path):
+    train("bimodal", tmp_path / "run")
+    _edit(tmp_path / "run" / "config.json", n_options="10")
+    with pytest.raises(ValueError, match=r"config.json does not hold the options .*n_options"):
+        hireps_torch.load_run(tmp_path / "run")
+
+
+def test_acting_takes_the_ordinary_shapes_and_names_a_bad_one(tmp_path):
+    train("bimodal", tmp_path / "bimodal")
+    toy = hireps_torch.load_run(tmp_path / "bimodal")
+    assert toy.mean_action(4).shape == (4, 2)  # no states: the number of samples
+    assert toy.sample(3).shape == (3, 2)
+    train("pendulum", tmp_path / "pendulum")
+    run = hireps_torch.load_run(tmp_path / "pendulum")
+    assert run.mean_action([[3.0, 0.0]]).shape == (1, 1)  # a list of states is fine
+    with pytest.raises(ValueError, match=r"states must have shape \(N, 2\), got \(3, 3\)"):
+        run.mean_action(torch.zeros(3, 3))
+    with pytest.raises(ValueError, match=r"states must be a \(N, 2\) tensor, got NoneType"):
+        run.sample(None)
+
+
+def test_the_library_lists_load_run():
+    assert "load_run" in dir(hireps_torch) and callable(hireps_torch.load_run)

@@ -101,3 +101,50 @@ def test_the_installed_wheel_imports_the_tasks_and_runs_the_command(wheel, tmp_p
     assert done.returncode == 0, done.stderr
     for experiment in ["bimodal", "pendulum", "ball-on-beam", "hockey-sequential", "sweep"]:
         assert experiment in done.stdout
+
+
+def test_the_wheel_in_a_fresh_virtualenv_imports_each_module_once(wheel, tmp_path):
+    """pip install of the wheel into a new virtualenv (its dependencies lent from this one):
+    the library, its tasks and its command come from the installed files alone."""
+    import venv
+
+    fresh = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=False).create(fresh)
+    python = fresh / "bin" / "python"
+    lent = subprocess.run(
+        [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    # a plain path entry: the editable install's finder (a .pth of this venv) is not run there
+    (Path(lent) / "lent.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "--python",
+            str(python),
+            "install",
+            "-q",
+            "--no-deps",
+            str(wheel),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    code = (
+        "import sys, gymnasium as gym, hireps_torch, hireps_torch.envs, hireps_torch.experiments\n"
+        f"assert hireps_torch.__file__.startswith({lent!r}), hireps_torch.__file__\n"
+        "assert hireps_torch.envs.__file__.startswith(hireps_torch.__path__[0])\n"
+        "env = gym.make('hireps/PendulumSwingUp-v0')\n"
+        "assert type(env.unwrapped) is hireps_torch.envs.PendulumSwingUpEnv\n"
+        "top = {m.split('.')[0] for m in sys.modules}\n"
+        "assert not top & {'environments', 'experiments'}, top\n"
+    )
+    done = subprocess.run([str(python), "-c", code], cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    command = fresh / "bin" / "hireps-train"
+    done = subprocess.run([str(command), "--help"], cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 0 and "pendulum" in done.stdout, done.stderr

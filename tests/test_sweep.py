@@ -1,5 +1,5 @@
 """train.py sweep (experiments/sweep.py): grids, seeds, resumable sweeps on local processes
-and Ray (issue 15)."""
+and Ray."""
 
 from __future__ import annotations
 

@@ -17,7 +17,7 @@ Scene (:class:`~hireps_torch.envs.hockey.sim.HockeySim`)
 
     Why these contact constants (they were 0.05, 0.7 and solid cylinders; measured in
     ``benchmarks/README.md``): with restitution 0.7 the final distance jumped along smooth
-    changes of the shot (issue 17's diagnosis: 8-15 of 24 neighbouring scan points by more
+    changes of the shot (a scan of neighbouring shots: 8-15 of 24 scan points by more
     than 0.2 m; pucks at ~5.4 m/s rolled on their edge for 14 m, an exploit rather than a
     shot), and hard hits tipped pucks (here: 2 of 30 swings up to 2.5x the demo's speed, one
     onto its edge). A fixed-start run (300 episodes,

@@ -32,9 +32,9 @@ v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k), c = [phi_hat_1, 0, ..]; see
 :func:`solve_time_indexed_dual`) duals reuse one solver, :func:`solve_reps_dual`.
 
 A population of S independent duals (``population=True`` in the wrappers: every input with a
-leading S) is solved together: one LBFGS call per phase over the stacked parameters (the sum of
-the duals is separable, so its minimiser is the S minimisers), each problem scaled,
-standardised, safeguarded and judged on its own (:class:`PopulationDualSolution`).
+leading S) is solved problem by problem, each scaled, standardised, safeguarded and judged on
+its own, so each answer is the one it gets alone; the solutions come back stacked
+(:class:`PopulationDualSolution`).
 
 Modules, in reading order:
 

@@ -52,9 +52,9 @@ class HierarchicalPolicy(PolicyModule):
     complete or leave the policy exactly as it was.
 
     Args:
-        gating: a gating module with ``log_probs(features) -> (N, O)``, ``weighted_fit`` and an
-            ``active`` mask (e.g. :class:`SoftmaxGating`).
-        options: O sub-policies (e.g. :class:`LinearGaussian`), all with the same action_dim.
+        gating: a :class:`Gating` (``log_probs(features) -> ([S,] N, O)``, ``fit_checked``
+            and an ``active`` mask; e.g. :class:`SoftmaxGating`).
+        options: O :class:`LinearGaussian` sub-policies, all with the same action_dim.
         gating_features: feature map for the gating (identity by default).
         policy_features: feature map for the sub-policies (identity by default).
     """

@@ -1,5 +1,5 @@
 """Population runs: S seeds of one algorithm in one object, each member learning what it learns
-alone (issue 14: first updates equal to 1e-8, samples independent of the companions)."""
+alone (first updates equal to 1e-8, samples independent of the companions)."""
 
 import copy
 import warnings

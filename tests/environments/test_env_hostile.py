@@ -1,5 +1,5 @@
 """The batched TorchRL environments and the gymnasium adapters under bad input: refused with
-a message before anything changes (issue 31, case 14)."""
+a message before anything changes."""
 
 import warnings
 

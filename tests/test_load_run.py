@@ -134,7 +134,7 @@ def test_directories_that_are_not_loadable_runs_get_a_clear_error(tmp_path):
     early = tmp_path / "early"
     early.mkdir()
     (early / "config.json").write_text(json.dumps({"experiment": "bimodal", "seed": 1}))
-    with pytest.raises(ValueError, match="no checkpoint.pt: the run had not finished its first iteration"):
+    with pytest.raises(ValueError, match="no checkpoint.pt: the run had not finished"):
         hireps_torch.load_run(early)
     before = sorted(p.name for p in early.iterdir())
     assert before == ["config.json"]  # loading wrote nothing

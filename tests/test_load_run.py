@@ -105,10 +105,10 @@ class _Interrupting:
             os.kill(os.getpid(), signal.SIGINT)
 
     def set_postfix(self, **_):
-        pass
+        """No bar to show."""
 
     def close(self):
-        pass
+        """Nothing to close."""
 
 
 def test_an_interrupted_run_loads_at_its_last_checkpoint(tmp_path, monkeypatch):

@@ -4,7 +4,7 @@
 wrote (finished or interrupted, of any experiment), or a member ``<dir>/seed<s>`` of a
 population, and rebuilds what the run held at its last checkpoint::
 
-    run = hireps_torch.load_run("runs/pendulum/2026-12-02_10-00-00")
+    run = hireps_torch.load_run("runs/pendulum/20261202-100000")
     actions = run.mean_action(states)          # (N, C) -> (N, D), the final policy's mean
     run.algorithm.state_dict()                 # the run's algorithm, as saved
 

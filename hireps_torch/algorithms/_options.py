@@ -64,9 +64,10 @@ class OptionBound:
         """The dual's (S, N, O) log responsibilities (log 0 floored; (S, N, 1) zeros without
         an option term) and (S, 1) bounds (or None) for its (S, N) returns R."""
         lr = self.log_responsibilities
-        lr = R.new_zeros(*R.shape, 1) if lr is None else lr.reshape(*R.shape, lr.shape[-1])
         kappa = None if self.kappa is None else self.kappa.reshape(-1, 1)
-        return lr.clamp_min(LOG_RESP_FLOOR), kappa
+        if lr is None:
+            return R.new_zeros(*R.shape, 1), kappa
+        return lr.reshape(*R.shape, lr.shape[-1]).clamp_min(LOG_RESP_FLOOR), kappa
 
 
 def option_bound(
@@ -80,8 +81,10 @@ def option_bound(
         theta: ([S,] N, D).
         kappa_rel: bound as a fraction of the mean responsibility entropy, or None.
     """
+    if policy.n_options < 2:
+        return OptionBound(None, context.new_zeros(policy.batch_shape), None)
     several = policy.active.sum(-1) >= 2
-    if policy.n_options < 2 or not bool(several.any()):
+    if not bool(several.any()):
         return OptionBound(None, context.new_zeros(policy.batch_shape), None)
     lr = policy.log_responsibilities(context, theta)
     p = lr.exp()
@@ -163,10 +166,11 @@ def plan_refit(
         w = torch.where(active[..., None, :], w, 0.0)
     eta = sol.eta[:, block].reshape(lead)
     informed = informed_members(w, eta, bound, active)
-    finite = torch.isfinite(w).flatten(-2).all(-1)
-    ok, any_informed, every = torch.stack([finite.all(), informed.any(), informed.all()]).tolist()
+    ok, any_informed, every = torch.stack(
+        [torch.isfinite(w).all(), informed.any(), informed.all()]
+    ).tolist()
     if not ok:
-        bad = (~finite).reshape(-1).nonzero()[0, 0]
+        bad = (~torch.isfinite(w).flatten(-2).all(-1)).reshape(-1).nonzero()[0, 0]
         who = f"member {int(bad)}: " if lead else ""
         raise ValueError(
             f"{who}the dual returned non-finite weights (eta = {float(sol.eta[bad, block])}, "
@@ -208,41 +212,40 @@ def apply_refit(
         if policy.n_options > 1 and prune_threshold > 0:
             pruned = policy.prune(context, prune_threshold, members=refit.informed)
     sol, bound, k = refit.sol, refit.bound, refit.block
-    ent = torch.stack([o.entropy() for o in policy.sub_policies], -1)
+    subs = policy.sub_policies
     if policy.n_options > 1:
         prior = policy.gating.probs(policy.gating_features(context)).mean(-2)
-        ent = (prior * ent).sum(-1)
+        ent = (prior * torch.stack([o.entropy() for o in subs], -1)).sum(-1)
     else:  # one option: pi(o | s) = 1
-        ent = ent[..., 0]
+        ent = subs[0].entropy()
     kappa = bound.kappa if bound.kappa is not None else ent.new_full(lead, math.inf)
-    dual = torch.stack([sol.eta, sol.xi, sol.kl, sol.cross_entropy, sol.effective_sample_size], -1)[
-        :, k
-    ]
+    S = sol.eta.shape[0]
     numbers = torch.cat(
         [
-            dual.reshape(*lead, 5),
+            torch.stack(
+                [sol.eta, sol.xi, sol.kl, sol.cross_entropy, sol.effective_sample_size], -1
+            )[:, k],
+            torch.stack([sol.converged.to(sol.feature_error), sol.feature_error], -1),
             torch.stack(
                 [
-                    torch.where(torch.isinf(kappa), math.nan, kappa),
+                    kappa,
                     bound.option_entropy,
                     ent,
                     policy.active.sum(-1).to(ent),
                     refit.informed.to(ent),
-                    sol.converged.reshape(lead).to(ent),
-                    sol.feature_error.reshape(lead).to(ent),
                 ],
                 -1,
-            ),
+            ).reshape(S, 5),
         ],
         -1,
-    )
-    (eta, xi, kl, ce, ess, kap, opt_ent, pol_ent, n_active, informed, converged, error) = (
-        numbers.movedim(-1, 0).tolist()
+    )  # (S, 12)
+    (eta, xi, kl, ce, ess, converged, error, kap, opt_ent, pol_ent, n_active, informed) = (
+        numbers.T.tolist() if lead else numbers[0].tolist()
     )
     return {
         "eta": eta,
         "xi": xi,
-        "kappa": kap,
+        "kappa": each(kap, lambda x: math.nan if math.isinf(x) else x),
         "kl": kl,
         "cross_entropy": ce,
         "effective_sample_size": ess,

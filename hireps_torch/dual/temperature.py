@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -43,33 +44,36 @@ _SPREAD_RTOL = 1e-13  # returns whose spread is below this of their magnitude ca
 def solve_temperature(
     R: Tensor, eps: float, settings: LbfgsSettings
 ) -> PopulationDualSolution | None:
-    """Solve the one-temperature dual of finite float64 returns R (N,) for KL bound eps, or
+    """Solve the one-temperature dual of finite float64 returns R (N,), N >= 2, for KL bound eps, or
     None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
     ``KL <= eps (1 + KL_RTOL)``."""
     N = R.shape[0]
-    lo_r, hi_r = torch.aminmax(R)
-    m_abs = max(-float(lo_r), float(hi_r))
+    Rh = R.detach().cpu().numpy()  # a scalar search: its arithmetic on the host, in numpy
+    lo_r, hi_r = float(np.minimum.reduce(Rh)), float(np.maximum.reduce(Rh))
+    m_abs = max(-lo_r, hi_r)
     if m_abs == 0.0:
         return None
     # an exact power of 2 brings the returns to [0.5, 1) (in two factors: neither overflows)
     e = math.frexp(m_abs)[1]
     unit = 2.0 ** (e // 2) * 2.0 ** (e - e // 2)
     f1, f2 = 2.0 ** -(e // 2), 2.0 ** -(e - e // 2)
-    Rn = R * f1 * f2
-    std_mean = torch.std_mean(Rn)
-    s, mean = torch.stack(std_mean).tolist()
+    Rn = Rh * f1 * f2
+    mean = float(np.add.reduce(Rn)) / N
+    d = Rn - mean
+    s = math.sqrt(float(d @ d) / (N - 1))
     if not s > _SPREAD_RTOL:
         return None
-    r = (Rn - mean) / s
-    powers = torch.stack([torch.ones_like(r), r, r * r], -1)  # (N, 3)
+    r = d / s
+    powers = np.empty((3, N))
+    powers[0], powers[1], powers[2] = 1.0, r, r * r
     # the shift of the exponentials: any value near max r keeps them in range
-    log_n, r_max = math.log(N), (float(hi_r) * f1 * f2 - mean) / s
+    log_n, r_max = math.log(N), (hi_r * f1 * f2 - mean) / s
 
     def parts(a: float) -> tuple[float, float, float, float]:
         """(g, dg/da, d2g/da2, KL) at log eta = a."""
         eta = math.exp(a)
         top = r_max / eta  # the largest r / eta
-        s0, s1, s2 = (torch.exp(r * (1.0 / eta) - top) @ powers).tolist()
+        s0, s1, s2 = (powers @ np.exp(r * (1.0 / eta) - top)).tolist()
         lse = top + math.log(s0) - log_n
         avg = s1 / s0
         kl = avg / eta - lse
@@ -110,21 +114,23 @@ def solve_temperature(
             return None
         steps += 1
     eta = math.exp(a)
-    w = torch.softmax(r * (1.0 / eta), 0)
+    z = np.exp(r * (1.0 / eta) - r_max / eta)
+    w = z / float(np.add.reduce(z))
     ess = 1.0 / float(w @ w)
     dual = (g * s + mean) * unit
-    numbers = R.new_tensor([[eta * s * unit], [kl], [ess], [dual], [0.0]])  # (5, 1)
-    zero = numbers[4:5]
+    eta_s, kl_s, ess_s, dual_s, zero = torch.tensor(
+        [[eta * s * unit], [kl], [ess], [dual], [0.0]], dtype=R.dtype, device=R.device
+    ).unbind()  # (1,) each
     return PopulationDualSolution(
-        eta=numbers[0:1],
-        xi=zero,
+        eta=eta_s[None],
+        xi=zero[None],
         v=R.new_zeros(1, 0),
-        weights=w.view(1, 1, N, 1),
-        kl=numbers[1:2],
-        cross_entropy=zero,
-        effective_sample_size=numbers[2:3],
-        feature_error=zero[0],
-        dual_value=numbers[3],
+        weights=torch.from_numpy(w).to(R.device).view(1, 1, N, 1),
+        kl=kl_s[None],
+        cross_entropy=zero[None],
+        effective_sample_size=ess_s[None],
+        feature_error=zero,
+        dual_value=dual_s,
         converged=torch.ones(1, dtype=torch.bool, device=R.device),
         iterations=steps,
         numbers=(eta * s * unit, 0.0, kl, 0.0, ess, 0.0, dual),

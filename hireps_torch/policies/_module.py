@@ -91,6 +91,10 @@ class PolicyModule(nn.Module):
     def set_checked(self, values: Mapping[str, Tensor]) -> None:
         """:meth:`set_parameters` of values already checked (names, shapes, finiteness), as
         the refits' ``fit_checked`` return them."""
+        modules: dict[str, nn.Module] = {"": self}
         for key, value in values.items():
-            module, _, name = key.rpartition(".")
-            getattr(self.get_submodule(module) if module else self, name).copy_(value)
+            path, _, name = key.rpartition(".")
+            module = modules.get(path)
+            if module is None:
+                module = modules[path] = self.get_submodule(path)
+            getattr(module, name).copy_(value)

@@ -375,23 +375,27 @@ class HierarchicalPolicy(PolicyModule):
                 f"weights put mass on pruned option(s) {where}; give them weight 0 (their "
                 "column of the weights must be zero)"
             )
-        return self.fit_checked(gf, pf, t, w)
+        return self.fit_checked(gf, pf, t, power_of_two_scaled(w, self.population is not None))
 
     def fit_checked(self, gf: Tensor, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
         """:meth:`fit_parameters` on inputs already checked: gating and option features gf, pf
         ([S,] N, .) of checked contexts, float64 theta t ([S,] N, D) and weights w
-        ([S,] N, O) (non-negative, finite, zero on pruned options, some positive weight)."""
-        w = power_of_two_scaled(w, self.population is not None)
-        ws = w.sum(-1)
+        ([S,] N, O) (non-negative, finite, zero on pruned options, some positive weight, at
+        most 2^200 as :func:`power_of_two_scaled` leaves them; the dual's weights, which sum
+        to 1, are)."""
         new: dict[str, Tensor] = {}
-        if self.n_options > 1:  # one option: pi(o | s) = 1 whatever the gating holds
+        O = self.n_options
+        if O > 1:  # one option: pi(o | s) = 1 whatever the gating holds
+            ws = w.sum(-1)
             targets = w / torch.where(ws > 0, ws, 1.0)[..., None]  # rows without weight stay 0
             norm = ws / ws.sum(-1, keepdim=True)
             x = gf.to(torch.float64)
             new = {f"gating.{k}": v for k, v in self.gating.fit_checked(x, targets, norm).items()}
-        total = w.sum((-2, -1))
-        fitted = self.active & (w.sum(-2) > 1e-12 * total[..., None])  # ([S,] O)
-        flags = fitted.reshape(-1, self.n_options).T.tolist()  # per option, per member
+            total = w.sum((-2, -1))
+            fitted = self.active & (w.sum(-2) > 1e-12 * total[..., None])  # ([S,] O)
+            flags = fitted.reshape(-1, O).T.tolist()  # per option, per member
+        else:  # the one option is active (the most probable is never pruned) and has it all
+            fitted, flags = self.active, [[True]]
         x = pf.to(torch.float64)
         for o, opt in enumerate(self.sub_policies):
             if not any(flags[o]):  # no weight (or pruned) in every member: left to pruning

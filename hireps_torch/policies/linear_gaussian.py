@@ -455,20 +455,19 @@ class LinearGaussian(PolicyModule):
             n_eff = (w.sum(-1) ** 2 / (w**2).sum(-1))[..., None, None]
             k = self.covariance_prior
             cov = (n_eff * cov + k * self.covariance.to(torch.float64)) / (n_eff + k)
-        chol = self._unfloored_cholesky(cov, torch.isfinite(W).all())
+        # a non-finite W or b makes every residual of its row, and so cov, non-finite
+        chol = self._unfloored_cholesky(cov)
         if chol is None:  # not finite, or the floor binds: the checks and the floor one by one
             bad = ~(_finite_members(cov) & _finite_members(W))
             if bool(bad.any()):
                 raise self._overflow(x, y, bad)
             chol = self._floored_cholesky(cov)
-        new = {
-            "weight": W.to(self.weight.dtype),
-            "bias": b.to(self.bias.dtype),
-            "chol": chol.to(self.chol.dtype),
-        }
-        for name, value in new.items():  # finite in float64 (checked above); a narrower dtype
-            if value.dtype != torch.float64 and not bool(torch.isfinite(value).all()):
-                raise ValueError(f"the refitted {name} does not fit in {value.dtype}")
+        new = {"weight": W, "bias": b, "chol": chol}
+        if self.chol.dtype != torch.float64:  # finite in float64 (checked above); narrower?
+            for name, value in new.items():
+                new[name] = value = value.to(self.chol.dtype)
+                if not bool(torch.isfinite(value).all()):
+                    raise ValueError(f"the refitted {name} does not fit in {value.dtype}")
         return new
 
     def _overflow(self, x: Tensor, y: Tensor, bad: Tensor | None) -> ValueError:
@@ -510,18 +509,15 @@ class LinearGaussian(PolicyModule):
         root = self.min_variance.to(cov.device).sqrt()
         return torch.outer(root, root)
 
-    def _unfloored_cholesky(self, cov: Tensor, ok: Tensor) -> Tensor | None:
-        """The Cholesky factor (float64) of cov ([S,] D, D) where ``ok`` (a bool tensor) holds,
-        cov is finite and the variance floor does not bind (every eigenvalue of the scaled
-        covariance above 1: scaled - I positive definite); None otherwise. One transfer."""
+    def _unfloored_cholesky(self, cov: Tensor) -> Tensor | None:
+        """The Cholesky factor (float64) of cov ([S,] D, D) where cov is finite and the
+        variance floor m does not bind (cov - diag(m) positive definite: every eigenvalue of
+        the scaled covariance cov / sqrt(m_i m_j) above 1); None otherwise. One transfer."""
         cov = 0.5 * (cov + cov.mT)
-        scaled = cov / self._floor_scale(cov)
-        eye = torch.eye(scaled.shape[-1], dtype=scaled.dtype, device=scaled.device)
-        above = torch.linalg.cholesky_ex(scaled - eye).info == 0
-        factor = torch.linalg.cholesky_ex(cov)
-        chol: Tensor = factor.L
-        good = ok & torch.isfinite(scaled).all() & above.all() & (factor.info == 0).all()
-        return chol if bool(good) else None
+        floor = torch.diag_embed(self.min_variance.to(cov))
+        factor = torch.linalg.cholesky_ex(torch.stack([cov, cov - floor]))
+        chol: Tensor = factor.L[0]
+        return chol if bool((factor.info == 0).all() & torch.isfinite(chol).all()) else None
 
     def _floored_cholesky(self, cov: Tensor) -> Tensor:
         """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""

@@ -71,12 +71,18 @@ def _short(value: object) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+def all_finite(x: Tensor) -> bool:
+    """Whether every entry of ``x`` is finite, in one reduction where it is (a sum is finite
+    unless an entry is not, or the sum of finite entries overflows: then the entries decide)."""
+    return math.isfinite(float(x.sum())) or bool(torch.isfinite(x).all())
+
+
 def check_finite(
     name: str, x: Tensor, advice: str = "remove or fix those samples before the update"
 ) -> None:
     """Raise naming ``name``, the number of non-finite entries and the first one's index
     (followed by ``advice``, if any)."""
-    if x.numel() == 0 or bool(torch.isfinite(x).all()):
+    if all_finite(x):
         return
     bad = ~torch.isfinite(x)
     idx = tuple(int(i) for i in bad.nonzero()[0])
@@ -95,7 +101,7 @@ def as_finite_f64(name: str, value: Tensor | float, shape: tuple[int, ...] | Non
         t = torch.as_tensor(value, dtype=torch.float64, device="cpu")
     if shape is not None and tuple(t.shape) != shape:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
+    if not all_finite(t):
         bad = (~torch.isfinite(t)).nonzero()[0].tolist()
         where = bad[0] if len(bad) == 1 else bad
         raise ValueError(
@@ -106,7 +112,7 @@ def as_finite_f64(name: str, value: Tensor | float, shape: tuple[int, ...] | Non
 
 def check_positive(name: str, value: Tensor) -> None:
     """Every entry of ``value`` finite and > 0."""
-    if not bool(torch.isfinite(value).all()) or bool((value <= 0).any()):
+    if not all_finite(value) or bool((value <= 0).any()):
         raise ValueError(f"{name} must be finite and > 0, got {value.tolist()}")
 
 
@@ -337,5 +343,5 @@ def check_state_dict(
         if ref.is_floating_point():
             if saved.is_complex() or not (saved.is_floating_point() or _is_int(saved)):
                 raise ValueError(f"{what}: state entry {key!r} must be real, got {saved.dtype}")
-            if not bool(torch.isfinite(saved).all()):
+            if not all_finite(saved):
                 raise ValueError(f"{what}: state entry {key!r} holds non-finite values")

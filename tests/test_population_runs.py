@@ -134,6 +134,9 @@ SHORT = {
 # amplifies round-off: after one update a member's policy agrees with its ordinary run's to
 # ~3e-12, after three to ~2e-7 (measured); the beam's episodes restart every iteration.
 POLICY_RTOL = {"pendulum": 1e-6, "ball-on-beam": 1e-8}
+# The dual stops where its tolerances are met: inputs that differ by round-off (the batched
+# env's arithmetic over S members) can meet one a step earlier or later; the solution agrees.
+ITERATION_SLACK = {"pendulum": 2, "ball-on-beam": 0}
 
 
 def policy_tensors(checkpoint, member):
@@ -160,6 +163,9 @@ def test_a_member_of_a_population_equals_its_ordinary_run(tmp_path, name):
                     x, y = float(a[key]), float(b[key])
                 except ValueError:
                     assert a[key] == b[key], key
+                    continue
+                if key == "dual_iterations":  # a count: round-off can move a stop by a step
+                    assert abs(x - y) <= ITERATION_SLACK[name], (seed, key, x, y)
                     continue
                 assert x == pytest.approx(y, rel=1e-6, abs=1e-9, nan_ok=True), (seed, key)
         ours = policy_tensors(tmp_path / "pop" / "checkpoint.pt", m)

@@ -99,20 +99,28 @@ information (the dual's no-information solution is exact up to round-off, ~1e-15
 informative solution moves them by ~sqrt(2 epsilon), orders of magnitude more)."""
 
 
-def informed_members(weights: Tensor, eta: Tensor, bound: OptionBound, active: Tensor) -> Tensor:
+def informed_members(
+    weights: Tensor, eta: Tensor, bound: OptionBound, active: Tensor, kl: float = 0.0
+) -> Tensor:
     """([S,]) bool: whether each member's dual weights carry information about the returns.
 
     False where eta is infinite (the dual found the returns flat beyond what the features
     fix, whatever the entropy bound did to the weights), or where every entry of ``weights``
     ([S,] N, O) is within a relative :data:`UNIFORM_RTOL` of the sampling distribution
-    p~_io / N (the KL to it is then below ~1e-12). The update then has nothing to learn from.
-    ``active`` is the policy's ([S,] O) mask of options not pruned.
+    p~_io / N (the KL to it is then below the chi-square divergence, at most
+    ``UNIFORM_RTOL ** 2``). The update then has nothing to learn from. ``active`` is the
+    policy's ([S,] O) mask of options not pruned; ``kl``, the smallest realised KL of the
+    members where known: above twice that bound no member's weights are that close, and the
+    entries are not compared.
     """
+    moved = eta != math.inf
+    if kl > 2.0 * UNIFORM_RTOL**2:
+        return moved
     N = weights.shape[-2]
     lr = bound.log_responsibilities
     old = torch.where(active, 1.0 / N, 0.0)[..., None, :] if lr is None else lr.exp() / N
     flat = ((weights - old).abs() <= UNIFORM_RTOL * old).flatten(-2).all(-1)
-    return ~(torch.isinf(eta) | flat)
+    return moved & ~flat
 
 
 @dataclass(frozen=True)
@@ -165,11 +173,11 @@ def plan_refit(
     if w.shape[-1] != O:  # no option term: the one active option of each member gets it all
         w = torch.where(active[..., None, :], w, 0.0)
     eta = sol.eta[:, block].reshape(lead)
-    informed = informed_members(w, eta, bound, active)
-    ok, any_informed, every = torch.stack(
-        [torch.isfinite(w).all(), informed.any(), informed.all()]
-    ).tolist()
-    if not ok:
+    kl = sol.numbers[2] if sol.numbers is not None else float(sol.kl[:, block].min())
+    informed = informed_members(w, eta, bound, active, kl)
+    flags = informed.reshape(-1).tolist()
+    any_informed, every = any(flags), all(flags)
+    if not math.isfinite(float(w.sum())):  # each member's weights sum to 1 where finite
         bad = (~torch.isfinite(w).flatten(-2).all(-1)).reshape(-1).nonzero()[0, 0]
         who = f"member {int(bad)}: " if lead else ""
         raise ValueError(
@@ -180,7 +188,8 @@ def plan_refit(
         return Refit(None, informed, sol, bound, block)
     if not every:  # the others' fits are discarded
         w = torch.where(informed[..., None, None], w, active[..., None, :].to(w))
-    gf, pf = policy.gating_features(context), policy.policy_features(context)
+    gf = policy.gating_features(context) if policy.n_options > 1 else None
+    pf = policy.policy_features(context)
     values = policy.fit_checked(gf, pf, theta, w)
     if not every:
         current = policy.state_dict()

@@ -21,6 +21,7 @@ REPS (Peters et al. 2010) is the same loop with one option and no entropy bound:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -233,7 +234,7 @@ class EpisodicHiREPS(HiREPSBase):
                 f"params must have shape {(*lead, N, D)} to match returns {tuple(R.shape)}, got "
                 f"{tuple(theta.shape)}"
             )
-        if not bool(torch.isfinite(R).all() & torch.isfinite(theta).all()):
+        if not math.isfinite(float(R.sum()) + float(theta.sum())):  # else: which one?
             check_finite("returns", R)
             check_finite("params", theta)
         c = self._contexts(contexts, n=N)

@@ -372,7 +372,10 @@ def warn_if_collapsed(sol: PopulationDualSolution, epsilon: Tensor, stacklevel: 
     weights sit on ~one sample (epsilon (S, K))."""
     S, K, N, _ = sol.weights.shape
     ess = sol.effective_sample_size
-    bad = ((ess < 1.5) & sol.eta.isfinite()).nonzero().tolist()
+    if sol.numbers is not None:  # one block, its numbers at hand
+        bad = [[0, 0]] if sol.numbers[4] < 1.5 and sol.numbers[0] < math.inf else []
+    else:
+        bad = ((ess < 1.5) & (sol.eta < math.inf)).nonzero().tolist()
     if bad:
         which = ", ".join(
             ("" if S == 1 else f"problem {s}, ")

@@ -173,7 +173,7 @@ def solve_blocks(
     if log_resp.shape[-1] > 1 and unbounded:
         return _factorised(R, log_resp, eps, D, c, settings, stacklevel + 1, prefix)
     if S == 1 and K == 1 and D is None and unbounded:  # one option column: plain REPS
-        sol = solve_temperature(R[0, 0], float(eps[0, 0]), settings)
+        sol = solve_temperature(R.view(-1), eps.item(), settings)
         if sol is not None:
             return sol
     r_scale = _pow2_scale(R.abs().amax(dim=(1, 2)))  # (S,)

@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import check_state_dict
+from hireps_torch.checks import all_finite, check_state_dict
 
 __all__ = ["PolicyModule"]
 
@@ -83,7 +83,7 @@ class PolicyModule(nn.Module):
                 raise ValueError(
                     f"{key} must have shape {tuple(current[key].shape)}, got {tuple(value.shape)}"
                 )
-            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            if value.is_floating_point() and not all_finite(value):
                 raise ValueError(f"the new value of {key} is not finite")
         self.set_checked(values)
 

@@ -377,15 +377,16 @@ class HierarchicalPolicy(PolicyModule):
             )
         return self.fit_checked(gf, pf, t, power_of_two_scaled(w, self.population is not None))
 
-    def fit_checked(self, gf: Tensor, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
+    def fit_checked(self, gf: Tensor | None, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
         """:meth:`fit_parameters` on inputs already checked: gating and option features gf, pf
-        ([S,] N, .) of checked contexts, float64 theta t ([S,] N, D) and weights w
-        ([S,] N, O) (non-negative, finite, zero on pruned options, some positive weight, at
-        most 2^200 as :func:`power_of_two_scaled` leaves them; the dual's weights, which sum
-        to 1, are)."""
+        ([S,] N, .) of checked contexts (gf None for one option: the gating is not
+        refitted), float64 theta t ([S,] N, D) and weights w ([S,] N, O) (non-negative,
+        finite, zero on pruned options, some positive weight, at most 2^200 as
+        :func:`power_of_two_scaled` leaves them; the dual's weights, which sum to 1, are)."""
         new: dict[str, Tensor] = {}
         O = self.n_options
         if O > 1:  # one option: pi(o | s) = 1 whatever the gating holds
+            assert gf is not None
             ws = w.sum(-1)
             targets = w / torch.where(ws > 0, ws, 1.0)[..., None]  # rows without weight stay 0
             norm = ws / ws.sum(-1, keepdim=True)

@@ -11,6 +11,7 @@ from torch import Tensor, nn
 
 from hireps_torch._linalg import min_norm_lstsq
 from hireps_torch.checks import (
+    all_finite,
     as_float,
     as_float_tensor,
     check_count,
@@ -121,7 +122,7 @@ def check_floor(floor: Tensor, action_dim: int, given: object) -> None:
     low, high = FLOOR_RANGE
     if (
         floor.shape != (action_dim,)
-        or not bool(torch.isfinite(floor).all())
+        or not all_finite(floor)
         or bool((floor < low).any() | (floor > high).any())
     ):
         raise ValueError(
@@ -466,7 +467,7 @@ class LinearGaussian(PolicyModule):
         if self.chol.dtype != torch.float64:  # finite in float64 (checked above); narrower?
             for name, value in new.items():
                 new[name] = value = value.to(self.chol.dtype)
-                if not bool(torch.isfinite(value).all()):
+                if not all_finite(value):
                     raise ValueError(f"the refitted {name} does not fit in {value.dtype}")
         return new
 
@@ -517,7 +518,7 @@ class LinearGaussian(PolicyModule):
         floor = torch.diag_embed(self.min_variance.to(cov))
         factor = torch.linalg.cholesky_ex(torch.stack([cov, cov - floor]))
         chol: Tensor = factor.L[0]
-        return chol if bool((factor.info == 0).all() & torch.isfinite(chol).all()) else None
+        return chol if not bool(factor.info.any()) and all_finite(chol) else None
 
     def _floored_cholesky(self, cov: Tensor) -> Tensor:
         """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""
@@ -525,7 +526,7 @@ class LinearGaussian(PolicyModule):
         cov = 0.5 * (cov + cov.mT)
         scale = self._floor_scale(cov)
         scaled = cov / scale
-        if not bool(torch.isfinite(scaled).all()):
+        if not all_finite(scaled):
             raise ValueError(
                 f"the covariance overflows (largest entry {float(cov.abs().max()):.3g}): "
                 "rescale the parameters"

@@ -10,6 +10,7 @@ solve (Newton steps counted as iterations; median, max), the share that converge
 time per solve, and the baseline / current ratios.
 
     OMP_NUM_THREADS=1 python benchmarks/dual_speed.py [--baseline f73bf30] [--repeats 3]
+        [--problems benchmarks/dual_problems.pt]
 """
 
 from __future__ import annotations
@@ -67,10 +68,11 @@ def solve_all(root: Path, problems: Path, repeats: int) -> list[dict[str, Any]]:
     return rows
 
 
-def _side(root: Path, repeats: int) -> list[dict[str, Any]]:
+def _side(root: Path, problems: Path, repeats: int) -> list[dict[str, Any]]:
     env = dict(os.environ, OMP_NUM_THREADS="1")
     out = subprocess.run(
-        [sys.executable, __file__, "--solve", str(root), "--repeats", str(repeats)],
+        [sys.executable, __file__, "--solve", str(root), "--problems", str(problems)]
+        + ["--repeats", str(repeats)],
         env=env,
         capture_output=True,
         text=True,
@@ -84,13 +86,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--baseline", default="f73bf30", help="commit to compare with")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--problems", type=Path, default=PROBLEMS, help="recorded problems")
     parser.add_argument("--solve", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    problems = args.problems.resolve()
     if args.solve is not None:
-        print(json.dumps(solve_all(args.solve, PROBLEMS, args.repeats)))
+        print(json.dumps(solve_all(args.solve, problems, args.repeats)))
         return
     with baseline_worktree(ROOT, args.baseline) as old:
-        sides = {args.baseline: _side(old, args.repeats), "current": _side(ROOT, args.repeats)}
+        sides = {
+            args.baseline: _side(old, problems, args.repeats),
+            "current": _side(ROOT, problems, args.repeats),
+        }
     experiments = list(dict.fromkeys(r["experiment"] for r in sides["current"]))
     print(
         f"{'experiment':<18} {'code':<9} {'solves':>6} {'iter median':>11} {'iter max':>8} "

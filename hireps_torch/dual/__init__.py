@@ -51,7 +51,7 @@ Modules, in reading order:
 - :mod:`~hireps_torch.dual.block_solver`: Newton steps with the exact curvature, then LBFGS in
   coordinates whitened by it, with the entropy bound's KKT phases (active sets), the fallback
   for infeasible feature constraints (recognised by weak duality), the projection solve for
-  returns without information, the eta floor and the Newton refinement.
+  returns without information and the eta floor.
 - :mod:`~hireps_torch.dual.safeguards`: the KL bound by construction (a final search on eta),
   the entropy bound's reachability, and the check of every constraint with its tolerance.
 - :mod:`~hireps_torch.dual.conditioning`: value start, whitening and scaling of the problem.

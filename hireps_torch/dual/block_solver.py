@@ -24,8 +24,7 @@ that LBFGS completes with every eta above its floor.
 
 The solver's tensors carry a leading S = 1 (the problem dimension of
 :func:`~hireps_torch.dual.solver.solve_blocks`, which solves a population's problems one after
-the other, so that each answer is its own). A solve ends with Newton steps that take a
-converged problem's gradient from the tolerance to round-off.
+the other, so that each answer is its own).
 """
 
 from __future__ import annotations
@@ -75,16 +74,14 @@ class LbfgsSettings:
     converged_grad: float = 1e-6
 
 
-_REFINE_GRAD = 1e-13  # the Newton refinement's target (standardised gradient)
-_REFINE_STEPS = 2  # Newton steps of the refinement at most
 _POLISH_STEPS = 8  # Newton steps where LBFGS stopped short, at most
 _CHUNK = 25  # LBFGS iterations between re-whitenings (see BlockSolver.phase)
-_NEWTON_STEPS = 20  # Newton steps of a phase before LBFGS takes over (BlockSolver.descend)
+_NEWTON_STEPS = 100  # Newton steps of a phase before LBFGS takes over (BlockSolver.descend)
 _DAMPINGS = 16  # tries per Newton step: halvings, then a damping growing tenfold each
 _LAM_MIN = 1e-4  # the damping a try starts from once halving the step did not help
 _ARMIJO = 1e-4  # sufficient decrease of a Newton step
 _FLAT = 1e-13  # relative change of the dual value within round-off
-_MAX_LOG_STEP = 2.0  # largest change of a log eta or log xi in one Newton step
+_MAX_LOG_STEP = 1.5  # largest change of a log eta or log xi in one Newton step
 _FLAT_FLOOR = 1e-9  # round-off allowed below the weak-duality bound (BlockSolver.floor)
 
 
@@ -269,8 +266,8 @@ class BlockSolver:
     def solve(self, mask: Tensor) -> None:
         """The phases (Newton steps, then LBFGS) of the problems in ``mask`` (S,): the entropy
         bound's KKT phases, then up to two resumes of a phase that stopped short, then the
-        polish where it still did, and the Newton refinement of those that converged; a problem
-        whose dual fell below the weak-duality bound is left to the ridge fallback."""
+        polish where it still did; a problem whose dual fell below the weak-duality bound is
+        left to the ridge fallback."""
         kkt = mask & self.entropy_bound
         if bool(kkt.any()):
             self.entropy_kkt(kkt)
@@ -292,9 +289,6 @@ class BlockSolver:
         short = mask & ~self.end.converged & self._finite() & ~self._sunk()
         if bool(short.any()):
             self.polish(short)
-        done = mask & self.end.converged
-        if bool(done.any()):
-            self.descend(done, _REFINE_GRAD, _REFINE_STEPS)
 
     def _sunk(self) -> Tensor:
         """(S,) problems without a ridge whose dual value fell below the weak-duality bound
@@ -401,9 +395,10 @@ class BlockSolver:
         flat to round-off, when the gradient shrinks; otherwise it is halved, and after three
         halvings damped, lam growing tenfold from 1e-4 each try (the curvature of v is near
         singular when a block's weights sit on a few samples); after a step lam shrinks
-        tenfold. A problem stops when its gradient meets
-        ``tolerance_grad`` or no damping helps; LBFGS then takes over. Steps taken count as
-        iterations (once per step, however many problems take it)."""
+        tenfold. A problem stops when its gradient meets ``target`` (``tolerance_grad``: a
+        tenth of what ``converged`` asks, so that the KL safeguard's correction of eta after
+        the solve leaves the constraints met) or no damping helps; LBFGS then takes over. Steps
+        taken count as iterations (once per step, however many problems take it)."""
         prob = self.prob
         target = self.settings.tolerance_grad if target is None else target
         merits = self._merit if excess else lambda grad, _: grad.abs().amax(-1)
@@ -420,11 +415,14 @@ class BlockSolver:
             curvature = self._hessians(grad, M)
             taken = torch.zeros_like(active)
             t = torch.ones_like(g)
+            base: Tensor | None = None  # the undamped-length step, recomputed when lam moves
             for _ in range(_DAMPINGS):
                 trying = active & ~taken
                 if not bool(trying.any()):
                     break
-                step = t[:, None] * self._damped_step(*curvature, grad, lam)
+                if base is None:
+                    base = self._damped_step(*curvature, grad, lam)
+                step = t[:, None] * base
                 slope = (grad * step).sum(-1)
                 x = torch.where(trying[:, None], self.x + step, self.x)
                 g_t, grad_t, P_t = prob.evaluate(x)
@@ -443,6 +441,8 @@ class BlockSolver:
                 t = torch.where(halve, 0.5 * t, t)
                 lam = torch.where(damp, (10.0 * lam).clamp_min(_LAM_MIN), lam)
                 lam = torch.where(ok, torch.where(lam > _LAM_MIN, 0.1 * lam, 0.0), lam)
+                if bool((damp | ok).any()):
+                    base = None
             active &= taken
             self.iterations += 1
             full = bool(((t == 1.0) & (lam == 0.0) | ~active).all())

@@ -34,8 +34,8 @@ RUNS: list[tuple[str, tuple[int, ...], dict[str, Any]]] = [
     ("bimodal", (0, 1), {"episodes": 800}),
     ("pendulum", (0,), {"episodes": 1000}),
     ("ball-on-beam", (0, 1, 2), {}),
-    ("hockey-sequential", (0,), {"episodes": 150}),
-    ("hockey-episodic", (0,), {"episodes": 150}),
+    ("hockey-sequential", (0, 4, 5), {"episodes": 600}),
+    ("hockey-episodic", (0, 4, 5), {"episodes": 600}),
 ]
 
 _BIG = 100_000  # a problem with more feature entries (N P) than this is kept only ...

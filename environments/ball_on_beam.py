@@ -67,6 +67,7 @@ order, so the same seed and actions give the same trajectory.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -176,7 +177,13 @@ class BeamParams:
 
 def goal_distance(x: Tensor, params: BeamParams) -> Tensor:
     """Distance of the ball to the closer goal: (...,) -> (...,)."""
-    return torch.minimum((x - params.goal).abs(), (x + params.goal).abs())
+    distance: Tensor = _goal_distance(x, params.goal, torch)
+    return distance
+
+
+def _goal_distance(x: Any, goal: float, xp: Any) -> Any:
+    """:func:`goal_distance` on torch tensors or numpy arrays (``xp``: the module)."""
+    return xp.minimum(abs(x - goal), abs(x + goal))
 
 
 def step_reward(state: Tensor, params: BeamParams) -> Tensor:
@@ -184,36 +191,35 @@ def step_reward(state: Tensor, params: BeamParams) -> Tensor:
     return -(goal_distance(state[..., 0], params) ** 2 + state[..., 1] ** 2)
 
 
-def _derivative(
-    x: Tensor, v: Tensor, alpha: Tensor, target: Tensor, p: BeamParams
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The time derivative (x', x'', alpha') of the state's components, each (B,)."""
+def _derivative(x: Any, v: Any, alpha: Any, target: Any, p: BeamParams, xp: Any) -> tuple[Any, ...]:
+    """The time derivative (x', x'', alpha') of the state's components, each (B,), as torch
+    tensors or numpy arrays (``xp``: the module)."""
     alpha_dot = (target - alpha) / p.servo_tau
-    acc = (5.0 / 7.0) * (x * alpha_dot**2 - p.gravity * torch.sin(alpha) - p.rolling_resistance * v)
+    acc = (5.0 / 7.0) * (x * alpha_dot**2 - p.gravity * xp.sin(alpha) - p.rolling_resistance * v)
     return v, acc, alpha_dot
 
 
-def _rk4(
-    x: Tensor, v: Tensor, alpha: Tensor, target: Tensor, p: BeamParams
-) -> tuple[Tensor, Tensor, Tensor]:
-    """One RK4 step of ``p.dt`` on the components (x, x', alpha), each (B,): the arithmetic of
-    :func:`control_step` without stacking the state (3x fewer tensor operations)."""
+def _rk4(x: Any, v: Any, alpha: Any, target: Any, p: BeamParams, xp: Any) -> tuple[Any, ...]:
+    """One RK4 step of ``p.dt`` on the components (x, x', alpha), each (B,), as torch tensors
+    or numpy arrays (``xp``: the module): the arithmetic of :func:`control_step` without
+    stacking the state (3x fewer operations)."""
     h, half = p.dt, 0.5 * p.dt
-    k1 = _derivative(x, v, alpha, target, p)
-    k2 = _derivative(x + half * k1[0], v + half * k1[1], alpha + half * k1[2], target, p)
-    k3 = _derivative(x + half * k2[0], v + half * k2[1], alpha + half * k2[2], target, p)
-    k4 = _derivative(x + h * k3[0], v + h * k3[1], alpha + h * k3[2], target, p)
+    k1 = _derivative(x, v, alpha, target, p, xp)
+    k2 = _derivative(x + half * k1[0], v + half * k1[1], alpha + half * k1[2], target, p, xp)
+    k3 = _derivative(x + half * k2[0], v + half * k2[1], alpha + half * k2[2], target, p, xp)
+    k4 = _derivative(x + h * k3[0], v + h * k3[1], alpha + h * k3[2], target, p, xp)
     sixth = h / 6.0
-    x1, v1, alpha1 = (
+    return tuple(
         y + sixth * (a + 2.0 * b + 2.0 * c + d)
         for y, a, b, c, d in zip((x, v, alpha), k1, k2, k3, k4, strict=True)
     )
-    return x1, v1, alpha1
 
 
 def control_step(state: Tensor, target: Tensor, params: BeamParams) -> Tensor:
     """One RK4 control step of ``dt`` toward the commanded angle: (B, 3), (B,) -> (B, 3)."""
-    return torch.stack(_rk4(state[..., 0], state[..., 1], state[..., 2], target, params), dim=-1)
+    return torch.stack(
+        _rk4(state[..., 0], state[..., 1], state[..., 2], target, params, torch), dim=-1
+    )
 
 
 def beam_step(
@@ -240,26 +246,34 @@ def beam_step(
         raise ValueError(f"ball {i} is already off the beam: x = {state[i, 0].item()}")
     target = check_scalar_action(action, state.shape[0], "beam angle").to(state.dtype)
     target = target.clamp(-params.max_angle, params.max_angle)
-    fell = torch.zeros(state.shape[0], dtype=torch.bool, device=state.device)
-    reward = torch.zeros(state.shape[0], dtype=state.dtype, device=state.device)
-    xs, vs, alphas = [], [], []
-    x, v, alpha = state[:, 0], state[:, 1], state[:, 2]
-    for _ in range(params.steps_per_decision):
-        nx, nv, nalpha = _rk4(x, v, alpha, target, params)
-        # a fallen ball stays where it left the beam (no host sync: this may run on a GPU)
-        x, v, alpha = (
-            torch.where(fell, old, new) for old, new in ((x, nx), (v, nv), (alpha, nalpha))
+    if state.device.type == "cpu":  # numpy's calls on (B,) arrays cost a fraction of torch's
+        path, reward, fell = (
+            torch.from_numpy(a) for a in _control_steps(state.numpy(), target.numpy(), params, np)
         )
-        reward = reward + torch.where(fell, 0.0, -(goal_distance(x, params) ** 2 + v**2))
-        fell = fell | (x.abs() > params.half_length)
+    else:  # no host sync: this may run on a GPU
+        path, reward, fell = _control_steps(state, target, params, torch)
+    reward = reward - params.fall_penalty * fell.to(state.dtype)
+    return path[:, -1].clone(), reward, fell, path  # the state shares no memory with path
+
+
+def _control_steps(state: Any, target: Any, p: BeamParams, xp: Any) -> tuple[Any, Any, Any]:
+    """The control steps of one decision on torch tensors or numpy arrays (``xp``: the module):
+    (path (B, steps, 3), reward (B,) without the fall penalty, fell (B,))."""
+    x, v, alpha = state[:, 0], state[:, 1], state[:, 2]
+    fell = x > math.inf  # all False, of the array kind's bool type
+    reward = 0.0 * x
+    xs, vs, alphas = [], [], []
+    for _ in range(p.steps_per_decision):
+        nx, nv, nalpha = _rk4(x, v, alpha, target, p, xp)
+        # a fallen ball stays where it left the beam
+        x, v, alpha = (xp.where(fell, old, new) for old, new in ((x, nx), (v, nv), (alpha, nalpha)))
+        reward = reward + xp.where(fell, 0.0, -(_goal_distance(x, p.goal, xp) ** 2 + v**2))
+        fell = fell | (abs(x) > p.half_length)
         xs.append(x)
         vs.append(v)
         alphas.append(alpha)
-    reward = reward - params.fall_penalty * fell.to(state.dtype)
-    path = torch.stack(
-        [torch.stack(xs, dim=1), torch.stack(vs, dim=1), torch.stack(alphas, dim=1)], dim=-1
-    )
-    return path[:, -1].clone(), reward, fell, path  # the state shares no memory with path
+    path = xp.stack([xp.stack(xs, 1), xp.stack(vs, 1), xp.stack(alphas, 1)], -1)
+    return path, reward, fell
 
 
 def sample_start(sides: Tensor, params: BeamParams, generator: torch.Generator | None) -> Tensor:

@@ -296,3 +296,21 @@ def test_beam_step_returns_a_state_that_shares_no_memory_with_its_path():
     assert torch.equal(nxt, path[:, -1])
     path[:, -1] = 7.0
     assert float(nxt[0, 0]) != 7.0
+
+
+def test_the_numpy_control_steps_of_the_cpu_equal_the_torch_ones():
+    # beam_step runs the control steps in numpy on the CPU and in torch elsewhere: the same
+    # arithmetic, so the same numbers (falls included: the start spread reaches the ends)
+    from hireps_torch.envs.ball_on_beam import _control_steps
+
+    g = torch.Generator().manual_seed(5)
+    scale = torch.tensor([0.98, 0.8, 0.3], dtype=torch.float64)
+    s = (2.0 * torch.rand(64, 3, generator=g, dtype=torch.float64) - 1.0) * scale
+    a = 0.3 * (2.0 * torch.rand(64, generator=g, dtype=torch.float64) - 1.0)
+    p = BeamParams()
+    on_torch = _control_steps(s, a, p, torch)
+    on_numpy = _control_steps(s.numpy(), a.numpy(), p, np)
+    assert bool(on_torch[2].any()) and not bool(on_torch[2].all())
+    for t, n in zip(on_torch[:2], on_numpy[:2], strict=True):  # path, reward
+        assert torch.allclose(t, torch.from_numpy(n), rtol=1e-12, atol=1e-15)
+    assert torch.equal(on_torch[2], torch.from_numpy(on_numpy[2]))

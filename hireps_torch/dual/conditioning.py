@@ -133,7 +133,8 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
     if D is not None and P > 0:
         col = column_scales(D)  # (S, P)
         Dc = (D - D.mean(dim=2, keepdim=True)) / col[:, None, None, :]
-        B = identified_basis(Dc)
+        svd = right_svd(Dc.reshape(S, K * N, P))
+        B = identified_basis(Dc, svd)
         Dr = Dc if B is None else Dc @ B[:, None]
         if c is None:
             y = value_start(resid, Dr, eps, floor)
@@ -143,7 +144,10 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
         spread = (resid - resid.mean(dim=-1, keepdim=True)).std(dim=-1)
         spread = torch.maximum(spread, floor[:, None])
         weight = (2.0 * eps).sqrt() / spread
-        Tr = whitening(Dr, weight / weight.amax(dim=-1, keepdim=True))
+        # one block with every direction kept: whitening's matrix is Dc / sqrt(N), whose SVD
+        # is at hand
+        same = (svd[0] / math.sqrt(N), svd[1]) if K == 1 and B is None else None
+        Tr = whitening(Dr, weight / weight.amax(dim=-1, keepdim=True), same)
         T = (Tr if B is None else B @ Tr) / col[:, :, None]
         Ds = torch.einsum("sknp,spq->sknq", D, T)
         cs = None if c is None else torch.einsum("sp,spq->sq", c, T)
@@ -184,10 +188,11 @@ def column_scales(D: Tensor) -> Tensor:
     return torch.where(constant, torch.where(mag > 0, mag, torch.ones_like(mag)), col)
 
 
-def identified_basis(Dc: Tensor) -> Tensor | None:
+def identified_basis(Dc: Tensor, svd: tuple[Tensor, Tensor] | None = None) -> Tensor | None:
     """(S, P, P) orthonormal bases of the directions that each problem's centred, unit-column
     features Dc (S, K, N, P) identify, as columns (the columns of directions not identified
-    are 0), or None when every problem identifies all P. A direction counts when its singular
+    are 0), or None when every problem identifies all P (``svd``: :func:`right_svd` of Dc as
+    (S, K N, P), where the caller has it). A direction counts when its singular
     value exceeds 1e-12 of the largest one and of sqrt(K N), the norm of a unit-spread column
     (so that features that are all round-off identify nothing).
 
@@ -197,7 +202,7 @@ def identified_basis(Dc: Tensor) -> Tensor | None:
     :func:`fixed_residual`).
     """
     S, K, N, P = Dc.shape
-    sv, Vh = right_svd(Dc.reshape(S, K * N, P))
+    sv, Vh = right_svd(Dc.reshape(S, K * N, P)) if svd is None else svd
     m = sv.shape[-1]
     top = sv.amax(dim=-1, keepdim=True) if m else sv.new_zeros(S, 1)
     keep = sv > _RANK_RTOL * top.clamp_min(math.sqrt(K * N))
@@ -274,16 +279,20 @@ def _lstsq(A: Tensor, b: Tensor) -> Tensor:
     return min_norm_lstsq(A, b).squeeze(-1)
 
 
-def whitening(Dc: Tensor, weight: Tensor) -> Tensor:
+def whitening(Dc: Tensor, weight: Tensor, svd: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """(S, P, P) maps T with T^T (sum_k weight_k Dc_k^T Dc_k / N) T = I on the identified
-    directions, from (S, K, N, P) centred features and (S, K) block weights. Directions without
-    spread (a constant feature, collinear columns) keep the largest direction's scale."""
+    directions, from (S, K, N, P) centred features and (S, K) block weights (``svd``: the
+    :func:`right_svd` of the weighted features stacked as (S, K N, P) over sqrt(N), where the
+    caller has it). Directions without spread (a constant feature, collinear columns) keep
+    the largest direction's scale."""
     S, K, N, P = Dc.shape
     eye = torch.eye(P, dtype=Dc.dtype, device=Dc.device).expand(S, P, P).clone()
     if P == 0:
         return eye
-    A = (weight.sqrt()[..., None, None] * Dc).reshape(S, K * N, P) / math.sqrt(N)
-    sv, Vh = right_svd(A)
+    if svd is None:
+        A = (weight.sqrt()[..., None, None] * Dc).reshape(S, K * N, P) / math.sqrt(N)
+        svd = right_svd(A)
+    sv, Vh = svd
     m = sv.shape[-1]
     top = sv.amax(dim=-1, keepdim=True)
     flat = ~(top > 0)  # no spread at all (the caller drops such directions first)

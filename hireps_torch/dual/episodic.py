@@ -78,12 +78,9 @@ def solve_episodic_dual(
             :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension; they
-            are solved together (one LBFGS call per phase, each problem conditioned, judged
-            and warned about on its own) and a
-            :class:`~hireps_torch.dual.PopulationDualSolution` (K = 1) is returned. A problem
-            that converges gets its solution alone, to round-off (~1e-13); one that does not
-            (it warns) is solved again alone from its own start, and its answer can differ
-            from a solo solve by what the unconverged solver makes of round-off.
+            are solved one after the other, each as it is alone (conditioned, judged and
+            warned about on its own), and a
+            :class:`~hireps_torch.dual.PopulationDualSolution` (K = 1) is returned.
 
     Returns:
         :class:`~hireps_torch.dual.DualSolution` with weights (N, O) summing to 1 and

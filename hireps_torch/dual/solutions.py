@@ -89,7 +89,7 @@ class RepsDualSolution:
 
 @dataclass(frozen=True)
 class PopulationDualSolution:
-    """Solutions of S independent K-block duals solved together (the population form of
+    """Solutions of S independent K-block duals, each solved as alone (the population form of
     :class:`RepsDualSolution`; every field has a leading S).
 
     Attributes:

@@ -110,7 +110,7 @@ def solve_time_indexed_dual(
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension
             (rewards (S, N, K), features (S, N, K, F), initial_features (F,) or (S, F), ...),
-            solved together; a :class:`~hireps_torch.dual.PopulationDualSolution` is returned
+            each solved as alone; a :class:`~hireps_torch.dual.PopulationDualSolution` is returned
             (its v is (S, K F): step k's weights are v[:, k F : (k + 1) F]).
 
     Returns:

@@ -462,3 +462,53 @@ def test_without_an_entropy_bound_the_options_factor_out_of_the_dual():
         assert torch.allclose(slack.weights, sol.weights, atol=1e-7)
         assert slack.eta == pytest.approx(sol.eta, rel=1e-5)
         assert slack.dual_value == pytest.approx(sol.dual_value, rel=1e-6)
+
+
+# ---- the start and the dual value with a linear term ----------------------------------------
+def _linear_term_problem(seed):
+    gen = torch.Generator().manual_seed(seed)
+    K, N, P, O = 1, 200, 4, 3
+    R = 3.0 * torch.randn(K, N, generator=gen, dtype=torch.float64) + 5.0
+    D = torch.randn(K, N, P, generator=gen, dtype=torch.float64)
+    c = -D.mean(1).sum(0) + 0.05 * torch.randn(P, generator=gen, dtype=torch.float64)
+    lr = torch.log_softmax(torch.randn(K, N, O, generator=gen, dtype=torch.float64), -1)
+    return R, D, c, lr
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_dual_value_with_a_linear_term_is_the_dual_at_the_returned_eta_and_v(seed):
+    # v starts at the least-squares fit v0 also with a linear term c: c^T v0 must stay in the
+    # reported dual value
+    R, D, c, lr = _linear_term_problem(seed)
+    sol = solve_reps_dual(R, lr, 0.5, D=D, c=c)
+    assert sol.converged
+    eta, v = sol.eta.reshape(-1), sol.v.reshape(-1)
+    z = (R + D @ v) / eta[:, None] + torch.logsumexp(lr, -1)
+    lse = torch.logsumexp(z, -1) - math.log(R.shape[-1])
+    direct = float((eta * 0.5 + eta * lse).sum() + c @ v)
+    assert float(sol.dual_value) == pytest.approx(direct, rel=1e-9, abs=1e-12)
+
+
+def test_returns_the_features_explain_have_the_dual_value_c_v():
+    # R = -D v*: every distribution that meets the constraints has E[R] = c^T v*
+    R, D, c, lr = _linear_term_problem(3)
+    v_star = torch.tensor([1.0, 2.0, -1.0, 0.5], dtype=torch.float64)
+    sol = solve_reps_dual(-(D @ v_star), lr, 0.5, D=D, c=c)
+    assert float(sol.dual_value) == pytest.approx(float(c @ v_star), rel=1e-9)
+    assert torch.allclose(sol.v.reshape(-1), v_star, rtol=1e-9, atol=1e-12)
+
+
+def test_the_block_start_temperatures_are_the_plain_reps_temperatures():
+    from hireps_torch.dual.solver import checked_settings
+    from hireps_torch.dual.temperature import log_temperatures, solve_temperature
+
+    gen = torch.Generator().manual_seed(7)
+    R = torch.randn(2, 3, 50, generator=gen, dtype=torch.float64)
+    R[1, 2] = 4.0  # no spread: no temperature (the default start)
+    eps = torch.tensor([[0.1, 0.5, 1.0], [0.2, 0.3, 0.4]], dtype=torch.float64)
+    got = log_temperatures(R, eps)
+    assert got.shape == (2, 3) and bool(got[1, 2].isnan())
+    for s, k in [(0, 0), (0, 1), (0, 2), (1, 0), (1, 1)]:
+        sol = solve_temperature(R[s, k], float(eps[s, k]), checked_settings(300))
+        assert sol is not None
+        assert float(got[s, k]) == pytest.approx(math.log(float(sol.eta.reshape(-1)[0])), rel=1e-12)

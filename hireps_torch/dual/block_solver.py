@@ -136,6 +136,7 @@ class BlockSolver:
         eps: Tensor,
         kappa: Tensor,
         settings: LbfgsSettings,
+        log_eta_start: Tensor | None = None,
     ) -> None:
         self.bounded = torch.isfinite(kappa)  # (S, K) blocks with an entropy bound
         kap = torch.where(self.bounded, kappa, 0.0)
@@ -144,6 +145,10 @@ class BlockSolver:
         self.settings = settings
         self.prob.log_eta_min = eta_floor(st)
         self.x = self.prob.start()
+        if log_eta_start is not None:  # (S, K), standardised; NaN: the default start
+            K, floor = self.prob.K, self.prob.log_eta_min + 1.0
+            given = torch.maximum(log_eta_start, floor)
+            self.x[:, :K] = torch.where(log_eta_start.isnan(), self.x[:, :K], given)
         self.iterations = 0
         self.informative = st.informative
         flat = ~st.informative  # the projection solve: R = 0 and eta held at 1

@@ -1,8 +1,9 @@
 """Conditioning of the K-block dual: value start, whitening and scaling.
 
-Before solving, v is written as v0 + scale * T u: v0 is the small-epsilon solution (a
-least-squares fit of the returns on the features, block-weighted by 1/eta; 0 when the dual has a
-linear term c), the returns become the Bellman errors at v0, centred per block and divided by
+Before solving, v is written as v0 + scale * T u: v0 is the small-epsilon fit (a least-squares
+fit of the returns on the features, block-weighted by 1/eta; a linear term c, which moves the
+optimum by O(eta), is left out of it), the returns become the Bellman errors at v0, centred per
+block and divided by
 their common spread ``scale``, and T whitens the features (per-block centred, block-weighted).
 The weights are invariant to all of it; eta, xi and v are mapped back to the caller's units.
 Feature directions without spread in the samples (a constant column, all-zero or collinear
@@ -67,7 +68,7 @@ class Standardised:
         informative: (S,) whether the returns carry information beyond what the features fix
             (``scale`` above 1e-13 of the largest |return|, i.e. above round-off); if not, the
             solver looks for the closest distribution that meets the constraints.
-        level: (S,) what the centring took out of the dual value (caller's units).
+        level: (S,) what the centring and c^T v0 took out of the dual value (caller's units).
         dropped: (S,) feature directions without spread in the samples (a constant column,
             all-zero or collinear features), left out of the solve: v is unidentifiable along
             them.
@@ -115,8 +116,9 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
     (S, P) and KL bounds eps (S, K) (all float64), each problem on its own.
 
     The returns are centred per block and divided by one common spread per problem (the
-    blocks are coupled through v). v0 is the small-epsilon solution (without c; see
-    :func:`value_start`) and T whitens the curvature of the dual in v at the start,
+    blocks are coupled through v). v0 is the small-epsilon fit (without c, which the dual
+    value's ``level`` then carries as c^T v0; see :func:`value_start`) and T whitens the
+    curvature of the dual in v at the start,
     sum_k Cov(D_k) / eta_k, on the directions the centred features identify
     (:func:`identified_basis`; the others are dropped).
     """
@@ -136,10 +138,9 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
         svd = right_svd(Dc.reshape(S, K * N, P))
         B = identified_basis(Dc, svd)
         Dr = Dc if B is None else Dc @ B[:, None]
-        if c is None:
-            y = value_start(resid, Dr, eps, floor)
-            v0 = (y if B is None else torch.einsum("spq,sq->sp", B, y)) / col
-            resid = resid + torch.einsum("sknp,sp->skn", D, v0)
+        y = value_start(resid, Dr, eps, floor)
+        v0 = (y if B is None else torch.einsum("spq,sq->sp", B, y)) / col
+        resid = resid + torch.einsum("sknp,sp->skn", D, v0)
         # block weights 1 / eta_k at the start (KL ≈ Var(delta_k) / (2 eta_k^2) = eps_k)
         spread = (resid - resid.mean(dim=-1, keepdim=True)).std(dim=-1)
         spread = torch.maximum(spread, floor[:, None])
@@ -156,6 +157,7 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
             fixed = fixed_residual(D, c, col, B)
     offset = resid.mean(dim=-1, keepdim=True)
     resid = resid - offset
+    linear = R.new_zeros(S) if c is None else (c * v0).sum(-1)  # the dual's c^T v at v0
     scale = resid.reshape(S, -1).std(dim=-1) if K * N > 1 else R.new_ones(S)
     spread_r = R.std(dim=-1)
     return Standardised(
@@ -167,7 +169,7 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
         offset=offset,
         scale=scale,
         informative=scale > _INFORMATIVE_RTOL * magnitude,
-        level=R.mean(dim=-1).sum(-1) + offset.sum(dim=(1, 2)),
+        level=R.mean(dim=-1).sum(-1) + offset.sum(dim=(1, 2)) + linear,
         dropped=dropped,
         fixed_residual=fixed,
         reward_spread=torch.where(
@@ -237,7 +239,8 @@ def fixed_residual(D: Tensor, c: Tensor | None, col: Tensor, B: Tensor) -> Tenso
 
 
 def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: Tensor, rounds: int = 30) -> Tensor:
-    """(S, P) small-epsilon value multipliers (the solver's start when c = 0).
+    """(S, P) small-epsilon value multipliers (the solver's start; exact for small epsilon
+    when c = 0, and off by O(eta) otherwise).
 
     Args:
         Rc: (S, K, N) returns centred per block.

@@ -41,7 +41,7 @@ from hireps_torch.dual.solutions import (
     finish,
     stack_solutions,
 )
-from hireps_torch.dual.temperature import solve_temperature
+from hireps_torch.dual.temperature import log_temperatures, solve_temperature
 
 __all__ = [
     "LbfgsSettings",
@@ -188,7 +188,11 @@ def solve_blocks(
     kap_solve, unreachable, best = kap, torch.zeros_like(eps, dtype=torch.bool), kap
     if log_resp.shape[-1] > 1:
         kap_solve, unreachable, best = reachable_kappa(log_resp, eps, kap)
-    solver = BlockSolver(st, log_resp, eps, kap_solve, settings)
+    # without a linear term v starts at the small-epsilon fit v0: each block's eta then starts
+    # at its exact temperature there (with a linear term v0 = 0, and the returns' own
+    # temperature is no guide to the optimum: the small-epsilon eta, larger, lets v move first)
+    start = log_temperatures(st.returns, eps) if c is None else None
+    solver = BlockSolver(st, log_resp, eps, kap_solve, settings, start)
     end, relaxed = solver.run()
     prob = solver.prob
     _, eta_s, xi_s, u = prob.unpack(solver.x)

@@ -16,39 +16,46 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from hireps_torch.dual.block_solver import (
-    _ARMIJO,
-    _FLAT,
-    _LOG_ETA_FLOOR,
-    _MAX_LOG_STEP,
-    LbfgsSettings,
-)
+from hireps_torch.dual.block_solver import _ARMIJO, _FLAT, _LOG_ETA_FLOOR, LbfgsSettings
 from hireps_torch.dual.problem import LOG_ETA_MAX
 from hireps_torch.dual.safeguards import KL_RTOL
 from hireps_torch.dual.solutions import PopulationDualSolution
 
-__all__ = ["solve_temperature"]
+__all__ = ["log_temperatures", "solve_temperature"]
 
 _STEPS = 30  # Newton steps at most
+_MAX_LOG_STEP = 2.0  # largest change of log eta in one step (the trust region e^2)
 _HALVINGS = 30  # halvings of a step at most
 _REFINE_GRAD = 1e-13  # the gradient the steps past the KL tolerance aim at (round-off)
 _REFINE_STEPS = 1  # steps past the KL tolerance at most
 _SPREAD_RTOL = 1e-13  # returns whose spread is below this of their magnitude carry no information
 
 
-def solve_temperature(
-    R: Tensor, eps: float, settings: LbfgsSettings
-) -> PopulationDualSolution | None:
-    """Solve the one-temperature dual of finite float64 returns R (N,), N >= 2, for KL bound eps, or
-    None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
-    ``KL <= eps (1 + KL_RTOL)``."""
-    N = R.shape[0]
-    Rh = R.detach().cpu().numpy()  # a scalar search: its arithmetic on the host, in numpy
+class _Found(NamedTuple):
+    """Where the scalar search ended: log eta ``a`` of the standardised returns ``r`` (their
+    largest ``r_max``), the dual g, the KL, the steps taken, and the standardisation (returns
+    = (r s + mean) unit)."""
+
+    a: float
+    g: float
+    kl: float
+    steps: int
+    r: np.ndarray
+    r_max: float
+    s: float
+    mean: float
+    unit: float
+
+
+def _search(Rh: np.ndarray, eps: float) -> _Found | None:
+    """Newton's steps in log eta on the returns Rh (N,) (see the module docstring), or None."""
+    N = Rh.shape[0]
     lo_r, hi_r = float(np.minimum.reduce(Rh)), float(np.maximum.reduce(Rh))
     m_abs = max(-lo_r, hi_r)
     if m_abs == 0.0:
@@ -113,6 +120,20 @@ def solve_temperature(
                 break
             return None
         steps += 1
+    return _Found(a, g, kl, steps, r, r_max, s, mean, unit)
+
+
+def solve_temperature(
+    R: Tensor, eps: float, settings: LbfgsSettings
+) -> PopulationDualSolution | None:
+    """Solve the one-temperature dual of finite float64 returns R (N,), N >= 2, for KL bound eps, or
+    None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
+    ``KL <= eps (1 + KL_RTOL)``."""
+    N = R.shape[0]
+    found = _search(R.detach().cpu().numpy(), eps)  # a scalar search: on the host, in numpy
+    if found is None:
+        return None
+    a, g, kl, steps, r, r_max, s, mean, unit = found
     eta = math.exp(a)
     z = np.exp(r * (1.0 / eta) - r_max / eta)
     w = z / float(np.add.reduce(z))
@@ -135,6 +156,19 @@ def solve_temperature(
         iterations=steps,
         numbers=(eta * s * unit, 0.0, kl, 0.0, ess, 0.0, dual),
     )
+
+
+def log_temperatures(R: Tensor, eps: Tensor) -> Tensor:
+    """(S, K) log eta of the one-temperature dual of each block's returns R (S, K, N) for its
+    KL bound eps (S, K), in R's units; NaN where :func:`solve_temperature` would give up (no
+    spread, say)."""
+    Rh, eh = R.detach().cpu().numpy(), eps.detach().cpu().numpy()
+    out = np.full(eh.shape, math.nan)
+    for s, k in np.ndindex(*eh.shape):
+        found = _search(Rh[s, k], float(eh[s, k]))
+        if found is not None:
+            out[s, k] = found.a + math.log(found.s * found.unit)
+    return torch.from_numpy(out).to(R.device)
 
 
 def _nudge(

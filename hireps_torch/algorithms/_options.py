@@ -229,27 +229,27 @@ def apply_refit(
         ent = subs[0].entropy()
     kappa = bound.kappa if bound.kappa is not None else ent.new_full(lead, math.inf)
     S = sol.eta.shape[0]
-    numbers = torch.cat(
-        [
-            torch.stack(
-                [sol.eta, sol.xi, sol.kl, sol.cross_entropy, sol.effective_sample_size], -1
-            )[:, k],
-            torch.stack([sol.converged.to(sol.feature_error), sol.feature_error], -1),
-            torch.stack(
-                [
-                    kappa,
-                    bound.option_entropy,
-                    ent,
-                    policy.active.sum(-1).to(ent),
-                    refit.informed.to(ent),
-                ],
-                -1,
-            ).reshape(S, 5),
-        ],
+    policy_numbers = torch.stack(
+        [kappa, bound.option_entropy, ent, policy.active.sum(-1).to(ent), refit.informed.to(ent)],
         -1,
-    )  # (S, 12)
+    ).reshape(S, 5)
+    if sol.numbers is not None:  # one problem with one block: the dual's numbers at hand
+        eta_, xi_, kl_, ce_, ess_, error_, _ = sol.numbers
+        head = [[eta_, xi_, kl_, ce_, ess_, float(sol.converged.tolist()[0]), error_]]
+        rows = [h + p for h, p in zip(head, policy_numbers.tolist(), strict=True)]
+    else:
+        dual_numbers = torch.cat(
+            [
+                torch.stack(
+                    [sol.eta, sol.xi, sol.kl, sol.cross_entropy, sol.effective_sample_size], -1
+                )[:, k],
+                torch.stack([sol.converged.to(sol.feature_error), sol.feature_error], -1),
+            ],
+            -1,
+        )  # (S, 7)
+        rows = torch.cat([dual_numbers, policy_numbers], -1).tolist()  # S rows of 12
     (eta, xi, kl, ce, ess, converged, error, kap, opt_ent, pol_ent, n_active, informed) = (
-        numbers.T.tolist() if lead else numbers[0].tolist()
+        [list(column) for column in zip(*rows, strict=True)] if lead else rows[0]
     )
     return {
         "eta": eta,

@@ -139,19 +139,19 @@ def solve_temperature(
     w = z / float(np.add.reduce(z))
     ess = 1.0 / float(w @ w)
     dual = (g * s + mean) * unit
-    eta_s, kl_s, ess_s, dual_s, zero = torch.tensor(
-        [[eta * s * unit], [kl], [ess], [dual], [0.0]], dtype=R.dtype, device=R.device
-    ).unbind()  # (1,) each
+    eta_s, kl_s, ess_s, zero, dual_s = torch.tensor(
+        [[[eta * s * unit]], [[kl]], [[ess]], [[0.0]], [[dual]]], dtype=R.dtype, device=R.device
+    ).unbind()  # (S, K) = (1, 1) each
     return PopulationDualSolution(
-        eta=eta_s[None],
-        xi=zero[None],
+        eta=eta_s,
+        xi=zero,
         v=R.new_zeros(1, 0),
         weights=torch.from_numpy(w).to(R.device).view(1, 1, N, 1),
-        kl=kl_s[None],
-        cross_entropy=zero[None],
-        effective_sample_size=ess_s[None],
-        feature_error=zero,
-        dual_value=dual_s,
+        kl=kl_s,
+        cross_entropy=zero,
+        effective_sample_size=ess_s,
+        feature_error=zero.view(1),
+        dual_value=dual_s.view(1),
         converged=torch.ones(1, dtype=torch.bool, device=R.device),
         iterations=steps,
         numbers=(eta * s * unit, 0.0, kl, 0.0, ess, 0.0, dual),

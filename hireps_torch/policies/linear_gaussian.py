@@ -514,8 +514,7 @@ class LinearGaussian(PolicyModule):
         """The Cholesky factor (float64) of cov ([S,] D, D) where cov is finite and the
         variance floor m does not bind (cov - diag(m) positive definite: every eigenvalue of
         the scaled covariance cov / sqrt(m_i m_j) above 1); None otherwise. One transfer."""
-        cov = 0.5 * (cov + cov.mT)
-        floor = torch.diag_embed(self.min_variance.to(cov))
+        floor = torch.diag_embed(self.min_variance.to(cov))  # the factor reads one triangle
         factor = torch.linalg.cholesky_ex(torch.stack([cov, cov - floor]))
         chol: Tensor = factor.L[0]
         return chol if not bool(factor.info.any()) and all_finite(chol) else None

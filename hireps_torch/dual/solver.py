@@ -188,9 +188,8 @@ def solve_blocks(
     kap_solve, unreachable, best = kap, torch.zeros_like(eps, dtype=torch.bool), kap
     if log_resp.shape[-1] > 1:
         kap_solve, unreachable, best = reachable_kappa(log_resp, eps, kap)
-    # without a linear term v starts at the small-epsilon fit v0: each block's eta then starts
-    # at its exact temperature there (with a linear term v0 = 0, and the returns' own
-    # temperature is no guide to the optimum: the small-epsilon eta, larger, lets v move first)
+    # where the dual has no linear term each block's eta starts at its exact temperature at v0;
+    # where it has one, at the small-epsilon eta (measured: benchmarks/README.md, dual_speed)
     start = log_temperatures(st.returns, eps) if c is None else None
     solver = BlockSolver(st, log_resp, eps, kap_solve, settings, start)
     end, relaxed = solver.run()

@@ -10,6 +10,8 @@ round-off (so that a problem solved here and the same problem solved by the gene
 agree to round-off). It returns None where it cannot conclude (returns without
 spread, a step that does not help, the step budget spent); the general solver
 (:mod:`hireps_torch.dual.solver`) then solves the problem from the start, with its warnings.
+:func:`log_temperatures` runs the same search on each block of a K-block dual's returns: the
+general solver's start for eta where the dual has no linear term.
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ from hireps_torch.experiments.checkpoint import (
     stop_on_signals,
 )
 from hireps_torch.experiments.options import RunOptions, config_dict, member_seeds, parse_seeds
-from hireps_torch.experiments.rundir import RunWriter, default_run_dir
+from hireps_torch.experiments.rundir import DirectoryLock, RunWriter, default_run_dir
 
 __all__ = [
     "Members",
@@ -79,6 +79,17 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
     run_dir = Path(cfg.resume)
     if not (run_dir / "config.json").is_file():
         raise ValueError(f"cannot resume {run_dir}: it holds no config.json (not a run directory)")
+    # a run still writing the directory is refused before its files are read (they may be
+    # between two writes); the run's own writer takes the lock again for the whole run
+    lock = DirectoryLock(run_dir)
+    try:
+        return _checked_resume(experiment, cfg, run_dir)
+    finally:
+        lock.release()
+
+
+def _checked_resume(experiment: str, cfg: RunOptions, run_dir: Path) -> Resume:
+    """The checks of :func:`resume_point` on ``run_dir``, whose lock the caller holds."""
     if (run_dir / "summary.json").is_file():
         raise RunFinished(f"{run_dir} already finished (summary.json is there); nothing to resume")
     saved = read_config(run_dir)

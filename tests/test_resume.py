@@ -445,8 +445,27 @@ def test_two_resumes_at_once_log_every_iteration_once(tmp_path):
     late = [err for code, err in outs if code == 0 and "already finished" in err]
     assert sorted(code for code, _ in outs) in ([0, 2], [0, 0]), outs
     assert len(refused + late) == 1, outs  # the other one ran it
-    assert all("being written by another process" in err for err in refused)
+    assert all("being written by another process" in err for err in refused), outs
     assert [int(r["iteration"]) for r in rows(run)] == list(range(1, 31))
+
+
+def test_a_resume_of_a_directory_another_process_writes_is_refused_before_reading_it(tmp_path):
+    # the other writer may be between two writes (rows logged, checkpoint not yet): the
+    # refusal must be the lock's, not a complaint about what it reads
+    from hireps_torch.experiments.rundir import DirectoryLock
+
+    run = _unfinished(tmp_path, "run", samples_per_iteration=20)
+    (run / "checkpoint.pt").unlink()  # as if the writer had logged rows and not checkpointed
+    before = _files(run)
+    held = DirectoryLock(run)
+    try:
+        with pytest.raises(BlockingIOError, match="being written by another process"):
+            resume_in_process("bimodal", run)
+    finally:
+        held.release()
+    assert _files(run) == before
+    with pytest.raises(ValueError, match="no .*checkpoint.pt to continue them from"):
+        resume_in_process("bimodal", run)  # the lock released: the files' own complaint
 
 
 POPULATIONS = {

@@ -135,10 +135,13 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
     if D is not None and P > 0:
         col = column_scales(D)  # (S, P)
         Dc = (D - D.mean(dim=2, keepdim=True)) / col[:, None, None, :]
-        svd = right_svd(Dc.reshape(S, K * N, P))
+        y, svd = _one_block_fit(Dc, resid) if K == 1 and N > P else (None, None)
+        if svd is None:
+            svd = right_svd(Dc.reshape(S, K * N, P))
         B = identified_basis(Dc, svd)
         Dr = Dc if B is None else Dc @ B[:, None]
-        y = value_start(resid, Dr, eps, floor)
+        if y is None or B is not None:
+            y = value_start(resid, Dr, eps, floor)
         v0 = (y if B is None else torch.einsum("spq,sq->sp", B, y)) / col
         resid = resid + torch.einsum("sknp,sp->skn", D, v0)
         # block weights 1 / eta_k at the start (KL ≈ Var(delta_k) / (2 eta_k^2) = eps_k)
@@ -275,6 +278,20 @@ def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: Tensor, rounds: int 
             break
         weight = torch.where(settled[:, None], weight, new)
     return v
+
+
+def _one_block_fit(Dc: Tensor, Rc: Tensor) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+    """One block's least-squares fit y (S, P) of -Rc (S, 1, N) on Dc (S, 1, N, P) (the
+    minimum-norm one, with gelsd's cut at eps max(N, P) of the largest singular value) and
+    :func:`right_svd` of Dc, both from one QR of [Dc, Rc]: its triangular factor holds Dc's
+    and, in its last column, Q^T Rc."""
+    S, _, N, P = Dc.shape
+    R = torch.linalg.qr(torch.cat([Dc[:, 0], Rc[:, 0, :, None]], -1), mode="r").R
+    U, sv, Vh = torch.linalg.svd(R[:, :P, :P])
+    cut = torch.finfo(Dc.dtype).eps * max(N, P) * sv.amax(-1, keepdim=True)
+    proj = (U.mT @ R[:, :P, P:])[..., 0]
+    inv = torch.where(sv > cut, proj / sv.clamp_min(1e-300), 0.0)
+    return -(Vh.mT @ inv[..., None])[..., 0], (sv, Vh)
 
 
 def _lstsq(A: Tensor, b: Tensor) -> Tensor:

@@ -66,6 +66,7 @@ class DualProblem:
         self.eta_on = torch.ones(self.S, self.K, dtype=torch.bool, device=R.device)
         self.log_eta_min = R.new_full((self.S, self.K), LOG_ETA_MIN)
         self.ridge = R.new_zeros(self.S)
+        self._Dm: Tensor | None = None
 
     def start(self) -> Tensor:
         """x (S, n) at v = 0 with eta from KL ≈ Var(delta) / (2 eta^2) (the small-epsilon
@@ -101,6 +102,11 @@ class DualProblem:
         """(P (S, K, N, O), lse (S, K), delta (S, K, N)) at eta, xi (S, K), v (S, P),
         unclamped."""
         delta = self.advantage(v)
+        P, lse = self._softmax(delta, eta, xi)
+        return P, lse, delta
+
+    def _softmax(self, delta: Tensor, eta: Tensor, xi: Tensor) -> tuple[Tensor, Tensor]:
+        """(P (S, K, N, O), lse (S, K)) of advantages delta (S, K, N) at eta, xi (S, K)."""
         if self.multi:
             e3 = eta[..., None, None]
             z = (delta.unsqueeze(-1) + (eta + xi)[..., None, None] * self.lr) / e3
@@ -111,7 +117,7 @@ class DualProblem:
         e = (flat - m).exp_()
         s = e.sum(dim=-1, keepdim=True)
         lse = (m + s.log()).squeeze(-1) - self.log_n
-        return (e / s).reshape(z.shape), lse, delta
+        return (e / s).reshape(z.shape), lse
 
     def curvature(self, x: Tensor, raw: bool = False) -> Tensor:
         """(S, n, n) positive semi-definite part of each problem's Hessian in x, used as a
@@ -149,11 +155,14 @@ class DualProblem:
             aa = pa.reshape(S, N * O, c).transpose(1, 2) @ a.reshape(S, N * O, c)
             M[:, idx[:, None], idx[None, :]] += aa / eta[:, k, None, None]
             if self.P:
-                assert self.D is not None
+                # with D centred under uniform weights once (Dm): Cov_P(D) = E_P[Dm Dm^T]
+                # - m m^T with m = E_P[Dm] small, and E[a Dm^T] needs no centring (E[a] = 0)
+                Dm = self._centred_features()[:, k]
                 w = pk.sum(-1)  # (S, N)
-                Dc = self.D[:, k] - (w[..., None] * self.D[:, k]).sum(1, keepdim=True)
-                ad = pa.sum(2).transpose(1, 2) @ Dc  # (S, c, P)
-                dd = (w[..., None] * Dc).transpose(1, 2) @ Dc  # (S, P, P)
+                wD = w[..., None] * Dm
+                m = wD.sum(1)  # (S, P)
+                ad = pa.sum(2).transpose(1, 2) @ Dm  # (S, c, P)
+                dd = wD.transpose(1, 2) @ Dm - m[:, :, None] * m[:, None, :]  # (S, P, P)
                 vi = torch.arange(2 * K, n, device=x.device)
                 M[:, idx[:, None], vi[None, :]] += ad / eta[:, k, None, None]
                 M[:, vi[:, None], idx[None, :]] += ad.transpose(1, 2) / eta[:, k, None, None]
@@ -166,6 +175,13 @@ class DualProblem:
         # unused or flat directions (xi switched off, O = 1, a constant feature): identity
         d.copy_(torch.where(d > 1e-10 * top, d, torch.ones_like(d)) + 1e-10 * top)
         return M
+
+    def _centred_features(self) -> Tensor:
+        """(S, K, N, P) D centred per block under uniform weights (computed once)."""
+        if self._Dm is None:
+            assert self.D is not None
+            self._Dm = self.D - self.D.mean(dim=2, keepdim=True)
+        return self._Dm
 
     def eta_free(self, x: Tensor) -> Tensor:
         """(S, K) blocks whose eta moves at x: switched on and strictly inside its clamps (the
@@ -219,24 +235,46 @@ class DualProblem:
             g = g + 0.5 * self.ridge * (v * v).sum(-1)
         return g
 
-    def log_xi_meeting_bound(self, x: Tensor, steps: int = 30) -> Tensor:
+    def log_xi_meeting_bound(self, x: Tensor, tol: float = 4e-8, steps: int = 60) -> Tensor:
         """(S, K) log xi per block at which the cross-entropy meets kappa, eta and v held at x
-        (to 4e-8 in log xi, on the side that meets it: a start for the Newton steps).
+        (to ``tol`` in log xi, on the side that meets it: a start for the Newton steps).
 
-        The cross-entropy falls as xi grows (dCE/dxi = -Var_P(log p~) / eta), so bisect log xi
-        between log eta - 30 and log eta + 10; a block whose bound cannot be met gets the top.
+        The cross-entropy falls as xi grows (dCE/dxi = -Var_P(log p~) / eta), so its root in
+        log xi is bracketed by log eta - 30 and log eta + 10 and found by regula falsi with the
+        Illinois modification; a block whose bound cannot be met gets the top.
         """
         K = self.K
         a = torch.maximum(x[:, :K], self.log_eta_min).clamp(max=LOG_ETA_MAX)  # eta in use
+        eta = a.exp()
+        delta = self.advantage(x[:, 2 * K :])
+
+        def excess(log_xi: Tensor) -> Tensor:  # CE - kappa, falling in log xi
+            P, _ = self._softmax(delta, eta, log_xi.clamp(max=LOG_ETA_MAX).exp())
+            return -(P * self.lr).sum(dim=(-2, -1)) - self.kappa
+
         lo, hi = a - 30.0, a + 10.0
-        y = x.clone()
+        f_lo, f_hi = excess(lo), excess(hi)
+        met, unmet = f_lo <= 0, f_hi > 0  # met at the bottom already / nowhere: no root inside
+        lo, hi = torch.where(unmet, hi, lo), torch.where(met, lo, hi)
+        kept = torch.zeros_like(f_lo)  # +1: lo kept by the last step, -1: hi kept
         for _ in range(steps):
-            mid = 0.5 * (lo + hi)
-            y[:, K : 2 * K] = mid
-            P, _, _ = self.weights(y)
-            above = -(P * self.lr).sum(dim=(-2, -1)) > self.kappa
-            lo = torch.where(above, mid, lo)
-            hi = torch.where(above, hi, mid)
+            open_ = (hi - lo) > tol
+            if not bool(open_.any()):
+                break
+            # the secant's point, kept tol / 2 inside the bracket so that a point next to the
+            # root ends on its other side
+            t = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
+            t = torch.where(torch.isfinite(t), t, 0.5 * (lo + hi))
+            t = torch.minimum(torch.maximum(t, lo + 0.5 * tol), hi - 0.5 * tol)
+            f = excess(t)
+            up, down = open_ & (f > 0), open_ & ~(f > 0)
+            lo, f_lo = torch.where(up, t, lo), torch.where(up, f, f_lo)
+            hi, f_hi = torch.where(down, t, hi), torch.where(down, f, f_hi)
+            lo = torch.where(down & (f == 0), t, lo)  # met exactly
+            # Illinois: an end kept twice in a row has the other end's value halved
+            f_hi = torch.where(up & (kept > 0), 0.5 * f_hi, f_hi)
+            f_lo = torch.where(down & (kept < 0), 0.5 * f_lo, f_lo)
+            kept = torch.where(up, 1.0, torch.where(down, -1.0, kept))
         return hi
 
     def shows_conflict(self, x: Tensor, g: Tensor) -> Tensor:

@@ -16,6 +16,7 @@ import warnings
 import torch
 from torch import Tensor
 
+from hireps_torch._linalg import logsumexp
 from hireps_torch.checks import as_f64, as_float, check_finite, check_positive
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
@@ -53,7 +54,7 @@ def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tens
         )
     if bool((log_resp > 1e-6).any()):
         raise ValueError(f"{name} must be log-probabilities (<= 0), max is {log_resp.max().item()}")
-    norm = torch.logsumexp(log_resp, dim=-1)
+    norm = logsumexp(log_resp)
     off = norm.abs()
     worst = off.max().item()
     if worst > 1e-4:

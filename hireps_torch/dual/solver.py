@@ -29,6 +29,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from hireps_torch._linalg import logsumexp
 from hireps_torch.dual.block_solver import BlockSolver, LbfgsSettings
 from hireps_torch.dual.conditioning import Standardised, standardise
 from hireps_torch.dual.inputs import check_blocks, check_settings
@@ -250,7 +251,7 @@ def _factorised(
     """Without an entropy bound (xi = 0) the options enter the dual only through
     sum_o p~_io: P_io = w_i p~_io, with w the one-option solution. Solving that is exact and O
     times cheaper (e.g. 100 hard-gated options); KL(P || q p~) = KL(w || q)."""
-    row = torch.logsumexp(log_resp, dim=-1, keepdim=True)
+    row = logsumexp(log_resp)[..., None]
     one = solve_blocks(R, row, eps, D, c, None, settings, stacklevel + 1, prefix)
     w = one.weights * torch.exp(log_resp - row)
     w = w / w.sum(dim=(-2, -1), keepdim=True)

@@ -9,6 +9,7 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import Tensor, nn
 
+from hireps_torch._linalg import log_softmax, softmax
 from hireps_torch.checks import (
     as_float,
     as_float_tensor,
@@ -232,7 +233,7 @@ class SoftmaxGating(Gating):
         x = self._features(features)
         logits = x @ self.weight.mT + self.bias.unsqueeze(-2)
         logits = logits.masked_fill(~self.active.unsqueeze(-2), float("-inf"))
-        return torch.log_softmax(logits, dim=-1)
+        return log_softmax(logits)
 
     @torch.no_grad()
     def fit_parameters(
@@ -310,7 +311,7 @@ def _cross_entropy(
     over the active options."""
     keep = active.unsqueeze(-2)
     logits = (x @ W.mT + b.unsqueeze(-2)).masked_fill(~keep, float("-inf"))
-    logp = torch.log_softmax(logits, dim=-1)
+    logp = log_softmax(logits)
     fit = torch.where(keep, w[..., None] * t * logp, 0.0).sum((-2, -1))
     return -fit + 0.5 * l2 * torch.where(active[..., None], W**2, 0.0).sum((-2, -1))
 
@@ -347,7 +348,7 @@ def _newton_fit(
     failed = ~torch.isfinite(loss)
     for _ in range(max_iter):
         logits = (X @ theta.mT).masked_fill(~active.unsqueeze(-2), float("-inf"))
-        p = torch.softmax(logits, dim=-1)  # (..., N, O)
+        p = softmax(logits)  # (..., N, O)
         g = (w[..., None] * (p - t)).mT @ X + pen * theta  # (..., O, F+1)
         g = torch.where(active[..., None], g, 0.0).flatten(-2)
         running &= g.abs().amax(-1) > NEWTON_GTOL

@@ -10,6 +10,7 @@ from typing import cast
 import torch
 from torch import Tensor, nn
 
+from hireps_torch._linalg import log_softmax, logsumexp
 from hireps_torch.checks import (
     as_float,
     as_float_tensor,
@@ -272,7 +273,7 @@ class HierarchicalPolicy(PolicyModule):
 
     def log_prob(self, context: Tensor, theta: Tensor) -> Tensor:
         """Marginal log density of theta: ([S,] N)."""
-        return torch.logsumexp(self.log_joint(context, theta), dim=-1)
+        return logsumexp(self.log_joint(context, theta))
 
     def log_responsibilities(self, context: Tensor, theta: Tensor) -> Tensor:
         """log p(o | s, theta): ([S,] N, O); -inf for pruned options.
@@ -292,7 +293,7 @@ class HierarchicalPolicy(PolicyModule):
                 f"{float(torch.as_tensor(theta)[at].abs().max()):.3g}); its responsibilities are "
                 "undefined: rescale or drop that sample"
             )
-        return torch.log_softmax(joint, dim=-1)
+        return log_softmax(joint)
 
     def responsibilities(self, context: Tensor, theta: Tensor) -> Tensor:
         """p(o | s, theta): ([S,] N, O)."""

@@ -28,6 +28,7 @@ from hireps_torch.policies._population import (
     categorical,
     check_members,
     check_population_generators,
+    normal,
 )
 from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import (
@@ -322,10 +323,18 @@ class HierarchicalPolicy(PolicyModule):
             option = torch.stack(drawn).to(probs.device)
         else:
             option = categorical(probs, gen)
-        # every option draws its noise for all samples (the same draws whichever is chosen)
-        theta = self.sub_policies[0].sample(pf, gen)
-        for o, opt in enumerate(self.sub_policies[1:], 1):
-            theta = torch.where((option == o)[..., None], opt.sample(pf, gen), theta)
+        subs, D = self.sub_policies, self.action_dim
+        noise = torch.stack([normal((*lead, N, D), gen, dtype, pf.device) for _ in subs], -3)
+        # every option draws its noise for all samples (the same draws whichever is chosen);
+        # the chosen option's mean plus its Cholesky factor times its noise
+        weight = torch.stack([o.weight for o in subs], -3)  # ([S,] O, D, F)
+        bias = torch.stack([o.bias for o in subs], -2)  # ([S,] O, D)
+        chol = torch.stack([o.chol for o in subs], -3)  # ([S,] O, D, D)
+        x = pf.to(weight.dtype)
+        mean = torch.einsum("...nf,...odf->...ond", x, weight) + bias[..., :, None, :]
+        all_theta = mean + torch.einsum("...ode,...one->...ond", chol, noise)
+        index = option[..., None, :, None].expand(*option.shape[:-1], 1, N, D)
+        theta = all_theta.gather(-3, index).squeeze(-3)
         return theta, option
 
     def mean_action(self, context: Tensor) -> tuple[Tensor, Tensor]:

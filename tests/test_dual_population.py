@@ -284,3 +284,42 @@ def test_unconverged_problems_are_solved_again_alone():
             )
             assert bool(pop.converged[s]) == alone.converged
             assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-8), s
+
+
+def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):
+    # the pool of idle cores changes nothing: the same answers, bit for bit, and each
+    # problem's warning in the problems' order, attributed to the caller
+    import hireps_torch.dual.solver as solver
+
+    gen = torch.Generator().manual_seed(5)
+    phi, phi_next = randn(gen, 4, 40, 2), randn(gen, 4, 40, 2)
+    phi0 = (phi - 0.9 * phi_next).mean(1) / 0.1
+    phi0[1] = phi0[3] = 50.0  # problems 1 and 3 fall back (a warning each)
+    args = (randn(gen, 4, 40), phi, phi_next, phi0)
+    kw = {"gamma": 0.9, "epsilon": 0.3, "log_responsibilities": soft(gen, 4, 40, 2)}
+    results = {}
+    for workers in (1, 3):
+        monkeypatch.setattr(solver, "solve_workers", lambda device, n=workers: n)
+        with warnings.catch_warnings(record=True) as record:
+            warnings.simplefilter("always")
+            results[workers] = solve_infinite_horizon_dual(*args, population=True, **kw)
+        texts = [str(r.message)[:10] for r in record if issubclass(r.category, RuntimeWarning)]
+        assert texts == ["problem 1:", "problem 3:"], (workers, texts)
+        assert all(r.filename == __file__ for r in record), [r.filename for r in record]
+    for field in ("weights", "eta", "xi", "v", "kl", "dual_value", "converged"):
+        assert torch.equal(getattr(results[1], field), getattr(results[3], field)), field
+
+
+def test_solve_workers_use_the_cores_torch_leaves_idle(monkeypatch):
+    from hireps_torch.dual.solver import solve_workers
+
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert solve_workers(torch.device("cpu")) == 2
+        torch.set_num_threads(2)
+        assert solve_workers(torch.device("cpu")) == 1
+        assert solve_workers(torch.device("meta")) == 1
+    finally:
+        torch.set_num_threads(threads)

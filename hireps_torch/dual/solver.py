@@ -23,7 +23,9 @@ any distribution, or within the KL bound), else a
 from __future__ import annotations
 
 import math
+import os
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import torch
@@ -137,46 +139,72 @@ def solve_blocks(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
-    prefix: str = "",
 ) -> PopulationDualSolution:
     """:func:`solve_reps_dual` on a population of S problems in float64 that the caller has
     already checked: R (S, K, N), log_resp (S, K, N, O), eps (S, K), D (S, K, N, P), c (S, P),
     kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged alone,
-    one after the other, so that its answer is the one it gets alone, whatever its companions
-    (why: benchmarks/README.md, "One path"). Warnings
-    (one per problem that did not converge, prefixed "problem s" when S > 1) are attributed
-    ``stacklevel`` frames up (2: the caller of this function)."""
+    so that its answer is the one it gets alone, whatever its companions (why:
+    benchmarks/README.md, "One path"); on the CPU, the cores that torch's own threads leave
+    idle solve problems side by side (:func:`solve_workers`). Warnings (one per problem that
+    did not converge, prefixed "problem s" when S > 1) come in the problems' order,
+    attributed ``stacklevel`` frames up (2: the caller of this function)."""
+    S = R.shape[0]
+
+    def one(x: Tensor | None, s: int) -> Tensor | None:
+        return None if x is None else x[s : s + 1]
+
+    def alone(s: int) -> tuple[PopulationDualSolution, list[_Warning]]:
+        prefix = f"problem {s}: " if S > 1 else ""
+        Rs, lr, es = R[s : s + 1], log_resp[s : s + 1], eps[s : s + 1]
+        return _solve_one(Rs, lr, es, one(D, s), one(c, s), one(kappa, s), settings, prefix)
+
+    workers = solve_workers(R.device) if S > 1 else 1
+    if workers > 1:
+        with ThreadPoolExecutor(workers) as pool:
+            solved = list(pool.map(alone, range(S)))
+    else:
+        solved = [alone(s) for s in range(S)]
+    for _, said in solved:
+        for text, category in said:
+            warnings.warn(text, category, stacklevel=stacklevel)
+    return stack_solutions([sol for sol, _ in solved])
+
+
+def solve_workers(device: torch.device) -> int:
+    """How many problems of a population are solved side by side: on the CPU, the cores this
+    process may use that torch's intra-op threads leave idle (2 on two cores with one torch
+    thread, 1 with two), else 1. The answers do not depend on it."""
+    if device.type != "cpu":
+        return 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, (cores or 1) // torch.get_num_threads())
+
+
+_Warning = tuple[str, type[Warning]]
+
+
+def _solve_one(
+    R: Tensor,
+    log_resp: Tensor,
+    eps: Tensor,
+    D: Tensor | None,
+    c: Tensor | None,
+    kappa: Tensor | None,
+    settings: LbfgsSettings,
+    prefix: str,
+) -> tuple[PopulationDualSolution, list[_Warning]]:
+    """One problem (S = 1) of :func:`solve_blocks`, with the warnings it gives (text,
+    category), emitted by the caller."""
     S, K = R.shape[:2]
-    if S > 1:
-
-        def one(x: Tensor | None, s: int) -> Tensor | None:
-            return None if x is None else x[s : s + 1]
-
-        return stack_solutions(
-            [
-                solve_blocks(
-                    R[s : s + 1],
-                    log_resp[s : s + 1],
-                    eps[s : s + 1],
-                    one(D, s),
-                    one(c, s),
-                    one(kappa, s),
-                    settings,
-                    stacklevel + 1,
-                    f"problem {s}: ",
-                )
-                for s in range(S)
-            ]
-        )
     if D is not None and D.shape[-1] == 0:  # zero-width features are no features
         D = c = None
     unbounded = kappa is None or not bool(torch.isfinite(kappa).any())
     if log_resp.shape[-1] > 1 and unbounded:
-        return _factorised(R, log_resp, eps, D, c, settings, stacklevel + 1, prefix)
+        return _factorised(R, log_resp, eps, D, c, settings, prefix)
     if S == 1 and K == 1 and D is None and unbounded:  # one option column: plain REPS
         sol = solve_temperature(R.view(-1), eps.item(), settings)
         if sol is not None:
-            return sol
+            return sol, []
     r_scale = _pow2_scale(R.abs().amax(dim=(1, 2)))  # (S,)
     f_scale = _pow2_scale(_column_max(D, S, R))  # (S, P)
     st = standardise(
@@ -210,6 +238,7 @@ def solve_blocks(
         st = replace(st, informative=st.informative & ~failed)
     optimal = end.converged & ~failed
     verdicts = judge(prob, P, kap, optimal, st.fixed_residual, settings.converged_grad)
+    said: list[_Warning] = []
     for s, verdict in enumerate(verdicts):
         notes = [] if relaxed[s] is None else [str(relaxed[s])]
         if bool(failed[s]):
@@ -221,10 +250,10 @@ def solve_blocks(
                 f"the KL bound was enforced after the solve on block(s) {_where(moved[s])}"
             )
         infeasible = bool(unreachable[s].any()) or relaxed[s] is not None
-        _warn(verdict, notes, infeasible, prefix, stacklevel + 1)
+        said += _warning(verdict, notes, infeasible, prefix)
     eta, xi, v, dual = _caller_units(st, eta_s, xi_s, u, g)
     converged = torch.tensor([vd.converged for vd in verdicts], device=R.device)
-    return finish(
+    sol = finish(
         P,
         log_resp,
         eta / r_scale[:, None],
@@ -236,6 +265,7 @@ def solve_blocks(
         converged,
         solver.iterations,
     )
+    return sol, said
 
 
 def _factorised(
@@ -245,19 +275,19 @@ def _factorised(
     D: Tensor | None,
     c: Tensor | None,
     settings: LbfgsSettings,
-    stacklevel: int,
     prefix: str,
-) -> PopulationDualSolution:
+) -> tuple[PopulationDualSolution, list[_Warning]]:
     """Without an entropy bound (xi = 0) the options enter the dual only through
     sum_o p~_io: P_io = w_i p~_io, with w the one-option solution. Solving that is exact and O
     times cheaper (e.g. 100 hard-gated options); KL(P || q p~) = KL(w || q)."""
     row = logsumexp(log_resp)[..., None]
-    one = solve_blocks(R, row, eps, D, c, None, settings, stacklevel + 1, prefix)
+    one, said = _solve_one(R, row, eps, D, c, None, settings, prefix)
     w = one.weights * torch.exp(log_resp - row)
     w = w / w.sum(dim=(-2, -1), keepdim=True)
-    return finish(
+    sol = finish(
         w, log_resp, one.eta, one.xi, one.v, D, c, one.dual_value, one.converged, one.iterations
     )
+    return sol, said
 
 
 def _caller_units(
@@ -297,19 +327,16 @@ def _pow2_scale(m: Tensor) -> Tensor:
     return torch.pow(2.0, half) * torch.pow(2.0, -e - half)
 
 
-def _warn(
-    verdict: Verdict, notes: list[str], infeasible: bool, prefix: str, stacklevel: int
-) -> None:
-    """One warning for everything a problem's solve could not deliver (none when it
-    converged: the KL safeguard then only corrected round-off)."""
+def _warning(verdict: Verdict, notes: list[str], infeasible: bool, prefix: str) -> list[_Warning]:
+    """The one warning (text, category) for everything a problem's solve could not deliver;
+    none when it converged (the KL safeguard then only corrected round-off)."""
     if verdict.converged and not infeasible:
-        return
+        return []
     parts = list(notes) + list(verdict.parts)
     category: type[RuntimeWarning] = (
         InfeasibleConstraintsWarning if infeasible or verdict.infeasible else DualConvergenceWarning
     )
-    text = prefix + "the dual did not converge: " + "; ".join(parts)
-    warnings.warn(text, category, stacklevel=stacklevel)
+    return [(prefix + "the dual did not converge: " + "; ".join(parts), category)]
 
 
 def _unreachable_text(

@@ -289,7 +289,7 @@ def test_unconverged_problems_are_solved_again_alone():
 def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):
     # the pool of idle cores changes nothing: the same answers, bit for bit, and each
     # problem's warning in the problems' order, attributed to the caller
-    import hireps_torch.dual.solver as solver
+    import hireps_torch._parallel as parallel
 
     gen = torch.Generator().manual_seed(5)
     phi, phi_next = randn(gen, 4, 40, 2), randn(gen, 4, 40, 2)
@@ -299,7 +299,7 @@ def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):
     kw = {"gamma": 0.9, "epsilon": 0.3, "log_responsibilities": soft(gen, 4, 40, 2)}
     results = {}
     for workers in (1, 3):
-        monkeypatch.setattr(solver, "solve_workers", lambda device, n=workers: n)
+        monkeypatch.setattr(parallel, "idle_workers", lambda device, n=workers: n)
         with warnings.catch_warnings(record=True) as record:
             warnings.simplefilter("always")
             results[workers] = solve_infinite_horizon_dual(*args, population=True, **kw)
@@ -310,16 +310,19 @@ def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):
         assert torch.equal(getattr(results[1], field), getattr(results[3], field)), field
 
 
-def test_solve_workers_use_the_cores_torch_leaves_idle(monkeypatch):
-    from hireps_torch.dual.solver import solve_workers
+def test_idle_workers_are_the_cores_torch_leaves_idle(monkeypatch):
+    from hireps_torch._parallel import idle_workers, member_chunks
 
     monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1}, raising=False)
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        assert solve_workers(torch.device("cpu")) == 2
+        assert idle_workers(torch.device("cpu")) == 2
+        assert member_chunks(5, torch.device("cpu")) == [slice(0, 2), slice(2, 5)]
+        assert member_chunks(1, torch.device("cpu")) == [slice(0, 1)]
         torch.set_num_threads(2)
-        assert solve_workers(torch.device("cpu")) == 1
-        assert solve_workers(torch.device("meta")) == 1
+        assert idle_workers(torch.device("cpu")) == 1
+        assert member_chunks(5, torch.device("cpu")) == [slice(0, 5)]
+        assert idle_workers(torch.device("meta")) == 1
     finally:
         torch.set_num_threads(threads)

@@ -23,15 +23,14 @@ any distribution, or within the KL bound), else a
 from __future__ import annotations
 
 import math
-import os
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import torch
 from torch import Tensor
 
 from hireps_torch._linalg import logsumexp
+from hireps_torch._parallel import side_by_side
 from hireps_torch.dual.block_solver import BlockSolver, LbfgsSettings
 from hireps_torch.dual.conditioning import Standardised, standardise
 from hireps_torch.dual.inputs import check_blocks, check_settings
@@ -145,9 +144,9 @@ def solve_blocks(
     kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged alone,
     so that its answer is the one it gets alone, whatever its companions (why:
     benchmarks/README.md, "One path"); on the CPU, the cores that torch's own threads leave
-    idle solve problems side by side (:func:`solve_workers`). Warnings (one per problem that
-    did not converge, prefixed "problem s" when S > 1) come in the problems' order,
-    attributed ``stacklevel`` frames up (2: the caller of this function)."""
+    idle solve problems side by side (:func:`~hireps_torch._parallel.side_by_side`).
+    Warnings (one per problem that did not converge, prefixed "problem s" when S > 1) come in
+    the problems' order, attributed ``stacklevel`` frames up (2: the caller of this function)."""
     S = R.shape[0]
 
     def one(x: Tensor | None, s: int) -> Tensor | None:
@@ -158,26 +157,11 @@ def solve_blocks(
         Rs, lr, es = R[s : s + 1], log_resp[s : s + 1], eps[s : s + 1]
         return _solve_one(Rs, lr, es, one(D, s), one(c, s), one(kappa, s), settings, prefix)
 
-    workers = solve_workers(R.device) if S > 1 else 1
-    if workers > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            solved = list(pool.map(alone, range(S)))
-    else:
-        solved = [alone(s) for s in range(S)]
+    solved = side_by_side(alone, range(S), R.device)
     for _, said in solved:
         for text, category in said:
             warnings.warn(text, category, stacklevel=stacklevel)
     return stack_solutions([sol for sol, _ in solved])
-
-
-def solve_workers(device: torch.device) -> int:
-    """How many problems of a population are solved side by side: on the CPU, the cores this
-    process may use that torch's intra-op threads leave idle (2 on two cores with one torch
-    thread, 1 with two), else 1. The answers do not depend on it."""
-    if device.type != "cpu":
-        return 1
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return max(1, (cores or 1) // torch.get_num_threads())
 
 
 _Warning = tuple[str, type[Warning]]

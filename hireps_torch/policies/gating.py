@@ -10,6 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from hireps_torch._linalg import log_softmax, softmax
+from hireps_torch._parallel import member_chunks, side_by_side
 from hireps_torch.checks import (
     as_float,
     as_float_tensor,
@@ -276,7 +277,15 @@ class SoftmaxGating(Gating):
         dead = act & ((w[..., None] * t).sum(-2) <= 0)
         fit = act & ~dead
         W0, b0 = self.weight.to(torch.float64), self.bias.to(torch.float64)
-        Wp, bp, failed = _newton_fit(x, t, w, W0, b0, fit, self.l2, max_iter)
+        if self.population is None:
+            Wp, bp, failed = _newton_fit(x, t, w, W0, b0, fit, self.l2, max_iter)
+        else:  # chunks of members side by side (each member's fit is its own)
+
+            def chunk(m: slice) -> tuple[Tensor, Tensor, Tensor]:
+                return _newton_fit(x[m], t[m], w[m], W0[m], b0[m], fit[m], self.l2, max_iter)
+
+            parts = side_by_side(chunk, member_chunks(self.population, x.device), x.device)
+            Wp, bp, failed = (torch.cat(p) for p in zip(*parts, strict=True))
         bad = failed | ~(torch.isfinite(Wp).flatten(-2).all(-1) & torch.isfinite(bp).all(-1))
         if bool(bad.any()):
             who = "" if self.population is None else f"member {int(bad.nonzero()[0, 0])}: "

@@ -108,6 +108,19 @@ def test_copies_of_one_policy_get_identical_refits():
         assert torch.equal(value[0], value[1]) and torch.equal(value[0], value[2])
 
 
+@pytest.mark.parametrize("workers", [2, 3])
+def test_a_refit_with_members_side_by_side_equals_one_after_the_other(monkeypatch, workers):
+    import hireps_torch._parallel as parallel
+
+    ctx, theta, w = data()
+    fits = {}
+    for n in (1, workers):
+        monkeypatch.setattr(parallel, "idle_workers", lambda device, n=n: n)
+        fits[n] = HierarchicalPolicy.stack(members()).fit_parameters(ctx, theta, w)
+    for key, value in fits[1].items():
+        assert torch.equal(value, fits[workers][key]), key
+
+
 def test_gating_fit_reaches_its_minimiser():
     """LBFGS then Newton steps: the single fit is the minimiser to round-off, so a population
     (another LBFGS path) lands on the same point."""

@@ -1,0 +1,42 @@
+"""A population's members computed side by side on the cores that torch's own threads leave
+idle (each member's arithmetic is the same as alone: the answers do not depend on it)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+import torch
+
+__all__ = ["idle_workers", "member_chunks", "side_by_side"]
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def idle_workers(device: torch.device) -> int:
+    """On the CPU, the cores this process may use over torch's intra-op threads (2 on two
+    cores with one torch thread, 1 with two); 1 elsewhere."""
+    if device.type != "cpu":
+        return 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, (cores or 1) // torch.get_num_threads())
+
+
+def side_by_side(fn: Callable[[T], R], items: Sequence[T], device: torch.device) -> list[R]:
+    """``[fn(item) for item in items]``, in threads on the idle cores (torch releases the GIL
+    in its kernels); in order."""
+    workers = min(len(items), idle_workers(device))
+    if workers <= 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(fn, items))
+
+
+def member_chunks(members: int, device: torch.device) -> list[slice]:
+    """Contiguous slices of ``members``, one per idle worker (one slice when there is one)."""
+    n = max(1, min(members, idle_workers(device)))
+    bounds = [round(i * members / n) for i in range(n + 1)]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]

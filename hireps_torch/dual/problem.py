@@ -155,14 +155,13 @@ class DualProblem:
             aa = pa.reshape(S, N * O, c).transpose(1, 2) @ a.reshape(S, N * O, c)
             M[:, idx[:, None], idx[None, :]] += aa / eta[:, k, None, None]
             if self.P:
-                # with D centred under uniform weights once (Dm): Cov_P(D) = E_P[Dm Dm^T]
-                # - m m^T with m = E_P[Dm] small, and E[a Dm^T] needs no centring (E[a] = 0)
+                # D centred under P (from D centred once under uniform weights: its P-mean is
+                # one matrix-vector product, no N x P temporary)
                 Dm = self._centred_features()[:, k]
                 w = pk.sum(-1)  # (S, N)
-                wD = w[..., None] * Dm
-                m = wD.sum(1)  # (S, P)
-                ad = pa.sum(2).transpose(1, 2) @ Dm  # (S, c, P)
-                dd = wD.transpose(1, 2) @ Dm - m[:, :, None] * m[:, None, :]  # (S, P, P)
+                Dc = Dm - (w[:, None, :] @ Dm)
+                ad = pa.sum(2).transpose(1, 2) @ Dc  # (S, c, P)
+                dd = (w[..., None] * Dc).transpose(1, 2) @ Dc  # (S, P, P)
                 vi = torch.arange(2 * K, n, device=x.device)
                 M[:, idx[:, None], vi[None, :]] += ad / eta[:, k, None, None]
                 M[:, vi[:, None], idx[None, :]] += ad.transpose(1, 2) / eta[:, k, None, None]

@@ -10,7 +10,12 @@ from typing import TypeVar
 
 import torch
 
-__all__ = ["idle_workers", "member_chunks", "side_by_side"]
+__all__ = ["MIN_SIZE", "idle_workers", "member_chunks", "side_by_side"]
+
+MIN_SIZE = 2**16
+"""The fewest tensor elements one member's work must touch to be worth a thread: below it the
+members' Python overhead, which holds the GIL, outweighs their kernels (why this number:
+benchmarks/README.md, "Members side by side")."""
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -25,18 +30,22 @@ def idle_workers(device: torch.device) -> int:
     return max(1, (cores or 1) // torch.get_num_threads())
 
 
-def side_by_side(fn: Callable[[T], R], items: Sequence[T], device: torch.device) -> list[R]:
+def side_by_side(
+    fn: Callable[[T], R], items: Sequence[T], device: torch.device, size: int
+) -> list[R]:
     """``[fn(item) for item in items]``, in threads on the idle cores (torch releases the GIL
-    in its kernels); in order."""
-    workers = min(len(items), idle_workers(device))
+    in its kernels) where each item's work touches at least :data:`MIN_SIZE` elements
+    (``size``); in order."""
+    workers = min(len(items), idle_workers(device)) if size >= MIN_SIZE else 1
     if workers <= 1:
         return [fn(item) for item in items]
     with ThreadPoolExecutor(workers) as pool:
         return list(pool.map(fn, items))
 
 
-def member_chunks(members: int, device: torch.device) -> list[slice]:
-    """Contiguous slices of ``members``, one per idle worker (one slice when there is one)."""
-    n = max(1, min(members, idle_workers(device)))
+def member_chunks(members: int, device: torch.device, size: int) -> list[slice]:
+    """Contiguous slices of ``members``, one per idle worker where one member's work touches
+    at least :data:`MIN_SIZE` elements (``size``; one slice otherwise)."""
+    n = max(1, min(members, idle_workers(device))) if size >= MIN_SIZE else 1
     bounds = [round(i * members / n) for i in range(n + 1)]
     return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]

@@ -300,6 +300,7 @@ def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):
     results = {}
     for workers in (1, 3):
         monkeypatch.setattr(parallel, "idle_workers", lambda device, n=workers: n)
+        monkeypatch.setattr(parallel, "MIN_SIZE", 0)  # these small problems too
         with warnings.catch_warnings(record=True) as record:
             warnings.simplefilter("always")
             results[workers] = solve_infinite_horizon_dual(*args, population=True, **kw)
@@ -311,6 +312,7 @@ def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):
 
 
 def test_idle_workers_are_the_cores_torch_leaves_idle(monkeypatch):
+    import hireps_torch._parallel as parallel
     from hireps_torch._parallel import idle_workers, member_chunks
 
     monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1}, raising=False)
@@ -318,11 +320,13 @@ def test_idle_workers_are_the_cores_torch_leaves_idle(monkeypatch):
     try:
         torch.set_num_threads(1)
         assert idle_workers(torch.device("cpu")) == 2
-        assert member_chunks(5, torch.device("cpu")) == [slice(0, 2), slice(2, 5)]
-        assert member_chunks(1, torch.device("cpu")) == [slice(0, 1)]
+        big, small = parallel.MIN_SIZE, parallel.MIN_SIZE - 1
+        assert member_chunks(5, torch.device("cpu"), big) == [slice(0, 2), slice(2, 5)]
+        assert member_chunks(5, torch.device("cpu"), small) == [slice(0, 5)]
+        assert member_chunks(1, torch.device("cpu"), big) == [slice(0, 1)]
         torch.set_num_threads(2)
         assert idle_workers(torch.device("cpu")) == 1
-        assert member_chunks(5, torch.device("cpu")) == [slice(0, 5)]
+        assert member_chunks(5, torch.device("cpu"), big) == [slice(0, 5)]
         assert idle_workers(torch.device("meta")) == 1
     finally:
         torch.set_num_threads(threads)

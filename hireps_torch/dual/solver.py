@@ -157,7 +157,8 @@ def solve_blocks(
         Rs, lr, es = R[s : s + 1], log_resp[s : s + 1], eps[s : s + 1]
         return _solve_one(Rs, lr, es, one(D, s), one(c, s), one(kappa, s), settings, prefix)
 
-    solved = side_by_side(alone, range(S), R.device)
+    size = log_resp[0].numel() + (0 if D is None else D[0].numel())  # one problem's
+    solved = side_by_side(alone, range(S), R.device, size)
     for _, said in solved:
         for text, category in said:
             warnings.warn(text, category, stacklevel=stacklevel)

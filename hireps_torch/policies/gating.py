@@ -284,7 +284,9 @@ class SoftmaxGating(Gating):
             def chunk(m: slice) -> tuple[Tensor, Tensor, Tensor]:
                 return _newton_fit(x[m], t[m], w[m], W0[m], b0[m], fit[m], self.l2, max_iter)
 
-            parts = side_by_side(chunk, member_chunks(self.population, x.device), x.device)
+            size = t[0].numel() * (x.shape[-1] + 1)  # one member's (N, O, F + 1) products
+            chunks = member_chunks(self.population, x.device, size)
+            parts = side_by_side(chunk, chunks, x.device, size)
             Wp, bp, failed = (torch.cat(p) for p in zip(*parts, strict=True))
         bad = failed | ~(torch.isfinite(Wp).flatten(-2).all(-1) & torch.isfinite(bp).all(-1))
         if bool(bad.any()):

@@ -23,8 +23,8 @@ Newton steps with the exact curvature (:meth:`BlockSolver.polish`). None of this
 that LBFGS completes with every eta above its floor.
 
 The solver's tensors carry a leading S = 1 (the problem dimension of
-:func:`~hireps_torch.dual.solver.solve_blocks`, which solves a population's problems one after
-the other, so that each answer is its own).
+:func:`~hireps_torch.dual.solver.solve_blocks`, which solves each of a population's problems
+alone, so that each answer is its own).
 """
 
 from __future__ import annotations

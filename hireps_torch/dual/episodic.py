@@ -78,7 +78,7 @@ def solve_episodic_dual(
             :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension; they
-            are solved one after the other, each as it is alone (conditioned, judged and
+            are solved each as it is alone (side by side on idle cores; conditioned, judged and
             warned about on its own), and a
             :class:`~hireps_torch.dual.PopulationDualSolution` (K = 1) is returned.
 

@@ -4,6 +4,7 @@ package behind it."""
 import csv
 import dataclasses
 import json
+import platform
 import re
 import subprocess
 import sys
@@ -713,3 +714,9 @@ def test_calling_main_in_a_process_leaves_its_environment_alone(tmp_path, monkey
     with pytest.raises(ValueError, match="episodes"):
         train.main(["hockey-sequential", "--episodes", "-1"])
     assert "MKL_CBWR" not in __import__("os").environ
+
+
+def test_runs_keep_freed_memory_where_the_c_library_is_glibc():
+    from hireps_torch.experiments.loop import keep_freed_memory
+
+    assert keep_freed_memory() is (platform.libc_ver()[0] == "glibc")

@@ -95,13 +95,20 @@ def normal(
     return torch.randn(shape, generator=generator, dtype=dtype, device=where).to(device)
 
 
-def categorical(probs: Tensor, generator: torch.Generator | None) -> Tensor:
-    """One index per row of ``probs`` (..., O) drawn with ``generator`` (on the generator's
-    device, as :func:`normal`), as int64 (...) on the device of ``probs``."""
-    where = probs if generator is None else probs.to(generator.device)
-    flat = where.reshape(-1, where.shape[-1])
-    out = torch.multinomial(flat, 1, generator=generator)
-    return out.view(probs.shape[:-1]).to(probs.device)
+def categorical(probs: Tensor, generator: torch.Generator | list[torch.Generator] | None) -> Tensor:
+    """One index per row of ``probs`` (..., O), as int64 (...) on the device of ``probs``:
+    ``torch.multinomial(p, 1)``'s own draw bit for bit (the argmax of p / q with q ~ Exp(1),
+    the same stream), with the exponentials drawn on the generator's device (as
+    :func:`normal`). With one generator per member, member s's rows (``probs[s]``) draw from
+    ``generator[s]`` as it would alone, and the argmax is taken once for all."""
+    if isinstance(generator, list):
+        host = probs.to(generator[0].device)  # one transfer
+        pairs = zip(host, generator, strict=True)
+        q = torch.stack([torch.empty_like(p).exponential_(1, generator=g) for p, g in pairs])
+    else:
+        host = probs if generator is None else probs.to(generator.device)
+        q = torch.empty_like(host).exponential_(1, generator=generator)
+    return (host / q).argmax(-1).to(probs.device)
 
 
 def batch_text(population: int | None) -> str:

@@ -317,12 +317,7 @@ class HierarchicalPolicy(PolicyModule):
         if N == 0:
             empty = torch.zeros((*lead, 0), dtype=torch.long, device=pf.device)
             return pf.new_empty((*lead, 0, self.action_dim), dtype=dtype), empty
-        if isinstance(gen, list):
-            host = probs.to(gen[0].device)  # one transfer; each member draws with its own
-            drawn = [categorical(p, g) for p, g in zip(host, gen, strict=True)]
-            option = torch.stack(drawn).to(probs.device)
-        else:
-            option = categorical(probs, gen)
+        option = categorical(probs, gen)  # each member with its own generator, where given
         subs, D = self.sub_policies, self.action_dim
         noise = torch.stack([normal((*lead, N, D), gen, dtype, pf.device) for _ in subs], -3)
         # every option draws its noise for all samples (the same draws whichever is chosen);

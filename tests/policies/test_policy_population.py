@@ -6,6 +6,7 @@ import torch
 
 from hireps_torch.features import QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy, LinearGaussian, SoftmaxGating
+from hireps_torch.policies._population import categorical
 
 S, N, C, D, O = 3, 40, 2, 3, 4
 
@@ -47,6 +48,27 @@ def test_each_member_samples_what_it_samples_alone():
         alone, alone_option = pols[s].sample(ctx[s], g)
         assert torch.equal(option[s], alone_option)
         torch.testing.assert_close(theta[s], alone, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("rows,options", [(1, 1), (7, 3), (40, 5), (8000, 5), (33, 100)])
+def test_categorical_draws_what_multinomial_draws(dtype, rows, options):
+    # per member, the option and the generator's state after it are multinomial's, bit for bit
+    g = torch.Generator().manual_seed(rows + options)
+    probs = torch.softmax(3 * torch.randn(S, rows, options, generator=g, dtype=dtype), -1)
+    if options > 1:
+        probs[:, 0, 1] = 0.0  # an option without mass
+        probs = probs / probs.sum(-1, keepdim=True)
+    mine, ref = gens(), gens()
+    drawn = categorical(probs, mine)
+    assert drawn.shape == (S, rows) and drawn.dtype == torch.long
+    for s in range(S):
+        expected = torch.multinomial(probs[s], 1, generator=ref[s])[:, 0]
+        assert torch.equal(drawn[s], expected)
+        assert torch.equal(mine[s].get_state(), ref[s].get_state())
+    one, other = gens()[0], gens()[0]
+    expected = torch.multinomial(probs[0], 1, generator=other)[:, 0]
+    assert torch.equal(categorical(probs[0], one), expected)
 
 
 def test_a_members_samples_do_not_depend_on_its_companions():

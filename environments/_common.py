@@ -110,7 +110,7 @@ def check_scalar_action(action: object, batch: int, what: str) -> Tensor:
 
 
 class BatchedTask:
-    """B systems of one task: float64 states (B, S), decision counters, one seeded generator.
+    """B systems of one task: float64 states (B, C), decision counters, one seeded generator.
 
     Subclasses set ``state_dim``, ``action_limit`` and ``action_name`` and implement
     :meth:`start_states`, :meth:`transition` and :meth:`truncated`.
@@ -130,11 +130,11 @@ class BatchedTask:
 
     # ---- hooks ------------------------------------------------------------------------------
     def start_states(self, mask: Tensor) -> Tensor:
-        """(B, S) start states for all systems; only the masked (B,) ones will be used."""
+        """(B, C) start states for all systems; only the masked (B,) ones will be used."""
         raise NotImplementedError
 
     def transition(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """One decision: (next_state (B, S), reward (B,), terminated (B,), path (B, T, S))."""
+        """One decision: (next_state (B, C), reward (B,), terminated (B,), path (B, T, C))."""
         raise NotImplementedError
 
     def truncated(self, terminated: Tensor) -> Tensor:
@@ -302,7 +302,7 @@ class ScalarActionGymEnv(gym.Env):
 class ScalarActionBatchEnv(EnvBase):
     """Batched TorchRL adapter over a :class:`BatchedTask`: its B systems stepped together.
 
-    Keys: ``observation`` (B, S) float32, ``state`` (B, S) float64 (exact), ``action`` (B, 1)
+    Keys: ``observation`` (B, C) float32, ``state`` (B, C) float64 (exact), ``action`` (B, 1)
     float32 in ±``action_limit``, ``reward`` (B, 1) float32, ``done`` / ``terminated`` /
     ``truncated`` (B, 1) bool. Partial resets (``_reset`` mask) restart only the masked systems;
     ``step`` before the first ``reset`` raises :class:`ResetNeeded`.
@@ -311,10 +311,10 @@ class ScalarActionBatchEnv(EnvBase):
     def __init__(self, task: BatchedTask) -> None:
         super().__init__(batch_size=torch.Size([task.batch]), device=task.device)
         self.task = task
-        B, S, lim = task.batch, task.state_dim, task.action_limit
+        B, C, lim = task.batch, task.state_dim, task.action_limit
         self.observation_spec = Composite(
-            observation=Unbounded(shape=(B, S), dtype=torch.float32, device=self.device),
-            state=Unbounded(shape=(B, S), dtype=torch.float64, device=self.device),
+            observation=Unbounded(shape=(B, C), dtype=torch.float32, device=self.device),
+            state=Unbounded(shape=(B, C), dtype=torch.float64, device=self.device),
             shape=(B,),
             device=self.device,
         )

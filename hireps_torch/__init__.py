@@ -18,7 +18,6 @@ from hireps_torch.dmp import DMP, DMPTrajectory
 from hireps_torch.dual import (
     DegenerateWeightsWarning,
     DualSolution,
-    TimeIndexedDualSolution,
     solve_episodic_dual,
     solve_time_indexed_dual,
 )
@@ -59,7 +58,6 @@ __all__ = [
     "InfiniteHorizonHiREPS",
     "LinearGaussian",
     "SoftmaxGating",
-    "TimeIndexedDualSolution",
     "TimeIndexedHiREPS",
     "load_run",
     "solve_episodic_dual",

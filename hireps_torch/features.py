@@ -1,6 +1,6 @@
 """Feature maps of states / contexts, as ``nn.Module``s.
 
-Every map takes ``x: (..., S)`` and returns ``(..., F)`` with ``F = module.out_features``.
+Every map takes ``x: (..., C)`` and returns ``(..., F)`` with ``F = module.out_features``.
 None of them adds a constant column: the policies carry their own bias, and a constant
 column would make the dual's value multiplier unidentifiable.
 """
@@ -80,14 +80,14 @@ class IdentityFeatures(FeatureMap):
         self.out_features = self.in_features
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (..., S) -> (..., S)."""
+        """x: (..., C) -> (..., C)."""
         return self._input(x)
 
 
 class QuadraticFeatures(FeatureMap):
     """Squared expansion phi(x) = [x, x_i x_j for i <= j] (the paper's gating features).
 
-    ``(..., S) -> (..., S + S (S + 1) / 2)``. An optional per-dimension ``scale`` divides x
+    ``(..., C) -> (..., C + C (C + 1) / 2)``. An optional per-dimension ``scale`` divides x
     first so that the quadratic terms are of order one.
     """
 
@@ -113,7 +113,7 @@ class QuadraticFeatures(FeatureMap):
         self.register_buffer("scale", s.clone())
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (..., S) -> (..., S + S(S+1)/2)."""
+        """x: (..., C) -> (..., C + C(C+1)/2)."""
         x = self._input(x)
         z = x / self.scale.to(x.dtype)
         quad = z[..., self._rows] * z[..., self._cols]
@@ -125,11 +125,11 @@ class FourierFeatures(FeatureMap):
 
     The state is scaled to ``u = (x - low) / (high - low)`` (in [0, 1] on the box) and
 
-        phi_c(x) = cos(pi c^T u),   c in {0, ..., n_bases - 1}^S,  c != 0,
+        phi_c(x) = cos(pi c^T u),   c in {0, ..., n_bases - 1}^C,  c != 0,
 
-    all couplings included: ``(..., S) -> (..., n_bases^S - 1)``. ``n_bases`` may also give
+    all couplings included: ``(..., C) -> (..., n_bases^C - 1)``. ``n_bases`` may also give
     one count per dimension, ``c_s in {0, ..., n_bases[s] - 1}`` (prod n_bases - 1 terms); a
-    count of 1 leaves that dimension out of the basis (the map still takes all S
+    count of 1 leaves that dimension out of the basis (the map still takes all C
     dimensions); ``coupling = k`` keeps only the terms in which at most k dimensions have a
     non-zero frequency (k = 1: the ``sum_s (n_bases[s] - 1)`` uncoupled terms), for when
     there are few samples. Dimensions marked ``periodic`` (angles with period high - low) use
@@ -143,7 +143,7 @@ class FourierFeatures(FeatureMap):
         n_bases: frequencies per dimension, >= 2; or (C,) counts >= 1 per dimension, at
             least one of them >= 2.
         periodic: (C,) bools, or None for none.
-        coupling: most dimensions one term may couple, in 1..S; None: all (S).
+        coupling: most dimensions one term may couple, in 1..C; None: all (C).
     """
 
     low: Tensor
@@ -171,15 +171,15 @@ class FourierFeatures(FeatureMap):
             raise ValueError(
                 f"need finite high > low elementwise with equal shapes, got {lo}, {hi}"
             )
-        S = lo.shape[0]
-        counts = _bases_per_dimension(n_bases, S)
-        per = _periodic_flags(periodic, S)
-        if coupling is not None and not 1 <= check_count("coupling", coupling, 1) <= S:
-            raise ValueError(f"coupling must be in 1..{S} (or None), got {coupling}")
+        C = lo.shape[0]
+        counts = _bases_per_dimension(n_bases, C)
+        per = _periodic_flags(periodic, C)
+        if coupling is not None and not 1 <= check_count("coupling", coupling, 1) <= C:
+            raise ValueError(f"coupling must be in 1..{C} (or None), got {coupling}")
         terms = math.prod(counts)
         if terms > MAX_FOURIER_TERMS:
             raise ValueError(
-                f"n_bases ** S = {n_bases}^{S} = {terms:.3g} frequency vectors exceed "
+                f"n_bases ** C = {n_bases}^{C} = {terms:.3g} frequency vectors exceed "
                 f"{MAX_FOURIER_TERMS:.0e}: use fewer bases or fewer state dimensions"
                 if isinstance(n_bases, int)
                 else f"prod(n_bases) = {terms:.3g} frequency vectors (n_bases = {counts}) exceed "
@@ -192,7 +192,7 @@ class FourierFeatures(FeatureMap):
             coeffs = coeffs[(coeffs != 0).sum(dim=1) <= coupling]
         # phase = pi c^T u; a periodic dimension doubles its frequency (whole periods on the box)
         coeffs = coeffs * torch.tensor([2.0 if p else 1.0 for p in per], dtype=torch.float64)
-        self.in_features = S
+        self.in_features = C
         self.with_sin = any(per)
         self.out_features = (coeffs.shape[0] - 1) * (2 if self.with_sin else 1)
         self.register_buffer("low", lo)
@@ -200,7 +200,7 @@ class FourierFeatures(FeatureMap):
         self.register_buffer("coefficients", coeffs[1:])
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (..., S) -> (..., out_features)."""
+        """x: (..., C) -> (..., out_features)."""
         x = self._input(x)
         u = (x.to(torch.float64) - self.low) / self.width
         phase = math.pi * u @ self.coefficients.T
@@ -209,45 +209,45 @@ class FourierFeatures(FeatureMap):
 
 
 MAX_FOURIER_TERMS = 10**6
-"""The most frequency vectors (n_bases ** S, or the product of the per-dimension counts) that
+"""The most frequency vectors (n_bases ** C, or the product of the per-dimension counts) that
 :class:`FourierFeatures` enumerates (one row per frequency)."""
 
 
-def _bases_per_dimension(n_bases: object, S: int) -> list[int]:
-    """``n_bases`` (one count >= 2 for every dimension, or S counts >= 1 with one >= 2) as a
-    list of S counts; a bad count or a wrong number of them raises naming it."""
+def _bases_per_dimension(n_bases: object, C: int) -> list[int]:
+    """``n_bases`` (one count >= 2 for every dimension, or C counts >= 1 with one >= 2) as a
+    list of C counts; a bad count or a wrong number of them raises naming it."""
     if not isinstance(n_bases, Sequence | np.ndarray | Tensor) or (
         isinstance(n_bases, Tensor) and n_bases.dim() == 0
     ):
-        return [check_count("n_bases", n_bases, 2)] * S
+        return [check_count("n_bases", n_bases, 2)] * C
     if isinstance(n_bases, str | bytes) or (
         isinstance(n_bases, np.ndarray | Tensor) and n_bases.ndim != 1
     ):
         raise TypeError(
-            f"n_bases must be an integer >= 2 or {S} integers >= 1, got "
+            f"n_bases must be an integer >= 2 or {C} integers >= 1, got "
             f"{type(n_bases).__name__} {n_bases!r:.60}"
         )
     counts = [check_count(f"n_bases[{k}]", n, 1) for k, n in enumerate(n_bases)]
-    if len(counts) != S:
-        raise ValueError(f"n_bases must have {S} entries (one per dimension), got {n_bases}")
+    if len(counts) != C:
+        raise ValueError(f"n_bases must have {C} entries (one per dimension), got {n_bases}")
     if max(counts) < 2:
         raise ValueError(f"at least one entry of n_bases must be >= 2, got {n_bases}")
     return counts
 
 
-def _periodic_flags(periodic: object, S: int) -> list[bool]:
-    """``periodic`` (None or S bools) as a list of S bools; a string, a non-bool entry or a
+def _periodic_flags(periodic: object, C: int) -> list[bool]:
+    """``periodic`` (None or C bools) as a list of C bools; a string, a non-bool entry or a
     wrong count raises naming it."""
     if periodic is None:
-        return [False] * S
+        return [False] * C
     if isinstance(periodic, str | bytes):
-        raise TypeError(f"periodic must be {S} bools (or None), got {periodic!r}")
+        raise TypeError(f"periodic must be {C} bools (or None), got {periodic!r}")
     try:
         flags = list(periodic)  # type: ignore[call-overload]
     except TypeError:
-        raise TypeError(f"periodic must be {S} bools (or None), got {periodic!r}") from None
-    if len(flags) != S:
-        raise ValueError(f"periodic must have {S} entries, got {periodic}")
+        raise TypeError(f"periodic must be {C} bools (or None), got {periodic!r}") from None
+    if len(flags) != C:
+        raise ValueError(f"periodic must have {C} entries, got {periodic}")
     for k, p in enumerate(flags):
         if isinstance(p, Tensor) and p.dim() == 0 and p.dtype == torch.bool:
             continue
@@ -259,7 +259,7 @@ def _periodic_flags(periodic: object, S: int) -> list[bool]:
 class ConcatFeatures(FeatureMap):
     """Side-by-side concatenation of feature maps on the same input.
 
-    ``(..., S) -> (..., sum_k F_k)``, the maps' outputs in order. E.g. the pendulum's value
+    ``(..., C) -> (..., sum_k F_k)``, the maps' outputs in order. E.g. the pendulum's value
     features: a Fourier basis (global shape) next to the squared expansion (a quadratic bowl
     around upright, and with cos(theta) of the Fourier basis the pendulum's energy).
 
@@ -281,6 +281,6 @@ class ConcatFeatures(FeatureMap):
         self.out_features = sum(m.out_features for m in maps)
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (..., S) -> (..., sum of the maps' out_features)."""
+        """x: (..., C) -> (..., sum of the maps' out_features)."""
         x = self._input(x)
         return torch.cat([m(x) for m in self.maps], dim=-1)

@@ -99,7 +99,7 @@ def policy_module(
 
 
 class TimeIndexedActor(nn.Module):
-    """``observation (B, S), step_count (B, 1) -> action (B, A), option (B,)`` with one
+    """``observation (B, C), step_count (B, 1) -> action (B, A), option (B,)`` with one
     :class:`HierarchicalPolicy` per decision step: row b acts with ``policies[step_count[b]]``.
 
     Sampling (``generator``) and ``deterministic`` as in :class:`PolicyActor`; a step count

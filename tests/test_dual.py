@@ -165,7 +165,7 @@ def test_inactive_entropy_bound_gives_xi_zero(gen):
         R, epsilon=0.5, log_responsibilities=lr, kappa=free.cross_entropy - 0.1
     )
     assert tight.xi > 0
-    assert tight.cross_entropy == pytest.approx(free.cross_entropy - 0.1, abs=1e-3)
+    assert tight.cross_entropy == pytest.approx(float(free.cross_entropy - 0.1), abs=1e-3)
 
 
 def test_one_option_no_kappa_is_contextual_reps(gen):
@@ -216,8 +216,8 @@ def test_weights_invariant_to_return_shift_and_scale(gen, O, F, use_kappa):
     scaled = solve_episodic_dual(R * 37.0, **kw)
     assert torch.allclose(base.weights, shifted.weights, atol=1e-9)
     assert torch.allclose(base.weights, scaled.weights, atol=1e-9)
-    assert scaled.eta == pytest.approx(37.0 * base.eta, rel=1e-6)
-    assert scaled.xi == pytest.approx(37.0 * base.xi, rel=1e-6, abs=1e-12)
+    assert scaled.eta == pytest.approx(float(37.0 * base.eta), rel=1e-6)
+    assert scaled.xi == pytest.approx(float(37.0 * base.xi), rel=1e-6, abs=1e-12)
 
 
 def test_pruned_option_columns_get_zero_weight(gen):
@@ -460,8 +460,8 @@ def test_without_an_entropy_bound_the_options_factor_out_of_the_dual():
         )
         assert slack.xi == 0.0
         assert torch.allclose(slack.weights, sol.weights, atol=1e-7)
-        assert slack.eta == pytest.approx(sol.eta, rel=1e-5)
-        assert slack.dual_value == pytest.approx(sol.dual_value, rel=1e-6)
+        assert slack.eta == pytest.approx(float(sol.eta), rel=1e-5)
+        assert slack.dual_value == pytest.approx(float(sol.dual_value), rel=1e-6)
 
 
 # ---- the start and the dual value with a linear term ----------------------------------------

@@ -344,7 +344,7 @@ def test_weights_invariant_to_the_return_scale(variant, factor):
     assert torch.allclose(sol.weights, base.weights, rtol=1e-6, atol=0)
     eta = torch.as_tensor(sol.eta)
     assert torch.allclose(eta, factor * torch.as_tensor(base.eta), rtol=1e-6, atol=0)
-    assert sol.dual_value == pytest.approx(factor * base.dual_value, rel=1e-6)
+    assert sol.dual_value == pytest.approx(float(factor * base.dual_value), rel=1e-6)
 
 
 @pytest.mark.parametrize("variant", list(VARIANTS))

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from hireps_torch.dual import (
+    DualSolution,
     InfeasibleConstraintsWarning,
-    PopulationDualSolution,
     solve_episodic_dual,
     solve_infinite_horizon_dual,
     solve_time_indexed_dual,
@@ -91,21 +91,20 @@ def test_a_population_equals_separate_solves(variant, options, context):
         warnings.simplefilter("error")  # every problem here converges: no warning at all
         pop = fn(*args, **kw, population=True)
         singles = [separate(fn, args, kw, s) for s in range(S)]
-    assert isinstance(pop, PopulationDualSolution)
-    K = pop.eta.shape[1]
-    assert pop.converged.shape == (S,) and bool(pop.converged.all())
+    assert isinstance(pop, DualSolution) and all(isinstance(sol, DualSolution) for sol in singles)
+    assert pop.converged.shape == pop.iterations.shape == (S,) and bool(pop.converged.all())
     assert pop.kl.shape == pop.eta.shape == pop.xi.shape == pop.effective_sample_size.shape
     for s, sol in enumerate(singles):
-        w = sol.weights if K > 1 else sol.weights[None]
-        assert torch.allclose(pop.weights[s], w, rtol=0, atol=1e-10), s
-        eta = torch.as_tensor(sol.eta, dtype=F64).reshape(K)
-        assert torch.allclose(pop.eta[s], eta, rtol=1e-8, atol=0), (s, pop.eta[s], eta)
-        kl = torch.as_tensor(sol.kl, dtype=F64).reshape(K)
-        assert torch.allclose(pop.kl[s], kl, rtol=0, atol=1e-9), s
-        xi = torch.as_tensor(sol.xi, dtype=F64).reshape(K)
-        assert torch.allclose(pop.xi[s], xi, rtol=1e-6, atol=1e-10), (s, pop.xi[s], xi)
-        assert torch.allclose(pop.v[s], sol.v.reshape(-1), rtol=1e-7, atol=1e-9), s
-        assert float(pop.kl[s].max()) <= 0.9 * (1 + 1e-6)
+        # member s of the population is shaped as the separate solve, every field
+        member = pop.problem(s)
+        for name in ("eta", "xi", "v", "weights", "kl", "dual_value", "iterations"):
+            assert getattr(member, name).shape == getattr(sol, name).shape, name
+        assert torch.allclose(member.weights, sol.weights, rtol=0, atol=1e-10), s
+        assert torch.allclose(member.eta, sol.eta, rtol=1e-8, atol=0), (s, member.eta, sol.eta)
+        assert torch.allclose(member.kl, sol.kl, rtol=0, atol=1e-9), s
+        assert torch.allclose(member.xi, sol.xi, rtol=1e-6, atol=1e-10), (s, member.xi, sol.xi)
+        assert torch.allclose(member.v, sol.v, rtol=1e-7, atol=1e-9), s
+        assert float(member.kl.max()) <= 0.9 * (1 + 1e-6)
 
 
 @pytest.mark.parametrize("variant", list(CASES))
@@ -149,8 +148,8 @@ def test_a_fallback_in_one_problem_leaves_the_others_alone():
         alone = solve_infinite_horizon_dual(
             R[s], phi[s], phi_next[s], phi0[s], **{**kw, "log_responsibilities": lr[s]}
         )
-        assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-10)
-        assert float(pop.eta[s, 0]) == pytest.approx(alone.eta, rel=1e-8)
+        assert torch.allclose(pop.weights[s], alone.weights, rtol=0, atol=1e-10)
+        assert float(pop.eta[s]) == pytest.approx(float(alone.eta), rel=1e-8)
 
 
 def test_a_population_of_one_is_the_single_solve():
@@ -161,8 +160,8 @@ def test_a_population_of_one_is_the_single_solve():
         R, log_responsibilities=lr, context_features=phi, population=True, **kw
     )
     alone = solve_episodic_dual(R[0], log_responsibilities=lr[0], context_features=phi[0], **kw)
-    assert torch.equal(pop.weights[0, 0], alone.weights)
-    assert float(pop.eta[0, 0]) == alone.eta and bool(pop.converged[0]) == alone.converged
+    assert torch.equal(pop.weights[0], alone.weights)
+    assert float(pop.eta[0]) == alone.eta and bool(pop.converged[0]) == alone.converged
 
 
 @pytest.mark.parametrize(
@@ -236,7 +235,7 @@ def test_an_entropy_bound_out_of_reach_is_relaxed_in_its_own_problem_only():
     assert not bool(pop.converged[2])
     for s in (0, 1):
         alone = solve_episodic_dual(R[s], epsilon=0.05, log_responsibilities=lr[s], kappa=0.3)
-        assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-10)
+        assert torch.allclose(pop.weights[s], alone.weights, rtol=0, atol=1e-10)
 
 
 def test_population_must_be_a_bool():
@@ -283,7 +282,7 @@ def test_unconverged_problems_are_solved_again_alone():
                 R[s], log_responsibilities=lr[s], context_features=phi[s], **kw
             )
             assert bool(pop.converged[s]) == alone.converged
-            assert torch.allclose(pop.weights[s, 0], alone.weights, rtol=0, atol=1e-8), s
+            assert torch.allclose(pop.weights[s], alone.weights, rtol=0, atol=1e-8), s
 
 
 def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):

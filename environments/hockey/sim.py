@@ -257,7 +257,7 @@ class HockeySim:
             goal, goal_velocity: (7,) already inside the limits.
 
         Returns:
-            positions (S + 1, 7), velocities (S + 1, 7) for S = swing steps, and ``ok``.
+            positions (T + 1, 7), velocities (T + 1, 7) for T = swing steps, and ``ok``.
         """
         traj = self.dmp.rollout(goal[None], goal_velocity[None], n_steps=self._swing_steps)
         q, qd = traj.positions[0], traj.velocities[0]

@@ -40,7 +40,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hireps_torch.dual import PopulationDualSolution
+from hireps_torch.dual import DualSolution
 from hireps_torch.dual.inputs import LOG_RESP_FLOOR
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -138,7 +138,7 @@ class Refit:
 
     values: dict[str, Tensor] | None
     informed: Tensor
-    sol: PopulationDualSolution
+    sol: DualSolution
     bound: OptionBound
     block: int = 0
 
@@ -147,7 +147,7 @@ def plan_refit(
     policy: HierarchicalPolicy,
     context: Tensor,
     theta: Tensor,
-    sol: PopulationDualSolution,
+    sol: DualSolution,
     bound: OptionBound,
     block: int = 0,
 ) -> Refit:
@@ -269,9 +269,9 @@ def apply_refit(
     }
 
 
-def dual_iterations(sol: PopulationDualSolution, lead: tuple[int, ...]) -> Any:
+def dual_iterations(sol: DualSolution, lead: tuple[int, ...]) -> Any:
     """Each member's dual iterations (one number for one run)."""
-    counts = [sol.iterations_of(m) for m in range(math.prod(lead))]
+    counts = sol.iterations.tolist()
     return counts if lead else counts[0]
 
 

@@ -328,7 +328,7 @@ class EpisodicHiREPS(HiREPSBase):
         return self.act(states)
 
     def learn(self, experience: Experience) -> dict[str, Any]:
-        """:meth:`tell` from contexts (N, 1, S), parameters (N, 1, D) and returns (N, 1)."""
+        """:meth:`tell` from contexts (N, 1, C), parameters (N, 1, D) and returns (N, 1)."""
         name = type(self).__name__
         D = self.policy.action_dim
         check_experience(

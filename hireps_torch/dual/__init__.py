@@ -33,8 +33,9 @@ v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k), c = [phi_hat_1, 0, ..]; see
 
 A population of S independent duals (``population=True`` in the wrappers: every input with a
 leading S) is solved problem by problem, each scaled, standardised, safeguarded and judged on
-its own, so each answer is the one it gets alone; the solutions come back stacked
-(:class:`PopulationDualSolution`).
+its own, so each answer is the one it gets alone. Every solver returns one type,
+:class:`DualSolution`, whose fields lead with the batch shape (() for one problem, (S,) for a
+population).
 
 Modules, in reading order:
 
@@ -66,9 +67,6 @@ from hireps_torch.dual.solutions import (
     DualConvergenceWarning,
     DualSolution,
     InfeasibleConstraintsWarning,
-    PopulationDualSolution,
-    RepsDualSolution,
-    TimeIndexedDualSolution,
 )
 from hireps_torch.dual.solver import solve_reps_dual
 from hireps_torch.dual.time_indexed import solve_time_indexed_dual
@@ -78,9 +76,6 @@ __all__ = [
     "DualConvergenceWarning",
     "DualSolution",
     "InfeasibleConstraintsWarning",
-    "PopulationDualSolution",
-    "RepsDualSolution",
-    "TimeIndexedDualSolution",
     "solve_episodic_dual",
     "solve_infinite_horizon_dual",
     "solve_reps_dual",

@@ -3,46 +3,13 @@
 
 from __future__ import annotations
 
-from typing import Literal, overload
-
 from torch import Tensor
 
 from hireps_torch.dual.inputs import centred, check_features, common_inputs
-from hireps_torch.dual.solutions import (
-    DualSolution,
-    PopulationDualSolution,
-    single_solution,
-    warn_if_collapsed,
-)
+from hireps_torch.dual.solutions import DualSolution, public, warn_if_collapsed
 from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
 
 __all__ = ["episodic_solution", "solve_episodic_dual"]
-
-
-@overload
-def solve_episodic_dual(
-    returns: Tensor,
-    *,
-    epsilon: float,
-    log_responsibilities: Tensor | None = None,
-    context_features: Tensor | None = None,
-    kappa: float | None = None,
-    max_iter: int = 300,
-    population: Literal[False] = False,
-) -> DualSolution: ...
-
-
-@overload
-def solve_episodic_dual(
-    returns: Tensor,
-    *,
-    epsilon: float,
-    log_responsibilities: Tensor | None = None,
-    context_features: Tensor | None = None,
-    kappa: float | Tensor | None = None,
-    max_iter: int = 300,
-    population: Literal[True],
-) -> PopulationDualSolution: ...
 
 
 def solve_episodic_dual(
@@ -54,7 +21,7 @@ def solve_episodic_dual(
     kappa: float | Tensor | None = None,
     max_iter: int = 300,
     population: bool = False,
-) -> DualSolution | PopulationDualSolution:
+) -> DualSolution:
     """Solve the episodic / contextual HiREPS dual and return the new sample weights.
 
     Args:
@@ -79,11 +46,11 @@ def solve_episodic_dual(
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension; they
             are solved each as it is alone (side by side on idle cores; conditioned, judged and
-            warned about on its own), and a
-            :class:`~hireps_torch.dual.PopulationDualSolution` (K = 1) is returned.
+            warned about on its own), and every field of the solution leads with S.
 
     Returns:
-        :class:`~hireps_torch.dual.DualSolution` with weights (N, O) summing to 1 and
+        :class:`~hireps_torch.dual.DualSolution`: eta, xi, kl, ... 0-d tensors, v (F,),
+        weights (N, O) summing to 1 (with ``population``: (S,), (S, F), (S, N, O)) and
         ``kl <= epsilon (1 + 1e-6)``; ``converged`` False comes with a warning naming what
         failed (tolerances: :mod:`hireps_torch.dual.solutions`). Returns scaled by any positive
         factor give the same weights; constant returns give the old distribution (uniform
@@ -106,9 +73,7 @@ def solve_episodic_dual(
         )
         phi = phi.reshape(S, N, -1)
     sol = episodic_solution(R[:, 0], lr[:, 0], eps, phi, kap, opts, stacklevel=3)
-    if population:
-        return sol
-    return single_solution(sol)
+    return public(sol, population, blocks=False)
 
 
 def episodic_solution(
@@ -119,10 +84,11 @@ def episodic_solution(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
-) -> PopulationDualSolution:
-    """:func:`solve_episodic_dual` of S problems on inputs already checked: float64 returns R
-    (S, N), log responsibilities (S, N, O) (normalised, log 0 floored), epsilon (S, 1),
-    context features phi (S, N, F) or None and kappa (S, 1) or None. Warnings are attributed
+) -> DualSolution:
+    """:func:`solve_episodic_dual` of S problems (an (S, 1) solution) on inputs already
+    checked: float64 returns R (S, N), log responsibilities (S, N, O) (normalised, log 0
+    floored), epsilon (S, 1), context features phi (S, N, F) or None and kappa (S, 1) or
+    None. Warnings are attributed
     ``stacklevel`` frames up (2: the caller of this function)."""
     S, N = R.shape
     D = None

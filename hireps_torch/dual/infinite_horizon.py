@@ -4,53 +4,15 @@ restart probability 1 - gamma."""
 from __future__ import annotations
 
 import math
-from typing import Literal, overload
 
 from torch import Tensor
 
 from hireps_torch.checks import as_float
 from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
-from hireps_torch.dual.solutions import (
-    DualSolution,
-    PopulationDualSolution,
-    single_solution,
-    warn_if_collapsed,
-)
+from hireps_torch.dual.solutions import DualSolution, public, warn_if_collapsed
 from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
 
 __all__ = ["infinite_horizon_solution", "solve_infinite_horizon_dual"]
-
-
-@overload
-def solve_infinite_horizon_dual(
-    rewards: Tensor,
-    features: Tensor,
-    next_features: Tensor,
-    initial_features: Tensor,
-    *,
-    gamma: float,
-    epsilon: float,
-    log_responsibilities: Tensor | None = None,
-    kappa: float | None = None,
-    max_iter: int = 300,
-    population: Literal[False] = False,
-) -> DualSolution: ...
-
-
-@overload
-def solve_infinite_horizon_dual(
-    rewards: Tensor,
-    features: Tensor,
-    next_features: Tensor,
-    initial_features: Tensor,
-    *,
-    gamma: float,
-    epsilon: float,
-    log_responsibilities: Tensor | None = None,
-    kappa: float | Tensor | None = None,
-    max_iter: int = 300,
-    population: Literal[True],
-) -> PopulationDualSolution: ...
 
 
 def solve_infinite_horizon_dual(
@@ -65,7 +27,7 @@ def solve_infinite_horizon_dual(
     kappa: float | Tensor | None = None,
     max_iter: int = 300,
     population: bool = False,
-) -> DualSolution | PopulationDualSolution:
+) -> DualSolution:
     """Solve the stationary (infinite-horizon) HiREPS dual with restart probability 1 - gamma.
 
     Samples are transitions (s_i, a_i, r_i, s'_i) of the restart process. The new
@@ -96,11 +58,13 @@ def solve_infinite_horizon_dual(
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension
             (rewards (S, N), features (S, N, F), initial_features (F,) or (S, F), ...), solved
-            together; a :class:`~hireps_torch.dual.PopulationDualSolution` is returned (see
+            each as alone; every field of the solution leads with S (see
             :func:`~hireps_torch.dual.solve_episodic_dual`).
 
     Returns:
-        :class:`~hireps_torch.dual.DualSolution`; ``v`` holds the value-function weights (F,);
+        :class:`~hireps_torch.dual.DualSolution` (shaped as
+        :func:`~hireps_torch.dual.solve_episodic_dual`'s); ``v`` holds the value-function
+        weights (F,);
         ``kl <= epsilon (1 + 1e-6)``, and ``converged`` False comes with a warning.
 
     Raises:
@@ -142,9 +106,7 @@ def solve_infinite_horizon_dual(
         opts,
         stacklevel=3,
     )
-    if population:
-        return sol
-    return single_solution(sol)
+    return public(sol, population, blocks=False)
 
 
 def infinite_horizon_solution(
@@ -158,11 +120,11 @@ def infinite_horizon_solution(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
-) -> PopulationDualSolution:
-    """:func:`solve_infinite_horizon_dual` of S problems on inputs already checked: float64
-    rewards R (S, N), log responsibilities (S, N, O) (normalised, log 0 floored), epsilon
-    (S, 1), finite features phi and phi_next (S, N, F), initial features phi0 (S, F), gamma in
-    (0, 1) and kappa (S, 1) or None. Warnings are attributed ``stacklevel`` frames up (2: the
+) -> DualSolution:
+    """:func:`solve_infinite_horizon_dual` of S problems (an (S, 1) solution) on inputs already
+    checked: float64 rewards R (S, N), log responsibilities (S, N, O) (normalised, log 0 floored),
+    epsilon (S, 1), finite features phi and phi_next (S, N, F), initial features phi0 (S, F), gamma
+    in (0, 1) and kappa (S, 1) or None. Warnings are attributed ``stacklevel`` frames up (2: the
     caller of this function)."""
     S, N, F = phi.shape
     D = (gamma * phi_next - phi).reshape(S, 1, N, F)

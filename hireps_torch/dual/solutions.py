@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 from torch import Tensor
@@ -28,14 +28,11 @@ __all__ = [
     "DualConvergenceWarning",
     "DualSolution",
     "InfeasibleConstraintsWarning",
-    "PopulationDualSolution",
-    "RepsDualSolution",
-    "TimeIndexedDualSolution",
     "block_cross_entropy",
     "block_kl",
-    "block_solution",
     "finish",
-    "single_solution",
+    "public",
+    "stack_solutions",
     "warn_if_collapsed",
 ]
 
@@ -55,58 +52,34 @@ class DualConvergenceWarning(RuntimeWarning):
 
 
 @dataclass(frozen=True)
-class RepsDualSolution:
-    """Solution of the generic K-block dual (:func:`~hireps_torch.dual.solve_reps_dual`).
+class DualSolution:
+    """The solution of a dual for a batch of independent problems, every field led by the
+    batch shape (the ``batch_shape`` convention of ``torch.distributions``): () for one
+    problem, (S,) for a population (``population=True`` in the solvers; each problem's numbers
+    are those it gets alone). Duals with several blocks (the time-indexed steps, the generic
+    solver's K blocks) add a block dimension K after it; the one-block duals (episodic,
+    infinite horizon) have none.
 
     Attributes:
-        eta: (K,) temperatures, in the caller's return units (inf without return
-            information, see the module docstring).
-        xi: (K,) entropy-bound multipliers (0 where the bound is inactive or absent).
-        v: (P,) value-function / feature multipliers in the caller's feature units.
-        weights: (K, N, O) new sample-option distribution per block, each block sums to 1.
-        kl: (K,) realised KL(P_k || q p~_k), at most epsilon_k (1 + 1e-6).
-        cross_entropy: (K,) realised E_P[-log p~].
-        effective_sample_size: (K,) 1 / sum_i w_ki^2 with w_ki = sum_o P_kio.
-        feature_error: max abs violation of the feature constraints, caller's units.
-        dual_value: value of the dual at the optimum, caller's units (finite).
-        converged: whether every constraint holds to its tolerance and LBFGS met its gradient
-            tolerance (see the module docstring); if not, a warning said what failed.
-        iterations: LBFGS iterations over all phases.
-    """
-
-    eta: Tensor
-    xi: Tensor
-    v: Tensor
-    weights: Tensor
-    kl: Tensor
-    cross_entropy: Tensor
-    effective_sample_size: Tensor
-    feature_error: float
-    dual_value: float
-    converged: bool
-    iterations: int
-
-
-@dataclass(frozen=True)
-class PopulationDualSolution:
-    """Solutions of S independent K-block duals, each solved as alone (the population form of
-    :class:`RepsDualSolution`; every field has a leading S).
-
-    Attributes:
-        eta: (S, K) temperatures, caller's return units (inf without return information).
-        xi: (S, K) entropy-bound multipliers.
-        v: (S, P) value-function / feature multipliers, caller's feature units.
-        weights: (S, K, N, O) new sample-option distributions; each block sums to 1.
-        kl: (S, K) realised KL, at most epsilon (1 + 1e-6).
-        cross_entropy: (S, K) realised E_P[-log p~].
-        effective_sample_size: (S, K) 1 / sum_i w_ki^2.
-        feature_error: (S,) max abs violation of each problem's feature constraints.
-        dual_value: (S,) dual values at the optima.
-        converged: (S,) bool, per problem as :attr:`RepsDualSolution.converged`.
-        iterations: LBFGS iterations of all phases (Newton steps counted as iterations),
-            the most of any problem.
-        problem_iterations: each problem's iterations, where the problems were solved one by
-            one (empty for one problem: ``iterations`` is its count).
+        eta: (*batch, [K]) temperatures of the KL bounds, in the caller's return units (inf
+            without return information, see the module docstring).
+        xi: (*batch, [K]) entropy-bound multipliers (0 where the bound is inactive or absent).
+        v: (*batch, [K,] F) value-function / context-feature multipliers in the caller's
+            feature units (one row per time-indexed step; the generic solver's stacked v:
+            (*batch, P)).
+        weights: (*batch, [K,] N, O) new distribution over samples and options; each block
+            sums to 1.
+        kl: (*batch, [K]) realised KL(P || q p~); equals epsilon where the bound is active,
+            never exceeds epsilon (1 + 1e-6).
+        cross_entropy: (*batch, [K]) realised E_P[-log p~]; at most kappa where converged.
+        effective_sample_size: (*batch, [K]) 1 / sum_i w_i^2 with w_i = sum_o P_io.
+        feature_error: (*batch) largest violation of the feature constraints (caller's units;
+            0 without features).
+        dual_value: (*batch) dual objective at the optimum (finite).
+        converged: (*batch) bool: every constraint holds to its tolerance and the solver met
+            its gradient tolerance (see the module docstring); if not, a warning said what
+            failed.
+        iterations: (*batch) int64 iterations of all phases (Newton steps and LBFGS).
     """
 
     eta: Tensor
@@ -119,203 +92,58 @@ class PopulationDualSolution:
     feature_error: Tensor
     dual_value: Tensor
     converged: Tensor
-    iterations: int
-    numbers: tuple[float, ...] | None = None
-    """Where S = K = 1 and the solver has them as floats: (eta, xi, kl, cross_entropy,
-    effective_sample_size, feature_error, dual_value) (:func:`single_solution` reads them)."""
-    problem_iterations: tuple[int, ...] = ()
-
-    def iterations_of(self, s: int) -> int:
-        """Problem s's iterations."""
-        return self.problem_iterations[s] if self.problem_iterations else self.iterations
+    iterations: Tensor
+    numbers: tuple[float, ...] | None = field(default=None, repr=False, compare=False)
+    """Where a solver has them as floats for one problem with one block: (eta, xi, kl,
+    cross_entropy, effective_sample_size, feature_error, dual_value) (read by the algorithms
+    instead of the tensors)."""
 
     @property
     def sample_weights(self) -> Tensor:
-        """(S, K, N) weights summed over options (the weights of a flat policy)."""
+        """(*batch, [K,] N) weights summed over options (the weights of a flat policy)."""
         return self.weights.sum(-1)
 
-    def problem(self, s: int) -> RepsDualSolution:
-        """Problem s as a :class:`RepsDualSolution`."""
-        S = self.eta.shape[0]
+    def problem(self, s: int) -> DualSolution:
+        """Problem s of a population (the first batch dimension)."""
+        S = self.converged.shape[0] if self.converged.dim() else 0
         if not -S <= s < S:
             raise ValueError(f"problem must be in [0, {S}), got {s}")
-        return RepsDualSolution(
-            eta=self.eta[s],
-            xi=self.xi[s],
-            v=self.v[s],
-            weights=self.weights[s],
-            kl=self.kl[s],
-            cross_entropy=self.cross_entropy[s],
-            effective_sample_size=self.effective_sample_size[s],
-            feature_error=float(self.feature_error[s]),
-            dual_value=float(self.dual_value[s]),
-            converged=bool(self.converged[s]),
-            iterations=self.iterations_of(s),
+        return replace(self, numbers=None, **{f.name: getattr(self, f.name)[s] for f in _TENSORS})
+
+    def step(self, k: int) -> DualSolution:
+        """Block k (the time-indexed step k = 0..K-1) as a one-block solution: its v is the
+        step's own where v has a block dimension; ``feature_error``, ``dual_value``,
+        ``converged`` and ``iterations`` are those of the whole problem."""
+        batch = self.converged.dim()
+        K = self.eta.shape[batch] if self.eta.dim() > batch else 0
+        if not 0 <= k < K:
+            raise ValueError(f"step must be in [0, {K}), got {k}")
+        blocked = self.v.dim() == self.eta.dim() + 1
+        return replace(
+            self,
+            **{name: getattr(self, name).select(batch, k) for name in _BLOCKED},
+            v=self.v.select(batch, k) if blocked else self.v,
+            numbers=None,
         )
 
 
-@dataclass(frozen=True)
-class DualSolution:
-    """Solution of the episodic HiREPS dual (:func:`~hireps_torch.dual.solve_episodic_dual`).
-
-    Attributes:
-        eta: temperature of the KL bound (inf when the returns carry no information).
-        xi: multiplier of the entropy bound; 0 when inactive or when no bound was given.
-        v: (F,) context-feature multipliers (empty without context features).
-        weights: (N, O) new distribution over samples and options; sums to 1.
-        sample_weights: (N,) weights.sum(-1), the weights for a flat policy.
-        kl: realised KL(P || q p~); equals epsilon when the bound is active, never exceeds
-            epsilon (1 + 1e-6).
-        cross_entropy: realised E_P[-log p~(o|s,theta)]; equals kappa when that bound is active.
-        effective_sample_size: 1 / sum_i sample_weights_i^2, between 1 and N.
-        feature_error: max |sum_i w_i phi_i - phi_hat| (0 without context features).
-        dual_value: dual objective at the optimum (finite).
-        converged: whether every constraint holds to its tolerance and the solver met its
-            gradient tolerance (see the module docstring); if not, a warning said what failed.
-        iterations: LBFGS iterations.
-    """
-
-    eta: float
-    xi: float
-    v: Tensor
-    weights: Tensor
-    sample_weights: Tensor
-    kl: float
-    cross_entropy: float
-    effective_sample_size: float
-    feature_error: float
-    dual_value: float
-    converged: bool
-    iterations: int
+_TENSORS = [f for f in fields(DualSolution) if f.name != "numbers"]
+_BLOCKED = ("eta", "xi", "weights", "kl", "cross_entropy", "effective_sample_size")
 
 
-@dataclass(frozen=True)
-class TimeIndexedDualSolution:
-    """Solution of the time-indexed HiREPS dual
-    (:func:`~hireps_torch.dual.solve_time_indexed_dual`).
-
-    Steps are indexed k = 0..K-1 here (1..K in the equations).
-
-    Attributes:
-        eta: (K,) temperatures of the per-step KL bounds (all inf when the rewards carry no
-            information).
-        xi: (K,) multipliers of the per-step entropy bounds (0 where inactive or absent).
-        v: (K, F) value-function weights: V_k(s) = v[k]^T phi(s).
-        weights: (K, N, O) new distribution over samples and options per step; each step
-            sums to 1.
-        sample_weights: (K, N) weights.sum(-1), the weights of a flat policy per step.
-        kl: (K,) realised KL(P_k || q p~_k); equals epsilon_k where the bound is active, never
-            exceeds epsilon_k (1 + 1e-6).
-        cross_entropy: (K,) realised E_P_k[-log p~_k]; <= kappa_k.
-        effective_sample_size: (K,) 1 / sum_i w_ki^2 per step.
-        feature_error: max abs violation of the chained feature constraints.
-        dual_value: dual objective at the optimum (finite).
-        converged: whether every constraint holds to its tolerance and the solver met its
-            gradient tolerance (see the module docstring); if not, a warning said what failed.
-        iterations: LBFGS iterations.
-    """
-
-    eta: Tensor
-    xi: Tensor
-    v: Tensor
-    weights: Tensor
-    sample_weights: Tensor
-    kl: Tensor
-    cross_entropy: Tensor
-    effective_sample_size: Tensor
-    feature_error: float
-    dual_value: float
-    converged: bool
-    iterations: int
-
-    def step(self, k: int) -> DualSolution:
-        """Step k as a :class:`DualSolution` (weights (N, O), v = v[k]); ``feature_error``,
-        ``dual_value``, ``converged`` and ``iterations`` are those of the whole problem."""
-        K = self.eta.shape[0]
-        if not 0 <= k < K:
-            raise ValueError(f"step must be in [0, {K}), got {k}")
-        return block_solution(self, k, self.v[k])
+def public(sol: DualSolution, population: bool, blocks: bool) -> DualSolution:
+    """A solver's (S, K) solution in the shape its caller asked for: the batch (S,) kept for a
+    ``population``, else problem 0; the block dimension kept where ``blocks``, else block 0."""
+    out = sol if population else sol.problem(0)
+    return out if blocks else out.step(0)
 
 
-def block_solution(
-    sol: RepsDualSolution | TimeIndexedDualSolution, k: int, v: Tensor
-) -> DualSolution:
-    """Block k of a K-block solution as a :class:`DualSolution` with value weights ``v``."""
-    w = sol.weights[k]
-    return DualSolution(
-        eta=float(sol.eta[k]),
-        xi=float(sol.xi[k]),
-        v=v,
-        weights=w,
-        sample_weights=w.sum(-1),
-        kl=float(sol.kl[k]),
-        cross_entropy=float(sol.cross_entropy[k]),
-        effective_sample_size=float(sol.effective_sample_size[k]),
-        feature_error=sol.feature_error,
-        dual_value=sol.dual_value,
-        converged=sol.converged,
-        iterations=sol.iterations,
-    )
-
-
-def single_solution(sol: PopulationDualSolution) -> DualSolution:
-    """The :class:`DualSolution` of a one-block population of one (S = K = 1), its numbers
-    read in one transfer (none where the solver gave them as floats)."""
-    numbers = (
-        sol.numbers
-        or torch.cat(
-            [
-                sol.eta[0],
-                sol.xi[0],
-                sol.kl[0],
-                sol.cross_entropy[0],
-                sol.effective_sample_size[0],
-                sol.feature_error,
-                sol.dual_value,
-            ]
-        ).tolist()
-    )
-    eta, xi, kl, ce, ess, feature_error, dual_value = numbers
-    w = sol.weights[0, 0]
-    return DualSolution(
-        eta=eta,
-        xi=xi,
-        v=sol.v[0],
-        weights=w,
-        sample_weights=w.sum(-1),
-        kl=kl,
-        cross_entropy=ce,
-        effective_sample_size=ess,
-        feature_error=feature_error,
-        dual_value=dual_value,
-        converged=bool(sol.converged[0]),
-        iterations=sol.iterations,
-    )
-
-
-def stack_solutions(parts: list[PopulationDualSolution]) -> PopulationDualSolution:
+def stack_solutions(parts: list[DualSolution]) -> DualSolution:
     """The solutions of problems solved one by one (each S = 1) as one population's."""
     if len(parts) == 1:
         return parts[0]
-
-    def cat(name: str) -> Tensor:
-        return torch.cat([getattr(p, name) for p in parts])
-
-    counts = tuple(p.iterations for p in parts)
-    return PopulationDualSolution(
-        eta=cat("eta"),
-        xi=cat("xi"),
-        v=cat("v"),
-        weights=cat("weights"),
-        kl=cat("kl"),
-        cross_entropy=cat("cross_entropy"),
-        effective_sample_size=cat("effective_sample_size"),
-        feature_error=torch.stack([p.feature_error.reshape(()) for p in parts]),
-        dual_value=torch.stack([p.dual_value.reshape(()) for p in parts]),
-        converged=cat("converged"),
-        iterations=max(counts),
-        problem_iterations=counts,
-    )
+    stacked = {f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in _TENSORS}
+    return replace(parts[0], numbers=None, **stacked)
 
 
 def block_kl(w: Tensor, log_resp: Tensor) -> Tensor:
@@ -340,11 +168,11 @@ def finish(
     c: Tensor | None,
     dual_value: Tensor,
     converged: Tensor,
-    iterations: int,
-) -> PopulationDualSolution:
-    """The :class:`PopulationDualSolution` of weights w (S, K, N, O) with its diagnostics (KL,
+    iterations: int | Tensor,
+) -> DualSolution:
+    """The (S, K) :class:`DualSolution` of weights w (S, K, N, O) with its diagnostics (KL,
     cross-entropy, effective sample size, feature error); all inputs float64 with a leading
-    S (D (S, K, N, P), c (S, P))."""
+    S (D (S, K, N, P), c (S, P)); ``iterations`` the count of each of the S problems."""
     ws = w.sum(-1)  # (S, K, N)
     feat_err = w.new_zeros(w.shape[0])
     if D is not None and D.shape[-1] > 0:
@@ -352,7 +180,7 @@ def finish(
         if c is not None:
             grad_v = grad_v + c
         feat_err = grad_v.abs().amax(-1)
-    return PopulationDualSolution(
+    return DualSolution(
         eta=eta,
         xi=xi,
         v=v,
@@ -363,11 +191,15 @@ def finish(
         feature_error=feat_err,
         dual_value=dual_value,
         converged=converged,
-        iterations=iterations,
+        iterations=(
+            iterations
+            if isinstance(iterations, Tensor)
+            else torch.full_like(converged, iterations, dtype=torch.int64)
+        ),
     )
 
 
-def warn_if_collapsed(sol: PopulationDualSolution, epsilon: Tensor, stacklevel: int = 2) -> None:
+def warn_if_collapsed(sol: DualSolution, epsilon: Tensor, stacklevel: int = 2) -> None:
     """Warn (``stacklevel`` frames above the caller; 2: the wrapper's caller) when a block's
     weights sit on ~one sample (epsilon (S, K))."""
     S, K, N, _ = sol.weights.shape

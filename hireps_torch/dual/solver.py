@@ -37,9 +37,8 @@ from hireps_torch.dual.inputs import check_blocks, check_settings
 from hireps_torch.dual.safeguards import Verdict, enforce_kl, judge, reachable_kappa
 from hireps_torch.dual.solutions import (
     DualConvergenceWarning,
+    DualSolution,
     InfeasibleConstraintsWarning,
-    PopulationDualSolution,
-    RepsDualSolution,
     finish,
     stack_solutions,
 )
@@ -65,7 +64,7 @@ def solve_reps_dual(
     max_iter: int = 300,
     tolerance_grad: float = 1e-7,
     converged_grad: float = 1e-6,
-) -> RepsDualSolution:
+) -> DualSolution:
     """Solve the K-block HiREPS dual (see :mod:`hireps_torch.dual`).
 
     Args:
@@ -87,8 +86,9 @@ def solve_reps_dual(
             (constraint residual) is below this at the end (finite, > 0).
 
     Returns:
-        A :class:`~hireps_torch.dual.RepsDualSolution` in the caller's units; its KL is at
-        most epsilon (1 + 1e-6) on every block.
+        A :class:`~hireps_torch.dual.DualSolution` in the caller's units with a block
+        dimension (eta, xi, kl, ... (K,), weights (K, N, O)) and the stacked v (P,); its KL is
+        at most epsilon (1 + 1e-6) on every block.
 
     Raises:
         ValueError, TypeError: on bad shapes, non-finite values, unnormalised
@@ -138,7 +138,7 @@ def solve_blocks(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
-) -> PopulationDualSolution:
+) -> DualSolution:
     """:func:`solve_reps_dual` on a population of S problems in float64 that the caller has
     already checked: R (S, K, N), log_resp (S, K, N, O), eps (S, K), D (S, K, N, P), c (S, P),
     kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged alone,
@@ -152,7 +152,7 @@ def solve_blocks(
     def one(x: Tensor | None, s: int) -> Tensor | None:
         return None if x is None else x[s : s + 1]
 
-    def alone(s: int) -> tuple[PopulationDualSolution, list[_Warning]]:
+    def alone(s: int) -> tuple[DualSolution, list[_Warning]]:
         prefix = f"problem {s}: " if S > 1 else ""
         Rs, lr, es = R[s : s + 1], log_resp[s : s + 1], eps[s : s + 1]
         return _solve_one(Rs, lr, es, one(D, s), one(c, s), one(kappa, s), settings, prefix)
@@ -177,7 +177,7 @@ def _solve_one(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     prefix: str,
-) -> tuple[PopulationDualSolution, list[_Warning]]:
+) -> tuple[DualSolution, list[_Warning]]:
     """One problem (S = 1) of :func:`solve_blocks`, with the warnings it gives (text,
     category), emitted by the caller."""
     S, K = R.shape[:2]
@@ -261,7 +261,7 @@ def _factorised(
     c: Tensor | None,
     settings: LbfgsSettings,
     prefix: str,
-) -> tuple[PopulationDualSolution, list[_Warning]]:
+) -> tuple[DualSolution, list[_Warning]]:
     """Without an entropy bound (xi = 0) the options enter the dual only through
     sum_o p~_io: P_io = w_i p~_io, with w the one-option solution. Solving that is exact and O
     times cheaper (e.g. 100 hard-gated options); KL(P || q p~) = KL(w || q)."""

@@ -27,7 +27,7 @@ from torch import Tensor
 from hireps_torch.dual.block_solver import _ARMIJO, _FLAT, _LOG_ETA_FLOOR, LbfgsSettings
 from hireps_torch.dual.problem import LOG_ETA_MAX
 from hireps_torch.dual.safeguards import KL_RTOL
-from hireps_torch.dual.solutions import PopulationDualSolution
+from hireps_torch.dual.solutions import DualSolution
 
 __all__ = ["log_temperatures", "solve_temperature"]
 
@@ -125,9 +125,7 @@ def _search(Rh: np.ndarray, eps: float) -> _Found | None:
     return _Found(a, g, kl, steps, r, r_max, s, mean, unit)
 
 
-def solve_temperature(
-    R: Tensor, eps: float, settings: LbfgsSettings
-) -> PopulationDualSolution | None:
+def solve_temperature(R: Tensor, eps: float, settings: LbfgsSettings) -> DualSolution | None:
     """Solve the one-temperature dual of finite float64 returns R (N,), N >= 2, for KL bound eps, or
     None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
     ``KL <= eps (1 + KL_RTOL)``."""
@@ -144,7 +142,7 @@ def solve_temperature(
     eta_s, kl_s, ess_s, zero, dual_s = torch.tensor(
         [[[eta * s * unit]], [[kl]], [[ess]], [[0.0]], [[dual]]], dtype=R.dtype, device=R.device
     ).unbind()  # (S, K) = (1, 1) each
-    return PopulationDualSolution(
+    return DualSolution(
         eta=eta_s,
         xi=zero,
         v=R.new_zeros(1, 0),
@@ -155,7 +153,7 @@ def solve_temperature(
         feature_error=zero.view(1),
         dual_value=dual_s.view(1),
         converged=torch.ones(1, dtype=torch.bool, device=R.device),
-        iterations=steps,
+        iterations=torch.full((1,), steps, device=R.device),
         numbers=(eta * s * unit, 0.0, kl, 0.0, ess, 0.0, dual),
     )
 

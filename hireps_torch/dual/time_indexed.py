@@ -27,7 +27,7 @@ c = 0), as in the episodic dual: the same dual value, weights and residuals.
 
 from __future__ import annotations
 
-from typing import Literal, overload
+from dataclasses import replace
 
 import torch
 from torch import Tensor
@@ -38,42 +38,10 @@ from hireps_torch.dual.inputs import (
     check_features,
     common_inputs,
 )
-from hireps_torch.dual.solutions import (
-    PopulationDualSolution,
-    TimeIndexedDualSolution,
-    warn_if_collapsed,
-)
+from hireps_torch.dual.solutions import DualSolution, public, warn_if_collapsed
 from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
 
-__all__ = ["single_time_indexed", "solve_time_indexed_dual", "time_indexed_solution"]
-
-
-@overload
-def solve_time_indexed_dual(
-    rewards: Tensor,
-    features: Tensor,
-    *,
-    epsilon: float | Tensor,
-    log_responsibilities: Tensor | None = None,
-    kappa: float | Tensor | None = None,
-    initial_features: Tensor | None = None,
-    max_iter: int = 300,
-    population: Literal[False] = False,
-) -> TimeIndexedDualSolution: ...
-
-
-@overload
-def solve_time_indexed_dual(
-    rewards: Tensor,
-    features: Tensor,
-    *,
-    epsilon: float | Tensor,
-    log_responsibilities: Tensor | None = None,
-    kappa: float | Tensor | None = None,
-    initial_features: Tensor | None = None,
-    max_iter: int = 300,
-    population: Literal[True],
-) -> PopulationDualSolution: ...
+__all__ = ["solve_time_indexed_dual", "time_indexed_solution"]
 
 
 def solve_time_indexed_dual(
@@ -86,7 +54,7 @@ def solve_time_indexed_dual(
     initial_features: Tensor | None = None,
     max_iter: int = 300,
     population: bool = False,
-) -> TimeIndexedDualSolution | PopulationDualSolution:
+) -> DualSolution:
     """Solve the time-indexed HiREPS dual (the module docstring): one distribution per
     decision step k = 1..K.
 
@@ -110,15 +78,15 @@ def solve_time_indexed_dual(
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension
             (rewards (S, N, K), features (S, N, K, F), initial_features (F,) or (S, F), ...),
-            each solved as alone; a :class:`~hireps_torch.dual.PopulationDualSolution` is returned
-            (its v is (S, K F): step k's weights are v[:, k F : (k + 1) F]).
+            each solved as alone; every field of the solution leads with S.
 
     Returns:
-        :class:`~hireps_torch.dual.TimeIndexedDualSolution`; ``weights`` (K, N, O), each step
-        summing to 1, ``kl <= epsilon (1 + 1e-6)`` per step. A step whose KL bound is inactive
-        (rewards the value features cancel, e.g. all 0 before a contact) has eta at its floor,
-        e^-10 of the return spread, and KL below epsilon. ``converged`` False comes with a
-        warning naming what failed.
+        :class:`~hireps_torch.dual.DualSolution` with a step dimension: eta, xi, kl, ... (K,), v (K,
+        F) (V_k(s) = v[k]^T phi(s)), ``weights`` (K, N, O), each step summing to 1 (``step(k)``:
+        step k alone), ``kl <= epsilon (1 + 1e-6)`` per step. A step whose KL bound is inactive
+        (rewards the value features cancel, e.g. all 0 before a contact) has eta at its floor, e^-10
+        of the return spread, and KL below epsilon. ``converged`` False comes with a warning naming
+        what failed.
 
     Raises:
         ValueError, TypeError: on non-finite rewards or features, shape mismatches, N < 2,
@@ -146,9 +114,7 @@ def solve_time_indexed_dual(
             "initial_features", initial_features, F, S if population else None, R.device
         ).reshape(S, F)
     sol = time_indexed_solution(R, lr, eps, phi, phi1, kap, opts, stacklevel=3)
-    if population:
-        return sol
-    return single_time_indexed(sol)
+    return public(replace(sol, v=sol.v.reshape(S, K, F)), population, blocks=True)
 
 
 def time_indexed_solution(
@@ -160,36 +126,16 @@ def time_indexed_solution(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
-) -> PopulationDualSolution:
-    """:func:`solve_time_indexed_dual` of S problems on inputs already checked, block-major:
-    float64 rewards R (S, K, N), log responsibilities (S, K, N, O) (normalised, log 0
-    floored), epsilon (S, K), finite features phi (S, K, N, F), initial features phi1 (S, F) or
-    None (the sample mean of step 1's) and kappa (S, K) or None. Warnings are attributed
-    ``stacklevel`` frames up (2: the caller of this function)."""
+) -> DualSolution:
+    """:func:`solve_time_indexed_dual` of S problems (an (S, K) solution, v (S, K F)) on inputs
+    already checked, block-major: float64 rewards R (S, K, N), log responsibilities (S, K, N, O)
+    (normalised, log 0 floored), epsilon (S, K), finite features phi (S, K, N, F), initial features
+    phi1 (S, F) or None (the sample mean of step 1's) and kappa (S, K) or None. Warnings are
+    attributed ``stacklevel`` frames up (2: the caller of this function)."""
     D = _chained_map(phi, phi1)
     sol = solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)
     warn_if_collapsed(sol, eps, stacklevel)
     return sol
-
-
-def single_time_indexed(sol: PopulationDualSolution) -> TimeIndexedDualSolution:
-    """The :class:`TimeIndexedDualSolution` of a population of one (v (1, K F))."""
-    K = sol.eta.shape[-1]
-    one = sol.problem(0)
-    return TimeIndexedDualSolution(
-        eta=one.eta,
-        xi=one.xi,
-        v=one.v.reshape(K, -1),
-        weights=one.weights,
-        sample_weights=one.weights.sum(-1),
-        kl=one.kl,
-        cross_entropy=one.cross_entropy,
-        effective_sample_size=one.effective_sample_size,
-        feature_error=one.feature_error,
-        dual_value=one.dual_value,
-        converged=one.converged,
-        iterations=one.iterations,
-    )
 
 
 def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:

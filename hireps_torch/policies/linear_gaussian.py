@@ -246,11 +246,11 @@ class LinearGaussian(PolicyModule):
             a (D,) tensor m floors the eigenvalues of ``diag(m)^-1/2 Sigma diag(m)^-1/2`` at 1
             (per-dimension floors for parameters in different units).
         covariance_prior: k, pseudo-samples of a prior centred on the current covariance: a
-            refit returns ``(n_eff S + k Sigma_old) / (n_eff + k)`` with S the weighted residual
-            covariance and ``n_eff = (sum w)^2 / sum w^2`` the effective number of samples (the
-            MAP estimate under an inverse-Wishart-type prior). It keeps exploration from
-            collapsing when an option has fewer effective samples than dimensions; 0 (default)
-            is plain weighted maximum likelihood.
+            refit returns ``(n_eff Sigma_w + k Sigma_old) / (n_eff + k)`` with Sigma_w the
+            weighted residual covariance and ``n_eff = (sum w)^2 / sum w^2`` the effective
+            number of samples (the MAP estimate under an inverse-Wishart-type prior). It keeps
+            exploration from collapsing when an option has fewer effective samples than
+            dimensions; 0 (default) is plain weighted maximum likelihood.
         mean_prior: k, pseudo-samples of a Gaussian prior on the mean's coefficients centred
             on the current ones, on centred and scaled features: the refit is the posterior
             mode of :func:`map_linear_regression` (a Bayesian linear regression), so an option

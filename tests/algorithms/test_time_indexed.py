@@ -137,10 +137,10 @@ def test_one_step_is_the_episodic_dual(gen):
             R, phi, epsilon=0.5, log_responsibilities=lr, kappa=kappa, initial_features=phi1
         )
         assert torch.allclose(ti.weights[0], ep.weights, atol=1e-6)
-        assert float(ti.eta[0]) == pytest.approx(ep.eta, rel=1e-5)
-        assert ti.dual_value == pytest.approx(ep.dual_value, rel=1e-6)
+        assert float(ti.eta[0]) == pytest.approx(float(ep.eta), rel=1e-5)
+        assert ti.dual_value == pytest.approx(float(ep.dual_value), rel=1e-6)
         step = ti.step(0)
-        assert torch.allclose(step.v, ep.v, atol=1e-4) and step.kl == pytest.approx(ep.kl)
+        assert torch.allclose(step.v, ep.v, atol=1e-4) and step.kl == pytest.approx(float(ep.kl))
 
 
 def test_given_initial_features_are_matched(gen):

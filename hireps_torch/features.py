@@ -179,8 +179,8 @@ class FourierFeatures(FeatureMap):
         terms = math.prod(counts)
         if terms > MAX_FOURIER_TERMS:
             raise ValueError(
-                f"n_bases ** C = {n_bases}^{C} = {terms:.3g} frequency vectors exceed "
-                f"{MAX_FOURIER_TERMS:.0e}: use fewer bases or fewer state dimensions"
+                f"n_bases ** state dimension = {n_bases}^{C} = {terms:.3g} frequency vectors "
+                f"exceed {MAX_FOURIER_TERMS:.0e}: use fewer bases or fewer state dimensions"
                 if isinstance(n_bases, int)
                 else f"prod(n_bases) = {terms:.3g} frequency vectors (n_bases = {counts}) exceed "
                 f"{MAX_FOURIER_TERMS:.0e}: use fewer bases or fewer state dimensions"

@@ -134,3 +134,34 @@ def test_a_pendulum_member_solves_as_it_does_alone_whatever_its_companions():
             )
         assert bool(sol.converged[s]) == bool(alone.converged[0])
         torch.testing.assert_close(sol.weights[s], alone.weights[0], rtol=1e-7, atol=1e-15)
+
+
+def test_newton_steps_stop_at_the_gradients_round_off_floor(monkeypatch):
+    # a v-gradient that cannot fall below 3e-6 (a jitter standing in for the round-off of a
+    # large, ill-conditioned problem): the Newton steps stop after two steps in a row that
+    # move the dual by round-off only without halving the best gradient, and no LBFGS call
+    # chases the jitter (before: 100 Newton steps, then LBFGS, in every phase)
+    from hireps_torch.dual import problem
+
+    evaluate = problem.DualProblem.evaluate
+    calls = [0]
+
+    def jittered(self, x):
+        g, grad, P = evaluate(self, x)
+        calls[0] += 1
+        grad = grad.clone()
+        grad[:, 2 * self.K :] += 3e-6 * (-1.0) ** calls[0]
+        return g, grad, P
+
+    monkeypatch.setattr(problem.DualProblem, "evaluate", jittered)
+    gen = torch.Generator().manual_seed(0)
+    R = torch.randn(200, generator=gen, dtype=f64)
+    phi = torch.randn(200, 3, generator=gen, dtype=f64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sol = solve_episodic_dual(R, epsilon=0.5, context_features=phi)
+    assert not bool(sol.converged)  # the jitter is above the tolerance: it cannot converge
+    assert int(sol.iterations) <= 30, int(sol.iterations)
+    assert calls[0] <= 120, calls[0]
+    assert float(sol.kl) <= 0.5 * (1 + 1e-6)
+    assert float(sol.feature_error) < 1e-4  # the best point: the constraints met to the jitter

@@ -207,4 +207,7 @@ def test_a_pendulum_member_does_not_depend_on_its_companions(tmp_path):
             except ValueError:
                 assert value == rb[key], key
                 continue
+            if key == "dual_iterations":  # a count: round-off can move a stop by a step
+                assert abs(x - y) <= ITERATION_SLACK["pendulum"], (key, x, y)
+                continue
             assert y == pytest.approx(x, rel=1e-6, abs=1e-9, nan_ok=True), key

@@ -239,7 +239,7 @@ FEATURE_PROBES = {
     ),
     "Fourier too many terms": (
         lambda: FourierFeatures([0.0] * 12, [1.0] * 12, 10),
-        r"n_bases \*\* S = 10\^12 = 1e\+12 frequency vectors exceed",
+        r"n_bases \*\* state dimension = 10\^12 = 1e\+12 frequency vectors exceed",
     ),
     "Fourier NaN state": (
         lambda: FourierFeatures([0.0], [1.0])(torch.tensor([[NAN]])),

@@ -81,6 +81,7 @@ _DAMPINGS = 16  # tries per Newton step: halvings, then a damping growing tenfol
 _LAM_MIN = 1e-4  # the damping a try starts from once halving the step did not help
 _ARMIJO = 1e-4  # sufficient decrease of a Newton step
 _FLAT = 1e-13  # relative change of the dual value within round-off
+_STALLS = 2  # steps in a row at the gradient's round-off floor that stop Newton (descend)
 _MAX_LOG_STEP = 1.5  # largest change of a log eta or log xi in one Newton step
 _FLAT_FLOOR = 1e-9  # round-off allowed below the weak-duality bound (BlockSolver.floor)
 
@@ -150,6 +151,7 @@ class BlockSolver:
             given = torch.maximum(log_eta_start, floor)
             self.x[:, :K] = torch.where(log_eta_start.isnan(), self.x[:, :K], given)
         self.iterations = 0
+        self.stalled = torch.zeros_like(st.informative)  # (S,) the last descend's, see there
         self.informative = st.informative
         flat = ~st.informative  # the projection solve: R = 0 and eta held at 1
         self.prob.eta_on[flat] = False
@@ -402,8 +404,11 @@ class BlockSolver:
         singular when a block's weights sit on a few samples); after a step lam shrinks
         tenfold. A problem stops when its gradient meets ``target`` (``tolerance_grad``: a
         tenth of what ``converged`` asks, so that the KL safeguard's correction of eta after
-        the solve leaves the constraints met) or no damping helps; LBFGS then takes over. Steps
-        taken count as iterations (once per step, however many problems take it)."""
+        the solve leaves the constraints met) or no damping helps; LBFGS then takes over. A
+        problem whose steps move the dual by round-off only, ``_STALLS`` in a row, without
+        halving the best merit seen has its gradient at its round-off floor: it stops at the
+        best point seen (``stalled``; its phase then calls no LBFGS, which cannot do better).
+        Steps taken count as iterations (once per step, however many problems take it)."""
         prob = self.prob
         target = self.settings.tolerance_grad if target is None else target
         merits = self._merit if excess else lambda grad, _: grad.abs().amax(-1)
@@ -413,14 +418,18 @@ class BlockSolver:
         bounded = prob.ridge > 0  # a ridge bounds the dual: the weak-duality floor is off
         lam = torch.zeros_like(g)
         M: Tensor | None = None  # the curvature, kept for one more step after a full one
+        # the best point so far (smallest merit), and the steps in a row that moved the dual
+        # only by round-off without halving that merit: the gradient is at its round-off floor
+        best, best_x, stalls = merit, self.x, torch.zeros_like(g)
         for _ in range(steps):
-            active &= (merit > target) & (bounded | (g >= self.floor))
+            active &= (merit > target) & (bounded | (g >= self.floor)) & (stalls < _STALLS)
             if not bool(active.any()):
                 break
             curvature = self._hessians(grad, M)
             taken = torch.zeros_like(active)
             t = torch.ones_like(g)
             base: Tensor | None = None  # the undamped-length step, recomputed when lam moves
+            g_prev = g
             for _ in range(_DAMPINGS):
                 trying = active & ~taken
                 if not bool(trying.any()):
@@ -440,6 +449,13 @@ class BlockSolver:
                 P = torch.where(ok[:, None, None, None], P_t, P)
                 merit = torch.where(ok, merit_t, merit)
                 taken |= ok
+                level = (g_t - g_prev).abs() <= _FLAT * (1.0 + g_prev.abs())
+                stalls = torch.where(
+                    ok, torch.where(level & (merit_t > 0.5 * best), stalls + 1, 0.0), stalls
+                )
+                better = ok & (merit_t < best)
+                best = torch.where(better, merit_t, best)
+                best_x = torch.where(better[:, None], x, best_x)
                 # a failed try first halves the step, then (from the fourth) damps it
                 halve = trying & ~ok & (t > 0.1)
                 damp = trying & ~ok & ~halve
@@ -452,6 +468,14 @@ class BlockSolver:
             self.iterations += 1
             full = bool(((t == 1.0) & (lam == 0.0) | ~active).all())
             M = curvature[1] if full and M is None else None
+        self.stalled = mask & (stalls >= _STALLS)
+        back = self.stalled & (best < merit)  # back to the best point
+        if bool(back.any()):
+            self.x = torch.where(back[:, None], best_x, self.x)
+            g_b, grad_b, P_b = prob.evaluate(self.x)
+            g = torch.where(back, g_b, g)
+            P = torch.where(back[:, None, None, None], P_b, P)
+            merit = torch.where(back, merits(grad_b, P_b), merit)
         self._set(mask, merit <= self.settings.converged_grad, g, P)
         return merit
 
@@ -502,7 +526,8 @@ class BlockSolver:
         """
         self.unstick(mask)
         self.descend(mask)
-        todo = mask & ~self.end.converged & self._finite() & ~self._sunk()
+        # LBFGS cannot take a gradient below its round-off floor either
+        todo = mask & ~self.end.converged & self._finite() & ~self._sunk() & ~self.stalled
         if not bool(todo.any()):
             return
         left, evals = self.settings.max_iter, self.settings.max_iter * 5 // 4

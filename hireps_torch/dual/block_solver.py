@@ -449,13 +449,6 @@ class BlockSolver:
                 P = torch.where(ok[:, None, None, None], P_t, P)
                 merit = torch.where(ok, merit_t, merit)
                 taken |= ok
-                level = (g_t - g_prev).abs() <= _FLAT * (1.0 + g_prev.abs())
-                stalls = torch.where(
-                    ok, torch.where(level & (merit_t > 0.5 * best), stalls + 1, 0.0), stalls
-                )
-                better = ok & (merit_t < best)
-                best = torch.where(better, merit_t, best)
-                best_x = torch.where(better[:, None], x, best_x)
                 # a failed try first halves the step, then (from the fourth) damps it
                 halve = trying & ~ok & (t > 0.1)
                 damp = trying & ~ok & ~halve
@@ -465,6 +458,11 @@ class BlockSolver:
                 if bool((damp | ok).any()):
                     base = None
             active &= taken
+            level = (g - g_prev).abs() <= _FLAT * (1.0 + g_prev.abs())
+            stalls = torch.where(taken, (level & (merit > 0.5 * best)) * (stalls + 1), stalls)
+            better = taken & (merit < best)
+            best = torch.where(better, merit, best)
+            best_x = torch.where(better[:, None], self.x, best_x)
             self.iterations += 1
             full = bool(((t == 1.0) & (lam == 0.0) | ~active).all())
             M = curvature[1] if full and M is None else None

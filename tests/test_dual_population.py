@@ -329,3 +329,22 @@ def test_idle_workers_are_the_cores_torch_leaves_idle(monkeypatch):
         assert idle_workers(torch.device("meta")) == 1
     finally:
         torch.set_num_threads(threads)
+
+
+def test_one_solution_type_indexes_its_problems_and_blocks_or_says_why_not():
+    gen = torch.Generator().manual_seed(10)
+    one = solve_episodic_dual(randn(gen, 20), epsilon=0.5)
+    assert one.eta.shape == () and one.weights.shape == (20, 1) and one.iterations.shape == ()
+    with pytest.raises(ValueError, match="this one holds one"):
+        one.problem(0)
+    with pytest.raises(ValueError, match="this one has one"):
+        one.step(0)
+    ti = solve_time_indexed_dual(
+        randn(gen, 3, 20, 2), randn(gen, 3, 20, 2, 1), epsilon=0.5, population=True
+    )
+    assert ti.eta.shape == (3, 2) and ti.v.shape == (3, 2, 1) and ti.weights.shape == (3, 2, 20, 1)
+    member_step = ti.problem(2).step(1)
+    assert torch.equal(member_step.weights, ti.weights[2, 1])
+    assert torch.equal(member_step.v, ti.v[2, 1]) and member_step.eta.shape == ()
+    with pytest.raises(ValueError, match=r"problem must be in \[0, 3\), got 3"):
+        ti.problem(3)

@@ -105,7 +105,9 @@ class DualSolution:
 
     def problem(self, s: int) -> DualSolution:
         """Problem s of a population (the first batch dimension)."""
-        S = self.converged.shape[0] if self.converged.dim() else 0
+        if self.converged.dim() == 0:
+            raise ValueError("problem(s) indexes a population's solution; this one holds one")
+        S = self.converged.shape[0]
         if not -S <= s < S:
             raise ValueError(f"problem must be in [0, {S}), got {s}")
         return replace(self, numbers=None, **{f.name: getattr(self, f.name)[s] for f in _TENSORS})
@@ -115,7 +117,9 @@ class DualSolution:
         step's own where v has a block dimension; ``feature_error``, ``dual_value``,
         ``converged`` and ``iterations`` are those of the whole problem."""
         batch = self.converged.dim()
-        K = self.eta.shape[batch] if self.eta.dim() > batch else 0
+        if self.eta.dim() == batch:
+            raise ValueError("step(k) indexes the blocks of a dual with several; this one has one")
+        K = self.eta.shape[batch]
         if not 0 <= k < K:
             raise ValueError(f"step must be in [0, {K}), got {k}")
         blocked = self.v.dim() == self.eta.dim() + 1

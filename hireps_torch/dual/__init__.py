@@ -42,7 +42,7 @@ Modules, in reading order:
 - :mod:`~hireps_torch.dual.episodic`, :mod:`~hireps_torch.dual.infinite_horizon`,
   :mod:`~hireps_torch.dual.time_indexed`: one public wrapper each (mirroring
   :mod:`hireps_torch.algorithms`): check the inputs, build (R, D, c), solve, report.
-- :mod:`~hireps_torch.dual.solutions`: the solution types, their diagnostics, the warnings
+- :mod:`~hireps_torch.dual.solutions`: the solution type, its diagnostics, the warnings
   (and what ``converged`` promises).
 - :mod:`~hireps_torch.dual.inputs`: the wrappers' and the generic solver's input checks.
 - :mod:`~hireps_torch.dual.solver`: :func:`solve_reps_dual`: exact power-of-2 scaling, the

@@ -1,4 +1,4 @@
-"""What the duals return: the solution types, their diagnostics and the dual's warnings.
+"""What the duals return: the solution type, its diagnostics and the dual's warnings.
 
 Every solution keeps its KL bound: ``kl <= epsilon (1 + 1e-6)`` on every block, whatever the
 solver went through. ``converged`` is True only when, besides, the entropy bound

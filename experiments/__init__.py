@@ -1,14 +1,6 @@
-"""The paper's experiments, installed as ``hireps_torch.experiments``, one module each: a
-typed config, its builders and its ``run``.
-
-``EXPERIMENTS`` maps each command-line name to ``(Config, run)``; :mod:`hireps_torch.cli`
-turns it into tyro subcommands. Every ``run(cfg)`` writes one run directory (see
-:mod:`hireps_torch.experiments.rundir`) (one seed, or a population of seeds: see
-:class:`hireps_torch.experiments.loop.Members`) and returns the summary it wrote to
-``summary.json``. To add an experiment, copy the module closest to it (``bimodal.py`` for
-an ask/tell objective, ``ball_on_beam.py`` for a batched TorchRL environment, ``hockey.py``
-for a gymnasium environment with whole episodes) and name it in :data:`EXPERIMENTS`,
-:data:`ALGORITHMS` and the sweeps' ``METRICS`` (:mod:`hireps_torch.experiments.sweep`).
+"""The paper's experiments (``hireps_torch.experiments``): one module each with a typed
+config, ``algorithm(cfg)`` and ``run(cfg)``, which writes a run directory and returns its
+summary. Adding an experiment: ARCHITECTURE.md.
 """
 
 from __future__ import annotations
@@ -44,9 +36,8 @@ ALGORITHMS: dict[str, Callable[[Any], Algorithm]] = {
     "hockey-episodic": hockey.algorithm,
     "hockey-fixed-start": hockey.algorithm,
 }
-"""Each experiment's config checked and its untrained algorithm built, as its ``run`` does,
-without a run directory (sweeps check every run's config before the first starts;
-:func:`~hireps_torch.experiments.saved.load_run` loads a run's state into it)."""
+"""Each experiment's config checked and its untrained algorithm built, as ``run`` does,
+writing nothing."""
 
 
 def run_experiment(cfg: Any) -> dict[str, Any]:

@@ -1,8 +1,4 @@
-"""Ball on a beam with infinite-horizon HiREPS (paper Fig 19): 3 episodes per iteration.
-
-``python train.py ball-on-beam``: three simulated beams per iteration collected with TorchRL,
-one infinite-horizon update per batch, a noise-free evaluation after every iteration.
-"""
+"""Ball on a beam with infinite-horizon HiREPS (paper Fig 19)."""
 
 from __future__ import annotations
 
@@ -66,8 +62,7 @@ class BallOnBeamConfig(RunOptions):
     episodes_per_iteration: int = 3
     """Episodes per policy update = parallel beams."""
     epsilon: float = 1.0
-    """KL bound per iteration (nats; why 1.0: benchmarks/README.md, "Ball on a beam
-    defaults")."""
+    """KL bound per iteration (nats; why 1.0: benchmarks/README.md, "Ball on a beam defaults")."""
     kappa_rel: float | None = None
     """Entropy bound as a fraction of the mean responsibility entropy (None: off, the default
     here; why: benchmarks/README.md, "Ball on a beam defaults")."""
@@ -76,21 +71,15 @@ class BallOnBeamConfig(RunOptions):
     min_variance: float = 1e-6
     """Floor on the option variance (rad^2)."""
     fourier_bases: int = 4
-    """Fourier bases per state dimension of the value features (4: 4 x 4 - 1 = 15 coupled
-    features on (x, x'))."""
+    """Fourier bases per state dimension of the value features."""
     fourier_coupling: int | None = None
-    """Most state dimensions one Fourier term may couple (None: all; 1: no products, so the
-    value of a velocity cannot depend on the position)."""
+    """Most state dimensions one Fourier term may couple (None: all; 1: no products)."""
     value_beam_angle: bool = False
-    """Include the beam angle in the value features (off: the value is a function of the
-    ball's position and velocity)."""
+    """Include the beam angle in the value features (off: a function of (x, x') only)."""
     value_goal_bowl: bool = True
-    """Add :class:`GoalBowlFeatures` (e^2, e x', x'^2 of the offset e from the closer goal)
-    to the value features."""
+    """Add :class:`GoalBowlFeatures` to the value features."""
     option_goal_offset: bool = True
-    """Options linear in the ball's offset from the closer goal, its velocity and the beam
-    angle (:class:`GoalOffsetFeatures`) instead of its position: each option is a PD law that
-    can rest at either goal (--no-option-goal-offset: linear in the state itself)."""
+    """Options linear in :class:`GoalOffsetFeatures` (--no-option-goal-offset: in the state)."""
     max_velocity: float = 1.0
     """Ball speed (m/s) the value and gating features are scaled to."""
     eval_episodes: int = 10
@@ -100,9 +89,7 @@ class BallOnBeamConfig(RunOptions):
 def build_ball_on_beam_policy(
     cfg: BallOnBeamConfig, generator: torch.Generator | None = None
 ) -> HierarchicalPolicy:
-    """Options linear in (x, x', alpha) -> desired beam angle, softmax gating on the squared
-    expansion of the state (scaled by the beam's half length, ``max_velocity`` and the angle
-    limit). Load a run's policy with ``policy.load_state_dict(ckpt["algorithm"]["policy"])``."""
+    """Options (x, x', alpha) -> desired beam angle, softmax gating on the squared expansion."""
     return HierarchicalPolicy.create(
         cfg.n_options,
         3,
@@ -122,19 +109,15 @@ def _beam_box(cfg: BallOnBeamConfig) -> torch.Tensor:
 
 
 def closer_goal(x: torch.Tensor, goal: float) -> torch.Tensor:
-    """The goal on the ball's side, ``+-goal`` (``+goal`` at ``x = 0``), in x's dtype and
-    device: (...,) -> (...,)."""
+    """The goal ``+-goal`` on the ball's side (``+goal`` at ``x = 0``): (...,) -> (...,)."""
     g = x.new_tensor(goal)
     return torch.where(x >= 0, g, -g)
 
 
 class GoalBowlFeatures(FeatureMap):
-    """The quadratic bowl around the closer goal: ``(..., 3) -> (..., 3)``,
-    ``[e^2, e v, v^2]`` with ``e = (x - g) / half_length`` the ball's offset from the closer
-    goal ``g = +-goal`` (``+goal`` at ``x = 0``) and ``v = x' / max_velocity``; the beam angle
-    is not used. The reward is ``-(d^2 + x'^2)`` per control step, so near a goal the value is
-    a quadratic form in ``(e, v)``; with these terms next to a coarse Fourier basis the value
-    function can rank rest points a centimetre apart.
+    """The quadratic bowl around the closer goal: ``(..., 3) -> (..., 3)``, ``[e^2, e v, v^2]``
+    with ``e = (x - g) / half_length`` (``g = +-goal`` on the ball's side, ``+goal`` at
+    ``x = 0``) and ``v = x' / max_velocity``.
 
     Args:
         params: the task (its goal and half length).
@@ -159,9 +142,7 @@ class GoalBowlFeatures(FeatureMap):
 
 class GoalOffsetFeatures(FeatureMap):
     """The state seen from the closer goal: ``(..., 3) -> (..., 3)``, ``[x - g, x', alpha]``
-    with ``g = +-goal`` the goal on the ball's side (``+goal`` at ``x = 0``). Options linear in
-    these are PD laws around the closer goal, so one option rests at either goal; options
-    linear in x itself rest at one point ``-bias / gain`` for both sides.
+    (``g = +-goal`` on the ball's side, ``+goal`` at ``x = 0``).
 
     Args:
         params: the task (its goal).
@@ -180,9 +161,8 @@ class GoalOffsetFeatures(FeatureMap):
 
 
 def value_features(cfg: BallOnBeamConfig) -> FeatureMap:
-    """Fourier value features on the state box: ``fourier_bases`` per dimension of (x, x')
-    and, with ``value_beam_angle``, of the beam angle (a count of 1 leaves it out); with
-    ``value_goal_bowl``, followed by :class:`GoalBowlFeatures` (3 more)."""
+    """Fourier value features on the state box (the beam angle only with ``value_beam_angle``),
+    then :class:`GoalBowlFeatures` with ``value_goal_bowl``."""
     box = _beam_box(cfg)
     n = cfg.fourier_bases
     bases = (n, n, n if cfg.value_beam_angle else 1)
@@ -195,9 +175,7 @@ def value_features(cfg: BallOnBeamConfig) -> FeatureMap:
 def _make_algorithm(
     cfg: BallOnBeamConfig, params: BeamParams, seeds: list[int]
 ) -> InfiniteHorizonHiREPS:
-    """The members' policies and the algorithm (Fourier value features, 1000 start states
-    alternating sides per member for phi_hat_0), member s's from the streams of
-    ``seeds[s]``."""
+    """The members' algorithm, member s's from the streams of ``seeds[s]``."""
     gens = [torch.Generator().manual_seed(stream_seed(s, "policy")) for s in seeds]
     policy = HierarchicalPolicy.stack([build_ball_on_beam_policy(cfg, g) for g in gens])
     sides = torch.where(torch.arange(1000) % 2 == 0, 1.0, -1.0)
@@ -232,15 +210,13 @@ def _checked(cfg: BallOnBeamConfig) -> int:
 
 
 def algorithm(cfg: BallOnBeamConfig) -> InfiniteHorizonHiREPS:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
-    :func:`run` starts from (its members' policies); writes nothing."""
+    """``cfg`` checked as :func:`run` checks it, and the untrained algorithm it starts from."""
     _checked(cfg)
     return _make_algorithm(cfg, BeamParams(), member_seeds(cfg))
 
 
 def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
-    """Infinite-horizon HiREPS on the simulated ball on a beam, one seed or a population;
-    returns the summary."""
+    """Infinite-horizon HiREPS on the ball on a beam (one seed or a population); its summary."""
     from hireps_torch.rollout import make_collector, policy_module
 
     B = cfg.episodes_per_iteration

@@ -1,8 +1,4 @@
-"""Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per reward mode, REPS picks one.
-
-``python train.py bimodal [--contextual] [--algorithm reps]``: an ask/tell loop (no
-environment process), the option table and a picture of the options over the reward.
-"""
+"""Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one."""
 
 from __future__ import annotations
 
@@ -97,8 +93,7 @@ def _make_algorithm(
 
 
 def algorithm(cfg: BimodalConfig) -> EpisodicHiREPS:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
-    :func:`run` starts from (its members' policies); writes nothing."""
+    """``cfg`` checked as :func:`run` checks it, and the untrained algorithm it starts from."""
     _validate(cfg)
     return _make_algorithm(cfg, _task(cfg), member_seeds(cfg))
 
@@ -256,15 +251,14 @@ def modes_covered(
         modes = task.modes(torch.zeros(1, 1, dtype=torch.float64))[0]
     else:
         modes = task.modes.to(torch.float64)
-    covered = 0
-    for m in modes:
-        if any(
+    return sum(
+        any(
             o["prior"] >= min_prior
             and float((torch.tensor(o["mean"], dtype=torch.float64) - m).norm()) <= radius
             for o in options
-        ):
-            covered += 1
-    return covered
+        )
+        for m in modes
+    )
 
 
 def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -> None:

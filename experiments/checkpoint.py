@@ -1,19 +1,8 @@
 """Checkpoints that continue a run exactly, and the interruption that writes one.
 
-A run's ``checkpoint.pt`` (written atomically after every ``checkpoint_every`` iterations, on
-SIGINT/SIGTERM, and at the end) holds everything its next iteration depends on:
-
-- ``algorithm``: the algorithm's ``state_dict`` (policies, value weights, its generator,
-  iteration);
-- ``rng``: the global torch generator (TorchRL actors with worker processes sample with it)
-  and every other named generator of the experiment (e.g. the contexts of the bimodal task);
-- ``env``: the running state of the environments that carry over between iterations (the
-  pendulums run on; every member's start-state generator);
-- ``rows``: each member's ``metrics.csv`` rows so far (one list for a run of one seed);
-  ``iteration``, ``elapsed`` (seconds so far), ``config``, ``experiment``, ``finished``.
-
-Only tensors, numbers, strings, lists and dicts: ``torch.load(path)`` with its default
-``weights_only=True`` reads it.
+``checkpoint.pt`` holds :class:`RunState`'s entries, each member's ``metrics.csv`` ``rows``,
+``iteration``, ``elapsed``, ``config``, ``experiment`` and ``finished``: plain data that
+``torch.load(path)`` reads with ``weights_only=True``.
 """
 
 from __future__ import annotations
@@ -182,8 +171,7 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
 
 
 def read_config(run_dir: Path) -> dict[str, Any]:
-    """A run directory's ``config.json`` as a dict; a ``ValueError`` naming the file when it
-    cannot be read or holds no JSON object."""
+    """A run directory's ``config.json`` as a dict (a ``ValueError`` naming the file if not)."""
     import json
 
     path = run_dir / "config.json"
@@ -199,9 +187,8 @@ def read_config(run_dir: Path) -> dict[str, Any]:
 def changed_options(
     saved: Mapping[str, Any], now: Mapping[str, Any], labels: tuple[str, str] = ("run", "now")
 ) -> list[str]:
-    """Options whose values differ between the saved config and this one, as
-    ``name (run: saved, now: current)`` (``labels`` name the two); the run-only options are
-    ignored."""
+    """Differing options as ``name (run: saved, now: current)`` (``labels`` name the two
+    sides), ignoring :data:`RUN_ONLY_OPTIONS`."""
     out = []
     a, b = labels
     for key in sorted(set(saved) | set(now)):
@@ -241,10 +228,8 @@ def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
 
 
 def saved_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
-    """The config a run directory was started with, with ``resume`` set: the defaults for
-    ``--resume RUN_DIR`` on the command line. The run continues where it is now: a moved or
-    copied run directory, or one named by another (relative / absolute) path, is resumed in
-    place (``run_dir`` is a run-only option)."""
+    """The config a run directory was started with, ``resume`` set to where it is now: the
+    defaults of ``--resume RUN_DIR``."""
     try:
         cfg = run_config(config_cls, experiment, run_dir)
     except ValueError as exc:
@@ -260,14 +245,11 @@ class StopRequest:
 
 
 EARLY = StopRequest()
-"""A SIGINT / SIGTERM that came before the run's own handler was installed (a worker
-process records it here while it starts): the run then stops after its first iteration."""
+"""A SIGINT / SIGTERM from before :func:`stop_on_signals` took over: stop after iteration 1."""
 
 
 def record_early_stops() -> None:
-    """Until :func:`stop_on_signals` takes over, SIGINT / SIGTERM only set :data:`EARLY`
-    (for worker processes: a Ctrl-C while one starts must not kill it half-way, nor be
-    lost)."""
+    """Until :func:`stop_on_signals` takes over, SIGINT / SIGTERM only set :data:`EARLY`."""
 
     def handler(signum: int, frame: types.FrameType | None) -> None:
         EARLY.signame = signal.Signals(signum).name
@@ -278,11 +260,8 @@ def record_early_stops() -> None:
 
 @contextmanager
 def stop_on_signals(then: str = "then saving the checkpoint") -> Iterator[StopRequest]:
-    """While active, the first SIGINT or SIGTERM only requests a stop (the loop finishes the
-    current iteration, writes the checkpoint and raises :class:`RunInterrupted`; the message
-    printed says ``then``); a second one interrupts at once (the last written checkpoint
-    stays valid). Handlers are restored on exit; outside the main thread this does
-    nothing."""
+    """While active, a first SIGINT/SIGTERM requests a stop at the next iteration boundary
+    (printing ``then``), a second interrupts at once; does nothing outside the main thread."""
     request = StopRequest(EARLY.signame)
     names: dict[int, str] = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
     previous: dict[int, Any] = {}

@@ -1,20 +1,7 @@
-"""The running state of a run's environments, for checkpoints that continue exactly.
-
-TorchRL's collectors do not save their environments' runtime state ("not generally
-serializable"), so each kind of task gets a small adapter over the collector's environment:
-
-- :class:`BatchedTaskState`: the batched torch tasks (pendulum, ball on a beam): every tensor
-  the task holds (the systems' states, step and episode counters) and the start-state
-  generator. When the environments run on
-  across iterations (``carry=True``), the collector's carried observation is set to the
-  restored states too.
-
-Robot hockey needs none: its episodes draw everything from (seed, episode index), see
-:mod:`hireps_torch.experiments.workers`.
-
-With worker processes the environments live in other processes: their state is not saved,
-and a resumed run continues from fresh environment states (it warns that it is then not
-bit-identical to an uninterrupted run).
+"""The running state of a run's batched environments, for checkpoints that continue exactly
+(TorchRL's collectors do not save it). Hockey needs none (episodes draw from (seed, episode),
+see :mod:`hireps_torch.experiments.workers`); with worker processes the state is not saved
+and a resumed run warns that it is not bit-identical.
 """
 
 from __future__ import annotations
@@ -26,11 +13,6 @@ from typing import Any
 import torch
 
 __all__ = ["BatchedTaskState"]
-
-
-def _local_env(collector: Any) -> Any | None:
-    """The collector's environment when it lives in this process (else None)."""
-    return getattr(collector, "env", None)
 
 
 def _warn_not_exact(what: str) -> None:
@@ -56,15 +38,15 @@ def _check_fits(saved: Mapping[str, Any], now: Mapping[str, torch.Tensor]) -> No
 
 
 class BatchedTaskState:
-    """Adapter for :class:`hireps_torch.envs._common.ScalarActionBatchEnv` over the members'
-    tasks (:class:`hireps_torch.envs._common.MemberTasks`) in a collector."""
+    """The tensors and start-state generators of a collector's ``MemberTasks``; with ``carry``
+    (environments run on across iterations) also its carried observation."""
 
     def __init__(self, collector: Any, carry: bool) -> None:
         self.collector = collector
         self.carry = carry
 
     def _task(self) -> Any | None:
-        env = _local_env(self.collector)
+        env = getattr(self.collector, "env", None)  # None: it lives in worker processes
         return None if env is None else env.task
 
     def state_dict(self) -> dict[str, Any] | None:

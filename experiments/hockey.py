@@ -1,11 +1,4 @@
-"""Robot hockey in pybullet (paper Fig 14): sequential (time-indexed) against episodic HiREPS.
-
-``python train.py hockey-sequential`` learns one 14-number shot policy per shot, each on the
-target puck's current position; ``python train.py hockey-episodic`` learns one 42-number
-vector per episode from the initial position. Both collect whole 3-shot episodes with TorchRL
-and update through the shared :class:`~hireps_torch.algorithms.Algorithm` interface, so the
-loop below does not branch on the variant; only the construction does.
-"""
+"""Robot hockey in pybullet (paper Fig 14): sequential (time-indexed) against episodic HiREPS."""
 
 from __future__ import annotations
 
@@ -68,62 +61,45 @@ class HockeyConfig(RunOptions):
     init_std_velocity: float = 0.3
     """Initial exploration std of the 7 DMP goal velocities (rad/s)."""
     velocity_std_fraction: float = 0.0
-    """If > 0: each joint's goal-velocity std is this fraction of the demo shot's goal velocity
-    of that joint (exploration scaled to the joint's role), at least min_velocity_std;
-    replaces init_std_velocity."""
+    """If > 0: each goal-velocity std as a fraction of the demo's (replaces init_std_velocity)."""
     min_velocity_std: float = 0.05
     """Smallest initial goal-velocity std (rad/s) with velocity_std_fraction."""
     min_variance: float = 1e-6
-    """Smallest variance of any parameter (the per-parameter floor is the larger of this and
-    the exploration floor)."""
+    """Smallest variance of any parameter (with the exploration floor: the larger of the two)."""
     exploration_floor: float = 0.25
-    """Floor on each option's std as a fraction of the initial std, per parameter (keeps the
-    14-dim options from collapsing onto the few effective samples of an update); 0: off."""
+    """Floor on each option's std as a fraction of the initial std, per parameter; 0: off."""
     exploration_floor_end: float | None = 0.1
-    """The floor's fraction at the last update: it moves linearly from exploration_floor at the
-    first update to this one at the last (None: constant; why: benchmarks/README.md, "Robot
-    hockey defaults")."""
+    """The floor's fraction at the last update, linear from exploration_floor at the first
+    (None: constant; why: benchmarks/README.md, "Robot hockey defaults")."""
     covariance_prior: float = 0.0
-    """Pseudo-samples of the prior that shrinks each option's refit covariance toward the
-    previous one (0: plain weighted maximum likelihood)."""
+    """Pseudo-samples of the prior shrinking each option's covariance toward the previous one."""
     mean_prior: float = 4.0
-    """Pseudo-samples of the Gaussian prior that holds each option's mean coefficients (bias
-    and slopes on centred and scaled features) near the previous ones (0: weighted least
-    squares; see ``LinearGaussian``; why 4: benchmarks/README.md, "Robot hockey defaults")."""
+    """Pseudo-samples of the prior holding each option's mean coefficients near the previous
+    ones (0: weighted least squares; why 4: benchmarks/README.md, "Robot hockey defaults")."""
     workers: int = 1
-    """Workers that play each iteration's episodes (1 with the local backend: in this
-    process). Episode e draws its start and its noise from (seed, e) alone, so the result
-    does not depend on the number of workers or the backend."""
+    """Workers that play each iteration's episodes (the result does not depend on them)."""
     backend: Backend = "local"
-    """local: worker processes on this machine; ray: Ray tasks (pip install -e
-    '.[distributed]'), on a local Ray instance with --workers CPUs or on --ray-address."""
+    """local: processes on this machine; ray: Ray tasks (pip install -e '.[distributed]')."""
     ray_address: str | None = None
     """An existing Ray cluster (HOST:PORT, ray://HOST:PORT or auto) for --backend ray."""
     start_std: float = 0.1
-    """Std (m) of the target puck's start in x and y (paper Fig 14: 10 cm; 0: a fixed
-    start, the real robot's setting of Fig 15b)."""
+    """Std (m) of the target puck's start in x and y (0: a fixed start, as in Fig 15b)."""
     puck_restitution: float = 0.3
-    """Restitution of the pucks and the blade (Bullet multiplies the two bodies' values; why
-    0.3: the spec sheet of :mod:`hireps_torch.envs.hockey.env`)."""
+    """Restitution of the pucks and the blade (why 0.3: :mod:`hireps_torch.envs.hockey.env`)."""
     floor_friction: float = 0.025
     """Puck-floor Coulomb friction (ice-like)."""
     flat_pucks: bool = True
-    """Pucks that cannot tip or roll on their edge (HockeyParams.flat_pucks;
-    --no-flat-pucks: solid cylinders)."""
+    """Pucks that cannot tip or roll on their edge (--no-flat-pucks: solid cylinders)."""
     option_features: Literal["position", "aim"] = "aim"
-    """What the options are linear in: aim, the target's angle and distance seen from the
-    control puck's spot (:class:`hireps_torch.envs.hockey.aim.AimFeatures`); position, its
-    (x, y) in m."""
+    """What the options are linear in: aim, the target's angle and distance from the control
+    puck's spot (:class:`~hireps_torch.envs.hockey.aim.AimFeatures`); position, its (x, y)."""
     final_eval_episodes: int | None = None
-    """Episodes on which the final policy is evaluated after training (None: one iteration's
-    worth, episodes_per_iteration; 0: none), both noise-free (``eval_average_reward`` in
-    summary.json) and with its exploration (``final_policy_average_reward``, the paper's
-    "average reward", of the final policy), from starts that no training episode used."""
+    """Final-policy evaluation episodes (None: episodes_per_iteration; 0: none), noise-free
+    (eval_average_reward) and exploring (final_policy_average_reward, the paper's "average
+    reward"), from starts no training episode used."""
     aim_slopes: bool = True
     """Start every option's mean with the slopes of the kinematic aim mapping
-    (:mod:`hireps_torch.envs.hockey.aim`): the demo swing turned about the control puck's
-    spot toward the observed target, linearised at the start distribution's mean.
-    --no-aim-slopes: slopes start at zero (the demo shot wherever the target is)."""
+    (:mod:`hireps_torch.envs.hockey.aim`) at the start mean; --no-aim-slopes: zero slopes."""
 
 
 @dataclass(frozen=True)
@@ -163,9 +139,7 @@ def _hockey_rows(
 
 
 def _exploration_std(cfg: HockeyConfig, repeats: int, demo: torch.Tensor) -> torch.Tensor:
-    """(14 * repeats,) initial std: goal positions then goal velocities, per shot. With
-    ``velocity_std_fraction`` the goal velocities' std is that fraction of the demo's goal
-    velocity of each joint, at least ``min_velocity_std``."""
+    """(14 * repeats,) initial std: goal positions then goal velocities, per shot."""
     if cfg.velocity_std_fraction > 0:
         velocity = (cfg.velocity_std_fraction * demo[7:14].abs()).clamp_min(cfg.min_velocity_std)
     else:
@@ -175,8 +149,7 @@ def _exploration_std(cfg: HockeyConfig, repeats: int, demo: torch.Tensor) -> tor
 
 
 def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params: Any) -> Algorithm:
-    """Time-indexed HiREPS with one 14-dim policy per shot, or episodic HiREPS over all
-    3 x 14 numbers, both starting at the demonstration shot (aimed with ``aim_slopes``)."""
+    """Time-indexed (14 per shot) or episodic (3 x 14) HiREPS, starting at the demo shot."""
     sequential = isinstance(cfg, HockeySequentialConfig)
     std = _exploration_std(cfg, 1 if sequential else n_shots, demo)
     common: dict[str, Any] = dict(
@@ -206,13 +179,8 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params:
 
 
 def _aim_options(algo: Algorithm, demo: torch.Tensor, params: Any) -> None:
-    """Give every option of every policy the aim mapping's slopes, linearised at the start
-    mean p0: mean = bias + W (f(p) - f(p0)) on the options' features f (the target position,
-    or with ``option_features = "aim"`` its angle and distance, W then the turn's derivative
-    on the angle and 0 on the distance), keeping each option's mean at p0. A shot that hits
-    the target sends it along the line from the control puck's spot, so the later shots of an
-    episode (and the episodic variant's 3 x 14 numbers, on the start position) need the same
-    turn: every shot gets the same W."""
+    """Every option's mean = bias + W (f(p) - f(p0)) on its features f, W the aim mapping's
+    slopes at the start mean p0 (the same for every shot), its mean at p0 kept."""
     from hireps_torch.envs.hockey.aim import AimFeatures, aim_slopes, turn_derivative
     from hireps_torch.features import IdentityFeatures
 
@@ -309,9 +277,8 @@ def _make_env(env_id: str, sequential: bool, params: Any = None) -> Any:
 
 def variance_floor(cfg: HockeyConfig, std: torch.Tensor, update: int, updates: int) -> torch.Tensor:
     """The options' variance floor (D,) for update ``update`` (0-based) of ``updates``:
-    ``(f std)^2``, at least ``min_variance``, with the fraction ``f`` moving linearly from
-    ``exploration_floor`` at the first update to ``exploration_floor_end`` at the last (constant
-    when that is None)."""
+    ``(f std)^2``, at least ``min_variance``, ``f`` linear from ``exploration_floor`` to
+    ``exploration_floor_end`` (constant when that is None)."""
     f = cfg.exploration_floor
     if cfg.exploration_floor_end is not None and updates > 1:
         t = min(max(update, 0), updates - 1) / (updates - 1)
@@ -325,10 +292,8 @@ def _update(
     zones: tuple[float, float, float, float],
     floor: Callable[[int], torch.Tensor] | None = None,
 ) -> Any:
-    """One iteration: whole K-shot episodes (K = 1 step for the episodic variant) into one
-    ``learn``; per-shot diagnostics become columns ``<name>_<shot>``. ``floor(i)``, if given,
-    is the options' variance floor for update ``i`` (``algo.iteration``, so a resumed run
-    continues the schedule)."""
+    """One iteration: whole K-shot episodes into one ``learn`` (per-shot diagnostics as columns
+    ``<name>_<shot>``), the options' variance floor ``floor(algo.iteration)`` set first."""
     from hireps_torch.rollout import episodes
 
     def update(batch: Any) -> list[dict[str, Any]]:
@@ -352,19 +317,15 @@ def _update(
 
 
 EVAL_FIRST_EPISODE = 10**9
-"""Index of the first evaluation episode: its start and noise come from ``(seed, index)``
-(:func:`~hireps_torch.experiments.workers.episode_seeds`), and no run plays a billion
-training episodes."""
+"""Index of the first evaluation episode (no run trains that long)."""
 
 
 def evaluate_final_policy(
     cfg: HockeyConfig, policies: list[Any], params: Any, n_episodes: int
 ) -> dict[str, float]:
-    """The final ``policies`` on ``n_episodes`` (>= 1) fresh episodes, in this process: the
-    noise-free policy (the mean of the most probable option per shot) and the policy with its
-    exploration on the same starts. Returns ``eval_average_reward``,
-    ``eval_zone3_share``, ``eval_zone_reward`` (noise-free) and ``final_policy_average_reward``
-    (exploring)."""
+    """The final ``policies`` on ``n_episodes`` (>= 1) fresh episodes in this process:
+    ``eval_average_reward``, ``eval_zone3_share``, ``eval_zone_reward`` (noise-free) and
+    ``final_policy_average_reward`` (exploring, on the same starts)."""
     from hireps_torch.envs.hockey import ENV_ID, EPISODIC_ENV_ID
     from hireps_torch.experiments.workers import play_episodes
     from hireps_torch.rollout import episodes, policy_module, time_indexed_module
@@ -395,8 +356,7 @@ def evaluate_final_policy(
 
 
 def algorithm(cfg: HockeyConfig) -> Algorithm:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
-    :func:`run` starts from (its members' policies); writes nothing."""
+    """``cfg`` checked as :func:`run` checks it, and the untrained algorithm it starts from."""
     from hireps_torch.envs.hockey import demo_action
 
     _check(cfg)

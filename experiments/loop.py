@@ -1,19 +1,4 @@
-"""The training loops every experiment shares, and the one ending of every run.
-
-- :class:`Run`: the run directory of a new or resumed run, with what it must checkpoint.
-- :func:`collector_loop`: a TorchRL collector hands over one batch per iteration; ``update``
-  turns it into the iteration's logged fields (the policy update happens there).
-- :func:`ask_tell_loop`: no environment process at all; ``step`` asks the algorithm, scores
-  the samples and tells it back (the toy objectives, a real robot driven from Python).
-- :func:`finish_run`: final checkpoint, learning-curve plot and ``summary.json``, in that
-  order, so a directory holding ``summary.json`` is a finished run.
-
-Every loop writes one row per iteration to the run directory, a checkpoint after every
-``checkpoint_every`` iterations, and shows a tqdm progress bar. SIGINT/SIGTERM stop the loop
-at the next iteration boundary with a checkpoint written (:func:`stop_on_signals`); ``--resume``
-continues from it and ends exactly as the uninterrupted run would. Nothing here reads a config
-object beyond the shared :class:`RunOptions`.
-"""
+"""The training loops every experiment shares, and the one ending of every run."""
 
 from __future__ import annotations
 
@@ -64,17 +49,15 @@ Postfix = Callable[[dict[str, Any]], dict[str, Any]]
 
 @dataclass(frozen=True)
 class Resume:
-    """A run to continue: its directory and its checkpoint (None: it stopped before its
-    first iteration ended, so it starts over in the same directory)."""
+    """A run to continue: its directory and checkpoint (None: it starts over there)."""
 
     run_dir: Path
     checkpoint: CheckpointState | None
 
 
 def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
-    """Check the run options and, for ``cfg.resume``, that the run can be continued: it
-    exists, has not finished (:class:`RunFinished`), and was started with the same options
-    (a ``ValueError`` naming every option that differs). Call it before building anything."""
+    """Check the run options and, for ``cfg.resume``, that the run exists, has not finished
+    (:class:`RunFinished`) and has the same options; call it before building anything."""
     cfg.check_run_options()
     if cfg.resume is None:
         return None
@@ -145,8 +128,7 @@ def _checked_resume(experiment: str, cfg: RunOptions, run_dir: Path) -> Resume:
 
 
 def _logged_rows(path: Path) -> int:
-    """The data rows of a ``metrics.csv`` (0 if there is none); a ``ValueError`` naming it
-    when it is there but not a file."""
+    """The data rows of a ``metrics.csv`` (0 if absent; a ``ValueError`` if not a file)."""
     if path.exists() and not path.is_file():
         raise ValueError(f"{path} is not a file; move it away (nothing was changed)")
     if not path.is_file():
@@ -156,13 +138,7 @@ def _logged_rows(path: Path) -> int:
 
 @dataclass(frozen=True)
 class Members:
-    """The seeds a run learns and where each writes.
-
-    One seed (``--seed``) writes the run directory itself. A population (``--seeds``) writes
-    member s in ``<root>/seed<s>`` what ``--seed s`` writes in its run directory (its own
-    ``config.json`` with its seed, ``metrics.csv``, plots, ``summary.json``); the root holds
-    the population's ``config.json``, ``checkpoint.pt``, ``summary.json`` and the table and
-    band plot of the members.
+    """The seeds a run learns and where each writes (member s of a population: ``seed<s>``).
 
     Attributes:
         seeds: the members' seeds.
@@ -197,8 +173,7 @@ class Members:
 
 
 class Run:
-    """An open run (new, or reopened from a checkpoint): its members' run directories and
-    the state it saves.
+    """An open run (new, or reopened from a checkpoint): its members' writers and its state.
 
     Args:
         experiment: the experiment's name (``config.json``'s ``experiment``).
@@ -278,8 +253,7 @@ class Run:
         }
 
     def end_iteration(self, iteration: int, force: bool = False) -> None:
-        """Checkpoint now if due (or ``force``); otherwise keep the snapshot in memory so an
-        error or a second interrupt before the next checkpoint can still write it."""
+        """Checkpoint now if due (or ``force``), else keep the snapshot for :meth:`save_unsaved`."""
         snap = self.snapshot(iteration)
         if force or iteration % self.every == 0:
             self.root.checkpoint(snap)
@@ -294,10 +268,8 @@ class Run:
 
 
 def keep_freed_memory(pad: int = 1 << 30) -> bool:
-    """Where the C library is glibc, have ``malloc`` keep up to ``pad`` bytes of freed heap
-    for reuse (``mallopt(M_TOP_PAD)``) rather than hand it back to the system, so that a
-    population's large temporaries are not faulted in afresh at every update. Process-wide;
-    elsewhere it does nothing. Returns whether it was set."""
+    """Have glibc's ``malloc`` keep up to ``pad`` bytes of freed heap (``mallopt(M_TOP_PAD)``,
+    process-wide); returns whether it was set (why: benchmarks/README.md, "population.py")."""
     name = ctypes.util.find_library("c")
     try:
         libc = ctypes.CDLL(name)
@@ -316,9 +288,7 @@ def _iterate(
     postfix: Postfix,
     progress: bool,
 ) -> None:
-    """Iterations ``run.start_iteration .. iterations - 1``: ``step(it, item)`` gives one row
-    per member; log them, checkpoint, and stop cleanly at a boundary after SIGINT/SIGTERM.
-    The progress bar shows ``postfix`` of the members' mean row."""
+    """Iterations of ``step(it, item)`` (one row per member): log, checkpoint, stop on signals."""
     S = len(run.writers)
     if S > 1:
         label = f"{label}/{S} seeds"
@@ -367,16 +337,11 @@ def collector_loop(
     sync_weights: bool = False,
     progress: bool = True,
 ) -> Run:
-    """The training loop of every experiment that collects with TorchRL.
-
-    Opens the run (``open_run()``; a resumed run restores its state there), then for every
-    collected batch: ``update(batch)`` (the policy update; returns the iteration's logged
-    fields, one dict per member), a weight sync to the worker processes when
-    ``sync_weights``, one logged row per member (``iteration``, ``episodes`` and the
-    fields), a checkpoint when due and a progress-bar step showing ``postfix(row)``. The
-    collector is shut down however the loop ends (also when the run cannot be opened).
-    Returns the run for :func:`finish_run`.
-    """
+    """The loop of every experiment that collects with TorchRL: ``open_run()``, then per batch
+    ``update(batch)`` (the policy update; one dict of logged fields per member), a weight sync
+    when ``sync_weights``, one row per member (``iteration``, ``episodes``, the fields) and a
+    checkpoint when due. The collector is shut down however the loop ends. Returns the run
+    for :func:`finish_run`."""
     from hireps_torch.rollout import shutdown_collector
 
     try:
@@ -412,10 +377,7 @@ def ask_tell_loop(
     postfix: Postfix,
     progress: bool = True,
 ) -> Run:
-    """Rounds ``run.start_iteration .. iterations - 1`` of ``step(it)`` (ask, evaluate, tell;
-    returns the logged row of each member), a checkpoint when due and one progress-bar step
-    each.
-    Returns the run for :func:`finish_run`."""
+    """Rounds of ``step(it)`` (ask, evaluate, tell: one row per member); returns the run."""
     _iterate(
         run,
         repeat(None),
@@ -433,11 +395,9 @@ def infinite_horizon_update(
     row: Callable[[torch.Tensor, torch.Tensor], list[dict[str, Any]]],
     augment: Callable[..., tuple[torch.Tensor, ...]] | None = None,
 ) -> Callable[[Any], list[dict[str, Any]]]:
-    """The per-batch step of the pendulum and the beam: one ``algo.update`` of all members
-    on the batch's decisions ((S B, T) systems, member after member; terminal ones flagged;
-    passed through ``augment(s, a, r, s', terminated)`` first when given), then
-    ``row(rewards, terminated)`` ((S, B T) collected decisions) for the task's own columns
-    (after the update), each member's followed by its update diagnostics."""
+    """The per-batch step of the pendulum and the beam: one ``algo.update`` of all members on
+    the batch's decisions (through ``augment(s, a, r, s', terminated)`` when given), then each
+    member's ``row(rewards, terminated)`` fields (both (S, B T)) and update diagnostics."""
     from hireps_torch.rollout import transitions
 
     def update(batch: Any) -> list[dict[str, Any]]:
@@ -463,12 +423,10 @@ def finish_run(
     ylabel: str = "return",
     extra_plots: Sequence[Iterable[Callable[[Path], None]]] | None = None,
 ) -> dict[str, Any]:
-    """The ending of every run: the final ``checkpoint.pt`` (``finished``); for each member
-    its learning curve ``learning_curve.png`` (columns ``curve[1]`` of ``metrics.csv``
-    against ``curve[0]``), its ``extra_plots`` (each called with its run directory), then its
-    ``summary.json`` (plus ``wall_seconds``), which marks it finished; for a population the
-    members' table and band plot and the population's ``summary.json``. Returns the summary
-    (of the one member, or of the population)."""
+    """The ending of every run: the final checkpoint; per member ``learning_curve.png``
+    (``curve[1]`` against ``curve[0]``), its ``extra_plots`` (called with its run directory)
+    and ``summary.json`` (plus ``wall_seconds``); for a population also the members' table,
+    band plot and summary. Returns the summary (of the member, or of the population)."""
     run.root.checkpoint(run.snapshot(len(run.writers[0].rows), finished=True))
     plots = extra_plots or [[] for _ in run.writers]
     written = []
@@ -483,8 +441,7 @@ def finish_run(
 
 
 def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, Any]:
-    """``population.md``, ``population.json`` and ``population.png`` of the members (as a
-    sweep writes them), then the population's ``summary.json``; returns it."""
+    """The members' ``population.*`` files (as a sweep writes them), then its summary."""
     from hireps_torch.experiments.sweep import METRICS, SweepRun, summarize
 
     experiment, seeds, root = run.experiment.replace("_", "-"), run.members.seeds, run.root.dir
@@ -516,8 +473,7 @@ MAX_WORKERS = 1024
 
 
 def check_budget(episodes: int, episodes_per_iteration: int, **positive: int) -> int:
-    """Every count in ``positive`` >= 1 (the error names it) and at least one iteration's
-    episodes; returns the number of iterations."""
+    """Every count >= 1 and at least one iteration's episodes; returns the iterations."""
     for name, value in {**positive, "episodes_per_iteration": episodes_per_iteration}.items():
         top = MAX_WORKERS if name == "workers" else MAX_COUNT
         if not 1 <= value <= top:

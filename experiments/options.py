@@ -38,15 +38,12 @@ class RunOptions:
     """Seed of every random generator of the run (same seed, same run)."""
     seeds: str | None = None
     """Run these seeds as one population in one process (0-19, 0,3,7 or 0-2,9; bimodal,
-    pendulum and ball-on-beam): member s writes what --seed s writes, in <run-dir>/seed<s>;
-    <run-dir> gets the population's config.json, checkpoint.pt, summary.json, population.md
-    and population.png (mean +- std band). Replaces --seed."""
+    pendulum and ball-on-beam; replaces --seed): member s writes what --seed s writes, in
+    <run-dir>/seed<s>; <run-dir> gets the population's summary, table and band plot."""
     run_dir: Path | None = None
-    """Where to write the run (default runs/<experiment>/<timestamp>); must not exist or be
-    empty."""
+    """Where to write the run (default runs/<experiment>/<timestamp>); new or empty."""
     resume: Path | None = None
-    """Continue the interrupted run in this directory (its config.json gives the options;
-    options given again must agree). A finished run is reported, not rerun."""
+    """Continue the interrupted run in this directory (options given again must agree)."""
     checkpoint_every: int = 1
     """Write checkpoint.pt after every this many iterations (and on SIGINT/SIGTERM)."""
     progress: bool = True
@@ -54,15 +51,12 @@ class RunOptions:
     logger: LoggerName = "csv"
     """csv: metrics.csv only; tensorboard / wandb: also send every row to that TorchRL logger."""
     device: str = "cpu"
-    """Where the run computes: cpu, cuda, cuda:1, ... The policies, the batched simulation
-    and the float64 duals live there; the sampling generators stay on the CPU, so a seed
-    draws the same noise on every device. Hockey (pybullet) runs on the CPU."""
+    """Where the run computes: cpu, cuda, cuda:1, ... (the sampling generators stay on the
+    CPU: a seed draws the same noise on every device; hockey runs on the CPU)."""
 
     def check_run_options(self) -> None:
-        """Refuse bad run options before anything is built or written: every option of the
-        type its annotation says (a ``--logger`` among the known ones), then the run options'
-        ranges and a ``--run-dir`` that is a file, a non-empty directory or under a file
-        (nothing there is touched)."""
+        """Refuse bad run options (types, ranges, a ``--run-dir`` in the way) before anything
+        is built or written."""
         check_types(self)
         if not -(2**62) <= self.seed <= 2**62:
             raise ValueError(f"seed must be an integer in [-2**62, 2**62], got {self.seed}")
@@ -82,8 +76,7 @@ class RunOptions:
 
 
 def check_run_device(device: str) -> torch.device:
-    """``--device`` as a ``torch.device``: a name torch knows, present on this machine; a
-    ``ValueError`` naming it otherwise."""
+    """``--device`` as a ``torch.device`` present here (a ``ValueError`` naming it if not)."""
     try:
         dev = check_device(device)
     except ValueError:
@@ -102,10 +95,8 @@ STREAMS = ("policy", "sampling", "env", "eval", "contexts")
 
 
 def stream_seed(seed: int, stream: str) -> int:
-    """The seed of stream ``stream`` (one of :data:`STREAMS`) of the run with ``seed``, in
-    [0, 2**32) (what torch, numpy and TorchRL's workers all take): the one place where a
-    run's generators get their seeds (numpy's ``SeedSequence`` of ``(seed, stream index)``:
-    streams of one run, and of neighbouring seeds, are unrelated)."""
+    """The seed in [0, 2**32) of stream ``stream`` (one of :data:`STREAMS`) of the run with
+    ``seed``: numpy's ``SeedSequence`` of ``(seed, stream index)``, so streams are unrelated."""
     import numpy as np
 
     entropy = (seed % 2**64, STREAMS.index(stream))
@@ -118,9 +109,8 @@ def member_seeds(cfg: RunOptions) -> list[int]:
 
 
 def check_new_run_dir(run_dir: Path) -> None:
-    """A new run's directory must not exist or be empty, and must be creatable: a
-    ``FileExistsError`` for a file or a non-empty directory, a ``ValueError`` naming the
-    file or the unwritable directory in the way (nothing is created or changed here)."""
+    """Refuse a new run's directory that is a file or non-empty (``FileExistsError``) or that
+    cannot be created (``ValueError``); creates nothing."""
     if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
         what = "is not empty" if run_dir.is_dir() else "is a file"
         raise FileExistsError(
@@ -139,17 +129,14 @@ def check_new_run_dir(run_dir: Path) -> None:
 def option_error(
     name: str, value: Any, want: str, error: type[Exception] = ValueError
 ) -> Exception:
-    """The error of an option with a bad value: names the option as in the config and as
-    spelled on the command line, what it must be, and the value."""
+    """The error ``name (--flag) must be <want>, got <value>`` of an option."""
     flag = "--" + name.replace("_", "-")
     return error(f"{name} ({flag}) must be {want}, got {value!r}")
 
 
 def check_types(cfg: Any) -> None:
-    """Every field of the config dataclass ``cfg`` of its annotated type: ``int`` (not a
-    bool or a float), ``float`` (a real number, not a bool), ``bool``, one of a ``Literal``'s
-    values, a ``Path`` (or str), each optionally ``| None``. A ``TypeError`` (a ``ValueError``
-    for a value outside a ``Literal``) names the option and the value."""
+    """Every field of ``cfg`` of its annotated type (bools are not numbers); a ``TypeError`` (a
+    ``ValueError`` outside a ``Literal``) names the option and the value."""
     hints = typing.get_type_hints(type(cfg))
     for f in dataclasses.fields(cfg):
         _check_type(f.name, getattr(cfg, f.name), hints[f.name])
@@ -184,17 +171,14 @@ ABSENT_MEANS = {
     "option_goal_offset": False,
     "epsilon_end": None,
 }
-"""Options added after run directories were first written, with the value that reproduces
-the runs from before they existed. ``config.json`` leaves an option out at that value, so old
-and new run directories compare equal (resume, sweeps), and an old run directory without the
-option is resumed with it (:func:`hireps_torch.experiments.checkpoint.saved_config`), even where the
-default has changed since (``option_goal_offset``)."""
+"""Options added after the first run directories, with the value that reproduces the older
+runs: ``config.json`` leaves an option out at that value, so old and new directories compare
+equal, and an old one is resumed with it (even where the default has changed since)."""
 
 
 def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
     """``config.json``'s content: the experiment's name and every option, JSON-ready
-    (``seeds`` only in a population's and ``device`` only where it is not the CPU: an
-    ordinary run's config is as it always was)."""
+    (``seeds`` only for a population; options at their :data:`ABSENT_MEANS` value left out)."""
     options = dataclasses.asdict(cfg)
     if options.get("seeds", "") is None:
         del options["seeds"]
@@ -242,10 +226,9 @@ def check_options(
     positive: tuple[str, ...] = (),
     nonnegative: tuple[str, ...] = (),
 ) -> None:
-    """Refuse bad option values before anything is built or written: ``counts`` must be
-    integers >= 1, ``positive`` finite numbers > 0, ``nonnegative`` finite numbers >= 0
-    (None is allowed where the option's type allows it). The message names the option (as
-    spelled on the command line) and the value."""
+    """Refuse bad values before anything is built: ``counts`` integers >= 1, ``positive``
+    finite > 0, ``nonnegative`` finite >= 0 (None where the type allows it), after
+    :func:`check_types`; the message names the option and the value."""
     import math
 
     check_types(cfg)
@@ -266,8 +249,7 @@ def check_options(
 
 
 def check_variance_floor(cfg: Any) -> None:
-    """``cfg.min_variance`` within the floors the options take
-    (:data:`~hireps_torch.policies.linear_gaussian.FLOOR_RANGE`)."""
+    """``cfg.min_variance`` within :data:`~hireps_torch.policies.linear_gaussian.FLOOR_RANGE`."""
     import math
 
     from hireps_torch.policies.linear_gaussian import FLOOR_RANGE

@@ -1,10 +1,4 @@
-"""Pendulum swing-up with infinite-horizon HiREPS (paper Figs 16-18).
-
-``python train.py pendulum [--gating learned|constant|flat] [--n-options O]
-[--steps-per-decision d]``: batched pendulums collected with TorchRL, one infinite-horizon
-update per batch of decisions (plus their mirror images), a noise-free swing-up evaluation
-at the end.
-"""
+"""Pendulum swing-up with infinite-horizon HiREPS (paper Figs 16-18)."""
 
 from __future__ import annotations
 
@@ -75,8 +69,7 @@ class PendulumConfig(RunOptions):
     episodes_per_iteration: int = 20
     """Episodes per policy update = parallel pendulums."""
     episode_seconds: float = 10.0
-    """Simulated time per episode (s): one pendulum's experience between two updates (the
-    mean time between restarts is 12.5 s at d = 5)."""
+    """Simulated time per episode (s): one pendulum's experience between two updates."""
     kp: float = 60.0
     """PD controller stiffness (N m / rad)."""
     kd: float = 10.0
@@ -84,53 +77,42 @@ class PendulumConfig(RunOptions):
     start_noise: float = 0.1
     """Std of the start perturbation around hanging down (rad and rad/s)."""
     reset_each_iteration: bool = False
-    """Start every iteration's episodes from the start distribution. Off by default: the
-    pendulums run on across iterations, restarting only at the restart probability, so the
-    samples follow the restart process's stationary distribution, as the dual assumes."""
+    """Restart every iteration's episodes (off: the pendulums run on across iterations)."""
     epsilon: float = 0.5
     """KL bound of the first update (nats)."""
     epsilon_end: float | None = 0.1
-    """KL bound of the last update (nats): the bound moves linearly from ``epsilon`` at the
-    first update to this at the last (None: ``epsilon`` throughout; why 0.1:
-    benchmarks/README.md, "Pendulum defaults")."""
+    """KL bound of the last update (nats), linear from epsilon at the first (None: epsilon
+    throughout; why 0.1: benchmarks/README.md, "Pendulum defaults")."""
     kappa_rel: float = 0.9
     """Entropy bound relative to the mean responsibility entropy (learned gating only)."""
     init_std: float = 1.5
     """Initial exploration std of the desired angle (rad)."""
     mirror_samples: bool = True
-    """Also update on the mirror image (-theta, -theta', -desired angle) of every decision,
-    under which the task is symmetric (not in the paper; why: benchmarks/README.md, "Pendulum
-    defaults")."""
+    """Also update on the mirror image (-theta, -theta', -desired angle) of every decision (not
+    in the paper; why: benchmarks/README.md, "Pendulum defaults")."""
     init_means: Literal["spaced", "random"] = "spaced"
-    """Initial option means (desired angles, no feedback yet): spaced evenly over
-    [-2 pi, 2 pi] (one option per cell centre, so there are options that push either way at
-    full torque), or random around 0 with std ``init_std``."""
+    """Initial option means (desired angles): spaced over [-2 pi, 2 pi], or random (init_std)."""
     min_variance: float = 1e-4
     """Floor on the option variance (rad^2)."""
     fourier_bases: int = 5
     """Fourier bases per state dimension of the value features."""
     value_features: Literal["fourier", "fourier+quadratic"] = "fourier+quadratic"
-    """Value features: the Fourier basis alone, or next to the gating's squared expansion
-    (which adds a quadratic bowl around upright and, with the basis's cos(theta), the energy)."""
+    """Value features: the Fourier basis alone, or next to the gating's squared expansion."""
     max_velocity: float = 10.0
-    """Velocity range (rad/s) the Fourier and gating features are scaled to (a pendulum with
-    the energy of upright at rest passes the bottom at sqrt(4 g / l) = 8.9 rad/s)."""
+    """Velocity range (rad/s) the Fourier and gating features are scaled to."""
     workers: int = 1
     """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
     eval_rollouts: int = 50
-    """Noise-free evaluation rollouts (5 s each) at the end and every ``eval_every``
-    iterations."""
+    """Noise-free evaluation rollouts (5 s each), at the end and every eval_every iterations."""
     eval_every: int = 5
     """Evaluate the noise-free policy every this many iterations (columns eval_success_rate
-    and eval_return, nan in the other rows; ~0.1 s each); the summary's episodes_to_success
-    is the first evaluation with success >= 0.9 (the final one included; None: none). 0: only
-    at the end."""
+    and eval_return, nan in the other rows; 0: only at the end); the summary's
+    episodes_to_success is the first evaluation (the final included) with success >= 0.9."""
 
 
 def epsilon_at(cfg: PendulumConfig, update: int, updates: int) -> float:
-    """The KL bound of update ``update`` (0-based) of ``updates``: ``epsilon`` at the first,
-    ``epsilon_end`` at the last, linear in between (``epsilon`` throughout when
-    ``epsilon_end`` is None or there is one update)."""
+    """The KL bound of update ``update`` (0-based) of ``updates``: linear from ``epsilon`` to
+    ``epsilon_end`` (``epsilon`` throughout when that is None or there is one update)."""
     if cfg.epsilon_end is None or updates <= 1:
         return cfg.epsilon
     t = min(max(update, 0), updates - 1) / (updates - 1)
@@ -192,8 +174,7 @@ def build_pendulum_policy(cfg: PendulumConfig, generator: torch.Generator) -> Hi
 def _make_algorithm(
     cfg: PendulumConfig, params: PendulumParams, seeds: list[int]
 ) -> InfiniteHorizonHiREPS:
-    """The members' policies and the algorithm (value features, 1000 start states per member
-    for phi_hat_0), member s's from the streams of ``seeds[s]``."""
+    """The members' algorithm, member s's from the streams of ``seeds[s]``."""
     gens = [torch.Generator().manual_seed(stream_seed(s, "policy")) for s in seeds]
     policy = HierarchicalPolicy.stack([build_pendulum_policy(cfg, g) for g in gens])
     return InfiniteHorizonHiREPS(
@@ -215,8 +196,7 @@ def _make_collector(
     iterations: int,
     seeds: list[int],
 ) -> Any:
-    """``episodes_per_iteration`` pendulums per member (split over the workers for one
-    member), ``episode_seconds`` of decisions each per batch."""
+    """``episodes_per_iteration`` pendulums per member, ``episode_seconds`` each per batch."""
     from hireps_torch.rollout import make_collector, policy_module
 
     B, dev = cfg.episodes_per_iteration, torch.device(cfg.device)
@@ -281,15 +261,13 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
 
 
 def algorithm(cfg: PendulumConfig) -> InfiniteHorizonHiREPS:
-    """Every option of ``cfg`` checked, as :func:`run` checks it, and the untrained algorithm
-    :func:`run` starts from (its members' policies); writes nothing."""
+    """``cfg`` checked as :func:`run` checks it, and the untrained algorithm it starts from."""
     params, _ = _checked(cfg)
     return _make_algorithm(cfg, params, member_seeds(cfg))
 
 
 def run(cfg: PendulumConfig) -> dict[str, Any]:
-    """Infinite-horizon HiREPS on the swing-up, one seed or a population; returns the
-    summary."""
+    """Infinite-horizon HiREPS on the swing-up, one seed or a population; returns the summary."""
     params, iterations = _checked(cfg)
     B = cfg.episodes_per_iteration
     resume = resume_point("pendulum", cfg)
@@ -356,8 +334,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
 def _scheduled(
     cfg: PendulumConfig, algo: InfiniteHorizonHiREPS, updates: int, step: Callable[[Any], Any]
 ) -> Callable[[Any], Any]:
-    """``step`` with the KL bound of :func:`epsilon_at` set first (from ``algo.iteration``, so
-    a resumed run continues the schedule)."""
+    """``step`` with the KL bound :func:`epsilon_at` of ``algo.iteration`` set first."""
 
     def scheduled(batch: Any) -> Any:
         algo.epsilon = epsilon_at(cfg, algo.iteration, updates)

@@ -1,15 +1,6 @@
-"""Run directories: config, per-iteration metrics, summary, checkpoint and plots.
-
-A run directory holds ``config.json``, ``metrics.csv`` (one row per iteration, flushed as it
-goes), ``checkpoint.pt``, ``learning_curve.png`` and, last, ``summary.json``: a directory
-without ``summary.json`` is an unfinished run. Files are written to a temporary name and moved
-into place, so an interrupted run never leaves a half-written JSON or checkpoint, and an
-existing non-empty directory is never reused (nothing a user wrote is overwritten).
-
-``metrics.csv`` is the run's own record (summaries, plots and benchmarks read it). Every row
-is also sent to a TorchRL logger when one is chosen (``--logger tensorboard`` or ``wandb``:
-:func:`torchrl.record.loggers.get_logger`, writing under the run directory); ``csv`` (the
-default) is ``metrics.csv`` alone.
+"""Run directories: ``config.json``, ``metrics.csv`` (one row per iteration),
+``checkpoint.pt``, ``learning_curve.png`` and, last, ``summary.json`` (a directory without it is
+an unfinished run). Files are written atomically; a non-empty directory is never reused.
 """
 
 from __future__ import annotations
@@ -61,9 +52,8 @@ def _umask() -> int:
 
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place. A
-    write that fails (a full disk, a file size limit) is an ``OSError`` naming ``path``; the
-    file there before is left as it was."""
+    """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place; a
+    failed write is an ``OSError`` naming ``path`` (the file there before is kept)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
@@ -82,12 +72,9 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
 
 
 class DirectoryLock:
-    """The exclusive lock of a directory, for one writer per run directory: ``flock`` on the
-    directory itself, which the system drops when the process ends, however it ends (a crash
-    leaves nothing stuck), and :meth:`release` (or garbage collection) drops earlier. A
-    directory that another process holds is a ``BlockingIOError`` naming it. Where the
-    platform or the file system has no such locks (Windows, some network mounts) the
-    directory is used without one."""
+    """An exclusive ``flock`` on a directory (one writer per run directory) until
+    :meth:`release`, garbage collection or the process's end; one another process holds is a
+    ``BlockingIOError``. Without such locks (Windows, some network mounts) it does nothing."""
 
     def __init__(self, directory: Path) -> None:
         self.release: Callable[[], Any] = lambda: None
@@ -131,13 +118,10 @@ class RunWriter:
     Args:
         run_dir: the directory; created, and refused if it exists and is not empty (unless
             ``rows`` is given: a run being resumed).
-        config: the run's configuration (written to ``config.json`` at once; kept as it is
-            when resuming).
-        logger: ``csv`` (``metrics.csv`` only), or ``tensorboard`` / ``wandb`` to also send
-            every row to that TorchRL logger (event files under ``<run_dir>/tensorboard``,
-            an offline W&B run under ``<run_dir>/wandb`` unless ``WANDB_MODE`` says otherwise).
-        rows: when resuming, the ``metrics.csv`` rows of the checkpoint: ``metrics.csv`` is
-            rewritten to hold exactly them (rows logged after the checkpoint are dropped).
+        config: written to ``config.json`` (kept as it is when resuming).
+        logger: ``csv`` (``metrics.csv`` only), ``tensorboard`` or ``wandb`` (also that TorchRL
+            logger, under ``run_dir``; W&B offline unless ``WANDB_MODE`` says otherwise).
+        rows: when resuming, the checkpoint's rows: ``metrics.csv`` is rewritten to hold them.
         elapsed: when resuming, the seconds the run had taken so far.
     """
 
@@ -288,11 +272,8 @@ class RunWriter:
 
 
 def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
-    """The TorchRL logger that mirrors ``metrics.csv``: None for ``csv``.
-
-    Raises a ``ValueError`` naming an unknown kind, and an ``ImportError`` naming the package
-    (and the extra that installs it) when the backend is missing, before anything is written.
-    """
+    """The TorchRL logger that mirrors ``metrics.csv`` (None for ``csv``); a ``ValueError``
+    for an unknown kind, an ``ImportError`` naming a missing package."""
     if kind not in LOGGERS:
         raise ValueError(f"logger must be one of {', '.join(LOGGERS)}, got {kind!r}")
     if kind == "csv":

@@ -1,17 +1,7 @@
-"""A trained run loaded back: its config, its algorithm as saved, and a policy to act with.
+"""A trained run loaded back at its last checkpoint: config, algorithm and policy::
 
-:func:`load_run` (also ``hireps_torch.load_run``) reads a run directory that ``hireps-train``
-wrote (finished or interrupted, of any experiment), or a member ``<dir>/seed<s>`` of a
-population, and rebuilds what the run held at its last checkpoint::
-
-    run = hireps_torch.load_run("runs/pendulum/20261202-100000")
-    actions = run.mean_action(states)          # (N, C) -> (N, D), the final policy's mean
-    run.algorithm.state_dict()                 # the run's algorithm, as saved
-
-The algorithm is the one the run learned with, its ``state_dict()`` the checkpoint's: for the
-batched experiments a population of S = 1 members (its inputs and outputs have a leading 1),
-for hockey an ordinary algorithm. :meth:`LoadedRun.mean_action` and :meth:`LoadedRun.sample`
-take and return the ordinary shapes for both.
+run = hireps_torch.load_run("runs/pendulum/20261202-100000")
+actions = run.mean_action(states)          # (N, C) -> (N, D), the final policy's mean
 """
 
 from __future__ import annotations
@@ -43,8 +33,8 @@ class LoadedRun:
         run_dir: the directory loaded.
         experiment: its experiment's command-line name (``pendulum``, ``hockey-sequential``, ...).
         config: the experiment's config as the run used it (``run_dir`` where it is now).
-        algorithm: the run's algorithm with the checkpoint's state, on the CPU (a population
-            of one for the batched experiments, see the module docstring).
+        algorithm: the run's algorithm with the checkpoint's state, on the CPU (batched
+            experiments: a population of S = 1, its inputs and outputs with a leading 1).
         iteration: iterations done.
         finished: whether the run finished (``summary.json`` written).
         metrics: the rows of its ``metrics.csv`` (one dict per iteration), from the checkpoint.
@@ -59,14 +49,12 @@ class LoadedRun:
     metrics: list[dict[str, Any]]
 
     def mean_action(self, states: Tensor | int, step: int = 0) -> Tensor:
-        """The learned policy's mean action: states (N, C) -> (N, D) (at decision ``step`` of
-        a time-indexed policy; N itself for a task without states, C = 0). No exploration:
-        the action the run evaluates."""
+        """The policy's mean action (no exploration): states (N, C) -> (N, D) at decision
+        ``step``; N itself for a task without states (C = 0)."""
         return self._one(self.algorithm.mean_action, states, step)
 
     def sample(self, states: Tensor | int, step: int = 0) -> Tensor:
-        """Exploratory actions (N, C) -> (N, D) from the learned policy, drawn with the
-        algorithm's generator (its state the run's, so samples continue the run's stream)."""
+        """Exploratory actions (N, C) -> (N, D), continuing the run's generator stream."""
         return self._one(self.algorithm.sample, states, step)
 
     def _one(self, act: Callable[[Tensor, int], Tensor], states: Tensor | int, step: int) -> Tensor:
@@ -89,9 +77,7 @@ class LoadedRun:
 
 def load_run(run_dir: str | Path) -> LoadedRun:
     """Load a run directory (or a population member ``<dir>/seed<s>``) written by
-    ``hireps-train``; a ``ValueError`` names what is wrong with a directory that is not one,
-    that holds no checkpoint yet, or whose checkpoint does not fit its config. Loading
-    changes nothing on disk."""
+    ``hireps-train``, changing nothing on disk; a ``ValueError`` says what is wrong."""
     from hireps_torch.experiments import EXPERIMENTS
 
     run_dir = Path(run_dir)
@@ -140,8 +126,7 @@ def load_run(run_dir: str | Path) -> LoadedRun:
 
 
 def _build(name: str, run_dir: Path) -> tuple[Any, Algorithm]:
-    """The config in ``run_dir/config.json`` and the untrained algorithm of it; a
-    ``ValueError`` naming the file for options this code refuses."""
+    """The config in ``run_dir/config.json`` and its untrained algorithm."""
     from hireps_torch.experiments import ALGORITHMS, EXPERIMENTS
 
     config = run_config(EXPERIMENTS[name][0], name, run_dir)
@@ -210,9 +195,7 @@ def _check_member(run_dir: Path, root: Path, saved: Mapping[str, Any]) -> None:
 
 
 def _member_state(population: Any, member: Any, s: int, S: int) -> Any:
-    """Member s's part of a population's state, in the shape of ``member`` (a population of
-    one's state): tensors with a leading S and lists of S entries give their s-th, what the
-    members share is kept."""
+    """Member s's part of a population's state, shaped like ``member`` (a population of one's)."""
     if isinstance(population, Mapping):
         return {k: _member_state(v, member[k], s, S) for k, v in population.items()}
     if isinstance(population, Tensor) and population.shape != member.shape:

@@ -1,25 +1,12 @@
-"""Sweeps: a grid of configurations x seeds, each run an ordinary run directory.
+"""Sweeps: a grid of configurations x seeds, each run an ordinary run directory::
 
     hireps-train sweep --experiment pendulum --seeds 0-4 \\
         --grid n_options=1,2,5 --grid steps_per_decision=1,5 --set episodes=200 \\
         --out runs/sweep --backend ray --workers 2
 
-runs every combination of the ``--grid`` values (``--set`` fixes options for all of them) for
-every seed, each in ``OUT/<experiment>/<configuration>/seed<S>`` (the configuration's name is
-its grid values, e.g. ``n_options=5,steps_per_decision=1``; ``default`` without a grid). A
-run that finished (``summary.json``) is not run again and an interrupted one (``config.json``
-there) is resumed from its checkpoint, so running the same command again after a crash or
-Ctrl-C finishes the sweep. At the end: ``OUT/<experiment>/sweep.md`` (per configuration the
-mean, std and per-seed values of the final metric), ``sweep.json`` (every run's summary) and
-``sweep.png`` (the learning curves, mean and +-1 std band over seeds).
-
-Backends: ``local`` runs in this process (``--workers 1``) or in that many spawned processes;
-``ray`` runs one Ray task per run (``num_cpus=1``) on a local Ray instance with ``--workers``
-CPUs or the cluster at ``--ray-address``. Ray tasks fit here and Ray Tune does not need to: a
-sweep is a fixed grid of independent runs that each write their own directory and resume from
-it, with no search, scheduling or early stopping; a task whose worker dies is re-run by Ray
-and resumes the run's checkpoint. Library use: :func:`plan`, :func:`run_sweep`,
-:func:`summarize`.
+Each (configuration, seed) runs in ``OUT/<experiment>/<configuration>/seed<S>``; finished runs
+are reused and interrupted ones resumed. At the end: ``sweep.md`` (table), ``sweep.json``
+(summaries) and ``sweep.png`` (mean +- std curves).
 """
 
 from __future__ import annotations
@@ -42,7 +29,13 @@ from tqdm.auto import tqdm
 
 from hireps_torch.experiments.options import parse_seeds
 from hireps_torch.experiments.rundir import DirectoryLock
-from hireps_torch.experiments.workers import RAY_ENV, Backend, check_ray_address, import_ray
+from hireps_torch.experiments.workers import (
+    RAY_ENV,
+    Backend,
+    check_ray_address,
+    import_ray,
+    init_ray,
+)
 
 __all__ = [
     "SweepConfig",
@@ -78,13 +71,11 @@ class SweepConfig:
     """A grid of configurations x seeds of one experiment, on local processes or Ray."""
 
     experiment: str = "bimodal"
-    """The experiment (a train.py subcommand: bimodal, pendulum, ball-on-beam,
-    hockey-sequential, hockey-episodic, hockey-fixed-start)."""
+    """The experiment (a train.py subcommand such as pendulum or hockey-sequential)."""
     seeds: str = "0-4"
     """Seeds: a range 0-4, a list 0,3,7, or both 0-2,9."""
     grid: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
-    """OPTION=V1,V2,... (repeat --grid for more options): every combination is one
-    configuration."""
+    """OPTION=V1,V2,... (repeat --grid for more options): every combination is a configuration."""
     set: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """OPTION=VALUE (repeat --set for more options): fixed for every configuration."""
     out: Path = Path("runs/sweep")
@@ -129,8 +120,7 @@ def _split(entry: str, what: str) -> tuple[str, str]:
 
 
 def _typed(config_cls: type, assignments: Mapping[str, str]) -> dict[str, Any]:
-    """Option strings -> typed values, parsed by tyro as the command line would parse them
-    (so a sweep accepts exactly what ``train.py <experiment>`` accepts)."""
+    """Option strings -> typed values, parsed by tyro as ``train.py <experiment>`` does."""
 
     fields = {f.name for f in dataclasses.fields(config_cls)}
     for key in assignments:
@@ -196,8 +186,7 @@ def plan(
     seeds: Sequence[int],
     out: Path,
 ) -> list[SweepRun]:
-    """Every (configuration, seed) as a :class:`SweepRun` writing to
-    ``out/<experiment>/<name>/seed<S>``."""
+    """Every (configuration, seed) as a :class:`SweepRun` in ``out/<experiment>/<name>/seed<S>``."""
     _config_class(experiment)
     if not seeds:
         raise ValueError("a sweep needs at least one seed")
@@ -239,8 +228,7 @@ class DamagedSummary(ValueError):
 
 
 def _finished_summary(run: SweepRun) -> dict[str, Any]:
-    """A finished run's ``summary.json``, with the number the table needs; a
-    :class:`DamagedSummary` naming the file when it is damaged."""
+    """A finished run's ``summary.json`` holding its metric, else a :class:`DamagedSummary`."""
     path = Path(run.run_dir) / "summary.json"
     metric = METRICS[run.experiment][0]
     try:
@@ -370,9 +358,7 @@ def _local(
 
 
 def _in_worker(run: SweepRun, send: Any) -> None:
-    """A local worker process: one run, its outcome sent back as (kind, value). A SIGINT
-    before the run's own handler takes it is kept for the run (which then stops after its
-    first iteration with its checkpoint written): the process never stops half-way."""
+    """A local worker process: one run, its outcome sent back as (kind, value)."""
     from hireps_torch.experiments.checkpoint import record_early_stops
 
     record_early_stops()
@@ -390,9 +376,7 @@ _STOP_SECONDS = 60.0  # a run going finishes its iteration within this, or is st
 
 
 def _stop_workers(procs: Sequence[Any]) -> None:
-    """Wait for the worker processes still going (after a Ctrl-C they finish their
-    iteration and write the checkpoint); after :data:`_STOP_SECONDS` a SIGTERM (the second
-    signal: stop at once, the last checkpoint kept), then a kill: no process is left."""
+    """Wait for the workers still going; after :data:`_STOP_SECONDS` SIGTERM, then kill."""
     import time
 
     deadline = time.monotonic() + _STOP_SECONDS
@@ -422,21 +406,7 @@ def _ray(
     hockey = runs[0].experiment.startswith("hockey")
     env = RAY_ENV if hockey else {"env_vars": {"OMP_NUM_THREADS": "1"}}
     if owns:
-        if address is None:
-            ray.init(
-                num_cpus=workers,
-                include_dashboard=False,
-                log_to_driver=False,
-                configure_logging=False,
-                runtime_env=env,
-            )
-        else:
-            try:
-                ray.init(
-                    address=address, include_dashboard=False, log_to_driver=False, runtime_env=env
-                )
-            except (ConnectionError, RuntimeError) as exc:
-                raise ValueError(f"cannot join the Ray cluster at {address!r}: {exc}") from None
+        init_ray(ray, workers, address, env)
     task = ray.remote(num_cpus=1, max_retries=2)(_one_thread)
     try:
         pending = {task.remote(r): r for r in runs}
@@ -460,9 +430,8 @@ def _ray(
 
 
 def check_backend(backend: str, workers: object, ray_address: str | None) -> None:
-    """A ``ValueError`` naming a bad ``--backend``, ``--workers`` or ``--ray-address`` (and an
-    ``ImportError`` naming the extra when Ray is asked for and missing), before anything
-    runs or is written."""
+    """A ``ValueError`` naming a bad ``--backend``, ``--workers`` or ``--ray-address`` (an
+    ``ImportError`` when Ray is asked for and missing)."""
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if backend not in ("local", "ray"):
@@ -485,14 +454,10 @@ def run_sweep(
     on_result: Callable[[SweepRun, dict[str, Any]], None] | None = None,
     checked: bool = False,
 ) -> dict[tuple[str, int], dict[str, Any]]:
-    """Run every run of ``runs`` (finished ones are reused, interrupted ones resumed), in
-    the order given as far as the backend keeps it; ``on_result(run, summary)`` is called as
-    each one ends. Returns ``{(name, seed): summary}``.
-
-    Every configuration is checked before the first run (:func:`check_configurations`;
-    ``checked``: the caller did). A
-    run that fails does not stop the others: :class:`SweepFailed`, raised once all have
-    ended, names each failed run and holds the others' summaries."""
+    """Run every run of ``runs`` (finished ones reused, interrupted ones resumed), calling
+    ``on_result(run, summary)`` as each ends; returns ``{(name, seed): summary}``. The
+    configurations are checked first unless ``checked``; failed runs do not stop the others
+    and raise :class:`SweepFailed` once all have ended."""
     check_backend(backend, workers, ray_address)
     keys = [(r.name, r.seed) for r in runs]
     if len(set(keys)) != len(keys):
@@ -558,9 +523,8 @@ def summarize(
     curve: str | None = None,
     stem: str = "sweep",
 ) -> str:
-    """Write ``sweep.md`` (table), ``sweep.json`` (summaries) and ``sweep.png`` (bands) to
-    ``out`` (``stem`` names the files) and return the table. ``metric`` / ``curve`` default
-    to the experiment's (:data:`METRICS`)."""
+    """Write ``<stem>.md`` (table), ``.json`` (summaries) and ``.png`` (bands) to ``out``;
+    returns the table. ``metric`` / ``curve`` default to the experiment's :data:`METRICS`."""
     from hireps_torch.experiments.rundir import atomic_write
 
     if not runs:

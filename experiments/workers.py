@@ -1,51 +1,13 @@
-"""Whole episodes by index: in this process, in local worker processes, or on Ray.
-
-Episode ``e`` of a run with seed ``s`` is played from randomness derived from ``(s, e)``
-alone (:func:`episode_seeds`): the environment's start state is drawn after
-``env.set_seed(env_seed)`` and the policy's option and action noise come from a torch
-generator seeded with ``policy_seed``. Which worker plays an episode, how many workers there
-are and which backend runs them therefore change nothing in the result: a run with 2 Ray
-workers writes the same ``metrics.csv`` as the run in one process.
+"""Whole episodes by index: in this process, in local worker processes, or on Ray::
 
     pool = make_pool(make_env, workers=2, backend="ray")        # or "local"
     batch = pool.play(actor, seed=0, episodes=range(30), steps=3)  # (30 * 3,) TensorDict
     pool.close()
 
-:class:`EpisodeCollector` turns a pool into the iterable of per-iteration batches that
-:func:`hireps_torch.experiments.loop.collector_loop` consumes, like a TorchRL collector with
-``reset_at_each_iter=True``.
-
-Backends:
-
-- ``local``: one worker plays in this process; more run in spawned processes
-  (``concurrent.futures``). A worker process that dies breaks the pool: the pool is rebuilt
-  and the iteration's episodes are played again (``max_retries`` times).
-- ``ray``: one Ray task per worker and iteration (``ray.remote(num_cpus=1,
-  max_retries=...)``) on a local Ray instance (``ray.init(num_cpus=workers)``, no dashboard)
-  or on the cluster at ``address``. A task whose worker process dies is re-run by Ray with the
-  same arguments, so its episodes are played again, never lost or counted twice.
-
-Why Ray tasks and not TorchRL's ``RayCollector``: its remote collectors are actors that hold
-their own environment generators (so the episodes depend on the worker that played them) and
-receive the policy weights only at the start of each batch; an actor restarted after a crash
-comes back with its construction-time weights and generators. Tasks carry everything an
-episode depends on in their arguments. Inside a task the episodes are TorchRL rollouts
-(``env.rollout``) of the same TorchRL environment and policy module as everywhere else.
-
-Bit for bit: Intel MKL (torch's CPU BLAS) picks kernels whose last-bit rounding depends on
-memory layout, and the contact dynamics of robot hockey turn a last-bit difference in a DMP
-trajectory into a different shot (measured: the same 10 episodes replayed in one process after
-different histories differed by up to 4e-3 rad in the second shot's action). Every process that
-plays or updates therefore runs MKL in its reproducible mode ``MKL_CBWR=COMPATIBLE``
-(:func:`reproducible_mkl`). MKL reads the variable once, at its first call, which ``import
-torchrl`` already makes: ``train.py`` and the hockey benchmarks set it before their imports
-when they run hockey, the worker processes get it through their environment, and a Python
-session that runs hockey with workers should start with ``MKL_CBWR=COMPATIBLE`` set (a run
-warns when it is not). The other experiments keep MKL's default (measured on the pendulum:
-COMPATIBLE ran 12% slower).
-
-``ray`` is imported only when the ``ray`` backend is used (``pip install -e
-".[distributed]"``).
+Episode ``e`` draws from ``(seed, e)`` alone (:func:`episode_seeds`), so neither the worker nor
+the backend changes the result. Every process that plays or updates runs MKL as
+``MKL_CBWR=COMPATIBLE`` (:func:`reproducible_mkl`; a session running hockey with workers should
+start with it set; why: benchmarks/README.md, "Robot hockey defaults").
 """
 
 from __future__ import annotations
@@ -103,8 +65,7 @@ def _mkl_mode() -> int | None:
 @contextlib.contextmanager
 def mkl_environment() -> Iterator[None]:
     """``MKL_CBWR=COMPATIBLE`` in ``os.environ`` inside the block (unless the user chose a
-    mode), for processes started there; the environment is restored afterwards, so the
-    caller's later subprocesses are not affected."""
+    mode), for processes started there; restored afterwards."""
     chosen = "MKL_CBWR" in os.environ
     if not chosen:
         os.environ["MKL_CBWR"] = MKL_MODE
@@ -116,11 +77,9 @@ def mkl_environment() -> Iterator[None]:
 
 
 def reproducible_mkl(warn: bool = True) -> bool:
-    """Put this process's MKL in ``MKL_CBWR=COMPATIBLE`` (unless the user chose a mode; MKL
-    reads the variable at its first call, so this works only before any arithmetic; the
-    environment is left as it was). Returns whether this process runs in that mode; with
-    ``warn``, warns when MKL had already started in another mode, because episodes played
-    here may then differ in the last bits from those played by workers."""
+    """Put this process's MKL in ``MKL_CBWR=COMPATIBLE`` (unless the user chose a mode; only
+    before any arithmetic). Returns whether it runs in that mode; with ``warn``, warns when
+    MKL had already started in another."""
     user_mode = os.environ.get("MKL_CBWR", MKL_MODE)
     with mkl_environment():
         a = torch.ones(4, 4, dtype=torch.float64)
@@ -144,8 +103,7 @@ def reproducible_mkl(warn: bool = True) -> bool:
 
 def episode_seeds(seed: int, episode: int) -> tuple[int, int]:
     """(environment seed in [0, 2**32), policy seed in [0, 2**63)) of episode ``episode`` of
-    a run with ``seed``, from ``numpy.random.SeedSequence`` (independent streams per
-    episode; any integer seed in [-2**62, 2**62])."""
+    a run with ``seed`` in [-2**62, 2**62] (``numpy.random.SeedSequence``)."""
     if episode < 0:
         raise ValueError(f"episode must be >= 0, got {episode}")
     words = np.random.SeedSequence([int(seed) + 2**62, int(episode), _TAG]).generate_state(3)
@@ -169,13 +127,12 @@ def play_episodes(
     env: Any, actor: Any, seed: int, episodes: Sequence[int], steps: int
 ) -> TensorDictBase:
     """Play ``episodes`` (indices) of exactly ``steps`` decisions each with ``actor`` on the
-    TorchRL environment ``env``; episode ``e`` draws from :func:`episode_seeds` ``(seed, e)``.
-    The episodes run on one torch thread (the process's setting is restored after), so they
-    are the same bit for bit whatever the thread settings, in this process or a worker's.
+    TorchRL environment ``env``, episode ``e`` from :func:`episode_seeds` ``(seed, e)``, on
+    one torch thread.
 
     Returns:
-        the episodes one after another: a TensorDict of shape ``(len(episodes) * steps,)``
-        with the collector's keys (``observation``, ``action``, ``("next", "reward")``, ...).
+        the episodes one after another: a ``(len(episodes) * steps,)`` TensorDict with the
+        collector's keys.
     """
     net = _actor_net(actor)
     if len(episodes) == 0:
@@ -211,8 +168,7 @@ _ENV: dict[str, Any] = {}
 
 
 def _worker_env(make_env: Callable[[], Any], key: str) -> Any:
-    """The environment of run ``key`` in this worker process (built once; a worker that
-    moves on to another run closes the previous run's environment)."""
+    """The environment of run ``key`` in this worker process (built once; another's closed)."""
     if key not in _ENV:
         for old in _ENV.values():
             try:
@@ -339,11 +295,8 @@ def import_ray() -> Any:
 
 
 def check_ray_address(address: str, timeout: float = 5.0) -> None:
-    """A ``ValueError`` naming ``address`` unless a Ray cluster answers there within
-    ``timeout`` seconds (``ray.init`` itself can wait minutes, also on a port where something
-    else listens): HOST:PORT (a port in 1..65535) or ray://HOST:PORT, where a gRPC server
-    (Ray's GCS and its client server speak gRPC) must answer the HTTP/2 preface with its
-    settings. ``"auto"`` is passed on."""
+    """A ``ValueError`` naming ``address`` (HOST:PORT or ray://HOST:PORT; ``"auto"`` passes)
+    unless a gRPC server answers the HTTP/2 preface there within ``timeout`` seconds."""
     if address.lower() == "auto":
         return
     hostport = address.removeprefix("ray://")
@@ -412,6 +365,25 @@ RAY_ENV = {"env_vars": {"MKL_CBWR": MKL_MODE, "OMP_NUM_THREADS": "1"}}
 """The environment of every Ray worker process (reproducible MKL, one thread per task)."""
 
 
+def init_ray(ray: Any, workers: int, address: str | None, runtime_env: dict[str, Any]) -> None:
+    """``ray.init``: a local instance with ``workers`` CPUs, or the cluster at ``address``."""
+    if address is None:
+        ray.init(
+            num_cpus=workers,
+            include_dashboard=False,
+            log_to_driver=False,
+            configure_logging=False,
+            runtime_env=runtime_env,
+        )
+        return
+    try:
+        ray.init(
+            address=address, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env
+        )
+    except (ConnectionError, RuntimeError) as exc:
+        raise ValueError(f"cannot join the Ray cluster at {address!r}: {exc}") from None
+
+
 class RayPool:
     """One Ray task per worker and call, on a local Ray instance with ``workers`` CPUs or on
     the cluster at ``address``; Ray re-runs a task whose worker died (``max_retries``). A pool
@@ -441,24 +413,7 @@ class RayPool:
                 stacklevel=2,
             )
         if self.owns_ray:
-            if address is None:
-                ray.init(
-                    num_cpus=workers,
-                    include_dashboard=False,
-                    log_to_driver=False,
-                    configure_logging=False,
-                    runtime_env=RAY_ENV,
-                )
-            else:
-                try:
-                    ray.init(
-                        address=address,
-                        include_dashboard=False,
-                        log_to_driver=False,
-                        runtime_env=RAY_ENV,
-                    )
-                except (ConnectionError, RuntimeError) as exc:
-                    raise ValueError(f"cannot join the Ray cluster at {address!r}: {exc}") from None
+            init_ray(ray, workers, address, RAY_ENV)
         self._task = ray.remote(num_cpus=1, max_retries=max_retries)(_play_chunk)
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
@@ -496,14 +451,9 @@ def make_pool(
 
 
 class EpisodeCollector:
-    """Batches of whole episodes by iteration, for
-    :func:`hireps_torch.experiments.loop.collector_loop`.
-
-    Iteration ``i`` (from ``start_iteration`` to ``iterations - 1``) plays episodes
-    ``i * B .. (i + 1) * B - 1`` with the actor as it is then (the pool ships the current
-    policy to its workers every call, so no weight sync is needed). ``shutdown()`` closes the
-    pool.
-    """
+    """Batches of whole episodes for :func:`~hireps_torch.experiments.loop.collector_loop`:
+    iteration ``i`` plays episodes ``i * B .. (i + 1) * B - 1`` with the actor as it is then
+    (no weight sync needed); ``shutdown()`` closes the pool."""
 
     def __init__(
         self,

@@ -1,8 +1,6 @@
 """hireps-torch: Hierarchical Relative Entropy Policy Search in PyTorch.
 
-``hireps_torch.load_run(run_dir)`` loads a trained run back
-(:func:`hireps_torch.experiments.saved.load_run`).
-"""
+``hireps_torch.load_run(run_dir)`` loads a trained run back."""
 
 from typing import TYPE_CHECKING
 

@@ -1,6 +1,4 @@
-"""The numerical pieces of :mod:`hireps_torch.dmp`: the quintic moving target, finite
-differences of a demonstration, and the RK4 integrator of the transformation system (see that
-module's docstring for the equations)."""
+"""Numerics of :mod:`hireps_torch.dmp`: moving target, finite differences, RK4."""
 
 from __future__ import annotations
 
@@ -11,15 +9,8 @@ __all__ = ["finite_differences", "integrate", "quintic_coefficients", "response_
 
 
 def quintic_coefficients(y0: Tensor, z0: Tensor, g: Tensor, gz: Tensor) -> Tensor:
-    """Coefficients of the moving target in normalised time.
-
-    Args:
-        y0, z0: (..., J) start position and start velocity times tau.
-        g, gz: (..., J) goal position and goal velocity times tau.
-
-    Returns:
-        (..., J, 6) coefficients m with g_m(s) = sum_k m_k s^k, zero acceleration at both ends.
-    """
+    """Coefficients (..., J, 6) of g_m(s) = sum_k m_k s^k from y0, z0 (start position, velocity
+    times tau) and g, gz (goal), each (..., J)."""
     D = g - y0 - z0
     V = gz - z0
     zero = torch.zeros_like(y0)
@@ -36,20 +27,9 @@ def integrate(
     stiffness: float,
     damping: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """RK4 for ``y' = z, z' = P(s) + F(s) - stiffness y - damping z`` on s in [0, 1] (the DMP's
-    stiffness is alpha_z beta_z, its damping alpha_z).
-
-    Args:
-        drive: (B, J, 6) coefficients of the polynomial P.
-        forcing: (2 n_steps substeps + 1, J) F on the half-step grid s = k h / 2.
-        y0, z0: (B, J) initial state.
-        n_steps: output intervals; substeps: RK4 steps per interval (h = 1 / (n_steps
-            substeps)).
-        stiffness, damping: the gains of the system.
-
-    Returns:
-        y, z, z' at the n_steps + 1 output points, each (B, n_steps + 1, J).
-    """
+    """RK4 for ``y' = z, z' = P(s) + F(s) - stiffness y - damping z`` on s in [0, 1], with
+    P from ``drive`` (B, J, 6), F from ``forcing`` (2 n_steps substeps + 1, J) on the half-step
+    grid and y0, z0 (B, J). Returns y, z, z', each (B, n_steps + 1, J)."""
     n_total = n_steps * substeps
     h = 1.0 / n_total
     s_half = torch.arange(2 * n_total + 1, dtype=torch.float64) * (0.5 * h)
@@ -88,9 +68,8 @@ def integrate(
 def response_from_rest(
     forcing: Tensor, n_steps: int, substeps: int, stiffness: float, damping: float
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """e, e', e'' (each (n_steps + 1, W)) of ``e'' + damping e' + stiffness e = F(s)`` from
-    rest, for W forcing columns ``forcing (2 n_steps substeps + 1, W)`` (see :func:`integrate`).
-    """
+    """e, e', e'' (each (n_steps + 1, W)) of ``e'' + damping e' + stiffness e = F`` from rest
+    (``forcing`` as in :func:`integrate`)."""
     zeros = torch.zeros(1, forcing.shape[1], dtype=torch.float64)
     drive = torch.zeros(1, forcing.shape[1], 6, dtype=torch.float64)
     e, ez, ezdot = integrate(drive, forcing, zeros, zeros, n_steps, substeps, stiffness, damping)

@@ -9,10 +9,8 @@ __all__ = ["log_softmax", "logsumexp", "min_norm_lstsq", "softmax"]
 
 
 def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
-    """Minimum-norm least-squares solutions X (..., P, Q) of A (..., M, P) X = B (..., M, Q):
-    LAPACK's gelsd on the CPU, elsewhere (CUDA's lstsq solves only full-rank systems) the
-    pseudo-inverse with gelsd's default cut (singular values below eps max(M, P) of the
-    largest are dropped), so that both devices find the same rank."""
+    """Minimum-norm least-squares X (..., P, Q) of A (..., M, P) X = B (..., M, Q): gelsd on the
+    CPU, elsewhere the pseudo-inverse with gelsd's default cut (same rank on both)."""
     if A.device.type == "cpu":
         x: Tensor = torch.linalg.lstsq(A, B, driver="gelsd").solution
     else:
@@ -21,12 +19,11 @@ def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
     return x
 
 
-# torch's softmax kernels over a last dimension of a few options (the gating's O) take ~4x the
-# time of these elementwise passes on the CPU; the results agree to round-off
+# softmaxes over a short last dimension (the gating's O) as elementwise passes (faster on CPU)
 
 
 def _shifted(x: Tensor) -> tuple[Tensor, Tensor]:
-    """(x - m, m) with m the max over the last dimension (0 where a row is all -inf)."""
+    """(x - m, m), m the max over the last dim (0 for an all -inf row)."""
     m = x.amax(-1, keepdim=True)
     m = torch.where(torch.isneginf(m), 0.0, m)
     return x - m, m

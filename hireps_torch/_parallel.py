@@ -1,5 +1,4 @@
-"""A population's members computed side by side on the cores that torch's own threads leave
-idle (each member's arithmetic is the same as alone: the answers do not depend on it)."""
+"""A population's members side by side on the cores torch's threads leave idle (same results)."""
 
 from __future__ import annotations
 
@@ -13,8 +12,7 @@ import torch
 __all__ = ["MIN_SIZE", "idle_workers", "member_chunks", "side_by_side"]
 
 MIN_SIZE = 2**16
-"""The fewest tensor elements one member's work must touch to be worth a thread: below it the
-members' Python overhead, which holds the GIL, outweighs their kernels (why this number:
+"""Fewest tensor elements one member's work must touch to get a thread (why:
 benchmarks/README.md, "Members side by side")."""
 
 T = TypeVar("T")
@@ -22,8 +20,7 @@ R = TypeVar("R")
 
 
 def idle_workers(device: torch.device) -> int:
-    """On the CPU, the cores this process may use over torch's intra-op threads (2 on two
-    cores with one torch thread, 1 with two); 1 elsewhere."""
+    """On the CPU, usable cores // torch's intra-op threads; 1 elsewhere."""
     if device.type != "cpu":
         return 1
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -33,9 +30,8 @@ def idle_workers(device: torch.device) -> int:
 def side_by_side(
     fn: Callable[[T], R], items: Sequence[T], device: torch.device, size: int
 ) -> list[R]:
-    """``[fn(item) for item in items]``, in threads on the idle cores (torch releases the GIL
-    in its kernels) where each item's work touches at least :data:`MIN_SIZE` elements
-    (``size``); in order."""
+    """``[fn(item) for item in items]``, in threads on the idle cores when ``size`` >=
+    :data:`MIN_SIZE`."""
     workers = min(len(items), idle_workers(device)) if size >= MIN_SIZE else 1
     if workers <= 1:
         return [fn(item) for item in items]
@@ -44,8 +40,7 @@ def side_by_side(
 
 
 def member_chunks(members: int, device: torch.device, size: int) -> list[slice]:
-    """Contiguous slices of ``members``, one per idle worker where one member's work touches
-    at least :data:`MIN_SIZE` elements (``size``; one slice otherwise)."""
+    """Contiguous slices of ``members``, one per idle worker when ``size`` >= :data:`MIN_SIZE`."""
     n = max(1, min(members, idle_workers(device))) if size >= MIN_SIZE else 1
     bounds = [round(i * members / n) for i in range(n + 1)]
     return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]

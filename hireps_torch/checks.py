@@ -1,9 +1,5 @@
-"""Input checks shared by the library and the environments: one home, one message style.
-
-Every check raises ``ValueError`` (``TypeError`` for something that is not a number at all)
-whose message names the argument, the expected and actual shape, or the first bad entry, so a
-user can find the bad value without reading torch's internals.
-"""
+"""Input checks shared by the library and the environments: a ``ValueError`` (``TypeError``
+for a non-number) naming the argument, the shapes or the first bad entry."""
 
 from __future__ import annotations
 
@@ -36,16 +32,9 @@ __all__ = [
 
 
 def as_f64(name: str, value: Tensor | object, device: torch.device | None = None) -> Tensor:
-    """``value`` as a detached float64 tensor; a ``TypeError`` naming ``name`` if it is not
-    a number, a sequence of numbers or a tensor.
-
-    Python numbers and sequences go straight to float64 (``torch.as_tensor(0.2)`` alone would
-    round through float32: 0.20000000298), on ``device`` (the CPU when None); tensors keep
-    their values (a float32 tensor holds float32 values already) and their device. With
-    ``device`` given, a tensor on another device is a ``ValueError`` naming both (the dual's
-    data must live on one device: it is solved where its inputs are). Complex values are a
-    ``TypeError`` (their imaginary part would be dropped silently); a ``meta`` tensor, which
-    holds no values, is a ``ValueError``."""
+    """``value`` (numbers or a tensor) as a detached float64 tensor; numbers go on ``device``
+    (CPU when None), tensors keep theirs. A ``TypeError`` for non-numbers and complex values, a
+    ``ValueError`` for a meta tensor or one on another ``device`` (when given)."""
     if not isinstance(value, Tensor):
         try:
             value = torch.as_tensor(value, dtype=torch.float64, device=device or "cpu")
@@ -66,22 +55,20 @@ def as_f64(name: str, value: Tensor | object, device: torch.device | None = None
 
 
 def _short(value: object) -> str:
-    """repr of ``value``, cut to 60 characters (for error messages)."""
+    """repr of ``value``, cut to 60 characters."""
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
 
 
 def all_finite(x: Tensor) -> bool:
-    """Whether every entry of ``x`` is finite, in one reduction where it is (a sum is finite
-    unless an entry is not, or the sum of finite entries overflows: then the entries decide)."""
+    """Whether every entry of ``x`` is finite (one sum when it is)."""
     return math.isfinite(float(x.sum())) or bool(torch.isfinite(x).all())
 
 
 def check_finite(
     name: str, x: Tensor, advice: str = "remove or fix those samples before the update"
 ) -> None:
-    """Raise naming ``name``, the number of non-finite entries and the first one's index
-    (followed by ``advice``, if any)."""
+    """Raise naming ``name`` and the first non-finite entry (then ``advice``) unless all finite."""
     if all_finite(x):
         return
     bad = ~torch.isfinite(x)
@@ -93,8 +80,7 @@ def check_finite(
 
 
 def as_finite_f64(name: str, value: Tensor | float, shape: tuple[int, ...] | None = None) -> Tensor:
-    """``value`` as a float64 tensor, checked for ``shape`` (if given) and finiteness; the
-    errors name ``name``, the shapes, and the first non-finite entry."""
+    """``value`` as a float64 tensor, checked for ``shape`` (if given) and finiteness."""
     if isinstance(value, Tensor):
         t = value.to(torch.float64)  # on its device
     else:
@@ -117,12 +103,8 @@ def check_positive(name: str, value: Tensor) -> None:
 
 
 def as_float(name: str, value: object) -> float:
-    """A real scalar (a Python or numpy number, or a 0-d tensor) as a float.
-
-    Raises a ``TypeError`` naming ``name`` for a bool, a string or anything else that is not a
-    number, and a ``ValueError`` naming the shape for a tensor or array with dimensions (a
-    ``(2,)`` tensor where one number is expected). NaN and inf pass (the callers check ranges).
-    """
+    """A real scalar (number or 0-d tensor) as a float; NaN and inf pass. A ``TypeError`` for a
+    bool or non-number, a ``ValueError`` for a tensor or array with dimensions."""
     if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
         raise TypeError(f"{name} must be a number, got the bool {value!r}")
     if isinstance(value, numbers.Real):
@@ -151,12 +133,9 @@ def as_float_tensor(
     *,
     allow_bool: bool = True,
 ) -> Tensor:
-    """``value`` (a tensor, number or nested sequence of numbers) as a detached ``dtype``
-    tensor. Bool (unless not ``allow_bool``: a setting such as a standard deviation) and
-    integer tensors are converted; complex values, strings and other objects raise a
-    ``TypeError`` naming ``name``; a tensor on another ``device`` (when given) or a ``meta``
-    tensor (no values) a ``ValueError`` naming the device. Values are not checked (see
-    :func:`check_finite`)."""
+    """``value`` (tensor, numbers; bool only with ``allow_bool``) as a detached ``dtype`` tensor,
+    values unchecked. A ``TypeError`` for complex or non-numbers, a ``ValueError`` for a meta
+    tensor or one on another ``device`` (when given)."""
     if not allow_bool and (
         isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool)
     ):
@@ -186,8 +165,7 @@ def as_float_tensor(
 
 
 def check_weights(name: str, w: Tensor) -> None:
-    """Sample weights: finite, >= 0 and not all zero (any scale); the error names ``name``
-    and the first bad entry."""
+    """Sample weights: finite, >= 0 and not all zero."""
     check_finite(name, w, "")
     negative = w < 0
     if bool(negative.any()):
@@ -204,15 +182,14 @@ def check_weights(name: str, w: Tensor) -> None:
 
 
 def check_float_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
-    """``dtype`` if it is a floating ``torch.dtype``; a ``TypeError`` naming it otherwise."""
+    """``dtype`` if a floating ``torch.dtype``; a ``TypeError`` otherwise."""
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"{name} must be a floating torch.dtype, got {_short(dtype)}")
     return dtype
 
 
 def check_device(device: object) -> torch.device:
-    """``device`` (a ``torch.device`` or its name) as a ``torch.device``; a ``ValueError``
-    naming it otherwise."""
+    """``device`` (a ``torch.device`` or its name) as a ``torch.device``."""
     try:
         dev: torch.device = torch.device(device)  # type: ignore[call-overload]
     except (RuntimeError, TypeError):
@@ -221,8 +198,7 @@ def check_device(device: object) -> torch.device:
 
 
 def check_present_device(device: object) -> torch.device:
-    """:func:`check_device`, and a device that holds values (not ``meta``) and is present on
-    this machine (``cuda`` without a GPU is refused); a ``ValueError`` naming it."""
+    """:func:`check_device` of a device present on this machine (not ``meta``)."""
     dev = check_device(device)
     if dev.type == "meta":
         raise ValueError(f"device {device!r} holds no values: use cpu or cuda")
@@ -235,7 +211,7 @@ def check_present_device(device: object) -> torch.device:
 
 
 def check_generator(name: str, value: object) -> torch.Generator | None:
-    """``value`` if it is a ``torch.Generator`` or None; a ``TypeError`` naming ``name``."""
+    """``value`` if a ``torch.Generator`` or None; a ``TypeError`` otherwise."""
     if value is not None and not isinstance(value, torch.Generator):
         raise TypeError(
             f"{name} must be a torch.Generator or None, got {type(value).__name__} {_short(value)}"
@@ -248,10 +224,7 @@ def _is_int(t: Tensor) -> bool:
 
 
 def check_count(name: str, value: object, minimum: int = 1) -> int:
-    """An integer >= ``minimum`` (a count, a dimension, a seed) as an int.
-
-    Accepts Python and numpy integers and 0-d integer tensors; a bool, a float (even 2.0) or
-    anything else raises a ``TypeError`` naming ``name``, a smaller value a ``ValueError``."""
+    """An integer (Python, numpy or 0-d tensor; not bool or float) >= ``minimum`` as an int."""
     if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
         raise TypeError(f"{name} must be an integer, got the bool {value!r}")
     try:
@@ -270,9 +243,7 @@ SEED_RANGE = (-(2**63), 2**64 - 1)
 
 
 def check_seed(name: str, value: object, headroom: int = 0) -> int:
-    """An integer seed that ``torch.Generator.manual_seed`` takes (in [-2**63, 2**64 - 1],
-    less ``headroom`` at the top for seeds derived as ``seed + k``), as an int; a
-    ``TypeError`` / ``ValueError`` naming ``name`` otherwise."""
+    """An integer seed in :data:`SEED_RANGE`, less ``headroom`` at the top, as an int."""
     seed = check_count(name, value, SEED_RANGE[0])
     top = SEED_RANGE[1] - headroom
     if seed > top:
@@ -281,8 +252,7 @@ def check_seed(name: str, value: object, headroom: int = 0) -> int:
 
 
 def check_positive_float(name: str, value: float) -> float:
-    """A finite scalar > 0 (e.g. epsilon), as a float; a 0-d tensor is accepted, a tensor
-    with dimensions raises (see :func:`as_float`)."""
+    """A finite scalar > 0 (:func:`as_float`), as a float."""
     v = as_float(name, value)
     if not (math.isfinite(v) and v > 0):
         raise ValueError(f"{name} must be finite and > 0, got {value}")
@@ -290,7 +260,7 @@ def check_positive_float(name: str, value: float) -> float:
 
 
 def check_nonnegative_float(name: str, value: float | None) -> float | None:
-    """A finite scalar >= 0 or None (e.g. kappa_rel), as a float."""
+    """A finite scalar >= 0 or None, as a float."""
     if value is None:
         return None
     v = as_float(name, value)
@@ -302,14 +272,8 @@ def check_nonnegative_float(name: str, value: float | None) -> float | None:
 def check_state_dict(
     what: str, expected: Mapping[str, Tensor], state: object, strict: bool = True
 ) -> None:
-    """Check that ``state`` can be loaded where ``expected`` (a ``state_dict()``) lives.
-
-    Raises before anything is copied: a ``TypeError`` if ``state`` is not a mapping of
-    tensors; a ``ValueError`` naming every entry whose saved shape differs from the expected
-    one (both shapes: a checkpoint of another number of options or another dimension), then
-    (with ``strict``) the missing and the unexpected keys, then a bool entry that is not bool
-    and the first non-finite entry of a floating one.
-    """
+    """Raise unless ``state`` can be loaded where ``expected`` (a ``state_dict()``) lives:
+    a mapping of tensors with the expected shapes, keys (``strict``), dtypes, finite values."""
     if not isinstance(state, Mapping):
         raise TypeError(f"{what}: a state_dict must be a mapping, got {type(state).__name__}")
     for key, value in state.items():

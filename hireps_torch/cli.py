@@ -35,8 +35,7 @@ def _resume_dir(argv: list[str]) -> Path | None:
 
 
 def parse(argv: list[str]) -> Any:
-    """The config of the chosen experiment; with ``--resume RUN_DIR`` the run's saved
-    options are the defaults (options given again must agree with them)."""
+    """The chosen experiment's config; ``--resume RUN_DIR``: the saved options as defaults."""
     import tyro
 
     from hireps_torch.experiments import EXPERIMENTS
@@ -67,10 +66,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 def entry() -> None:
-    """``hireps-train``: :func:`main` as a process's entry point: hockey in MKL's reproducible
-    mode (``MKL_CBWR=COMPATIBLE`` unless set; see :mod:`hireps_torch.experiments.workers`), and
-    the exit codes of a command (130 on Ctrl-C, after the checkpoint is written; 2 on bad
-    options or an unwritable run directory)."""
+    """``hireps-train``: :func:`main` with hockey in ``MKL_CBWR=COMPATIBLE`` (unless set) and
+    exit codes (130 on Ctrl-C, 2 on bad options or an unwritable run directory)."""
     if any("hockey-" in arg for arg in sys.argv[1:]):  # before MKL's first call
         os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     from hireps_torch.experiments.checkpoint import RunFinished

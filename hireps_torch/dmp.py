@@ -1,66 +1,19 @@
-r"""Batched discrete dynamic movement primitives that end at a goal position AND a goal velocity.
+r"""Batched discrete DMPs that end at a goal position AND a goal velocity.
 
-A hitting motion (the robot-hockey shot) must pass the goal with a chosen velocity instead of
-stopping there. This module uses the hitting-DMP transformation system of Kober et al. (2010),
-"Movement templates for learning of hitting and batting" (ICRA), with the fifth-order
-polynomial moving target of Mülling, Kober, Kroemer & Peters (2013), "Learning to select and
-generalize striking movements in robot table tennis" (IJRR), per joint j (index dropped):
+The hitting DMP of Kober et al. (2010) with the quintic moving target g_m of Mülling et al.
+(2013), per joint, in normalised time s = t / tau (``'`` = d/ds, tau the duration):
 
-    canonical system      tau xdot = -alpha_x x,            x(0) = 1
-    transformation        tau zdot = alpha_z (beta_z (g_m - y) + tau gdot_m - z)
-                                     + tau^2 gddot_m + f(x)
-                          tau ydot = z
+    canonical system      x = exp(-alpha_x s)
+    transformation        z' = alpha_z (beta_z (g_m - y) + g_m' - z) + g_m'' + f(x),   y' = z
     forcing term          f(x) = sum_i w_i psi_i(x) / sum_i psi_i(x),
                           psi_i(x) = exp(-(x - c_i)^2 / (2 sigma_i^2))
+    moving target         g_m(s) = y_0 + tau ydot_0 s + (10 D - 4 V) s^3 + (-15 D + 7 V) s^4
+                                   + (6 D - 3 V) s^5,
+                          D = g - y_0 - tau ydot_0,   V = tau (gdot - ydot_0).
 
-with ``tau`` the movement duration. The moving target ``g_m`` is the quintic in ``t`` with
-
-    g_m(0) = y_0,  gdot_m(0) = ydot_0,  gddot_m(0) = 0,
-    g_m(tau) = g,  gdot_m(tau) = gdot,  gddot_m(tau) = 0.
-
-In normalised time s = t / tau (so x = exp(-alpha_x s)), with ``'`` for d/ds, D = g - y_0 -
-tau ydot_0 and V = tau (gdot - ydot_0), it is
-
-    g_m(s) = y_0 + tau ydot_0 s + (10 D - 4 V) s^3 + (-15 D + 7 V) s^4 + (6 D - 3 V) s^5
-
-and the transformation system reads ``y' = z``, ``z' = alpha_z (beta_z (g_m - y) + g_m' - z)
-+ g_m'' + f``: the shape of a movement does not depend on tau (time scaling).
-
-**Why the end state is exact.** Write e = y - g_m. Subtracting g_m'' from the system gives a
-linear, goal-independent error equation
-
-    e'' + alpha_z e' + alpha_z beta_z e = f(x(s)),   e(0) = 0,  e'(0) = 0,
-
-(the initial conditions vanish because g_m starts at the start state). Hence
-``y(s) = g_m(s) + e(s)``: the goal enters only through the polynomial, and e is linear in the
-weights, ``e(s) = sum_i w_i E_i(s)`` with E_i the response to the i-th normalised basis
-function. Mülling et al. rely on e having decayed by s = 1; here the weight fit instead
-imposes the two linear constraints ``sum_i w_i E_i(1) = 0`` and ``sum_i w_i E_i'(1) = 0`` per
-joint (this module's addition). Then e(1) = e'(1) = 0 and, for ANY goal, start and duration,
-
-    y(tau) = g_m(tau) = g,      ydot(tau) = gdot_m(tau) = gdot,
-
-up to the integrator's error. A demonstration that ends at (g, gdot) has e(1) = e'(1) = 0
-itself, so the constraints cost little imitation accuracy (on the 7-joint test demo the max
-position error goes from 1.3e-4 to 2.7e-4 rad; without them the end state misses by 1.2e-4 rad
-and 1.1e-3 rad/s, for every goal alike).
-
-**Imitation** (``imitate`` / ``from_demonstration``): from demo positions (T, J) sampled every
-``dt``: tau = (T - 1) dt, start, goal and goal velocity from the demo's ends, velocity and
-acceleration by second-order finite differences, the target forcing
-``f_target = z' - alpha_z (beta_z (g_m - y) + g_m' - z) - g_m''`` at the samples, and the
-weights by ridge least squares of f_target on the normalised basis subject to the end
-constraints (a KKT solve, all joints at once). The forcing term is not scaled by the goal
-amplitude (eta = 1 in Mülling et al.): amplitude scaling divides by the demo's g - y_0, which is
-ill-conditioned for joints that barely move in the demonstration.
-
-**Integration** (``rollout``): ``y = g_m + e`` with the quintic evaluated exactly and e, which
-is the same for every goal, start and duration, integrated once per output grid (classical RK4
-in normalised time, ``substeps`` steps per output interval, by default at least 500 steps per
-movement; cached until the weights change); all B goal vectors at once.
-Positions, velocities ``ydot = z / tau`` and accelerations ``yddot = z' / tau^2`` (the ODE's
-right-hand side at the output states) come back as (B, T, J) float64, T = n_steps + 1 samples
-at t_k = k tau / n_steps, the first at the start and the last at the goal.
+So y = g_m + e with ``e'' + alpha_z e' + alpha_z beta_z e = f``, e(0) = e'(0) = 0 (linear in
+the weights, the same for every goal); the weight fit imposes e(1) = e'(1) = 0, hence
+y(tau) = g and ydot(tau) = gdot for any goal, start and duration (up to the integrator).
 """
 
 from __future__ import annotations
@@ -102,13 +55,11 @@ class DMPTrajectory(NamedTuple):
 
 
 class DMP(nn.Module):
-    """Discrete DMP for J joints with goal position and goal velocity (see the module docstring).
+    """Discrete DMP for J joints with goal position and goal velocity (module docstring).
 
-    Buffers (float64, travel with ``state_dict``): the duration ``tau ()``, the shape
-    ``weights (J, n_basis)``, the reference start and goal taken from the demonstration
-    (``start (J,)``, ``start_velocity (J,)``, ``goal (J,)``, ``goal_velocity (J,)``), and the
-    Gaussians' ``centers (n_basis,)`` and ``sigmas (n_basis,)`` in phase (centres equally
-    spaced in time over the movement).
+    Buffers (float64): ``tau ()``, ``weights (J, n_basis)``, ``start``, ``start_velocity``,
+    ``goal``, ``goal_velocity`` (J,) from the demonstration, ``centers``, ``sigmas``
+    (n_basis,) in phase.
 
     Args:
         n_joints: J, number of joints.
@@ -117,8 +68,7 @@ class DMP(nn.Module):
         alpha_z: spring-damper gain of the transformation system, > 0.
         beta_z: stiffness ratio; ``alpha_z / 4`` (critical damping) by default.
         alpha_x: decay of the canonical system, > 0 (x(tau) = exp(-alpha_x)).
-        width: Gaussian standard deviation in units of the spacing between neighbouring
-            centres (in phase), > 0.
+        width: Gaussian std in units of the spacing of neighbouring centres, > 0.
     """
 
     tau: Tensor
@@ -162,29 +112,24 @@ class DMP(nn.Module):
 
     @property
     def duration(self) -> float:
-        """Movement duration tau in seconds (buffer ``tau``, set by :meth:`imitate`)."""
+        """Movement duration tau in seconds."""
         return float(self.tau)
 
     # ---- basis --------------------------------------------------------------------------------
     def basis(self, s: Tensor) -> Tensor:
-        """Normalised basis at normalised times ``s = t / tau``: (T,) -> (T, n_basis).
-
-        Rows sum to one; ``forcing = basis(s) @ weights.T`` is f (T, J).
-        """
+        """Normalised basis at ``s = t / tau``: (T,) -> (T, n_basis), rows summing to one."""
         x = torch.exp(-self.alpha_x * s.to(torch.float64))
         psi = torch.exp(-0.5 * ((x[:, None] - self.centers) / self.sigmas) ** 2)
         return psi / psi.sum(-1, keepdim=True)
 
     def _drive_matrix(self) -> Tensor:
-        """(6, 6) map from moving-target coefficients m to the coefficients of
-        alpha_z beta_z g_m + alpha_z g_m' + g_m'' (polynomials in s of degree 5)."""
+        """(6, 6): coefficients of g_m -> those of alpha_z beta_z g_m + alpha_z g_m' + g_m''."""
         deriv = torch.diag(torch.arange(1, 6, dtype=torch.float64), diagonal=-1)  # m @ deriv = m'
         eye = torch.eye(6, dtype=torch.float64)
         return self.alpha_z * self.beta_z * eye + self.alpha_z * deriv + deriv @ deriv
 
     def _end_constraint(self) -> Tensor:
-        """(2, n_basis): rows E_i(1) and E_i'(1), the end state of e'' + alpha_z e' +
-        alpha_z beta_z e = psi_i / sum psi from rest (one basis function at a time)."""
+        """(2, n_basis): e(1), e'(1) of each normalised basis function as the forcing."""
         n = _CONSTRAINT_RK4_STEPS
         s_half = torch.arange(2 * n + 1, dtype=torch.float64) / (2 * n)
         k, d = self.alpha_z * self.beta_z, self.alpha_z
@@ -194,18 +139,16 @@ class DMP(nn.Module):
     # ---- imitation ----------------------------------------------------------------------------
     @torch.no_grad()
     def imitate(self, positions: Tensor, dt: float, ridge: float = 1e-8) -> DMP:
-        """Learn the shape weights from one demonstration; set duration, start and goals.
+        """Fit the weights to one demonstration (ridge least squares of the target forcing,
+        under e(1) = e'(1) = 0) and set duration, start and goals from its ends.
 
         Args:
             positions: (T, J) demo joint positions at times k dt, T >= 4.
-            dt: sample interval of the demo in seconds.
-            ridge: Tikhonov penalty on the weights, relative to the mean diagonal of the
-                basis Gram matrix.
+            dt: sample interval in seconds.
+            ridge: penalty on the weights, relative to the basis Gram matrix's mean diagonal.
 
         Returns:
-            self, with ``duration = (T - 1) dt``, ``start``/``goal`` the first/last positions,
-            ``start_velocity``/``goal_velocity`` the finite-difference velocities there, and
-            ``weights (J, n_basis)`` the constrained ridge fit (module docstring).
+            self, with ``duration = (T - 1) dt``.
         """
         dt = check_positive_float("dt", dt)
         if not math.isfinite(ridge) or ridge < 0:
@@ -253,10 +196,7 @@ class DMP(nn.Module):
     def from_demonstration(
         cls, positions: Tensor, dt: float, n_basis: int = 20, ridge: float = 1e-8, **kwargs: float
     ) -> DMP:
-        """A DMP imitating ``positions (T, J)`` sampled every ``dt`` (see :meth:`imitate`).
-
-        ``kwargs`` go to the constructor (alpha_z, beta_z, alpha_x, width).
-        """
+        """A DMP imitating ``positions (T, J)`` (:meth:`imitate`); ``kwargs`` to the constructor."""
         pos = torch.as_tensor(positions)
         if pos.dim() != 2:
             raise ValueError(f"positions must have shape (T, J), got {tuple(pos.shape)}")
@@ -315,15 +255,13 @@ class DMP(nn.Module):
             goal_velocities: (B, J) gdot, the velocity at t = duration.
             start: (J,) or (B, J) start positions; ``self.start`` by default.
             start_velocities: (J,) or (B, J); ``self.start_velocity`` by default.
-            duration: tau in seconds; ``self.duration`` by default (time scaling keeps the
-                shape).
+            duration: tau in seconds (the shape is kept); ``self.duration`` by default.
             n_steps: output intervals (T = n_steps + 1 samples); default round(tau / 0.01).
             dt: output interval in seconds instead of n_steps; must divide tau.
             substeps: RK4 steps per output interval; default ceil(500 / n_steps).
 
         Returns:
-            :class:`DMPTrajectory` with positions, velocities, accelerations (B, T, J) and
-            times (T,), float64.
+            :class:`DMPTrajectory` (float64).
         """
         J = self.n_joints
         g = torch.as_tensor(goal_positions, dtype=torch.float64)
@@ -337,8 +275,7 @@ class DMP(nn.Module):
         tau = self.duration if duration is None else check_positive_float("duration", duration)
         n_steps, substeps = self._grid(tau, n_steps, dt, substeps)
 
-        # y = g_m + e (module docstring): the polynomial exactly, e (the same for every goal,
-        # start and duration) by RK4 once per grid and set of weights.
+        # y = g_m + e: the polynomial exactly, e by RK4 (cached)
         m = quintic_coefficients(y0, tau * yd0, g, tau * gd)  # (B, J, 6)
         s = torch.arange(n_steps + 1, dtype=torch.float64) / n_steps
         powers = s[:, None] ** torch.arange(6, dtype=torch.float64)  # (T, 6)
@@ -351,9 +288,7 @@ class DMP(nn.Module):
         return DMPTrajectory(y, z / tau, zdot / tau**2, times)
 
     def _shape_response(self, n_steps: int, substeps: int) -> tuple[Tensor, Tensor, Tensor]:
-        """e, e', e'' (each (n_steps + 1, J)) of ``e'' + alpha_z e' + alpha_z beta_z e = f``
-        from rest, cached per grid and constants (recomputed when the weights, centres, widths
-        or gains differ from the cached ones)."""
+        """e, e', e'' (each (n_steps + 1, J)) from rest, cached per grid, gains and weights."""
         key = (n_steps, substeps, float(self.alpha_z), float(self.beta_z), float(self.alpha_x))
         shape = (self.weights, self.centers, self.sigmas)
         cache: dict[tuple[float, ...], _CachedResponse] = self.__dict__.setdefault(

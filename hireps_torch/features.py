@@ -1,9 +1,5 @@
-"""Feature maps of states / contexts, as ``nn.Module``s.
-
-Every map takes ``x: (..., C)`` and returns ``(..., F)`` with ``F = module.out_features``.
-None of them adds a constant column: the policies carry their own bias, and a constant
-column would make the dual's value multiplier unidentifiable.
-"""
+"""Feature maps ``x: (..., C) -> (..., F)`` (``F = out_features``), without a constant column
+(the policies carry their own bias)."""
 
 from __future__ import annotations
 
@@ -29,17 +25,14 @@ __all__ = [
 
 
 class FeatureMap(nn.Module):
-    """Base of the feature maps: ``(..., in_features) -> (..., out_features)``.
-
-    A state of another width, or with a NaN / inf entry, raises a ``ValueError`` naming it; bool
-    and integer states are used as float64 (floating states keep their dtype).
-    """
+    """Base of the feature maps: ``(..., in_features) -> (..., out_features)``; a state of
+    another width or non-finite raises a ``ValueError``; non-floating states become float64."""
 
     in_features: int
     out_features: int
 
     def _input(self, x: Tensor) -> Tensor:
-        """x checked for its last dimension and finiteness, as a floating tensor."""
+        """x checked (width, finiteness), as a floating tensor."""
         t = x if isinstance(x, Tensor) and x.is_floating_point() else as_float_tensor("x", x)
         if t.dim() < 1 or t.shape[-1] != self.in_features:
             raise ValueError(
@@ -56,8 +49,7 @@ class FeatureMap(nn.Module):
 
 
 def check_feature_map(name: str, value: object) -> FeatureMap | None:
-    """``value`` if it is None or a feature map (an ``nn.Module`` with integer ``in_features``
-    and ``out_features``, like the maps of this module); a ``TypeError`` naming ``name``."""
+    """``value`` if None or an ``nn.Module`` with int ``in_features`` and ``out_features``."""
     if value is None:
         return None
     widths = (getattr(value, "in_features", None), getattr(value, "out_features", None))
@@ -85,11 +77,8 @@ class IdentityFeatures(FeatureMap):
 
 
 class QuadraticFeatures(FeatureMap):
-    """Squared expansion phi(x) = [x, x_i x_j for i <= j] (the paper's gating features).
-
-    ``(..., C) -> (..., C + C (C + 1) / 2)``. An optional per-dimension ``scale`` divides x
-    first so that the quadratic terms are of order one.
-    """
+    """Squared expansion phi(x) = [z, z_i z_j for i <= j], z = x / scale (per dimension):
+    ``(..., C) -> (..., C + C (C + 1) / 2)``."""
 
     scale: Tensor
     _rows: Tensor
@@ -121,29 +110,20 @@ class QuadraticFeatures(FeatureMap):
 
 
 class FourierFeatures(FeatureMap):
-    """Fourier basis (Konidaris et al. 2011) with ``n_bases`` frequencies per dimension.
-
-    The state is scaled to ``u = (x - low) / (high - low)`` (in [0, 1] on the box) and
+    """Fourier basis (Konidaris et al. 2011): with ``u = (x - low) / (high - low)``,
 
         phi_c(x) = cos(pi c^T u),   c in {0, ..., n_bases - 1}^C,  c != 0,
 
-    all couplings included: ``(..., C) -> (..., n_bases^C - 1)``. ``n_bases`` may also give
-    one count per dimension, ``c_s in {0, ..., n_bases[s] - 1}`` (prod n_bases - 1 terms); a
-    count of 1 leaves that dimension out of the basis (the map still takes all C
-    dimensions); ``coupling = k`` keeps only the terms in which at most k dimensions have a
-    non-zero frequency (k = 1: the ``sum_s (n_bases[s] - 1)`` uncoupled terms), for when
-    there are few samples. Dimensions marked ``periodic`` (angles with period high - low) use
-    the frequencies 2 pi k / (high - low) instead and both cos and sin of every coupled
-    phase, so the features are continuous across the wrap: twice the terms then. The constant
-    c = 0 is left out (see the module docstring). The paper's value functions use five bases.
+    ``(..., C) -> (..., out_features)`` (``prod(n_bases) - 1`` with all couplings). Periodic
+    dimensions use frequencies 2 pi k / (high - low) and both cos and sin (twice the terms).
 
     Args:
         low: (C,) lower corner of the state box.
         high: (C,) upper corner, > low.
-        n_bases: frequencies per dimension, >= 2; or (C,) counts >= 1 per dimension, at
-            least one of them >= 2.
+        n_bases: frequencies per dimension, >= 2; or (C,) counts >= 1 (1: dimension left
+            out), at least one >= 2.
         periodic: (C,) bools, or None for none.
-        coupling: most dimensions one term may couple, in 1..C; None: all (C).
+        coupling: keep terms with at most this many non-zero frequencies, in 1..C; None: all.
     """
 
     low: Tensor
@@ -190,7 +170,7 @@ class FourierFeatures(FeatureMap):
         )
         if coupling is not None:  # the zero row (constant) stays first
             coeffs = coeffs[(coeffs != 0).sum(dim=1) <= coupling]
-        # phase = pi c^T u; a periodic dimension doubles its frequency (whole periods on the box)
+        # a periodic dimension doubles its frequency (whole periods on the box)
         coeffs = coeffs * torch.tensor([2.0 if p else 1.0 for p in per], dtype=torch.float64)
         self.in_features = C
         self.with_sin = any(per)
@@ -209,13 +189,11 @@ class FourierFeatures(FeatureMap):
 
 
 MAX_FOURIER_TERMS = 10**6
-"""The most frequency vectors (n_bases ** C, or the product of the per-dimension counts) that
-:class:`FourierFeatures` enumerates (one row per frequency)."""
+"""The most frequency vectors :class:`FourierFeatures` enumerates."""
 
 
 def _bases_per_dimension(n_bases: object, C: int) -> list[int]:
-    """``n_bases`` (one count >= 2 for every dimension, or C counts >= 1 with one >= 2) as a
-    list of C counts; a bad count or a wrong number of them raises naming it."""
+    """``n_bases`` checked, as a list of C counts."""
     if not isinstance(n_bases, Sequence | np.ndarray | Tensor) or (
         isinstance(n_bases, Tensor) and n_bases.dim() == 0
     ):
@@ -236,8 +214,7 @@ def _bases_per_dimension(n_bases: object, C: int) -> list[int]:
 
 
 def _periodic_flags(periodic: object, C: int) -> list[bool]:
-    """``periodic`` (None or C bools) as a list of C bools; a string, a non-bool entry or a
-    wrong count raises naming it."""
+    """``periodic`` (None or C bools) checked, as a list of C bools."""
     if periodic is None:
         return [False] * C
     if isinstance(periodic, str | bytes):
@@ -257,11 +234,7 @@ def _periodic_flags(periodic: object, C: int) -> list[bool]:
 
 
 class ConcatFeatures(FeatureMap):
-    """Side-by-side concatenation of feature maps on the same input.
-
-    ``(..., C) -> (..., sum_k F_k)``, the maps' outputs in order. E.g. the pendulum's value
-    features: a Fourier basis (global shape) next to the squared expansion (a quadratic bowl
-    around upright, and with cos(theta) of the Fourier basis the pendulum's energy).
+    """The maps' outputs side by side: ``(..., C) -> (..., sum_k F_k)``.
 
     Args:
         maps: one or more feature maps, all with the same ``in_features``.

@@ -1,15 +1,5 @@
-"""TorchRL glue: the hierarchical policy as a TensorDictModule, collectors and their shutdown.
-
-The library's algorithms take and return tensors; TensorDicts appear only here.
-
-    actor = policy_module(policy)                       # observation -> action, option
-    collector = make_collector(lambda: MyBatchEnv(20), actor, frames_per_batch=2000)
-    for batch in collector:                             # (B, T) TensorDict
-        s, a, r, s_next, option = transitions(batch)
-        algo.update(s, a, r, s_next)
-        collector.update_policy_weights_()              # needed with several workers
-    shutdown_collector(collector)
-"""
+"""TorchRL glue (the only place TensorDicts appear): the policy as a TensorDictModule,
+collectors and their shutdown. Usage: README.md."""
 
 from __future__ import annotations
 
@@ -45,12 +35,9 @@ __all__ = [
 class PolicyActor(nn.Module):
     """``observation (B, C) -> action (B, A), option (B,)`` for a :class:`HierarchicalPolicy`.
 
-    At each call (each decision) an option is drawn from the gating and an action from that
-    option (from ``self.generator`` when set, else the global torch RNG, so
-    ``torch.manual_seed`` makes runs repeat); with ``deterministic=True`` the mean of the most
-    probable option is returned instead. The action has the observation's dtype. A
-    population of S policies takes the S B systems of its members, member after member
-    (observation (S B, C)), and may sample with one generator per member.
+    Samples (from ``self.generator``, else the global RNG) or, with ``deterministic``, takes
+    :meth:`~HierarchicalPolicy.mean_action`; the action has the observation's dtype. A
+    population of S takes observations (S B, C), member after member.
     """
 
     def __init__(self, policy: HierarchicalPolicy, deterministic: bool = False) -> None:
@@ -76,8 +63,7 @@ class PolicyActor(nn.Module):
 
 
 def _check_policies(policies: object) -> None:
-    """``policies`` a non-empty list of :class:`HierarchicalPolicy`; a ``TypeError`` naming
-    the first entry that is not one."""
+    """``policies`` a list of :class:`HierarchicalPolicy`; a ``TypeError`` otherwise."""
     if not isinstance(policies, list | tuple | nn.ModuleList):
         raise TypeError(f"policies must be a list of HierarchicalPolicy, got {type(policies)}")
     for k, pol in enumerate(policies):
@@ -99,12 +85,8 @@ def policy_module(
 
 
 class TimeIndexedActor(nn.Module):
-    """``observation (B, C), step_count (B, 1) -> action (B, A), option (B,)`` with one
-    :class:`HierarchicalPolicy` per decision step: row b acts with ``policies[step_count[b]]``.
-
-    Sampling (``generator``) and ``deterministic`` as in :class:`PolicyActor`; a step count
-    outside ``[0, K)`` raises a ValueError naming it.
-    """
+    """``observation (B, C), step_count (B, 1) -> action (B, A), option (B,)``: row b acts with
+    ``policies[step_count[b]]``, otherwise as :class:`PolicyActor`."""
 
     def __init__(self, policies: list[HierarchicalPolicy], deterministic: bool = False) -> None:
         super().__init__()
@@ -149,8 +131,8 @@ def time_indexed_module(
     observation_key: str = "observation",
     step_key: str = "step_count",
 ) -> TensorDictModule:
-    """Wrap per-step policies for TorchRL: reads the observation and the step counter (e.g.
-    from :class:`torchrl.envs.StepCounter`), writes ``action`` and ``option``."""
+    """Wrap per-step policies for TorchRL: reads the observation and ``step_key``, writes
+    ``action`` and ``option``."""
     return TensorDictModule(
         TimeIndexedActor(policies, deterministic),
         in_keys=[observation_key, step_key],
@@ -170,15 +152,11 @@ def make_collector(
 ) -> Collector | MultiSyncCollector:
     """A TorchRL collector over ``create_env_fn()``.
 
-    ``num_workers = 1`` gives a single-process :class:`~torchrl.collectors.Collector` (the
-    policy is used in place, so its updates are seen at once); ``num_workers > 1`` a
-    :class:`~torchrl.collectors.MultiSyncCollector` with that many worker processes, each
-    collecting ``frames_per_batch / num_workers`` frames of every batch (call
-    ``collector.update_policy_weights_()`` after each policy update, and
-    :func:`shutdown_collector` at the end; a script that builds one needs an
-    ``if __name__ == "__main__":`` guard because torchrl uses the "spawn" start method).
-    ``reset_at_each_iter`` restarts every environment at the start of each batch (episodes
-    that begin with the batch), otherwise the environments continue across batches.
+    ``num_workers = 1``: a :class:`~torchrl.collectors.Collector` using the policy in place;
+    more: a :class:`~torchrl.collectors.MultiSyncCollector` (call
+    ``collector.update_policy_weights_()`` after each update, :func:`shutdown_collector` at the
+    end, and guard the script with ``if __name__ == "__main__":``). ``reset_at_each_iter``
+    restarts every environment at each batch.
     """
     num_workers = check_count("num_workers", num_workers, 1)
     frames_per_batch = check_count("frames_per_batch", frames_per_batch, 1)
@@ -224,11 +202,8 @@ def make_collector(
 
 @contextlib.contextmanager
 def workers_ignore_sigint() -> Iterator[None]:
-    """SIGINT ignored while worker processes start, so that they inherit that (Python keeps
-    an inherited ignore): a Ctrl-C, which the terminal sends to the whole process group, then
-    reaches only the main process, which stops at an iteration boundary and shuts the
-    workers down (a worker that died of it made TorchRL fail the run). Outside the main
-    thread nothing changes."""
+    """SIGINT ignored while worker processes start (they inherit it), so that a Ctrl-C reaches
+    only the main process; a no-op outside the main thread."""
     try:
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     except ValueError:  # not the main thread
@@ -241,12 +216,7 @@ def workers_ignore_sigint() -> Iterator[None]:
 
 
 def shutdown_collector(collector: Any) -> None:
-    """Shut a collector down so that the interpreter can exit.
-
-    ``MultiSyncCollector``'s weight-sync schemes can deadlock in ``__del__`` at interpreter
-    exit (see ENVIRONMENT.md); shutting the collector and then each scheme down explicitly
-    avoids it.
-    """
+    """Shut a collector and its weight-sync schemes down so that the interpreter can exit."""
     try:
         collector.shutdown()
     finally:
@@ -264,11 +234,7 @@ def shutdown_collector(collector: Any) -> None:
 def episodes(
     batch: TensorDictBase, K: int, state_key: str = "observation"
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Cut a collected batch of whole K-step episodes into per-episode arrays.
-
-    The batch must hold N complete episodes, each starting where the previous ended (as a
-    collector with ``reset_at_each_iter=True`` and ``frames_per_batch`` a multiple of K
-    gathers them from episodes of exactly K steps); the ``done`` flags are checked.
+    """Cut a batch of N whole K-step episodes (``done`` flags checked) into per-episode arrays.
 
     Returns:
         states (N, K, C), actions (N, K, A), rewards (N, K) and final states (N, C), float64.

@@ -1,34 +1,6 @@
-"""The option-specific steps every HiREPS variant shares around its dual.
-
-Before the dual: the responsibilities p~_io = p(o | s_i, theta_i) of the sampling policy on
-the active options and the entropy bound kappa = kappa_rel * mean_i H[p~_i.]
-(:func:`option_bound`; the time-indexed variant stacks its steps' with :func:`stack_bounds`).
-Every function takes a policy of any batch shape: () for one run, (S,) for a population of
-S members (member s computes what it would alone).
-After it: the weighted refit of gating and options, computed first (:func:`plan_refit`) and
-applied only when every policy's refit succeeded (:func:`apply_refit`: set the new values,
-prune, report the diagnostics), so a failing update changes nothing.
-
-No drift without information. When the returns carry no information (e.g. a flat reward),
-the dual says so with eta = inf: the return term exp(R / eta) is flat, and the new
-distribution is the sampling one, P_io = q_i p~_io (q uniform over the samples), or, when the
-entropy bound is active, its projection onto the bound, P_io ∝ q_i p~_io^(1 + xi/eta). The
-policy is then left exactly as it is (:func:`carries_information`):
-
-- the target q p~ is the old policy itself, but refitting to it does not keep the policy in
-  expectation: the maximum-likelihood covariance shrinks by (N_eff - 1) / N_eff per refit,
-  and even the unbiased (Bessel, 1 - sum w^2) estimate random-walks downwards in log scale
-  (Jensen: E[log s^2] < log sigma^2); measured over 100 flat iterations of a 2-D Gaussian,
-  N = 10: median final std 1e-4 (the floor) with maximum likelihood, 4e-4 with the unbiased
-  estimate; N = 50: 0.07 and 0.2. The gating's mixture weights random-walk too, until options
-  are pruned (EpisodicHiREPS, 5 options, N = 50: 1 option left, std 0.06-0.09);
-- the entropy bound alone (kappa = kappa_rel * current entropy always binds) only sharpens the
-  responsibilities: with no return to specialise on, each refit shrinks every option onto its
-  own samples and the richest option takes over (5 seeds, 5 options, kappa_rel 0.9, N = 50,
-  100 flat iterations: 4 of 5 options pruned in every seed, stds down to 1e-4). That is drift
-  too, so the bound does not act without return information either.
-
-Informative updates are unchanged: weighted maximum likelihood, bit for bit as before.
+"""Option steps every HiREPS variant shares around its dual (policies of batch shape () or
+(S,)): responsibilities p~_io = p(o | s_i, theta_i) and kappa = kappa_rel * mean_i H[p~_i.]
+before it, the refit after it (planned, then applied only when every policy's succeeded).
 """
 
 from __future__ import annotations
@@ -47,22 +19,15 @@ from hireps_torch.policies import HierarchicalPolicy
 
 @dataclass(frozen=True)
 class OptionBound:
-    """Inputs of the dual that come from the options.
-
-    Attributes:
-        log_responsibilities: ([S,] N, O) log p~ (-inf on pruned options), or None when no
-            member has two active options (the dual then has no option term).
-        option_entropy: ([S,]) mean entropy of the responsibilities (0 with one active option).
-        kappa: ([S,]) absolute entropy bound (inf: none for that member), or None.
-    """
+    """The dual's option inputs: log_responsibilities ([S,] N, O) (-inf: pruned; None: no
+    option term), option_entropy ([S,]) and kappa ([S,], inf: no bound; or None)."""
 
     log_responsibilities: Tensor | None
     option_entropy: Tensor
     kappa: Tensor | None
 
     def dual_inputs(self, R: Tensor) -> tuple[Tensor, Tensor | None]:
-        """The dual's (S, N, O) log responsibilities (log 0 floored; (S, N, 1) zeros without
-        an option term) and (S, 1) bounds (or None) for its (S, N) returns R."""
+        """(S, N, O) floored log responsibilities ((S, N, 1) zeros: none), (S, 1) bounds or None."""
         lr = self.log_responsibilities
         kappa = None if self.kappa is None else self.kappa.reshape(-1, 1)
         if lr is None:
@@ -73,13 +38,9 @@ class OptionBound:
 def option_bound(
     policy: HierarchicalPolicy, context: Tensor, theta: Tensor, kappa_rel: float | None
 ) -> OptionBound:
-    """Responsibilities of the sampling policy and the entropy bound of each member.
+    """Responsibilities of the sampling policy and each member's entropy bound.
 
-    Args:
-        policy: the sampling policy.
-        context: ([S,] N, C).
-        theta: ([S,] N, D).
-        kappa_rel: bound as a fraction of the mean responsibility entropy, or None.
+    context ([S,] N, C), theta ([S,] N, D); kappa_rel: fraction of the mean entropy, or None.
     """
     if policy.n_options < 2:
         return OptionBound(None, context.new_zeros(policy.batch_shape), None)
@@ -94,9 +55,7 @@ def option_bound(
 
 
 UNIFORM_RTOL = 1e-6
-"""Relative tolerance of :func:`informed_members`: weights within it of q_i p~_io carry no
-information (the dual's no-information solution is exact up to round-off, ~1e-15; an
-informative solution moves them by ~sqrt(2 epsilon), orders of magnitude more)."""
+"""Weights within this relative tolerance of q_i p~_io carry no information."""
 
 
 def informed_members(
@@ -104,14 +63,9 @@ def informed_members(
 ) -> Tensor:
     """([S,]) bool: whether each member's dual weights carry information about the returns.
 
-    False where eta is infinite (the dual found the returns flat beyond what the features
-    fix, whatever the entropy bound did to the weights), or where every entry of ``weights``
-    ([S,] N, O) is within a relative :data:`UNIFORM_RTOL` of the sampling distribution
-    p~_io / N (the KL to it is then below the chi-square divergence, at most
-    ``UNIFORM_RTOL ** 2``). The update then has nothing to learn from. ``active`` is the
-    policy's ([S,] O) mask of options not pruned; ``kl``, the smallest realised KL of the
-    members where known: above twice that bound no member's weights are that close, and the
-    entries are not compared.
+    False where eta is inf or every entry of ``weights`` ([S,] N, O) is within
+    :data:`UNIFORM_RTOL` of p~_io / N. ``active``: ([S,] O) options not pruned; ``kl``: the
+    smallest realised KL (above 2 * UNIFORM_RTOL**2 the entries are not compared).
     """
     moved = eta != math.inf
     if kl > 2.0 * UNIFORM_RTOL**2:
@@ -125,16 +79,8 @@ def informed_members(
 
 @dataclass(frozen=True)
 class Refit:
-    """A computed (not yet applied) update of a policy.
-
-    Attributes:
-        values: the new values (``state_dict`` names -> tensors; a member without information
-            keeps its current ones), or None when no member's weights carry information.
-        informed: ([S,]) bool, the members whose weights carry information.
-        sol: the dual's solution (leading S, 1 for one run).
-        bound: what :func:`option_bound` returned for the samples.
-        block: the dual's block of this policy (the time-indexed step; 0 otherwise).
-    """
+    """A planned update: new ``values`` (None: no member informed), ([S,]) bool ``informed``,
+    the dual's ``sol``, the samples' ``bound`` and the dual ``block`` (time-indexed step)."""
 
     values: dict[str, Tensor] | None
     informed: Tensor
@@ -151,20 +97,9 @@ def plan_refit(
     bound: OptionBound,
     block: int = 0,
 ) -> Refit:
-    """The refit of ``policy`` to the dual's weights of block ``block``, computed and checked
-    without changing the policy.
-
-    Args:
-        policy: the sampling policy.
-        context: ([S,] N, C) states / contexts of the samples.
-        theta: ([S,] N, D) their actions / parameters.
-        sol: the dual's solution; ``sol.weights`` is (S, K, N, O) (O = 1 without option term).
-        bound: what :func:`option_bound` returned for these samples.
-
-    Raises:
-        ValueError: when the dual's weights are not finite or the refit fails (naming the
-            member and the option), before anything changed.
-    """
+    """The refit of ``policy`` to block ``block`` of ``sol.weights`` (S, K, N, O), without
+    changing it; context ([S,] N, C), theta ([S,] N, D). ValueError: non-finite weights or a
+    failing refit."""
     lead, O = policy.batch_shape, policy.n_options
     w = sol.weights[:, block, :, :O]
     N = w.shape[-2]
@@ -203,17 +138,8 @@ def plan_refit(
 def apply_refit(
     policy: HierarchicalPolicy, context: Tensor, refit: Refit, prune_threshold: float
 ) -> dict[str, Any]:
-    """Set the planned values, prune, and return the shared diagnostics: one number per
-    entry for one run, a list of S for a population (member s's are those it reports alone).
-
-    A member without information is neither refitted nor pruned.
-
-    Args:
-        policy: updated in place.
-        context: ([S,] N, C) states / contexts of the samples.
-        refit: what :func:`plan_refit` computed for this policy and these samples.
-        prune_threshold: options with prior mass below it are pruned (0: never).
-    """
+    """Set the planned values, prune informed members, return the diagnostics (a list of S
+    per entry for a population). context: ([S,] N, C); prune_threshold 0: never prune."""
     lead = policy.batch_shape
     pruned: Any = [[] for _ in range(lead[0])] if lead else []
     if refit.values is not None:
@@ -288,10 +214,8 @@ def per_member(value: Any, lead: tuple[int, ...]) -> Any:
 def stack_bounds(
     bounds: list[OptionBound], policies: list[HierarchicalPolicy], N: int, like: Tensor
 ) -> tuple[Tensor, Tensor | None]:
-    """The steps' bounds as the time-indexed dual's (S, N, K, O) log responsibilities (log 0
-    floored; a step without option term gets log 1 on each member's active option, missing
-    columns log 0; (S, N, K, 1) zeros when no step has one) and (S, K) entropy bounds (inf:
-    none), or None."""
+    """The time-indexed dual's (S, N, K, O) floored log responsibilities ((S, N, K, 1) zeros
+    when no step has an option term) and (S, K) entropy bounds (inf: none), or None."""
     K, S = len(bounds), math.prod(policies[0].batch_shape)
     if all(b.log_responsibilities is None for b in bounds):
         return like.new_zeros(S, N, K, 1), None

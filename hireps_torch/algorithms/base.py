@@ -1,15 +1,4 @@
-"""What every HiREPS variant shares: the interface, the samples, and the common bookkeeping.
-
-:class:`Algorithm` is the interface a training loop, a checkpoint or a robot driver programs
-against: ``sample`` / ``mean_action`` for one decision step, ``learn`` from one iteration's
-:class:`Experience`, ``state_dict`` / ``load_state_dict``. :class:`EpisodicHiREPS`,
-:class:`TimeIndexedHiREPS` and :class:`InfiniteHorizonHiREPS` implement it; their ``ask`` /
-``tell`` / ``update`` remain as the variant-specific conveniences.
-
-:class:`HiREPSBase` holds the bookkeeping the variants share (the entropy bound, pruning, the
-seeded sampling generator, the iteration count and their checkpoint entries);
-:func:`fresh_policies` builds the softmax-gated mixtures their ``create`` methods start from.
-"""
+"""Shared by every HiREPS variant: :class:`Algorithm`, :class:`Experience`, :class:`HiREPSBase`."""
 
 from __future__ import annotations
 
@@ -59,19 +48,14 @@ __all__ = [
 
 @dataclass(frozen=True)
 class Experience:
-    """One iteration's samples, the shape every variant reads.
-
-    N samples (episodes, or decisions for the infinite horizon) of K decision steps each.
+    """One iteration's N samples of K decision steps each (a population: leading S).
 
     Attributes:
-        states: (N, K, C): contexts (episodic, K = 1; C = 0 without context), the state at
-            each decision step (time-indexed), decision states (infinite horizon, K = 1).
-        actions: (N, K, D) the parameters / actions drawn with :meth:`Algorithm.sample`.
-        rewards: (N, K) returns (episodic), per-step rewards (time-indexed), the reward of each
-            decision (infinite horizon). Higher is better.
-        next_states: (N, K, C) the states the decisions led to: infinite horizon only.
-        terminated: (N, K) bool, the decision ended in a terminal state: infinite horizon
-            only, optional.
+        states: (N, K, C) contexts (episodic, K = 1, C = 0 without context) or states.
+        actions: (N, K, D) drawn with :meth:`Algorithm.sample`.
+        rewards: (N, K) returns / per-step rewards; higher is better.
+        next_states: (N, K, C) where the decisions led: infinite horizon only.
+        terminated: (N, K) bool, ended in a terminal state: infinite horizon only, optional.
     """
 
     states: Tensor
@@ -85,17 +69,9 @@ class Experience:
 class Algorithm(Protocol):
     """The interface every HiREPS variant implements.
 
-    A loop that handles any variant::
-
-        for _ in range(iterations):
-            experience = run_episodes(algo.sample)      # states, actions, rewards (, next ...)
-            diagnostics = algo.learn(experience)
-        torch.save(algo.state_dict(), path)
-
     Attributes:
         iteration: number of updates so far.
-        population: S for a population of S members (every shape gains a leading S), None
-            for one.
+        population: S (every shape gains a leading S), or None for one run.
     """
 
     iteration: int
@@ -107,8 +83,7 @@ class Algorithm(Protocol):
         ...
 
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """Exploring actions (N, D) for states (N, C) at decision step ``step``, drawn with the
-        algorithm's own seeded generator."""
+        """Exploring actions (N, D) for states (N, C) at ``step``, from the seeded generator."""
         ...
 
     def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
@@ -116,11 +91,7 @@ class Algorithm(Protocol):
         ...
 
     def learn(self, experience: Experience) -> dict[str, Any]:
-        """One policy update from samples drawn with the current policies; diagnostics.
-
-        Either completes or, raising (bad input, a failing dual or refit), changes nothing;
-        rewards without information leave the policies where they are (``refitted`` False).
-        """
+        """One update from samples of the current policies; diagnostics. Raising changes nothing."""
         ...
 
     def state_dict(self) -> dict[str, Any]:
@@ -128,26 +99,21 @@ class Algorithm(Protocol):
         ...
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore what :meth:`state_dict` returned; a state that does not fit (another
-        variant, number of options or dimension, a missing key) raises and changes nothing."""
+        """Restore :meth:`state_dict`'s output; one that does not fit raises, changing nothing."""
         ...
 
 
 class PolicyKwargs(TypedDict, total=False):
-    """Keyword options of the fresh policies that the ``create`` methods build (forwarded to
-    :meth:`HierarchicalPolicy.create`, whose defaults apply).
+    """Keyword options of the ``create`` methods' policies (:meth:`HierarchicalPolicy.create`).
 
     Attributes:
-        init_std: initial standard deviation of the options, float or (D,) (1.0).
+        init_std: initial option standard deviation, float or (D,) (1.0).
         spread: spread of the initial option means in units of ``init_std`` (1.0).
-        gating_features: features of the gating (the squared expansion of the state or
-            context by default; none without context).
-        policy_features: features of the options (the state itself: linear options).
-        min_variance: variance floor of the options, float or (D,) (1e-8).
-        covariance_prior: pseudo-samples of the prior that shrinks each refit covariance
-            toward the previous one (0.0; see :class:`~hireps_torch.policies.LinearGaussian`).
-        mean_prior: pseudo-samples of the prior that holds each refit's mean coefficients
-            near the previous ones (0.0; see :class:`~hireps_torch.policies.LinearGaussian`).
+        gating_features: the gating's features (default: squared expansion of the state).
+        policy_features: the options' features (default: the state: linear options).
+        min_variance: option variance floor, float or (D,) (1e-8).
+        covariance_prior, mean_prior: prior pseudo-samples (0.0; see
+            :class:`~hireps_torch.policies.LinearGaussian`).
     """
 
     init_std: float | Tensor
@@ -160,18 +126,14 @@ class PolicyKwargs(TypedDict, total=False):
 
 
 def seeded_generator(seed: int | None) -> torch.Generator:
-    """A CPU generator seeded with ``seed`` (0 when None); a non-integer seed raises a
-    ``TypeError`` naming it."""
+    """A CPU generator seeded with ``seed`` (0 when None)."""
     gen = torch.Generator()
     gen.manual_seed(0 if seed is None else check_seed("seed", seed))
     return gen
 
 
 def population_seeds(seed: object, population: int | None) -> list[int] | None:
-    """The members' seeds of a population: ``seed`` a sequence of distinct integers, as many
-    as ``population`` when that is given too (None with a population: 0 .. S-1); None when
-    there is no population (``seed`` one integer or None). A ``ValueError`` / ``TypeError``
-    names the size that does not match or the repeated seed."""
+    """The members' distinct seeds (default 0 .. S-1), or None without a population."""
     if population is not None:
         population = check_count("population", population, 1)
     many = isinstance(seed, Sequence) and not isinstance(seed, str | bytes)
@@ -215,17 +177,12 @@ def fresh_policies(
 ) -> list[HierarchicalPolicy]:
     """One fresh softmax-gated mixture of linear-Gaussian options per entry of ``means``.
 
-    The initial option means of all policies are drawn, policy after policy, from one
-    generator seeded with ``seed`` (see :meth:`HierarchicalPolicy.create`); the gating sees
-    the squared expansion of the state unless ``gating_features`` is given (one instance shared
-    by all policies).
-
     Args:
         means: each policy's ``init_mean``: (D,), (O, D) or None (zeros).
         n_options: options per policy.
         state_dim: C (0: no context).
         action_dim: D.
-        seed: seed of the initial option means.
+        seed: one generator for all policies' initial option means.
         **policy_kwargs: see :class:`PolicyKwargs`.
     """
     gen = seeded_generator(seed)
@@ -249,10 +206,7 @@ def member_policies(
     action_dim: int,
     **policy_kwargs: Unpack[PolicyKwargs],
 ) -> tuple[list[HierarchicalPolicy], int | list[int] | None]:
-    """What a ``create`` method builds: :func:`fresh_policies` and the sampling seed
-    (:func:`next_seed`), or for a population (``seed`` a sequence, or ``population`` given;
-    :func:`population_seeds`) each member's, the policies stacked member by member
-    (:meth:`HierarchicalPolicy.stack`) and one sampling seed per member."""
+    """:func:`fresh_policies` and the sampling seed(s), stacked over a population's members."""
     seeds = population_seeds(seed, population)
     if seeds is None:
         one = None if seed is None else check_seed("seed", seed)
@@ -302,13 +256,7 @@ def check_experience(
     algorithm: str,
     population: int | None = None,
 ) -> int:
-    """Check the shapes of ``experience`` for an algorithm with K = ``n_steps`` steps.
-
-    States (N, K, C), actions (N, K, D), rewards (N, K); with ``transitions`` next_states
-    (N, K, C) and optionally terminated (N, K) bool, which must be None otherwise; a
-    population of P puts P in front of every shape. The values are checked by the update
-    itself. Returns N.
-    """
+    """Check ``experience``'s shapes for K = ``n_steps`` (``transitions``: next_states); N."""
     if not isinstance(experience, Experience):
         raise TypeError(f"learn takes an Experience, got {type(experience).__name__}")
     lead: tuple[int | str, ...] = () if population is None else (population,)
@@ -336,9 +284,7 @@ def check_experience(
 
 
 def check_state_keys(state: object, required: set[str], algorithm: str) -> Mapping[str, Any]:
-    """``state`` as a mapping with exactly the ``required`` keys (plus, optionally,
-    ``generator``); a ``ValueError`` naming the missing and unexpected keys, and the variant
-    that seems to have written it, otherwise (before anything is loaded)."""
+    """``state`` as a mapping with exactly the ``required`` keys (and optionally ``generator``)."""
     if not isinstance(state, Mapping):
         raise TypeError(f"{algorithm}.load_state_dict takes a mapping, got {type(state).__name__}")
     keys = set(state)
@@ -370,13 +316,7 @@ class _Shared:
 
 
 class HiREPSBase:
-    """Bookkeeping shared by the variants.
-
-    Holds ``kappa_rel`` (checked), ``prune_threshold``, the sampling ``generator`` (seeded with
-    ``seed``, 0 when None) and the ``iteration`` count, and writes / restores them in the
-    checkpoint next to what each variant learns (:meth:`_state`; :meth:`_check_shared`, then
-    :meth:`_set_shared`).
-    """
+    """Shared bookkeeping: kappa_rel, prune_threshold, generator, iteration and their checkpoint."""
 
     def __init__(
         self,
@@ -399,19 +339,14 @@ class HiREPSBase:
 
     @property
     def device(self) -> torch.device:
-        """Where the policies, the samples an update takes and its dual live (the CPU unless
-        moved with :meth:`to`)."""
+        """Where the policies, the update's samples and its dual live."""
         policy: HierarchicalPolicy = getattr(self, "policies")[0]  # noqa: B009
         bias: Tensor = policy.sub_policies[0].bias
         return bias.device
 
     def to(self, device: torch.device | str) -> Self:
-        """Move the policies, the feature maps and the learned values to ``device`` (e.g.
-        ``"cuda"``) and return ``self``; updates then take their samples there and solve the
-        dual there (float64). The sampling generators stay on the CPU: a seed draws the same
-        noise on every device (moved to ``device``), so its run differs from the CPU's only
-        by the device's rounding. A device torch does not know, or one not present, raises a
-        ``ValueError`` naming it and moves nothing."""
+        """Move policies, feature maps and learned values to ``device``; return ``self``. The
+        generators stay on the CPU. ValueError: unknown or absent device (nothing moved)."""
         dev = check_present_device(device)
         for name, value in list(vars(self).items()):
             if isinstance(value, torch.nn.Module):
@@ -456,8 +391,7 @@ class HiREPSBase:
         return _Shared(gen, iteration, kappa_rel)
 
     def _set_shared(self, shared: _Shared) -> None:
-        """Set what :meth:`_check_shared` returned (a checkpoint without a generator, as the
-        infinite-horizon variant wrote before it had one, keeps the current one)."""
+        """Set what :meth:`_check_shared` returned (no generator: keep the current one)."""
         if shared.generator is not None:
             if isinstance(self.generator, list):
                 for g, state in zip(self.generator, shared.generator, strict=True):
@@ -469,8 +403,7 @@ class HiREPSBase:
 
 
 def check_epsilons(epsilon: object, K: int) -> list[float]:
-    """epsilon (one number, a 0-d tensor, or K numbers, e.g. a (K,) tensor) as K floats > 0;
-    the error names the bad entry, or the expected and given count."""
+    """epsilon (one number or K, e.g. a (K,) tensor) as K floats > 0."""
     shape = getattr(epsilon, "shape", None)
     if isinstance(epsilon, str | bytes | Mapping):
         raise TypeError(
@@ -492,8 +425,7 @@ def check_epsilons(epsilon: object, K: int) -> list[float]:
 
 
 def check_saved_values(saved: object, current: Tensor) -> Tensor:
-    """A checkpoint's value weights, checked against the ``current`` ones: a float64 copy of
-    the same shape (both shapes named otherwise: other value features or steps) and finite."""
+    """A checkpoint's value weights as a finite float64 copy of ``current``'s shape."""
     v = as_float_tensor("value_weights", saved).clone()
     if v.shape != current.shape:
         raise ValueError(

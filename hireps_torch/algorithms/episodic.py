@@ -1,22 +1,12 @@
-"""Episodic / contextual HiREPS, and REPS as its one-option special case.
+"""Episodic / contextual HiREPS (Daniel, Neumann & Peters), and REPS as its one-option case.
 
-Each iteration (Daniel, Neumann & Peters, "Hierarchical Relative Entropy Policy Search"):
+Per iteration: ``ask`` N parameters theta_i ~ pi(theta | s_i); ``tell`` their returns R_i; the
+dual (:func:`hireps_torch.dual.solve_episodic_dual`) gives
 
-1. ``ask``: draw N parameter vectors theta_i ~ pi(theta | s_i) = sum_o pi(o|s_i) pi(theta|s_i,o)
-   for the contexts s_i (one episode each); the caller runs them and measures R_i.
-2. ``tell``: responsibilities of the sampling policy p~_io = p(o | s_i, theta_i);
-   kappa = kappa_rel * mean_i H[p~_i.] (the entropy bound, relative to the current mean
-   option entropy); solve the dual (:func:`hireps_torch.dual.solve_episodic_dual`)
+    P_io ∝ p~_io^(1 + xi/eta) exp((R_i - v^T phi(s_i)) / eta)
 
-       P_io ∝ p~_io^(1 + xi/eta) exp((R_i - v^T phi(s_i)) / eta)
-
-   with KL(P || q p~) = epsilon, E_P[-log p~] <= kappa and the context features phi matched;
-3. weighted maximum-likelihood refit of the hierarchical policy with the weights P
-   (:meth:`HierarchicalPolicy.weighted_fit`), then pruning of options whose prior mass fell
-   below ``prune_threshold``;
-4. diagnostics: eta, xi, kappa, realised KL and cross-entropy, effective sample size, entropies.
-
-REPS (Peters et al. 2010) is the same loop with one option and no entropy bound: :class:`REPS`.
+with KL(P || q p~) = epsilon, E_P[-log p~] <= kappa and the context features phi matched; then
+the weighted maximum-likelihood refit and pruning.
 """
 
 from __future__ import annotations
@@ -61,8 +51,7 @@ _SETTINGS = checked_settings(300)  # the dual's LBFGS settings (solve_episodic_d
 
 
 class EpisodicHiREPS(HiREPSBase):
-    """Episodic (contextual) HiREPS with an ask/tell interface (and the shared
-    :class:`~hireps_torch.algorithms.Algorithm` interface: one decision step, K = 1).
+    """Episodic HiREPS: ask/tell and :class:`~hireps_torch.algorithms.Algorithm` (K = 1).
 
     Example (no context)::
 
@@ -76,15 +65,13 @@ class EpisodicHiREPS(HiREPSBase):
         epsilon: KL bound per iteration, > 0.
         kappa_rel: entropy bound as a fraction of the current mean option entropy of the
             responsibilities (0.8-0.9 in the paper); None disables the bound (xi = 0).
-        context_features: features whose expectation is kept by the dual; by default the
-            squared expansion of the context (first and second moments).
+        context_dim: C (0: no context).
+        context_features: features whose expectation the dual keeps (default: the squared
+            expansion of the context).
         prune_threshold: options whose prior mass falls below this are pruned.
-        seed: seed of the sampling generator (same seed, same run).
+        seed: seed of the sampling generator.
 
-    ``tell`` and ``load_state_dict`` check all their inputs first and then either complete or
-    leave the algorithm (policy, generator, iteration) exactly as it was. Returns without
-    information (all equal) leave the policy where it is (see
-    :mod:`hireps_torch.algorithms._options`).
+    ``tell`` and ``load_state_dict`` either complete or raise and change nothing.
     """
 
     def __init__(
@@ -142,10 +129,6 @@ class EpisodicHiREPS(HiREPSBase):
     ) -> EpisodicHiREPS:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
 
-        The gating sees the squared expansion of the context by default, the options the
-        context itself (a linear policy). Option means start at
-        ``init_mean + spread * init_std * randn`` (see :meth:`HierarchicalPolicy.create`).
-
         Args:
             param_dim: D.
             context_dim: C (0: no context).
@@ -154,17 +137,11 @@ class EpisodicHiREPS(HiREPSBase):
             epsilon: KL bound.
             kappa_rel: relative entropy bound (None: off).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator);
-                a sequence of S distinct seeds builds a population (below).
-            population: S, a population of S independent runs in one algorithm, member s
-                the algorithm ``create`` builds with ``seed[s]`` (default seeds 0 .. S-1).
-                Every input and output then has a leading S: ``ask`` returns (S, N, D),
-                ``tell`` takes contexts (S, N, C), params (S, N, D) and returns (S, N), and
-                its diagnostics hold one entry per member; the S duals are solved in one call
-                and every member's samples come from its own generator, so member s draws
-                and learns what it would alone (to round-off).
-            **policy_kwargs: ``init_std, spread, gating_features, policy_features,
-                min_variance, covariance_prior, mean_prior`` (see
-                :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
+                a sequence of S distinct seeds builds a population.
+            population: S independent runs in one algorithm (default seeds 0 .. S-1): every
+                input and output gains a leading S, diagnostics one entry per member; member
+                s draws and learns what it would alone (to round-off).
+            **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
         policy, sampling = member_policies(
             seed, population, [init_mean], n_options, context_dim, param_dim, **policy_kwargs
@@ -179,8 +156,7 @@ class EpisodicHiREPS(HiREPSBase):
 
     # ---- input handling ---------------------------------------------------------------------
     def _contexts(self, contexts: Tensor | int | None, n: int | None = None) -> Tensor:
-        """Contexts (N, C) as checked float64, from a tensor, or from a count / None without
-        context (``n``: the number of samples that None stands for)."""
+        """Checked float64 contexts ([S,] N, C); a count / None (``n`` samples) without context."""
         if _is_count(contexts):
             if self.context_dim > 0:
                 raise ValueError(
@@ -250,11 +226,10 @@ class EpisodicHiREPS(HiREPSBase):
         """Sample one parameter vector per context.
 
         Args:
-            contexts: (N, C) contexts, or the number of samples N >= 1 when there is no
-                context; a population: (S, N, C) or the count.
+            contexts: (N, C), or the count N >= 1 without context.
 
         Returns:
-            theta: (N, D) float64 ((S, N, D) for a population).
+            theta: (N, D) float64.
         """
         c = self._contexts(contexts)
         theta, _ = self.policy.sample(c, self.generator)
@@ -269,23 +244,17 @@ class EpisodicHiREPS(HiREPSBase):
     def tell(
         self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
     ) -> dict[str, Any]:
-        """Update the policy from evaluated samples drawn from the current policy.
-
-        Everything (dual, refit) is computed before the policy changes: a bad input or a
-        failing refit raises and leaves the algorithm as it was.
+        """Update the policy from samples drawn with it; raising changes nothing.
 
         Args:
-            contexts: (N, C) contexts of the samples (None or N without context).
-            params: (N, D) parameters returned by :meth:`ask`.
-            returns: (N,) their returns (higher is better); exactly (N,): an (N, 1) or
-                (1, N) tensor is refused.
+            contexts: (N, C) (None or N without context).
+            params: (N, D) from :meth:`ask`.
+            returns: exactly (N,), higher is better.
 
         Returns:
             Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
-            option_entropy`` (mean responsibility entropy before the update),
-            ``policy_entropy`` (weighted mean entropy of the options after the update),
-            ``n_active_options, pruned, refitted`` (False: the returns carried no information
-            and the policy was left as it is), ``mean_return, max_return, dual_converged,
+            option_entropy`` (before), ``policy_entropy`` (after), ``n_active_options, pruned,
+            refitted`` (False: no information), ``mean_return, max_return, dual_converged,
             dual_iterations, feature_error, iteration``.
         """
         c, theta, R = self._samples(contexts, params, returns)
@@ -314,7 +283,7 @@ class EpisodicHiREPS(HiREPSBase):
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     @property
     def policies(self) -> tuple[HierarchicalPolicy]:
-        """The one policy, as the interface's one-entry sequence."""
+        """``(policy,)``."""
         return (self.policy,)
 
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
@@ -349,9 +318,7 @@ class EpisodicHiREPS(HiREPSBase):
         return self._state(policy=self.policy.state_dict(), epsilon=self.epsilon)
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore :meth:`state_dict`'s output; everything is checked first (a checkpoint of
-        another variant, number of options or dimension raises, naming it), nothing is
-        changed unless all of it loads."""
+        """Restore :meth:`state_dict`'s output; one that does not fit raises, changing nothing."""
         name = type(self).__name__
         state = check_state_keys(state, {"policy", "epsilon", "iteration", "kappa_rel"}, name)
         self.policy.check_state_dict(state["policy"])
@@ -363,7 +330,7 @@ class EpisodicHiREPS(HiREPSBase):
 
 
 def _is_count(contexts: object) -> bool:
-    """None, or one number (an int, a 0-d tensor), stands for a count of context-free samples."""
+    """None or one number (int, 0-d tensor): a count of context-free samples."""
     if contexts is None:
         return True
     if isinstance(contexts, list | tuple):
@@ -391,8 +358,7 @@ class REPS(EpisodicHiREPS):
         seed: int | Sequence[int] | None = None,
         population: int | None = None,
     ) -> REPS:
-        """Build REPS with a single linear-Gaussian policy (see :meth:`EpisodicHiREPS.create`;
-        a sequence of seeds or ``population`` builds a population)."""
+        """Build REPS with one linear-Gaussian option (see :meth:`EpisodicHiREPS.create`)."""
         algo = super().create(
             param_dim,
             context_dim=context_dim,

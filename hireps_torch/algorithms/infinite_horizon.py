@@ -1,24 +1,13 @@
-"""Infinite-horizon HiREPS: a stationary state-action-option distribution under restarts.
+"""Infinite-horizon HiREPS (Daniel, Neumann & Peters) over decisions (s_i, a_i, r_i, s'_i) of
+a restart process (restart probability 1 - gamma per decision).
 
-Each iteration (Daniel, Neumann & Peters, "Hierarchical Relative Entropy Policy Search",
-infinite-horizon formulation):
+The dual (:func:`hireps_torch.dual.solve_infinite_horizon_dual`) gives
 
-1. the hierarchical policy pi(a | s) = sum_o pi(o | s) pi(a | s, o) acts in the restart process
-   (with probability 1 - gamma per decision the system restarts from the start distribution);
-   each sample is one decision: (s_i, a_i, r_i, s'_i);
-2. responsibilities p~_io = p(o | s_i, a_i) of the sampling policy and the entropy bound
-   kappa = kappa_rel * mean_i H[p~_i.];
-3. the dual (:func:`hireps_torch.dual.solve_infinite_horizon_dual`)
+    P_io ∝ p~_io^(1 + xi/eta) exp((r_i + gamma v^T phi(s'_i) - v^T phi(s_i)) / eta)
 
-       P_io ∝ p~_io^(1 + xi/eta) exp((r_i + gamma v^T phi(s'_i) - v^T phi(s_i)) / eta)
-
-   with KL(P || q p~) = epsilon, E_P[-log p~] <= kappa and the stationarity constraint
-   sum_i w_i (phi(s_i) - gamma phi(s'_i)) = (1 - gamma) phi_hat_0 on the value features phi;
-4. weighted maximum-likelihood refit of gating and options with the weights P
-   (:meth:`HierarchicalPolicy.weighted_fit`), then pruning;
-5. diagnostics: eta, xi, kappa, realised KL, cross-entropy, effective sample size, entropies.
-
-One option and ``kappa_rel=None`` give infinite-horizon REPS (Peters et al. 2010).
+with KL(P || q p~) = epsilon, E_P[-log p~] <= kappa and stationarity
+sum_i w_i (phi(s_i) - gamma phi(s'_i)) = (1 - gamma) phi_hat_0; then the weighted refit and
+pruning. One option and ``kappa_rel=None``: infinite-horizon REPS.
 """
 
 from __future__ import annotations
@@ -64,14 +53,7 @@ _SETTINGS = checked_settings(300)  # the dual's LBFGS settings (the wrapper's de
 
 
 class InfiniteHorizonHiREPS(HiREPSBase):
-    """Infinite-horizon HiREPS over transitions of a restart process (and the shared
-    :class:`~hireps_torch.algorithms.Algorithm` interface: one decision step, K = 1).
-
-    Example::
-
-        algo = InfiniteHorizonHiREPS(policy, FourierFeatures(low, high), start_states,
-                                     gamma=0.996, epsilon=0.5)
-        diagnostics = algo.update(states, actions, rewards, next_states)
+    """Infinite-horizon HiREPS: ``update`` and :class:`~hireps_torch.algorithms.Algorithm` (K = 1).
 
     Args:
         policy: the hierarchical policy (updated in place); its context is the state.
@@ -82,11 +64,9 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         epsilon: KL bound per iteration, > 0.
         kappa_rel: entropy bound as a fraction of the current mean option entropy; None: off.
         prune_threshold: options whose prior mass falls below this are pruned (0: never).
-        seed: seed of the generator of :meth:`sample` (None: 0). The update draws nothing.
+        seed: seed of the generator of :meth:`sample` (None: 0).
 
-    ``update`` / ``learn`` and ``load_state_dict`` check all their inputs first and then either
-    complete or leave the algorithm exactly as it was; rewards without information (all
-    equal) leave the policy where it is (see :mod:`hireps_torch.algorithms._options`).
+    ``update`` / ``learn`` and ``load_state_dict`` either complete or raise and change nothing.
     """
 
     def __init__(
@@ -147,10 +127,6 @@ class InfiniteHorizonHiREPS(HiREPSBase):
     ) -> InfiniteHorizonHiREPS:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
 
-        The gating sees the squared expansion of the state by default, the options the state
-        itself (linear options). Option means start at ``init_mean + spread * init_std *
-        randn`` (see :meth:`HierarchicalPolicy.create`).
-
         Args:
             state_dim: C, the state dimension, >= 1.
             action_dim: A.
@@ -164,13 +140,9 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             prune_threshold: prior mass below which options are pruned (0: never).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator);
                 a sequence of S distinct seeds builds a population.
-            population: S, a population of S independent runs in one algorithm (see
-                :meth:`EpisodicHiREPS.create`): states, actions, rewards and next states
-                with a leading S, one dual call and one batched refit per update; the start
-                distribution's ``initial_states`` are shared.
-            **policy_kwargs: ``init_std, spread, gating_features, policy_features,
-                min_variance, covariance_prior, mean_prior`` (see
-                :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
+            population: S independent runs (see :meth:`EpisodicHiREPS.create`); the
+                ``initial_states`` are shared.
+            **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
         state_dim = check_count("state_dim", state_dim, 1)
         if check_feature_map("value_features", value_features) is None:
@@ -195,8 +167,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         )
 
     def value(self, states: Tensor) -> Tensor:
-        """Current value estimate v^T phi(s) (from the last dual solve): (N, C) -> (N,) (a
-        population: (S, N, C) -> (S, N))."""
+        """v^T phi(s) from the last update: ([S,] N, C) -> ([S,] N)."""
         phi = self.value_features(self._states(states))
         return (phi @ self.value_weights[..., None])[..., 0]
 
@@ -208,8 +179,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         next_states: Tensor,
         terminated: Tensor | None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
-        """Checked float64 states, actions, rewards (exactly (N,)), next states and the
-        optional (N,) bool terminated flags of :meth:`update`."""
+        """Checked float64 inputs of :meth:`update` (terminated: bool or None)."""
         s = self._states(states)
         N, A = s.shape[-2], self.policy.action_dim
         lead = self.policy.batch_shape
@@ -261,26 +231,19 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         next_states: Tensor,
         terminated: Tensor | None = None,
     ) -> dict[str, Any]:
-        """One policy update from transitions sampled with the current policy.
-
-        Everything (dual, refit) is computed before anything changes: a bad input or a
-        failing refit raises and leaves the algorithm as it was.
+        """One policy update from transitions sampled with it; raising changes nothing.
 
         Args:
             states: (N, C) states where the decisions were taken.
             actions: (N, A) actions taken.
             rewards: (N,) reward of each decision (exactly (N,): (N, 1) is refused).
             next_states: (N, C) states reached (before any restart).
-            terminated: optional (N,) bool, the decision ended the episode in a terminal state
-                (e.g. a ball that fell off). The process then restarts for sure, so the next
-                state's expected features are those of the start distribution, phi_hat_0,
-                in the Bellman error and the stationarity constraint.
+            terminated: optional (N,) bool, ended in a terminal state: the next state's
+                features are then phi_hat_0 (a sure restart).
 
         Returns:
-            Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
-            option_entropy, policy_entropy, n_active_options, pruned, refitted`` (False: no
-            information, the policy was left as it is), ``mean_reward, feature_error,
-            dual_converged, dual_iterations, iteration``.
+            Diagnostics: as :meth:`EpisodicHiREPS.tell`'s, with ``mean_reward`` for
+            ``mean_return, max_return``.
         """
         s, a, R, s_next, term = self._transitions(states, actions, rewards, next_states, terminated)
         next_features = self.value_features(s_next)
@@ -320,12 +283,11 @@ class InfiniteHorizonHiREPS(HiREPSBase):
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     @property
     def policies(self) -> tuple[HierarchicalPolicy]:
-        """The one policy, as the interface's one-entry sequence."""
+        """``(policy,)``."""
         return (self.policy,)
 
     def _states(self, states: Tensor, name: str = "states", *, population: bool = True) -> Tensor:
-        """States ([S,] N, C), N >= 1, as checked float64 (the population's leading S
-        unless ``population`` is False)."""
+        """Checked float64 states ([S,] N, C) (no S when ``population`` is False)."""
         C = self.value_features.in_features
         s = as_float_tensor(name, states, device=self.device)
         lead = self.policy.batch_shape if population else ()
@@ -339,8 +301,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
     @torch.no_grad()
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """Exploring actions (N, A) for states (N, C), drawn with the algorithm's generator;
-        ``step`` must be 0."""
+        """Exploring actions (N, A) for states (N, C); ``step`` must be 0."""
         check_step(step, 1)
         return self.policy.sample(self._states(states), self.generator)[0]
 
@@ -351,8 +312,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         return self.policy.mean_action(self._states(states))[0]
 
     def learn(self, experience: Experience) -> dict[str, Any]:
-        """:meth:`update` from decisions: states, next_states (N, 1, C), actions (N, 1, A),
-        rewards (N, 1) and optionally terminated (N, 1)."""
+        """:meth:`update` from an :class:`Experience` with K = 1."""
         C, A = self.value_features.in_features, self.policy.action_dim
         name = type(self).__name__
         check_experience(
@@ -380,10 +340,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         )
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore :meth:`state_dict`'s output; everything is checked first (a checkpoint of
-        another variant, number of options or dimension raises, naming it), nothing is
-        changed unless all of it loads. A checkpoint without a generator (written before the
-        variant had one) keeps the current generator."""
+        """Restore :meth:`state_dict`'s output (no generator: keep it); a misfit changes nothing."""
         keys = {"policy", "value_weights", "gamma", "epsilon", "iteration", "kappa_rel"}
         state = check_state_keys(state, keys, type(self).__name__)
         self.policy.check_state_dict(state["policy"])

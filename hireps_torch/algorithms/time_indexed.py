@@ -1,31 +1,12 @@
-"""Time-indexed HiREPS: sequencing skills over K decision steps.
+"""Time-indexed HiREPS (Daniel, Neumann & Peters): one policy per decision step k = 0..K-1.
 
-An episode is a sequence of K decisions (e.g. K shots at a puck, K primitives of a task). At
-step k = 1..K the state s_k is observed, a skill's parameters theta_k are drawn from step k's
-own hierarchical policy pi_k(theta | s) = sum_o pi_k(o | s) pi_k(theta | s, o), and the reward
-R_k is received; the next state s_{k+1} depends on s_k and theta_k. Each iteration (Daniel,
-Neumann & Peters, "Hierarchical Relative Entropy Policy Search", time-indexed formulation):
+The dual (:func:`hireps_torch.dual.solve_time_indexed_dual`) gives per-step weights
 
-1. ``ask(k, states)`` / rollout: the caller runs N episodes, drawing theta_k,i ~ pi_k(. | s_k,i)
-   step after step, and records states (N, K, C), parameters (N, K, D) and rewards (N, K).
-2. ``tell``: per step, the responsibilities p~_k,io = p_k(o | s_k,i, theta_k,i) of the sampling
-   policy and the entropy bound kappa_k = kappa_rel * mean_i H[p~_k,i.]; the time-indexed dual
-   (:func:`hireps_torch.dual.solve_time_indexed_dual`) gives per-step weights
+    P_k,io ∝ p~_k,io^(1 + xi_k/eta_k) exp(delta_k,i / eta_k),
+    delta_k,i = R_k,i + v_{k+1}^T phi(s_{k+1,i}) - v_k^T phi(s_k,i),    V_K = 0,
 
-       P_k,io ∝ p~_k,io^(1 + xi_k/eta_k) exp(delta_k,i / eta_k),
-       delta_k,i = R_k,i + v_{k+1}^T phi(s_{k+1,i}) - v_k^T phi(s_k,i),    V_{K+1} = 0,
-
-   with KL(P_k || q p~_k) = epsilon_k, E_P_k[-log p~_k] <= kappa_k and the state
-   distributions chained through the value features phi:
-   sum_i w_1i phi(s_1i) = phi_hat_1 and sum_i w_ki phi(s_ki) = sum_i w_{k-1,i} phi(s_ki).
-   Step k's weights thus credit a decision with the reward it earned plus the value (under
-   the next step's policy) of the state it led to.
-3. weighted maximum-likelihood refit of each step's policy with its block of weights
-   (:meth:`HierarchicalPolicy.weighted_fit`), then pruning, per step;
-4. diagnostics per step: eta, xi, kappa, realised KL and cross-entropy, effective sample size,
-   entropies, active options; and the feature error of the chained constraints.
-
-Steps are indexed k = 0..K-1 in the code (1..K in the equations above).
+with KL(P_k || q p~_k) = epsilon_k, E_P_k[-log p~_k] <= kappa_k and the state distributions
+chained through the value features phi; each step's policy is then refitted and pruned.
 """
 
 from __future__ import annotations
@@ -93,39 +74,26 @@ _PER_STEP = (
 
 
 class TimeIndexedHiREPS(HiREPSBase):
-    """Time-indexed HiREPS with one hierarchical policy per decision step (ask/tell, and the
-    shared :class:`~hireps_torch.algorithms.Algorithm` interface with K steps).
+    """Time-indexed HiREPS, ask/tell and :class:`~hireps_torch.algorithms.Algorithm` (K steps).
 
     Example (K = 3 shots, 2-D state, 14 parameters per shot)::
 
         algo = TimeIndexedHiREPS.create(3, param_dim=14, context_dim=2, n_options=5, seed=0)
-        for _ in range(iterations):
-            s, theta = torch.zeros(N, 3, 2), torch.zeros(N, 3, 14)  # float64 in practice
-            r = torch.zeros(N, 3)
-            s[:, 0] = start_states(N)
-            for k in range(3):
-                theta[:, k] = algo.ask(k, s[:, k])
-                next_s, r[:, k] = env_step(s[:, k], theta[:, k])
-                if k + 1 < 3:
-                    s[:, k + 1] = next_s
-            diagnostics = algo.tell(s, theta, r)
+        for k in range(3):  # s (N, 3, 2): s[:, k + 1] is where theta[:, k] led
+            theta[:, k] = algo.ask(k, s[:, k])  # then run it: s[:, k + 1], r[:, k]
+        diagnostics = algo.tell(s, theta, r)  # r (N, 3)
 
     Args:
-        policies: K hierarchical policies, policy k acting at step k (updated in place); their
-            context is the state, and all share the parameter dimension D.
-        value_features: features phi(s) of the per-step value functions V_k(s) = v_k^T phi(s);
-            ``in_features`` is the state dimension C.
-        epsilon: KL bound per iteration, > 0: one float for every step or K floats.
-        kappa_rel: entropy bound of each step as a fraction of that step's current mean option
-            entropy of the responsibilities (0.8-0.9 in the paper); None disables the bound.
+        policies: K hierarchical policies of the state, policy k acting at step k (updated in
+            place), sharing the parameter dimension D.
+        value_features: features phi(s) of V_k(s) = v_k^T phi(s); ``in_features`` = C.
+        epsilon: KL bound per iteration, > 0: one float or K floats.
+        kappa_rel: each step's entropy bound as a fraction of its current mean option entropy
+            (0.8-0.9 in the paper); None disables the bound.
         prune_threshold: options whose prior mass falls below this are pruned (0: never).
-        seed: seed of the sampling generator (same seed, same run).
+        seed: seed of the sampling generator.
 
-    ``tell`` / ``learn`` and ``load_state_dict`` check all their inputs first and then either
-    complete or leave the algorithm exactly as it was (every step's refit is computed before
-    any policy changes). A step whose weights carry no information (all rewards equal: the
-    dual keeps its old distribution) leaves its policy where it is (see
-    :mod:`hireps_torch.algorithms._options`).
+    ``tell`` / ``learn`` and ``load_state_dict`` either complete or raise and change nothing.
     """
 
     def __init__(
@@ -205,21 +173,14 @@ class TimeIndexedHiREPS(HiREPSBase):
             param_dim: D, parameters per decision.
             context_dim: C, the state dimension, >= 1.
             n_options: options per step.
-            init_mean: (D,) shared by all steps or (K, D) per step; zeros by default. Option
-                means start at ``init_mean + spread * init_std * randn`` (see
-                :meth:`HierarchicalPolicy.create`).
+            init_mean: (D,) shared by all steps or (K, D) per step; zeros by default.
             epsilon: KL bound, one float or K floats.
             kappa_rel: relative entropy bound (None: off).
-            value_features: value features phi (the squared expansion of the state by default).
+            value_features: value features phi (default: the squared expansion of the state).
             seed: seeds the initial option means (and, as seed + 1, the sampling generator);
                 a sequence of S distinct seeds builds a population.
-            population: S, a population of S independent runs in one algorithm (see
-                :meth:`EpisodicHiREPS.create`): states (S, N, K, C), params (S, N, K, D),
-                rewards (S, N, K), one dual call and one batched refit per step.
-            **policy_kwargs: ``init_std, spread, gating_features`` (the squared expansion of
-                the state by default), ``policy_features, min_variance, covariance_prior,
-                mean_prior``
-                (see :class:`~hireps_torch.algorithms.base.PolicyKwargs`).
+            population: S independent runs (see :meth:`EpisodicHiREPS.create`).
+            **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
         K = check_count("K (the number of decision steps)", K, 1)
         check_feature_map("value_features", value_features)
@@ -274,8 +235,7 @@ class TimeIndexedHiREPS(HiREPSBase):
     def _episodes(
         self, states: Tensor, params: Tensor, rewards: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Checked float64 states (N, K, C), params (N, K, D) and rewards (N, K) of
-        :meth:`tell` (exactly these shapes)."""
+        """Checked float64 states ([S,] N, K, C), params ([S,] N, K, D), rewards ([S,] N, K)."""
         K = self.n_steps
         lead = self.policies[0].batch_shape
         R = as_float_tensor("rewards", rewards, device=self.device)
@@ -318,17 +278,14 @@ class TimeIndexedHiREPS(HiREPSBase):
         return self.policies[k].mean_action(self._contexts(contexts))[0]
 
     def value(self, step: int, contexts: Tensor) -> Tensor:
-        """Value estimate V_k(s) = v_k^T phi(s) from the last update: (N, C) -> (N,).
-
-        V_k is defined up to a constant (phi has no constant column).
-        """
+        """V_k(s) = v_k^T phi(s) from the last update, up to a constant: (N, C) -> (N,)."""
         k = self._step(step)
         phi = self.value_features(self._contexts(contexts))
         return (phi @ self.value_weights[..., k, :, None])[..., 0]
 
     @torch.no_grad()
     def tell(self, states: Tensor, params: Tensor, rewards: Tensor) -> dict[str, Any]:
-        """Update every step's policy from N episodes drawn with the current policies.
+        """Update every step's policy from N episodes drawn with it; raising changes nothing.
 
         Args:
             states: (N, K, C) state at each decision step (s_{k+1} is where decision k led).
@@ -336,12 +293,10 @@ class TimeIndexedHiREPS(HiREPSBase):
             rewards: (N, K) reward of each decision (higher is better).
 
         Returns:
-            Diagnostics, one entry per step (lists of length K): ``eta, xi, kappa, kl,
-            cross_entropy, effective_sample_size, option_entropy`` (mean responsibility
-            entropy before the update), ``policy_entropy`` (weighted mean option entropy after
-            it), ``n_active_options, pruned``; and ``mean_rewards`` (K floats), scalars
-            ``feature_error, dual_converged, dual_iterations, mean_return`` (mean over
-            episodes of the summed rewards), ``max_return, iteration``.
+            Diagnostics: lists of K ``eta, xi, kappa, kl, cross_entropy,
+            effective_sample_size, option_entropy, policy_entropy, n_active_options, pruned,
+            refitted, mean_rewards``; scalars ``feature_error, dual_converged,
+            dual_iterations, mean_return`` (of the summed rewards), ``max_return, iteration``.
         """
         s, theta, R = self._episodes(states, params, rewards)
         lead, (N, K) = R.shape[:-2], R.shape[-2:]
@@ -394,11 +349,11 @@ class TimeIndexedHiREPS(HiREPSBase):
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`ask` with the arguments in the interface's order: states (N, C) at ``step``."""
+        """:meth:`ask` for states (N, C) at ``step``."""
         return self.ask(step, states)
 
     def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`act` with the arguments in the interface's order."""
+        """:meth:`act` for states (N, C) at ``step``."""
         return self.act(step, states)
 
     def learn(self, experience: Experience) -> dict[str, Any]:
@@ -426,9 +381,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         )
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore :meth:`state_dict`'s output; everything is checked first (a checkpoint of
-        another variant, number of steps or options, or dimension raises, naming it), nothing
-        is changed unless all of it loads."""
+        """Restore :meth:`state_dict`'s output; one that does not fit raises, changing nothing."""
         keys = {"policies", "value_weights", "epsilon", "iteration", "kappa_rel"}
         state = check_state_keys(state, keys, type(self).__name__)
         saved = state["policies"]

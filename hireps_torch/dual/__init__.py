@@ -1,8 +1,8 @@
-"""The REPS / HiREPS duals as pure functions, solved in float64 with ``torch.optim.LBFGS``.
+"""The REPS / HiREPS duals as pure functions, solved in float64 by Newton steps and LBFGS.
 
-Episodic / contextual HiREPS (Daniel, Neumann, Peters). Samples i = 1..N carry a return R_i,
-context features phi_i and, for a hierarchical policy with options o = 1..O, the old policy's
-responsibilities p~_io = pi_old(o | s_i, theta_i). The new sample distribution
+Episodic / contextual HiREPS (Daniel, Neumann, Peters): samples i = 1..N carry a return R_i, context
+features phi_i and the old policy's responsibilities p~_io = pi_old(o | s_i, theta_i) for options
+o = 1..O. The new sample distribution
 
     P_io  ∝  p~_io^(1 + xi/eta) · exp((R_i - v^T phi_i) / eta)
 
@@ -18,46 +18,12 @@ and (eta > 0, xi >= 0, v) minimise the dual
                     + eta log[(1/N) sum_i sum_o exp(A_io / eta)],
     A_io = R_i - v^T phi_i + (eta + xi) log p~_io.
 
-One option and xi = 0 give contextual REPS; no features give plain episodic REPS.
-
-All duals of this package share one shape: K blocks (decision steps), each with an
-"advantage" linear in one stacked value vector v,
-
-    delta_k = R_k + D_k v,    g = c^T v + sum_k [eta_k eps_k + xi_k kappa_k
-                                  + eta_k log((1/N) sum_io exp(A_kio / eta_k))],
-
-so the episodic (K = 1, D = -(phi - phi_hat)), infinite-horizon (D = gamma phi' - phi,
-c = (1 - gamma) phi_hat_0) and time-indexed (one block per decision step, D_k v =
-v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k), c = [phi_hat_1, 0, ..]; see
-:func:`solve_time_indexed_dual`) duals reuse one solver, :func:`solve_reps_dual`.
-
-A population of S independent duals (``population=True`` in the wrappers: every input with a
-leading S) is solved problem by problem, each scaled, standardised, safeguarded and judged on
-its own, so each answer is the one it gets alone. Every solver returns one type,
-:class:`DualSolution`, whose fields lead with the batch shape (() for one problem, (S,) for a
-population).
-
-Modules, in reading order:
-
-- :mod:`~hireps_torch.dual.episodic`, :mod:`~hireps_torch.dual.infinite_horizon`,
-  :mod:`~hireps_torch.dual.time_indexed`: one public wrapper each (mirroring
-  :mod:`hireps_torch.algorithms`): check the inputs, build (R, D, c), solve, report.
-- :mod:`~hireps_torch.dual.solutions`: the solution type, its diagnostics, the warnings
-  (and what ``converged`` promises).
-- :mod:`~hireps_torch.dual.inputs`: the wrappers' and the generic solver's input checks.
-- :mod:`~hireps_torch.dual.solver`: :func:`solve_reps_dual`: exact power-of-2 scaling, the
-  solve, the safeguards, one warning (its docstring: the numerics).
-- :mod:`~hireps_torch.dual.temperature`: plain REPS (one block, no features, one option
-  column, no entropy bound): Newton on the temperature alone from the returns' moments.
-- :mod:`~hireps_torch.dual.block_solver`: Newton steps with the exact curvature, then LBFGS in
-  coordinates whitened by it, with the entropy bound's KKT phases (active sets), the fallback
-  for infeasible feature constraints (recognised by weak duality), the projection solve for
-  returns without information and the eta floor.
-- :mod:`~hireps_torch.dual.safeguards`: the KL bound by construction (a final search on eta),
-  the entropy bound's reachability, and the check of every constraint with its tolerance.
-- :mod:`~hireps_torch.dual.conditioning`: value start, whitening and scaling of the problem.
-- :mod:`~hireps_torch.dual.problem`: :class:`~hireps_torch.dual.problem.DualProblem`, the
-  standardised K-block dual with its analytic gradient and curvature.
+One option and xi = 0 give contextual REPS; no features give plain episodic REPS. Each dual here is
+a K-block dual (delta_k = R_k + D_k v, linear term c^T v) solved by :func:`solve_reps_dual`:
+episodic (K = 1, D = -(phi - phi_hat)), infinite-horizon (D = gamma phi' - phi, c = (1 - gamma)
+phi_hat_0), time-indexed (:func:`solve_time_indexed_dual`). ``population=True`` solves S independent
+duals (inputs with a leading S), each as alone; every solver returns a :class:`DualSolution` led by
+the batch shape.
 """
 
 from hireps_torch.dual.episodic import solve_episodic_dual

@@ -1,30 +1,11 @@
 """Newton steps and LBFGS on one standardised K-block dual: :class:`BlockSolver`.
 
-Every phase starts with damped Newton steps with the exact curvature
-(:meth:`BlockSolver.descend`: each problem on its own, a trust region on log eta and log xi);
-LBFGS (``torch.optim.LBFGS``) takes over from where they stop short of the gradient tolerance,
-in coordinates whitened by the curvature where each of its calls starts.
-
-The entropy bound is handled by its KKT conditions with active sets: the dual is solved with xi
-off, then xi is switched on for the blocks whose bound is violated (starting from the xi that
-meets it) and off again for those whose weights without xi meet it, until no block changes.
-When no distribution within the KL bound meets the feature constraints the
-dual is unbounded below; the solver detects it and re-solves with a ridge on the standardised u
-(see :meth:`BlockSolver.relax`). Returns without information (``Standardised.informative``
-False) are solved with eta held at 1 and R = 0: the dual then yields the closest distribution
-(in KL) to the old one that meets the entropy and feature constraints, and the old one itself
-when it meets them already.
-
-A block whose KL bound is inactive (rewards that the features cancel, e.g. all 0 before a
-contact) has its optimum at eta = 0, where v becomes ill-conditioned (curvature ~1/eta): eta is
-held at a floor (:func:`eta_floor`), lifted off it at every phase start if the KL bound breaks
-there (:meth:`BlockSolver.unstick`), and a solve that LBFGS leaves short of its tolerance gets
-Newton steps with the exact curvature (:meth:`BlockSolver.polish`). None of this changes a solve
-that LBFGS completes with every eta above its floor.
-
-The solver's tensors carry a leading S = 1 (the problem dimension of
-:func:`~hireps_torch.dual.solver.solve_blocks`, which solves each of a population's problems
-alone, so that each answer is its own).
+Each phase takes damped Newton steps with the exact curvature (:meth:`BlockSolver.descend`), then
+LBFGS in coordinates whitened by the curvature. The entropy bound is handled by KKT active sets
+(:meth:`BlockSolver.entropy_kkt`), infeasible feature constraints by a ridge
+(:meth:`BlockSolver.relax`), returns without information by a projection solve (eta held at 1,
+R = 0), and an inactive KL bound by an eta floor (:func:`eta_floor`). Tensors carry a leading S = 1
+(see :func:`~hireps_torch.dual.solver.solve_blocks`).
 """
 
 from __future__ import annotations
@@ -48,16 +29,9 @@ _LOG_ETA_FLOOR = -10.0  # eta_k >= e^-10 of block k's return spread: see eta_flo
 
 
 def eta_floor(st: Standardised) -> Tensor:
-    """(S, K) lower clamp of log eta per block (standardised units): e^-10 of the block's own
-    return spread, or of the common spread for a block whose returns do not vary (all 0, say),
-    and never below ``LOG_ETA_MIN``.
-
-    An eta that falls this low belongs to a KL bound that is inactive (eta -> 0: rewards that
-    the features cancel) or binds only at a temperature where that block's weights move its
-    return by a negligible e^-10 of its spread; held there, the v-curvature ~1/eta stays
-    within float64's reach (at e^-30 it did not: such solves stalled with the constraints
-    off) and the block's KL stays below epsilon.
-    """
+    """(S, K) lower clamp of log eta per block (standardised units): e^-10 of the block's own return
+    spread (of the common spread where the block's returns do not vary), at least
+    ``LOG_ETA_MIN``."""
     spread = st.reward_spread.clamp(max=1.0)
     rel = torch.where(spread > 1e-13, spread, torch.ones_like(spread))
     return (_LOG_ETA_FLOOR + rel.log()).clamp_min(LOG_ETA_MIN)
@@ -66,8 +40,7 @@ def eta_floor(st: Standardised) -> Tensor:
 @dataclass(frozen=True)
 class LbfgsSettings:
     """LBFGS iterations per phase and the two gradient tolerances of
-    :func:`~hireps_torch.dual.solve_reps_dual` (checked by
-    :func:`~hireps_torch.dual.inputs.check_settings`)."""
+    :func:`~hireps_torch.dual.solve_reps_dual`."""
 
     max_iter: int = 300
     tolerance_grad: float = 1e-7
@@ -87,8 +60,7 @@ _FLAT_FLOOR = 1e-9  # round-off allowed below the weak-duality bound (BlockSolve
 
 
 class _End(NamedTuple):
-    """Where the solves ended: gradient tolerance met (S,), dual values (S,), weights
-    (S, K, N, O)."""
+    """Where the solves ended: converged (S,), dual values (S,), weights (S, K, N, O)."""
 
     converged: Tensor
     value: Tensor
@@ -96,9 +68,7 @@ class _End(NamedTuple):
 
 
 class _Whitened:
-    """The duals in the coordinates z of x = x0 + L^-T z (x = x0 + z when L is None), as the
-    closure LBFGS evaluates (the sum of the S duals): with L L^T the curvature at x0 the
-    Hessian in z is ~I there."""
+    """LBFGS closure: the sum of the S duals in z, x = x0 + L^-T z (x0 + z when L is None)."""
 
     def __init__(self, prob: DualProblem, x0: Tensor, L: Tensor | None, floor: Tensor) -> None:
         self.prob, self.x0, self.L, self.floor = prob, x0, L, floor
@@ -114,9 +84,7 @@ class _Whitened:
 
     def __call__(self) -> Tensor:
         g, grad = self.prob.value_and_grad(self.x())
-        # below its floor a dual running off to -infinity counts only logarithmically, so that
-        # it cannot drag the line search with it (the transform is monotone and C1: the
-        # problem itself still runs off, and is caught)
+        # below its floor a dual running off counts only logarithmically (monotone, C1)
         below = (self.floor - g).clamp_min(0.0)
         g = torch.where(below > 0, self.floor - torch.log1p(below), g)
         grad = grad / (1.0 + below)[:, None]
@@ -158,15 +126,13 @@ class BlockSolver:
         self.x[:, : self.prob.K] = torch.where(flat[:, None], 0.0, self.x[:, : self.prob.K])
         g, _, P = self.prob.evaluate(self.x)
         self.end = _End(torch.zeros_like(flat), g, P)
-        # weak duality: for any distribution P that meets every constraint the dual is at
-        # least sum_k E_P[R_k] >= sum_k min_i R_ki. A dual value below that (less round-off)
-        # certifies that no such P exists: the feature constraints cannot be met within the
-        # KL bound, and the dual runs off to -infinity
+        # weak duality: a feasible P makes the dual >= sum_k min_i R_ki; below that (less
+        # round-off) the feature constraints cannot be met within the KL bound
         low = self.prob.R.amin(-1).sum(-1)
         self.floor = low - _FLAT_FLOOR * (1.0 + low.abs() + g.abs())
 
     def _set(self, mask: Tensor, converged: Tensor, value: Tensor, weights: Tensor) -> None:
-        """Overwrite the ends of the problems in ``mask`` (S,) (the arguments are (S, ...))."""
+        """Overwrite the ends of the problems in ``mask`` (S,)."""
         e = self.end
         self.end = _End(
             torch.where(mask, converged, e.converged),
@@ -175,8 +141,8 @@ class BlockSolver:
         )
 
     def old_distribution(self) -> Tensor:
-        """(S,) the problems whose old distribution q p~ (computed exactly) meets the entropy
-        and feature constraints (their ends are set to it)."""
+        """(S,) the problems whose old distribution q p~ meets the entropy and feature constraints
+        (their ends are set to it)."""
         prob, K = self.prob, self.prob.K
         w = prob.lr.exp() / prob.N
         w = w / w.sum(dim=(-2, -1), keepdim=True)
@@ -189,8 +155,8 @@ class BlockSolver:
         return ok
 
     def run(self) -> tuple[_End, list[str | None]]:
-        """Solve; relax the feature constraints to a penalty where they cannot be met (the
-        problem's text in the second item is then the warning)."""
+        """Solve; where the feature constraints cannot be met, relax them to a penalty (the second
+        item: each problem's warning text or None)."""
         prob = self.prob
         x_start = self.x.clone()
         texts: list[str | None] = [None] * prob.S
@@ -230,32 +196,22 @@ class BlockSolver:
         return self.end, texts
 
     def _solve_and_detect(self, todo: Tensor, x_start: Tensor) -> tuple[Tensor, Tensor]:
-        """Solve the problems in ``todo`` from x_start; returns (S,) masks of those that ran off
-        or broke the KL bound before converging, and of those that showed a conflict."""
+        """Solve ``todo`` from x_start; returns (S,) masks: ran off or broke the KL bound
+        unconverged, and showed a conflict."""
         prob = self.prob
         self.x = torch.where(todo[:, None], x_start, self.x)
         self.solve(todo)
-        # An unconverged solve that broke the KL bound ran off the same way, only more slowly
-        # (the projection solve does not bound the KL: the safeguard after it does).
+        # an unconverged solve that broke the KL bound ran off too, only more slowly
         ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
         sunk = self._sunk()
-        # a converged solve met every constraint: no conflict, however far v went along
-        # directions the features do not see (near-collinear features)
+        # a converged solve met every constraint: no conflict
         clash = todo & ~self.end.converged & (prob.shows_conflict(self.x, self.end.value) | sunk)
         return clash | (todo & ran_off), clash
 
     def relax(self, x_start: Tensor, need: Tensor) -> Tensor:
-        """Re-solve the problems in ``need`` from x_start with a ridge on v, stronger while the
-        KL bound stays broken; returns (S,) whether each kept the KL bound.
-
-        No distribution within the KL bound meets the feature constraints: either none at all
-        does (c lies outside the convex hull of the rows of -D, typical of few samples against
-        many features) or only ones with KL > epsilon do. The dual is then unbounded below (eta
-        or v run off). A ridge on v bounds it again: the feature constraints become a quadratic
-        penalty while the KL bound, the point of REPS, still holds (the alternative, the
-        closest distribution that meets them, can collapse onto a single sample and wreck the
-        policy).
-        """
+        """Re-solve ``need`` (S,) from x_start with a ridge on v, stronger while the KL bound stays
+        broken; returns (S,) whether each kept the KL bound. The feature constraints become a
+        quadratic penalty; the KL bound still holds."""
         kept = torch.zeros_like(need)
         for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
             self.prob.ridge = torch.where(need, factor * _CONFLICT_RIDGE, self.prob.ridge)
@@ -271,18 +227,15 @@ class BlockSolver:
         return (block_kl(w, self.prob.lr) > 1.01 * self.prob.eps + 1e-3).any(-1)
 
     def solve(self, mask: Tensor) -> None:
-        """The phases (Newton steps, then LBFGS) of the problems in ``mask`` (S,): the entropy
-        bound's KKT phases, then up to two resumes of a phase that stopped short, then the
-        polish where it still did; a problem whose dual fell below the weak-duality bound is
-        left to the ridge fallback."""
+        """Solve the problems in ``mask`` (S,): KKT phases or one phase, up to two resumes, then
+        :meth:`polish` where still short."""
         kkt = mask & self.entropy_bound
         if bool(kkt.any()):
             self.entropy_kkt(kkt)
         if bool((mask & ~kkt).any()):
             self.phase(mask & ~kkt)
         for _ in range(2):
-            # a stalled LBFGS (its preconditioner, the curvature at the phase's start, gone
-            # stale) resumes with the curvature where it stopped
+            # a stalled LBFGS resumes with the curvature where it stopped
             again = mask & ~self.end.converged & self._finite() & ~self._sunk()
             if not bool(again.any()):
                 break
@@ -298,24 +251,17 @@ class BlockSolver:
             self.polish(short)
 
     def _sunk(self) -> Tensor:
-        """(S,) problems without a ridge whose dual value fell below the weak-duality bound
-        (``floor``): their constraints conflict, and the ridge fallback of :meth:`run` takes
-        them."""
+        """(S,) problems without a ridge whose dual fell below the weak-duality bound ``floor``."""
         return (self.prob.ridge == 0) & ~(self.end.value >= self.floor)
 
     def _finite(self) -> Tensor:
-        """(S,) problems whose point and dual value are finite (the others ran off: the
-        ridge fallback of :meth:`run` takes them)."""
+        """(S,) problems whose point and dual value are finite."""
         return torch.isfinite(self.x).all(-1) & torch.isfinite(self.end.value)
 
     def polish(self, mask: Tensor) -> None:
-        """Newton steps with the exact curvature (:meth:`DualProblem.curvature`, the Hessian
-        near the optimum) on the moving coordinates of the problems in ``mask``, each halved
-        until it shrinks the merit (largest gradient entry or entropy-bound excess). LBFGS
-        stops where the dual is flat to round-off in value but not yet in gradient
-        (v-curvature ~1/eta with a block at its eta floor, where xi is tiny too); Newton steps
-        need only the gradient to be accurate. A bound left violated first gets the xi that
-        meets it (eta, v held). A problem that ends no better than LBFGS left it is put back."""
+        """Newton steps on ``mask`` (S,) where LBFGS stopped short (merit: largest gradient entry or
+        entropy-bound excess); a violated bound first gets the xi that meets it. A problem that ends
+        no better is put back."""
         prob, K = self.prob, self.prob.K
         x0, end0 = self.x.clone(), self.end
         merit0 = self._merit(prob.evaluate(self.x)[1], self.end.weights)
@@ -350,11 +296,9 @@ class BlockSolver:
         return torch.where(self.entropy_bound, torch.maximum(m, excess), m)
 
     def entropy_kkt(self, mask: Tensor) -> None:
-        """KKT for xi >= 0 on the problems in ``mask`` by active sets: solve with xi off; switch
-        it on where a block's bound is violated, starting from the xi that meets the bound
-        (eta and v held), and off where the weights without xi (eta and v held) meet it; re-solve
-        until no block changes. A block whose bound stays violated with xi on (the log-space
-        gradient xi (kappa - CE) vanishes with xi) restarts from the xi that meets it."""
+        """KKT for xi >= 0 on ``mask`` (S,) by active sets: xi on where a block's bound is violated
+        (from the xi that meets it), off where the weights without xi meet it; re-solve until no
+        block changes."""
         prob, K = self.prob, self.prob.K
         prob.xi_on = torch.where(mask[:, None], False, prob.xi_on)
         self.phase(mask)
@@ -373,8 +317,7 @@ class BlockSolver:
             self.phase((restart | slack).any(-1))
 
     def unstick(self, mask: Tensor) -> None:
-        """Lift each eta of the problems in ``mask`` held at its floor whose KL bound is broken
-        there (the dual falls as that eta grows, but the clamp hides its gradient) to where the
+        """Lift each eta of ``mask`` held at its floor whose KL bound is broken there to where the
         KL meets epsilon."""
         prob, K = self.prob, self.prob.K
         finite = torch.isfinite(self.x).all(-1)
@@ -392,23 +335,10 @@ class BlockSolver:
         steps: int = _NEWTON_STEPS,
         excess: bool = False,
     ) -> Tensor:
-        """Damped Newton steps on the problems in ``mask`` (S,) before LBFGS.
-
-        Each step solves with the exact Hessian (:meth:`DualProblem.curvature` plus the
-        log-space gradient on the diagonal), or with its positive semi-definite part where the
-        exact one is not positive definite (away from the optimum in log eta), plus a
-        Levenberg-Marquardt damping lam I (in coordinates with a unit Hessian diagonal; per
-        problem, 0 to start). A step is taken when the dual falls (Armijo) or, where the dual is
-        flat to round-off, when the gradient shrinks; otherwise it is halved, and after three
-        halvings damped, lam growing tenfold from 1e-4 each try (the curvature of v is near
-        singular when a block's weights sit on a few samples); after a step lam shrinks
-        tenfold. A problem stops when its gradient meets ``target`` (``tolerance_grad``: a
-        tenth of what ``converged`` asks, so that the KL safeguard's correction of eta after
-        the solve leaves the constraints met) or no damping helps; LBFGS then takes over. A
-        problem whose steps move the dual by round-off only, ``_STALLS`` in a row, without
-        halving the best merit seen has its gradient at its round-off floor: it stops at the
-        best point seen (``stalled``; its phase then calls no LBFGS, which cannot do better).
-        Steps taken count as iterations (once per step, however many problems take it)."""
+        """Damped Newton steps (exact Hessian, else its PSD part, plus Levenberg-Marquardt damping;
+        Armijo or, where flat, a smaller merit) on ``mask`` (S,) until ``target``
+        (``tolerance_grad``), no damping helps, or ``_STALLS`` round-off-only steps (``stalled``,
+        back at the best point). Returns the merit (S,); each step counts as an iteration."""
         prob = self.prob
         target = self.settings.tolerance_grad if target is None else target
         merits = self._merit if excess else lambda grad, _: grad.abs().amax(-1)
@@ -418,8 +348,7 @@ class BlockSolver:
         bounded = prob.ridge > 0  # a ridge bounds the dual: the weak-duality floor is off
         lam = torch.zeros_like(g)
         M: Tensor | None = None  # the curvature, kept for one more step after a full one
-        # the best point so far (smallest merit), and the steps in a row that moved the dual
-        # only by round-off without halving that merit: the gradient is at its round-off floor
+        # the best point so far, and the round-off-only steps in a row (see _STALLS)
         best, best_x, stalls = merit, self.x, torch.zeros_like(g)
         for _ in range(steps):
             active &= (merit > target) & (bounded | (g >= self.floor)) & (stalls < _STALLS)
@@ -478,9 +407,8 @@ class BlockSolver:
         return merit
 
     def _hessians(self, grad: Tensor, M: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """(exact Hessian (S, n, n), its positive semi-definite part (S, n, n), moving
-        coordinates (S, n)) at x, for the gradients (S, n) there; with M, that curvature of
-        the step before instead of a new one (a simplified Newton step)."""
+        """(exact Hessian (S, n, n), its PSD part (S, n, n), moving coordinates (S, n)) at x for
+        gradients (S, n); with M, that curvature instead of a new one."""
         K = self.prob.K
         M = self.prob.curvature(self.x, raw=True) if M is None else M
         H = M.clone()
@@ -490,9 +418,8 @@ class BlockSolver:
     def _damped_step(
         self, H: Tensor, M: Tensor, moving: Tensor, grad: Tensor, lam: Tensor
     ) -> Tensor:
-        """(S, n) Newton steps with damping lam (S,) from the exact Hessian H where H + lam I
-        is positive definite, else from its positive semi-definite part M, on the moving
-        coordinates (0 elsewhere), within the trust region of log eta and log xi."""
+        """(S, n) Newton steps with damping lam (S,) on the moving coordinates, within the log
+        eta / log xi trust region."""
         step, ok = _newton_step(H, grad, moving, cholesky=True, ridge=lam)
         if not bool(ok.all()):
             psd, _ = _newton_step(M, grad, moving, cholesky=True, ridge=lam + 1e-8)
@@ -515,13 +442,9 @@ class BlockSolver:
         )
 
     def phase(self, mask: Tensor) -> None:
-        """One phase over the problems in ``mask`` (S,): Newton steps (:meth:`descend`), then, for
-        the problems they leave short of the tolerance, at most ``max_iter`` LBFGS iterations,
-        run as LBFGS calls of at most ``_CHUNK`` iterations, each whitened by the curvature
-        where it starts (see :class:`_Whitened`); a call that stops on its own (converged, or
-        stalled) ends the phase. A problem that converges within 25 iterations is solved as
-        by one call.
-        """
+        """One phase over ``mask`` (S,): :meth:`descend`, then up to ``max_iter`` LBFGS iterations
+        in calls of ``_CHUNK``, each whitened where it starts; a call that stops on its own ends
+        it."""
         self.unstick(mask)
         self.descend(mask)
         # LBFGS cannot take a gradient below its round-off floor either
@@ -537,11 +460,8 @@ class BlockSolver:
                 return
 
     def _lbfgs(self, mask: Tensor, max_iter: int, max_eval: int) -> tuple[int, int, bool]:
-        """One LBFGS call from x over the problems in ``mask`` (S,); returns its iterations,
-        its evaluations and whether it stopped on its own (converged or stalled) before either
-        budget ran out.
-        LBFGS runs in coordinates whitened by the curvature at the call's start (see
-        :class:`_Whitened`)."""
+        """One whitened LBFGS call over ``mask`` (S,); returns (iterations, evaluations, stopped on
+        its own)."""
         prob, x0 = self.prob, self.x.clone()
         L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
         eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
@@ -561,8 +481,7 @@ class BlockSolver:
         try:
             opt.step(objective)  # type: ignore[no-untyped-call,unused-ignore]  # untyped in torch
         except IndexError:
-            # torch's strong-Wolfe search fails this way when the duals turn non-finite inside
-            # its bracket (a dual running off): the parameters are back where the search began
+            # torch's strong-Wolfe search, on duals turning non-finite; x is back at its start
             pass
         state = opt.state[objective.z]
         used, spent = int(state.get("n_iter", 0)), int(state.get("func_evals", 0))
@@ -583,9 +502,8 @@ def _newton_step(
     cholesky: bool = False,
     ridge: float | Tensor = 1e-12,
 ) -> tuple[Tensor, Tensor]:
-    """(-H^-1 grad on the ``moving`` coordinates, 0 elsewhere (S, n); (S,) whether H was
-    regular) for Hessians H (S, n, n), scaled to unit diagonal first (the curvature of a block
-    held near its eta floor is tiny, not flat)."""
+    """(-H^-1 grad on ``moving``, 0 elsewhere (S, n); H regular (S,)) for H (S, n, n), scaled to
+    unit diagonal first."""
     n = H.shape[-1]
     eye = torch.eye(n, dtype=H.dtype, device=H.device)
     both = moving[:, :, None] & moving[:, None, :]

@@ -26,35 +26,27 @@ def solve_episodic_dual(
 
     Args:
         returns: (N,) return of each sample, N >= 2; (S, N) with ``population``.
-        epsilon: KL bound, > 0. Values >= log N let the weights collapse onto one sample
-            (a :class:`~hireps_torch.dual.DegenerateWeightsWarning` is issued).
+        epsilon: KL bound, > 0; values >= log N collapse the weights onto one sample (a
+            :class:`~hireps_torch.dual.DegenerateWeightsWarning`).
         log_responsibilities: (N, O) log p~(o | s_i, theta_i) of the old policy, rows
             normalised over options ((S, N, O) with ``population``); None means one option
             (REPS).
         context_features: (N, F) context features phi(s_i) whose mean must be kept ((S, N, F)
-            with ``population``); None means no context (plain episodic). Directions without
-            spread in the samples (a constant column, all contexts equal, all-zero features;
-            spread below 1e-14 of the column's magnitude) carry a constraint every
-            distribution meets: they are dropped from the solve (v is unidentifiable along
-            them).
+            with ``population``); None means no context. Directions without spread in the
+            samples are dropped from the solve.
         kappa: absolute bound on the expected option cross-entropy E_P[-log p~], >= 0;
-            None (or inf) means no entropy bound (xi = 0); with ``population`` one float for
-            all problems or an (S,) tensor, one per problem. A bound that no distribution within
-            the KL bound meets (kappa = 0 with soft responsibilities, say) is relaxed to what
-            half the KL budget reaches, with an
-            :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.
+            None (or inf) means no entropy bound (xi = 0); with ``population`` also an (S,)
+            tensor. A bound no distribution within the KL bound meets is relaxed to what half
+            the KL budget reaches, with an :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.
         max_iter: LBFGS iterations per phase, an integer >= 1.
-        population: the inputs hold S independent problems along a leading dimension; they
-            are solved each as it is alone (side by side on idle cores; conditioned, judged and
-            warned about on its own), and every field of the solution leads with S.
+        population: the inputs hold S independent problems along a leading dimension, each
+            solved as alone; every field of the solution leads with S.
 
     Returns:
         :class:`~hireps_torch.dual.DualSolution`: eta, xi, kl, ... 0-d tensors, v (F,),
         weights (N, O) summing to 1 (with ``population``: (S,), (S, F), (S, N, O)) and
-        ``kl <= epsilon (1 + 1e-6)``; ``converged`` False comes with a warning naming what
-        failed (tolerances: :mod:`hireps_torch.dual.solutions`). Returns scaled by any positive
-        factor give the same weights; constant returns give the old distribution (uniform
-        sample weights), eta = inf and the return as the dual value.
+        ``kl <= epsilon (1 + 1e-6)``; ``converged`` False comes with a warning. Constant
+        returns give the old distribution, eta = inf and the return as the dual value.
 
     Raises:
         ValueError, TypeError: on non-finite returns or features, shape mismatches, N < 2,
@@ -85,11 +77,9 @@ def episodic_solution(
     settings: LbfgsSettings,
     stacklevel: int = 2,
 ) -> DualSolution:
-    """:func:`solve_episodic_dual` of S problems (an (S, 1) solution) on inputs already
-    checked: float64 returns R (S, N), log responsibilities (S, N, O) (normalised, log 0
-    floored), epsilon (S, 1), context features phi (S, N, F) or None and kappa (S, 1) or
-    None. Warnings are attributed
-    ``stacklevel`` frames up (2: the caller of this function)."""
+    """:func:`solve_episodic_dual` of S checked float64 problems (an (S, 1) solution): R (S, N),
+    log_resp (S, N, O), eps (S, 1), phi (S, N, F) or None, kappa (S, 1) or None; warnings
+    ``stacklevel`` frames up."""
     S, N = R.shape
     D = None
     if phi is not None:

@@ -30,42 +30,36 @@ def solve_infinite_horizon_dual(
 ) -> DualSolution:
     """Solve the stationary (infinite-horizon) HiREPS dual with restart probability 1 - gamma.
 
-    Samples are transitions (s_i, a_i, r_i, s'_i) of the restart process. The new
-    distribution P_io ∝ p~_io^(1 + xi/eta) exp(delta_i / eta) uses the Bellman error
+    Samples are transitions (s_i, a_i, r_i, s'_i) of the restart process; P_io ∝ p~_io^(1 + xi/eta)
+    exp(delta_i / eta) with the Bellman error
 
         delta_i = r_i + gamma v^T phi(s'_i) - v^T phi(s_i),
 
-    and the dual is ``eta eps + xi kappa + (1 - gamma) v^T phi_hat_0 + eta log mean exp``.
-    At the optimum the state distribution is stationary under restarts:
+    the dual is ``eta eps + xi kappa + (1 - gamma) v^T phi_hat_0 + eta log mean exp``, and at the
+    optimum
 
         sum_i w_i (phi(s_i) - gamma phi(s'_i)) = (1 - gamma) phi_hat_0   (``feature_error``).
 
     Args:
         rewards: (N,) reward of each transition (one decision).
         features: (N, F) value features phi(s_i). Directions along which phi - gamma phi' has
-            no spread (a constant feature) are dropped from the solve; their constraint holds
-            for every distribution when the start features agree (phi_hat_0 = 1 for a feature
-            that is 1 everywhere), else no reweighting meets it (an
-            :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`).
+            no spread are dropped; their constraint holds for every distribution when the start
+            features agree, else an :class:`~hireps_torch.dual.InfeasibleConstraintsWarning`.
         next_features: (N, F) value features phi(s'_i) of the state reached.
         initial_features: (F,) mean value features of the start distribution, phi_hat_0.
         gamma: 1 - restart probability, in (0, 1).
         epsilon: KL bound, > 0.
         log_responsibilities: (N, O) log p~(o | s_i, a_i) or None (one option).
         kappa: absolute bound on the option cross-entropy or None (see
-            :func:`~hireps_torch.dual.solve_episodic_dual` for one that cannot be met); with
-            ``population`` also an (S,) tensor, one per problem.
+            :func:`~hireps_torch.dual.solve_episodic_dual`); with ``population`` also (S,).
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension
-            (rewards (S, N), features (S, N, F), initial_features (F,) or (S, F), ...), solved
-            each as alone; every field of the solution leads with S (see
-            :func:`~hireps_torch.dual.solve_episodic_dual`).
+            (rewards (S, N), features (S, N, F), initial_features (F,) or (S, F), ...).
 
     Returns:
-        :class:`~hireps_torch.dual.DualSolution` (shaped as
-        :func:`~hireps_torch.dual.solve_episodic_dual`'s); ``v`` holds the value-function
-        weights (F,);
-        ``kl <= epsilon (1 + 1e-6)``, and ``converged`` False comes with a warning.
+        :class:`~hireps_torch.dual.DualSolution` shaped as
+        :func:`~hireps_torch.dual.solve_episodic_dual`'s; ``v`` (F,) the value-function
+        weights; ``kl <= epsilon (1 + 1e-6)``; ``converged`` False comes with a warning.
 
     Raises:
         ValueError, TypeError: on non-finite or mis-shaped input, gamma outside (0, 1),
@@ -121,11 +115,9 @@ def infinite_horizon_solution(
     settings: LbfgsSettings,
     stacklevel: int = 2,
 ) -> DualSolution:
-    """:func:`solve_infinite_horizon_dual` of S problems (an (S, 1) solution) on inputs already
-    checked: float64 rewards R (S, N), log responsibilities (S, N, O) (normalised, log 0 floored),
-    epsilon (S, 1), finite features phi and phi_next (S, N, F), initial features phi0 (S, F), gamma
-    in (0, 1) and kappa (S, 1) or None. Warnings are attributed ``stacklevel`` frames up (2: the
-    caller of this function)."""
+    """:func:`solve_infinite_horizon_dual` of S checked float64 problems (an (S, 1) solution): R
+    (S, N), log_resp (S, N, O), eps (S, 1), phi and phi_next (S, N, F), phi0 (S, F), kappa (S, 1) or
+    None; warnings ``stacklevel`` frames up."""
     S, N, F = phi.shape
     D = (gamma * phi_next - phi).reshape(S, 1, N, F)
     c = (1.0 - gamma) * phi0

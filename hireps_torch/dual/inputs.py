@@ -1,10 +1,5 @@
-"""Input checks of the dual wrappers (episodic, infinite-horizon, time-indexed).
-
-The generic checks (float64 conversion, finiteness, positivity) come from
-:mod:`hireps_torch.checks`; the dual-specific ones (normalised log-responsibilities, per-block
-bounds, feature shapes, solver settings) live here. Each input is checked once, here; the
-solver trusts them.
-"""
+"""Input checks of the dual wrappers and :func:`~hireps_torch.dual.solve_reps_dual` (each input is
+checked once, here; the solver trusts them)."""
 
 from __future__ import annotations
 
@@ -38,10 +33,8 @@ LOG_RESP_FLOOR = -1.0e4  # stands in for log(0) of pruned options; exp() of it i
 
 
 def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tensor:
-    """Check log-probabilities normalised over the last dim; return them with log 0 floored.
-
-    Rows normalised only to float32 precision (off by up to 1e-4) are renormalised in float64,
-    so that the old distribution q p~ sums to 1 and its KL to itself is 0."""
+    """Check log-probabilities normalised over the last dim; return them with log 0 floored (rows
+    off by up to 1e-4 renormalised in float64)."""
     if log_resp.shape[-1] == 0:
         raise ValueError(
             f"{name} must have at least one option column, got {tuple(log_resp.shape)}"
@@ -72,9 +65,8 @@ def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tens
 def per_block(
     name: str, value: float | Tensor, K: int, device: torch.device | None = None
 ) -> Tensor:
-    """A bound given as one float or one value per block (K,), as a (K,) float64 tensor on
-    ``device`` (a setting, so a tensor on another device is moved); a bool is a ``TypeError``
-    (``epsilon=True`` is no bound)."""
+    """A bound (one float or (K,)) as a (K,) float64 tensor on ``device``; a bool is a
+    ``TypeError``."""
     if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
         raise TypeError(f"{name} must be a number or a tensor of numbers, got {value!r}")
     t = as_f64(name, value).to(device)
@@ -89,8 +81,7 @@ def per_block(
 
 
 def _shape_text(lead: tuple[int, ...], last: str, population: bool = False) -> str:
-    """'(N, K, F) = (60, 3, F)' for lead (60, 3) and last 'F' ('(S, N, F) = ...' with a
-    population dimension first)."""
+    """'(N, K, F) = (60, 3, F)' for lead (60, 3) and last 'F' (S first for a population)."""
     names = (["S"] if population else []) + ["N", "K"][: len(lead) - population] + [last]
     return f"({', '.join(names)}) = ({', '.join([*map(str, lead), last])})"
 
@@ -105,27 +96,14 @@ def common_inputs(
     per_step: bool = False,
     population: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-    """Validate the inputs every wrapper shares and return them block-major for the solver,
-    with a leading population dimension S (1 for one problem).
-
-    Warns (at the wrapper's caller) with a
+    """Validate the inputs every wrapper shares; return R (S, K, N), epsilon (S, K), log p~
+    (S, K, N, O) (log 0 floored) and kappa (S, K) or None, with S = 1 unless ``population``. Warns
     :class:`~hireps_torch.dual.DegenerateWeightsWarning` where epsilon >= log N.
 
-    Args:
-        returns: (N,) returns, or (N, K) rewards of K decision steps when ``per_step``; with
-            ``population``, one more leading dimension S (S independent problems).
-        epsilon: KL bound, > 0: a float or (K,) (the same for every problem).
-        log_responsibilities: (N, O), or (N, K, O) when ``per_step``, after the same leading S
-            as ``returns``; None means one option.
-        kappa: entropy bound, >= 0 (inf: no bound on that block): None, a float or (K,); with
-            ``population`` also one per problem, (S, K) or (S,) for one block.
-        name: what the error messages call ``returns``.
-        per_step: whether the returns are per decision step (the time-indexed dual).
-        population: whether the inputs carry a leading population dimension S.
-
-    Returns:
-        R (S, K, N), epsilon (S, K), log p~ (S, K, N, O) with log 0 floored, kappa (S, K) or
-        None.
+    ``returns`` is (N,), or (N, K) ``per_step``, after S for a ``population``;
+    ``log_responsibilities`` the same plus O (None: one option); epsilon a float or (K,); kappa
+    None, a float or (K,) (inf: no bound), for a population also (S, K) or (S,) with K = 1; ``name``
+    is what messages call ``returns``.
     """
     if not isinstance(population, bool):
         raise TypeError(f"population must be True or False, got {population!r}")
@@ -159,8 +137,7 @@ def common_inputs(
 
 
 def _per_problem(kappa: Tensor, S: int, K: int) -> bool:
-    """Whether a population's ``kappa`` holds one bound per problem: (S, K), or (S,) for
-    one block (K = 1)."""
+    """Whether a population's ``kappa`` is (S, K), or (S,) with K = 1."""
     return kappa.shape == (S, K) or (K == 1 and kappa.shape == (S,))
 
 
@@ -172,8 +149,7 @@ def check_bounds(
     stacklevel: int,
     device: torch.device | None = None,
 ) -> tuple[Tensor, Tensor | None]:
-    """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, on ``device``, from
-    one float or one value per block; a :class:`~hireps_torch.dual.DegenerateWeightsWarning`
+    """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, on ``device``; warns
     (``stacklevel`` frames up) where epsilon >= log N."""
     eps = per_block("epsilon", epsilon, K, device)
     check_positive("epsilon", eps)
@@ -187,9 +163,8 @@ def check_bounds(
 
 
 def warn_if_degenerate(epsilon: list[float], N: int, stacklevel: int) -> None:
-    """A :class:`~hireps_torch.dual.DegenerateWeightsWarning` where a block's epsilon >= log N
-    (the weights then collapse onto the best samples), attributed ``stacklevel`` frames up
-    (1: the caller of this function)."""
+    """:class:`~hireps_torch.dual.DegenerateWeightsWarning` where a block's epsilon >= log N,
+    ``stacklevel`` frames up (1: this function's caller)."""
     big = [(k, e) for k, e in enumerate(epsilon) if e >= math.log(N)]
     if big:
         K = len(epsilon)
@@ -212,8 +187,8 @@ def _log_responsibilities(
     population: bool,
     device: torch.device,
 ) -> Tensor:
-    """Checked (*lead, O) log-responsibilities on ``device`` as (S, K, N, O); zeros
-    (S, K, N, 1) for None."""
+    """Checked (*lead, O) log-responsibilities on ``device`` as (S, K, N, O); zeros (S, K, N, 1) for
+    None."""
     N = lead[int(population)]
     if x is None:
         return torch.zeros(S, K, N, 1, dtype=torch.float64, device=device)
@@ -233,9 +208,8 @@ def check_features(
     population: bool = False,
     device: torch.device | None = None,
 ) -> Tensor:
-    """Check features of shape (*lead, F): (N, F), or (N, K, F) per decision step, after a
-    leading S for a population (then ``lead`` starts with S); on ``device`` if given (another
-    device is a ``ValueError``)."""
+    """Check features (*lead, F): (N, F) or (N, K, F), after S for a population; on ``device`` if
+    given."""
     phi = as_f64(name, x, device)
     if phi.dim() != len(lead) + 1 or tuple(phi.shape[:-1]) != lead:
         raise ValueError(
@@ -248,9 +222,8 @@ def check_features(
 def check_feature_vector(
     name: str, x: Tensor, F: int, S: int | None = None, device: torch.device | None = None
 ) -> Tensor:
-    """Check a mean feature vector (F,) such as phi_hat_0, or (S, F) for a population (S
-    given; one (F,) vector is then shared by every problem and returned as (S, F)); on
-    ``device`` if given (numbers go there, a tensor elsewhere is a ``ValueError``)."""
+    """Check a mean feature vector (F,), or (S, F) for a population (S given; an (F,) one is shared
+    and returned as (S, F)); on ``device`` if given."""
     phi = as_f64(name, x, device)
     if S is not None and phi.shape == (F,):
         phi = phi.expand(S, F)
@@ -265,8 +238,7 @@ def check_feature_vector(
 def check_settings(
     max_iter: object, tolerance_grad: object = 1e-7, converged_grad: object = 1e-6
 ) -> tuple[int, float, float]:
-    """The solver options: ``max_iter`` an integer >= 1 (LBFGS iterations per phase), the
-    tolerances finite and > 0; a message naming the bad value otherwise."""
+    """The solver options: ``max_iter`` an integer >= 1, the tolerances finite and > 0."""
     if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral | Tensor):
         raise TypeError(f"max_iter must be an integer >= 1, got {max_iter!r}")
     try:
@@ -295,9 +267,9 @@ def check_blocks(
     c: Tensor | None,
     kappa: float | Tensor | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
-    """The inputs of :func:`~hireps_torch.dual.solve_reps_dual`, checked and in float64:
-    R (K, N) finite with K >= 1 and N >= 2, log_resp (K, N, O) normalised, epsilon and kappa
-    per block, D (K, N, P) and c (P,) finite (c only with D)."""
+    """The inputs of :func:`~hireps_torch.dual.solve_reps_dual` checked, in float64: R (K, N),
+    K >= 1, N >= 2; log_resp (K, N, O); epsilon, kappa per block; D (K, N, P), c (P,)
+    (only with D)."""
     Rt = as_f64("R", R)
     if Rt.dim() != 2 or Rt.shape[0] < 1 or Rt.shape[1] < 2:
         raise ValueError(f"R must have shape (K, N) with K >= 1, N >= 2, got {tuple(Rt.shape)}")
@@ -325,10 +297,8 @@ def check_blocks(
 
 
 def centred(phi: Tensor) -> Tensor:
-    """phi (..., N, F) minus its mean over samples, with the columns that are constant to
-    round-off (spread below 1e-14 of their magnitude) exactly 0: centring would leave them as
-    round-off noise that no longer shows the magnitude it came from, and the solver would
-    take that noise for a feature."""
+    """phi (..., N, F) minus its mean over samples; columns constant to round-off (spread below
+    1e-14 of their magnitude) exactly 0."""
     out = phi - phi.mean(dim=-2, keepdim=True)
     spread = phi.amax(dim=-2, keepdim=True) - phi.amin(dim=-2, keepdim=True)
     constant = spread <= 1e-14 * phi.abs().amax(dim=-2, keepdim=True)

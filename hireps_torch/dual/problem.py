@@ -1,12 +1,5 @@
-"""The standardised K-block dual (see :mod:`hireps_torch.dual`) with its analytic gradient,
-for a population of S independent problems at once.
-
-:class:`DualProblem` evaluates S duals, their gradients and curvature preconditioners at
-x = [log eta (K), log xi (K), v (P)] per problem (x has shape (S, 2K + P)); the solver
-(:mod:`hireps_torch.dual.solver`) builds it on standardised returns and features
-(:mod:`hireps_torch.dual.conditioning`). The S problems share nothing: the sum of their duals,
-which LBFGS minimises in one call, is separable, so its minimiser is the S minimisers.
-"""
+"""The standardised K-block dual (see :mod:`hireps_torch.dual`) with its analytic gradient and
+curvature, for S independent problems at x = [log eta (K), log xi (K), v (P)] (S, 2K + P)."""
 
 from __future__ import annotations
 
@@ -31,21 +24,9 @@ class DualProblem:
         dg/d v     = c + sum_k w_k^T D_k
     chained to log eta and log xi (zero where eta is clamped or xi is switched off).
 
-    Args:
-        R: (S, K, N) returns per problem and block.
-        D: (S, K, N, P) map from v to the advantage offsets, or None (no features).
-        c: (S, P) linear term of the dual in v, or None.
-        log_resp: (S, K, N, O) log responsibilities (``lr``).
-        eps: (S, K) KL bounds.
-        kappa: (S, K) entropy bounds (any value where ``xi_on`` is False).
-
-    ``xi_on`` (S, K) switches each block's xi on (it is 0 and its gradient 0 while off);
-    ``eta_on`` (S, K) lets each block's eta move (held where off: the projection solve of
-    returns without information, see :mod:`hireps_torch.dual.block_solver`);
-    ``log_eta_min`` (S, K) is the lower clamp of log eta per block (``LOG_ETA_MIN`` unless the
-    solver sets it; see :func:`~hireps_torch.dual.block_solver.eta_floor`);
-    ``ridge`` (S,) adds (ridge / 2) |v|^2 to a problem's dual when its feature constraints
-    conflict.
+    Inputs R (S, K, N), D (S, K, N, P) or None, c (S, P) or None, log_resp (S, K, N, O) (``lr``),
+    eps and kappa (S, K). Settable: ``xi_on`` (xi on), ``eta_on`` (eta moves), ``log_eta_min``
+    (eta's floor), all (S, K), and ``ridge`` (S,) (adds (ridge / 2) |v|^2).
     """
 
     def __init__(
@@ -69,8 +50,7 @@ class DualProblem:
         self._Dm: Tensor | None = None
 
     def start(self) -> Tensor:
-        """x (S, n) at v = 0 with eta from KL ≈ Var(delta) / (2 eta^2) (the small-epsilon
-        solution) and xi = 0.1; good starts save LBFGS iterations, which dominate the cost."""
+        """x (S, n) at v = 0, xi = 0.1 and eta from KL ≈ Var(delta) / (2 eta^2) = eps."""
         K = self.K
         x = self.R.new_zeros(self.S, 2 * K + self.P)
         spread = self.R.std(dim=-1).clamp_min(1e-6)
@@ -99,8 +79,7 @@ class DualProblem:
         return self.R + torch.einsum("sknp,sp->skn", self.D, v)
 
     def weights_at(self, eta: Tensor, xi: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(P (S, K, N, O), lse (S, K), delta (S, K, N)) at eta, xi (S, K), v (S, P),
-        unclamped."""
+        """(P (S, K, N, O), lse (S, K), delta (S, K, N)) at eta, xi (S, K), v (S, P), unclamped."""
         delta = self.advantage(v)
         P, lse = self._softmax(delta, eta, xi)
         return P, lse, delta
@@ -120,14 +99,12 @@ class DualProblem:
         return (e / s).reshape(z.shape), lse
 
     def curvature(self, x: Tensor, raw: bool = False) -> Tensor:
-        """(S, n, n) positive semi-definite part of each problem's Hessian in x, used as a
-        preconditioner (with identity on unused and flat directions) or, ``raw``, for Newton
-        steps (as computed).
+        """(S, n, n) PSD part of each problem's Hessian at x, as a preconditioner (identity on
+        unused and flat directions) or, ``raw``, for Newton steps.
 
-        In y = (eta, xi, v) the Hessian of block k is exactly (1 / eta_k) Cov_P(z) with
-        z = [-h / eta_k, log p~, D] and h = delta + xi log p~ (the linear terms of the dual add
-        no curvature); the log-parametrisation scales it by diag(eta, xi, 1) on both sides
-        (its first-order term, which vanishes at the optimum, is left out).
+        In y = (eta, xi, v) block k's Hessian is (1 / eta_k) Cov_P(z), z = [-h / eta_k, log p~, D],
+        h = delta + xi log p~; in log space scaled by diag(eta, xi, 1) on both sides (first-order
+        term left out).
         """
         S, K, N, O = self.S, self.K, self.N, self.O
         n = x.shape[-1]
@@ -136,10 +113,8 @@ class DualProblem:
         free = self.eta_free(x)
         M = x.new_zeros(S, n, n)
         for k in range(K):
-            # columns of block k: log eta_k, log xi_k, v (each scaled to zero where unused);
-            # the option-dependent columns a (S, N, O, c) and the features D (S, N, P), which
-            # do not depend on the option: centred, Cov = E[a a^T], E[a D^T], E[D D^T] under P
-            # without expanding D over the options
+            # columns log eta_k, log xi_k (a (S, N, O, c)) and v (D (S, N, P), not expanded over
+            # the options), centred under P: Cov = E[a a^T], E[a D^T], E[D D^T]
             pk = P[:, k]  # (S, N, O)
             h = delta[:, k, :, None] + xi[:, k, None, None] * self.lr[:, k]  # (S, N, O)
             zs = [-h * free[:, k, None, None]]
@@ -155,8 +130,7 @@ class DualProblem:
             aa = pa.reshape(S, N * O, c).transpose(1, 2) @ a.reshape(S, N * O, c)
             M[:, idx[:, None], idx[None, :]] += aa / eta[:, k, None, None]
             if self.P:
-                # D centred under P (from D centred once under uniform weights: its P-mean is
-                # one matrix-vector product, no N x P temporary)
+                # D centred under P, from D centred once under uniform weights
                 Dm = self._centred_features()[:, k]
                 w = pk.sum(-1)  # (S, N)
                 Dc = Dm - (w[:, None, :] @ Dm)
@@ -183,8 +157,7 @@ class DualProblem:
         return self._Dm
 
     def eta_free(self, x: Tensor) -> Tensor:
-        """(S, K) blocks whose eta moves at x: switched on and strictly inside its clamps (the
-        gradient in log eta is 0 elsewhere, and the curvature leaves it out)."""
+        """(S, K) blocks whose eta is switched on and strictly inside its clamps at x."""
         a = x[:, : self.K]
         free: Tensor = (a > self.log_eta_min) & (a < LOG_ETA_MAX) & self.eta_on
         return free
@@ -195,8 +168,7 @@ class DualProblem:
         return g, grad
 
     def evaluate(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Dual values (S,), gradients in x (S, n) and the weights P (S, K, N, O), from one
-        pass."""
+        """Dual values (S,), gradients (S, n) and weights P (S, K, N, O) at x, from one pass."""
         K = self.K
         a, eta, xi, v = self.unpack(x)
         P, lse, delta = self.weights_at(eta, xi, v)
@@ -224,8 +196,7 @@ class DualProblem:
         return g, grad, P
 
     def value_at(self, eta: Tensor, xi: Tensor, v: Tensor) -> Tensor:
-        """The duals (S,) at eta, xi (S, K), v (S, P), unclamped (the value the solver reports
-        where its KL safeguard moved eta past the clamps)."""
+        """The duals (S,) at eta, xi (S, K), v (S, P), unclamped."""
         _, lse, _ = self.weights_at(eta, xi, v)
         g = (eta * self.eps + eta * lse).sum(-1) + (xi * self.kappa).sum(-1)
         if self.P:
@@ -235,13 +206,9 @@ class DualProblem:
         return g
 
     def log_xi_meeting_bound(self, x: Tensor, tol: float = 4e-8, steps: int = 60) -> Tensor:
-        """(S, K) log xi per block at which the cross-entropy meets kappa, eta and v held at x
-        (to ``tol`` in log xi, on the side that meets it: a start for the Newton steps).
-
-        The cross-entropy falls as xi grows (dCE/dxi = -Var_P(log p~) / eta), so its root in
-        log xi is bracketed by log eta - 30 and log eta + 10 and found by regula falsi with the
-        Illinois modification; a block whose bound cannot be met gets the top.
-        """
+        """(S, K) log xi at which each block's cross-entropy meets kappa, eta and v held at x (to
+        ``tol``, on the side that meets it; the top of the bracket where none does), by Illinois
+        regula falsi in [log eta - 30, log eta + 10]."""
         K = self.K
         a = torch.maximum(x[:, :K], self.log_eta_min).clamp(max=LOG_ETA_MAX)  # eta in use
         eta = a.exp()
@@ -260,8 +227,7 @@ class DualProblem:
             open_ = (hi - lo) > tol
             if not bool(open_.any()):
                 break
-            # the secant's point, kept tol / 2 inside the bracket so that a point next to the
-            # root ends on its other side
+            # the secant's point, kept tol / 2 inside the bracket
             t = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
             t = torch.where(torch.isfinite(t), t, 0.5 * (lo + hi))
             t = torch.minimum(torch.maximum(t, lo + 0.5 * tol), hi - 0.5 * tol)
@@ -277,13 +243,9 @@ class DualProblem:
         return hi
 
     def shows_conflict(self, x: Tensor, g: Tensor) -> Tensor:
-        """(S,) whether a solve ending at x (dual values g) shows that no distribution within
-        the KL bound meets the features.
-
-        The dual is then unbounded below and the solve runs off: non-finite values, eta at its
-        upper clamp, eta at its lower clamp with the constraint residual (the v-gradient) still
-        large, or |v| past ``V_MAX``.
-        """
+        """(S,) whether a solve ending at x (dual values g) ran off: non-finite, eta at its upper
+        clamp, eta at its floor with a large v-gradient, or |v| past ``V_MAX`` (no distribution
+        within the KL bound meets the features)."""
         K = self.K
         bad = ~(torch.isfinite(x).all(-1) & torch.isfinite(g))
         bad |= (x[:, :K] >= LOG_ETA_MAX).any(-1)

@@ -1,23 +1,14 @@
-"""What the solver promises after LBFGS, whatever it was given.
+"""What the solver promises after its solve: the KL bound by construction (:func:`enforce_kl`),
+unreachable entropy bounds relaxed (:func:`reachable_kappa`), every constraint checked
+(:func:`judge`). Tensors lead with (S, K).
 
-- The KL bound holds by construction (:func:`enforce_kl`): a block whose realised KL exceeds
-  ``epsilon (1 + KL_RTOL)`` gets a larger eta (xi and v held), found by bisection in log eta;
-  for fixed xi and v the weights are an exponential tilt of q p~ by h / eta
-  (h = delta + xi log p~), and their KL falls monotonically to 0 as eta grows.
-- An entropy bound that no distribution within the KL bound meets is found before the solve
-  (:func:`reachable_kappa`) and relaxed to what half the KL budget reaches.
-- :func:`judge` checks every constraint at the end, with relative tolerances, and says which
-  failed and by how much; the solve counts as converged only if none did.
-
-Tolerances (KL and cross-entropy are in nats, dimensionless; the feature residual is measured
-in the whitened units of :mod:`~hireps_torch.dual.conditioning`, i.e. in feature spreads):
+Tolerances (KL and cross-entropy in nats; the feature residual in the whitened units of
+:mod:`~hireps_torch.dual.conditioning`, i.e. feature spreads):
 
     KL_k <= epsilon_k (1 + 1e-6)                             always (enforced)
     CE_k <= kappa_k + 1e-6 max(kappa_k, 1 nat)               entropy bound
     |c_s + sum_k w_k^T D_s,k| <= converged_grad (1e-6)       feature constraints
     constraint residual along directions without spread <= 1e-6 of its terms
-
-Everything here works per block of a population of S problems: tensors have a leading (S, K).
 """
 
 from __future__ import annotations
@@ -50,12 +41,8 @@ _LOG_T_RANGE = (-30.0, 30.0)  # tilt exponents t = xi / eta searched by reachabl
 
 
 def enforce_kl(prob: DualProblem, eta: Tensor, xi: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
-    """(eta (S, K), moved (S, K) bool): eta raised, per block and with xi and v held, until the
-    realised KL is at most epsilon, where it exceeded epsilon (1 + KL_RTOL); else unchanged.
-
-    Bisection in log eta: the bracket's top is doubled until it keeps the bound, then 80
-    halvings leave KL within round-off below epsilon (the feasible end is returned).
-    """
+    """(eta (S, K), moved (S, K) bool): where the realised KL exceeds epsilon (1 + KL_RTOL), eta
+    raised (xi and v held) by bisection in log eta until KL <= epsilon; else unchanged."""
     P, _, _ = prob.weights_at(eta, xi, v)
     moved = block_kl(P, prob.lr) > prob.eps * (1.0 + KL_RTOL)
     if not bool(moved.any()):
@@ -104,9 +91,8 @@ def _bisect_log_t(lr: Tensor, target: Tensor, use_kl: bool) -> Tensor:
 
 
 def _spends_more(lr: Tensor, kappa: Tensor, eps: Tensor, mask: Tensor) -> Tensor:
-    """(S, K) where ``mask``: whether the tilt that meets kappa spends more KL than eps. The
-    bisection for that tilt stops where its interval decides it: a tilt that meets kappa
-    within eps (KL rises and CE falls with t), or one short of kappa already beyond it."""
+    """(S, K) where ``mask``: whether the tilt that meets kappa spends more KL than eps (bisection,
+    stopped where decided)."""
     lo = torch.full_like(eps, _LOG_T_RANGE[0])
     hi = torch.full_like(eps, _LOG_T_RANGE[1])
     out, decided = torch.zeros_like(mask), ~mask
@@ -125,22 +111,13 @@ def _spends_more(lr: Tensor, kappa: Tensor, eps: Tensor, mask: Tensor) -> Tensor
 
 
 def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Whether each entropy bound can be met within its KL bound (features aside).
+    """Whether each entropy bound can be met within its KL bound (features aside): the tilt
+    P ∝ p~^(1 + t) / N with the smallest t >= 0 that meets kappa must have KL <= epsilon.
 
-    The closest distribution to q p~ (in KL) with E[-log p~] <= kappa is the tilt
-    P ∝ p~^(1 + t) / N with the smallest t >= 0 that meets kappa (an I-projection onto a linear
-    constraint); the bound is reachable iff that tilt's KL is <= epsilon.
-
-    Args:
-        lr: (S, K, N, O) log responsibilities (log 0 floored).
-        eps: (S, K) KL bounds.
-        kappa: (S, K) entropy bounds (inf: none).
-
-    Returns:
-        (kappa to solve with (S, K), unreachable (S, K) bool, best (S, K)): where unreachable,
-        kappa is relaxed to the cross-entropy of the tilt that spends half the KL budget (half
-        of what the steepest tilt spends, if less), and ``best`` is the lowest cross-entropy
-        any tilt within epsilon reaches.
+    For lr (S, K, N, O), eps and kappa (S, K) (inf: none), returns (kappa to solve with, unreachable
+    (bool), best), each (S, K): where unreachable, kappa is relaxed to the cross-entropy of the tilt
+    that spends half the KL budget (of the steepest tilt's, if less), and ``best`` is the lowest
+    cross-entropy any tilt within epsilon reaches.
     """
     zero = torch.full_like(eps, -math.inf)
     _, ce0 = _tilt(lr, zero)
@@ -167,8 +144,8 @@ def entropy_slack(kappa: Tensor) -> Tensor:
 
 @dataclass(frozen=True)
 class Verdict:
-    """The end of one problem's solve: converged, and if not, what failed (``parts``) and
-    whether a constraint is infeasible (then the warning is an InfeasibleConstraintsWarning)."""
+    """One problem's end: converged, what failed (``parts``), and whether a constraint is
+    infeasible."""
 
     converged: bool
     infeasible: bool
@@ -183,9 +160,9 @@ def judge(
     fixed_residual: Tensor,
     converged_grad: float,
 ) -> list[Verdict]:
-    """One :class:`Verdict` per problem: check the KL bound, the entropy bound (the caller's
-    kappa (S, K), inf: none), the feature constraints and optimality (``optimal`` (S,): LBFGS
-    met its gradient tolerance) at weights P (S, K, N, O)."""
+    """One :class:`Verdict` per problem for weights P (S, K, N, O): the KL bound, the entropy bound
+    (kappa (S, K), inf: none), the feature constraints and ``optimal`` (S,)
+    (gradient tolerance met)."""
     kl = block_kl(P, prob.lr)
     over = kl > prob.eps * (1.0 + KL_RTOL)
     ce = block_cross_entropy(P, prob.lr)

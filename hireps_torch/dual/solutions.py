@@ -1,17 +1,14 @@
 """What the duals return: the solution type, its diagnostics and the dual's warnings.
 
-Every solution keeps its KL bound: ``kl <= epsilon (1 + 1e-6)`` on every block, whatever the
-solver went through. ``converged`` is True only when, besides, the entropy bound
-(``cross_entropy <= kappa + 1e-6 max(kappa, 1)``) and the feature constraints (residual below
-1e-6 of the features' spread) hold and the solver met its gradient tolerance; a solve that is
-not converged issues one :class:`InfeasibleConstraintsWarning` (a constraint that cannot be met:
-the message says which and what was done instead) or :class:`DualConvergenceWarning` (naming
-what failed and by how much). See :mod:`hireps_torch.dual.safeguards`.
+Every solution keeps ``kl <= epsilon (1 + 1e-6)`` on every block. ``converged`` is True only when,
+besides, the entropy bound (``cross_entropy <= kappa + 1e-6 max(kappa, 1)``) and the feature
+constraints (residual below 1e-6 of the features' spread) hold and the solver met its gradient
+tolerance; otherwise one :class:`InfeasibleConstraintsWarning` (a constraint cannot be met) or
+:class:`DualConvergenceWarning` says what failed.
 
-Returns without information (constant, or fixed entirely by the features) report eta = inf:
-the weights are then the old distribution q p~, or the distribution closest to it (in KL) that
-meets the entropy bound and the feature constraints (xi = inf where the entropy bound tilts
-it), and the dual value is the mean return, the value of every such distribution.
+Returns without information (constant, or fixed by the features) give eta = inf (xi = inf where the
+entropy bound tilts), the old distribution q p~ or the closest one meeting the constraints, and the
+mean return as the dual value.
 """
 
 from __future__ import annotations
@@ -42,23 +39,20 @@ class DegenerateWeightsWarning(RuntimeWarning):
 
 
 class InfeasibleConstraintsWarning(RuntimeWarning):
-    """No distribution within the KL bound satisfies the constraints (the feature constraints
-    or the entropy bound); the message says which and what was done instead."""
+    """No distribution within the KL bound meets the feature constraints or the entropy bound; the
+    message says which and what was done instead."""
 
 
 class DualConvergenceWarning(RuntimeWarning):
-    """The solve ended without meeting a constraint or its gradient tolerance (feasible as far
-    as the solver can tell); the message names what failed and by how much."""
+    """The solve ended without meeting a constraint or its gradient tolerance; the message names
+    what failed and by how much."""
 
 
 @dataclass(frozen=True)
 class DualSolution:
-    """The solution of a dual for a batch of independent problems, every field led by the
-    batch shape (the ``batch_shape`` convention of ``torch.distributions``): () for one
-    problem, (S,) for a population (``population=True`` in the solvers; each problem's numbers
-    are those it gets alone). Duals with several blocks (the time-indexed steps, the generic
-    solver's K blocks) add a block dimension K after it; the one-block duals (episodic,
-    infinite horizon) have none.
+    """The solution of a dual for a batch of independent problems, every field led by the batch
+    shape: () for one problem, (S,) for a population. Duals with several blocks (time-indexed, the
+    generic solver) add a block dimension K after it.
 
     Attributes:
         eta: (*batch, [K]) temperatures of the KL bounds, in the caller's return units (inf
@@ -69,16 +63,15 @@ class DualSolution:
             (*batch, P)).
         weights: (*batch, [K,] N, O) new distribution over samples and options; each block
             sums to 1.
-        kl: (*batch, [K]) realised KL(P || q p~); equals epsilon where the bound is active,
-            never exceeds epsilon (1 + 1e-6).
+        kl: (*batch, [K]) realised KL(P || q p~); epsilon where the bound is active, at most
+            epsilon (1 + 1e-6).
         cross_entropy: (*batch, [K]) realised E_P[-log p~]; at most kappa where converged.
         effective_sample_size: (*batch, [K]) 1 / sum_i w_i^2 with w_i = sum_o P_io.
         feature_error: (*batch) largest violation of the feature constraints (caller's units;
             0 without features).
         dual_value: (*batch) dual objective at the optimum (finite).
         converged: (*batch) bool: every constraint holds to its tolerance and the solver met
-            its gradient tolerance (see the module docstring); if not, a warning said what
-            failed.
+            its gradient tolerance; if not, a warning said what failed.
         iterations: (*batch) int64 iterations of all phases (Newton steps and LBFGS).
     """
 
@@ -94,9 +87,8 @@ class DualSolution:
     converged: Tensor
     iterations: Tensor
     numbers: tuple[float, ...] | None = field(default=None, repr=False, compare=False)
-    """Where a solver has them as floats for one problem with one block: (eta, xi, kl,
-    cross_entropy, effective_sample_size, feature_error, dual_value) (read by the algorithms
-    instead of the tensors)."""
+    """One problem, one block: (eta, xi, kl, cross_entropy, effective_sample_size, feature_error,
+    dual_value) as floats, where the solver has them."""
 
     @property
     def sample_weights(self) -> Tensor:
@@ -113,9 +105,8 @@ class DualSolution:
         return replace(self, numbers=None, **{f.name: getattr(self, f.name)[s] for f in _TENSORS})
 
     def step(self, k: int) -> DualSolution:
-        """Block k (the time-indexed step k = 0..K-1) as a one-block solution: its v is the
-        step's own where v has a block dimension; ``feature_error``, ``dual_value``,
-        ``converged`` and ``iterations`` are those of the whole problem."""
+        """Block k as a one-block solution (its v the step's own where v has a block dimension;
+        ``feature_error``, ``dual_value``, ``converged`` and ``iterations`` the whole problem's)."""
         batch = self.converged.dim()
         if self.eta.dim() == batch:
             raise ValueError("step(k) indexes the blocks of a dual with several; this one has one")
@@ -136,8 +127,8 @@ _BLOCKED = ("eta", "xi", "weights", "kl", "cross_entropy", "effective_sample_siz
 
 
 def public(sol: DualSolution, population: bool, blocks: bool) -> DualSolution:
-    """A solver's (S, K) solution in the shape its caller asked for: the batch (S,) kept for a
-    ``population``, else problem 0; the block dimension kept where ``blocks``, else block 0."""
+    """A solver's (S, K) solution shaped as its caller asked: (S,) kept for a ``population``
+    (else problem 0), the block dimension kept where ``blocks`` (else block 0)."""
     out = sol if population else sol.problem(0)
     return out if blocks else out.step(0)
 
@@ -174,9 +165,8 @@ def finish(
     converged: Tensor,
     iterations: int | Tensor,
 ) -> DualSolution:
-    """The (S, K) :class:`DualSolution` of weights w (S, K, N, O) with its diagnostics (KL,
-    cross-entropy, effective sample size, feature error); all inputs float64 with a leading
-    S (D (S, K, N, P), c (S, P)); ``iterations`` the count of each of the S problems."""
+    """The (S, K) :class:`DualSolution` of weights w (S, K, N, O) with its diagnostics; float64
+    inputs with a leading S (D (S, K, N, P), c (S, P))."""
     ws = w.sum(-1)  # (S, K, N)
     feat_err = w.new_zeros(w.shape[0])
     if D is not None and D.shape[-1] > 0:
@@ -204,8 +194,8 @@ def finish(
 
 
 def warn_if_collapsed(sol: DualSolution, epsilon: Tensor, stacklevel: int = 2) -> None:
-    """Warn (``stacklevel`` frames above the caller; 2: the wrapper's caller) when a block's
-    weights sit on ~one sample (epsilon (S, K))."""
+    """Warn (``stacklevel`` frames above the caller) where a block's weights sit on ~one sample
+    (epsilon (S, K))."""
     S, K, N, _ = sol.weights.shape
     ess = sol.effective_sample_size
     if sol.numbers is not None:  # one block, its numbers at hand

@@ -1,23 +1,10 @@
 """The generic K-block solver :func:`solve_reps_dual` (Newton steps and LBFGS in float64).
 
-Numerics: everything in float64 whatever the input dtype. The returns and each feature column
-are first scaled by exact powers of 2 (so that magnitudes from 1e-300 to 1e300 neither overflow
-nor reach a threshold: every threshold inside is relative), then standardised
-(:mod:`hireps_torch.dual.conditioning`); eta and xi live in log space; log-sum-exp subtracts the
-max. A plain REPS dual (one block, no features, one option column, no entropy bound) is solved
-by :func:`~hireps_torch.dual.temperature.solve_temperature`, which returns a solution only when
-its KL is within 1e-6 of epsilon and not above it; every other dual, and one that it cannot
-conclude, by :class:`~hireps_torch.dual.block_solver.BlockSolver` (Newton steps, LBFGS, the
-entropy bound's KKT phases and the fallback for infeasible feature constraints). After it the
-safeguards of :mod:`hireps_torch.dual.safeguards` run on every path: an entropy bound that the
-KL bound cannot reach is relaxed before the solve, the KL bound is enforced after it (eta
-raised, xi and v held), and every constraint is checked. ``converged`` is True only when the
-KL bound, the entropy bound and the feature constraints hold to their tolerances (listed in
-:mod:`~hireps_torch.dual.safeguards`) and the solver met its gradient tolerance; otherwise one
-warning names what failed and by how much: an
-:class:`~hireps_torch.dual.InfeasibleConstraintsWarning` when a constraint cannot be met (by
-any distribution, or within the KL bound), else a
-:class:`~hireps_torch.dual.DualConvergenceWarning`.
+Returns and feature columns are scaled by exact powers of 2 (magnitudes from 1e-300 to 1e300 are
+fine) and standardised (:mod:`~hireps_torch.dual.conditioning`); plain REPS goes to
+:func:`~hireps_torch.dual.temperature.solve_temperature`, the rest to
+:class:`~hireps_torch.dual.block_solver.BlockSolver`, then :mod:`~hireps_torch.dual.safeguards`.
+What ``converged`` promises: :mod:`~hireps_torch.dual.solutions`.
 """
 
 from __future__ import annotations
@@ -74,8 +61,8 @@ def solve_reps_dual(
         epsilon: KL bounds, > 0: one float or (K,).
         D: (K, N, P) linear map from the stacked value vector v to the advantage offsets, or
             None when there are no features. Directions of v along which every block's D is
-            constant over samples (a constant feature) are dropped from the solve; their
-            constraint holds for every distribution or for none (then a warning).
+            constant over samples are dropped from the solve (their constraint holds for every
+            distribution or for none: then a warning).
         c: (P,) linear term of the dual in v, or None (zero); needs D.
         kappa: absolute bounds on the option cross-entropy, >= 0: one float or (K,), or None
             for no bound; an infinite entry means no bound on that block (its xi is 0).
@@ -109,8 +96,8 @@ def population_of_one(
     c: Tensor | None,
     kappa: Tensor | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
-    """One problem's checked inputs (R (K, N), ...) with a leading population dimension of 1,
-    as :func:`solve_blocks` takes them."""
+    """One problem's checked inputs (R (K, N), ...) with a leading S = 1, as :func:`solve_blocks`
+    takes them."""
     return (
         R[None],
         log_resp[None],
@@ -124,8 +111,8 @@ def population_of_one(
 def checked_settings(
     max_iter: object, tolerance_grad: object = 1e-7, converged_grad: object = 1e-6
 ) -> LbfgsSettings:
-    """Checked :class:`~hireps_torch.dual.block_solver.LbfgsSettings` (the public solvers'
-    options; a message naming the bad value)."""
+    """Checked :class:`~hireps_torch.dual.block_solver.LbfgsSettings` of the public solvers'
+    options."""
     return LbfgsSettings(*check_settings(max_iter, tolerance_grad, converged_grad))
 
 
@@ -139,14 +126,10 @@ def solve_blocks(
     settings: LbfgsSettings,
     stacklevel: int = 2,
 ) -> DualSolution:
-    """:func:`solve_reps_dual` on a population of S problems in float64 that the caller has
-    already checked: R (S, K, N), log_resp (S, K, N, O), eps (S, K), D (S, K, N, P), c (S, P),
-    kappa (S, K). Each problem is scaled, standardised, solved, safeguarded and judged alone,
-    so that its answer is the one it gets alone, whatever its companions (why:
-    benchmarks/README.md, "One path"); on the CPU, the cores that torch's own threads leave
-    idle solve problems side by side (:func:`~hireps_torch._parallel.side_by_side`).
-    Warnings (one per problem that did not converge, prefixed "problem s" when S > 1) come in
-    the problems' order, attributed ``stacklevel`` frames up (2: the caller of this function)."""
+    """:func:`solve_reps_dual` on S checked float64 problems: R (S, K, N), log_resp (S, K, N, O),
+    eps (S, K), D (S, K, N, P), c (S, P), kappa (S, K). Each is solved alone (why:
+    benchmarks/README.md, "One path"), side by side on idle cores; warnings ("problem s: " first
+    when S > 1) in order, ``stacklevel`` frames up."""
     S = R.shape[0]
 
     def one(x: Tensor | None, s: int) -> Tensor | None:
@@ -178,8 +161,7 @@ def _solve_one(
     settings: LbfgsSettings,
     prefix: str,
 ) -> tuple[DualSolution, list[_Warning]]:
-    """One problem (S = 1) of :func:`solve_blocks`, with the warnings it gives (text,
-    category), emitted by the caller."""
+    """One problem (S = 1) of :func:`solve_blocks` and its warnings (text, category)."""
     S, K = R.shape[:2]
     if D is not None and D.shape[-1] == 0:  # zero-width features are no features
         D = c = None
@@ -262,9 +244,8 @@ def _factorised(
     settings: LbfgsSettings,
     prefix: str,
 ) -> tuple[DualSolution, list[_Warning]]:
-    """Without an entropy bound (xi = 0) the options enter the dual only through
-    sum_o p~_io: P_io = w_i p~_io, with w the one-option solution. Solving that is exact and O
-    times cheaper (e.g. 100 hard-gated options); KL(P || q p~) = KL(w || q)."""
+    """Without an entropy bound: P_io = w_i p~_io with w the one-option solution (exact;
+    KL(P || q p~) = KL(w || q))."""
     row = logsumexp(log_resp)[..., None]
     one, said = _solve_one(R, row, eps, D, c, None, settings, prefix)
     w = one.weights * torch.exp(log_resp - row)
@@ -278,10 +259,8 @@ def _factorised(
 def _caller_units(
     st: Standardised, eta_s: Tensor, xi_s: Tensor, u: Tensor, g: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(eta, xi, v, dual value) in the (power-of-2 scaled) caller's units. Without return
-    information eta is inf (the returns do not shape the weights), xi inf where the entropy
-    bound tilted them (xi / eta stays finite), v = v0 (the values the features fix), and the
-    dual value is the primal value, the mean return."""
+    """(eta, xi, v, dual value) in the (power-of-2 scaled) caller's units; without return
+    information eta = inf, xi = inf where the entropy bound tilted, v = v0, dual = mean return."""
     flat = ~st.informative
     eta = eta_s * st.scale[:, None]
     xi = xi_s * st.scale[:, None]
@@ -304,8 +283,8 @@ def _column_max(D: Tensor | None, S: int, like: Tensor) -> Tensor:
 
 
 def _pow2_scale(m: Tensor) -> Tensor:
-    """2^-e with m = f 2^e, f in [0.5, 1) (1 where m = 0): an exact scale that brings m to
-    [0.5, 1). Applied as two factors so that 2^-e cannot overflow on its own."""
+    """2^-e for m = f 2^e, f in [0.5, 1) (1 where m = 0), applied as two factors so it cannot
+    overflow."""
     _, e = torch.frexp(m.to(torch.float64))
     e = torch.where(m > 0, e, torch.zeros_like(e)).to(torch.float64)
     half = torch.floor(-e / 2)
@@ -313,8 +292,8 @@ def _pow2_scale(m: Tensor) -> Tensor:
 
 
 def _warning(verdict: Verdict, notes: list[str], infeasible: bool, prefix: str) -> list[_Warning]:
-    """The one warning (text, category) for everything a problem's solve could not deliver;
-    none when it converged (the KL safeguard then only corrected round-off)."""
+    """The one warning (text, category) for what a problem's solve could not deliver; none when it
+    converged."""
     if verdict.converged and not infeasible:
         return []
     parts = list(notes) + list(verdict.parts)

@@ -1,17 +1,11 @@
-"""The dual whose only variable is one temperature: plain episodic REPS (one block, no features,
-one option column, no entropy bound), ``g(eta) = eta eps + eta log((1/N) sum_i exp(R_i / eta))``.
+"""Plain episodic REPS (one block, no features, one option column, no entropy bound): the dual of
+one temperature, ``g(eta) = eta eps + eta log((1/N) sum_i exp(R_i / eta))``.
 
-:func:`solve_temperature` takes Newton steps in a = log eta on the standardised returns, each
-from the weighted moments of the returns in one pass (``dg/da = eta (eps - KL)``,
-``d2g/da2 = Var_P(R) / eta + dg/da``), halved until the dual falls and held within a trust
-region of ``e^2`` per step, until the realised KL is within ``KL_RTOL`` of epsilon (below it:
-the KL bound holds by construction) and, in at most one more step, the gradient is at
-round-off (so that a problem solved here and the same problem solved by the general solver
-agree to round-off). It returns None where it cannot conclude (returns without
-spread, a step that does not help, the step budget spent); the general solver
-(:mod:`hireps_torch.dual.solver`) then solves the problem from the start, with its warnings.
-:func:`log_temperatures` runs the same search on each block of a K-block dual's returns: the
-general solver's start for eta where the dual has no linear term.
+:func:`solve_temperature` takes Newton steps in a = log eta (``dg/da = eta (eps - KL)``,
+``d2g/da2 = Var_P(R) / eta + dg/da``) until the KL is within ``KL_RTOL`` below epsilon and the
+gradient at round-off; it returns None where it cannot conclude, and the general solver
+(:mod:`hireps_torch.dual.solver`) takes over. :func:`log_temperatures` runs the same search per
+block: the general solver's start for eta.
 """
 
 from __future__ import annotations
@@ -40,9 +34,8 @@ _SPREAD_RTOL = 1e-13  # returns whose spread is below this of their magnitude ca
 
 
 class _Found(NamedTuple):
-    """Where the scalar search ended: log eta ``a`` of the standardised returns ``r`` (their
-    largest ``r_max``), the dual g, the KL, the steps taken, and the standardisation (returns
-    = (r s + mean) unit)."""
+    """Where the search ended: log eta ``a`` of the standardised returns ``r`` (largest ``r_max``),
+    dual g, KL, steps; returns = (r s + mean) unit."""
 
     a: float
     g: float
@@ -56,7 +49,7 @@ class _Found(NamedTuple):
 
 
 def _search(Rh: np.ndarray, eps: float) -> _Found | None:
-    """Newton's steps in log eta on the returns Rh (N,) (see the module docstring), or None."""
+    """Newton steps in log eta on the returns Rh (N,), or None."""
     N = Rh.shape[0]
     lo_r, hi_r = float(np.minimum.reduce(Rh)), float(np.maximum.reduce(Rh))
     m_abs = max(-lo_r, hi_r)
@@ -127,8 +120,7 @@ def _search(Rh: np.ndarray, eps: float) -> _Found | None:
 
 def solve_temperature(R: Tensor, eps: float, settings: LbfgsSettings) -> DualSolution | None:
     """Solve the one-temperature dual of finite float64 returns R (N,), N >= 2, for KL bound eps, or
-    None (see the module docstring). The solution has S = K = O = 1, no v, xi = 0, and
-    ``KL <= eps (1 + KL_RTOL)``."""
+    None. The solution has S = K = O = 1, no v, xi = 0, and ``KL <= eps (1 + KL_RTOL)``."""
     N = R.shape[0]
     found = _search(R.detach().cpu().numpy(), eps)  # a scalar search: on the host, in numpy
     if found is None:
@@ -159,9 +151,8 @@ def solve_temperature(R: Tensor, eps: float, settings: LbfgsSettings) -> DualSol
 
 
 def log_temperatures(R: Tensor, eps: Tensor) -> Tensor:
-    """(S, K) log eta of the one-temperature dual of each block's returns R (S, K, N) for its
-    KL bound eps (S, K), in R's units; NaN where :func:`solve_temperature` would give up (no
-    spread, say)."""
+    """(S, K) log eta of each block's one-temperature dual for returns R (S, K, N), KL bounds eps
+    (S, K), in R's units; NaN where the search gives up."""
     Rh, eh = R.detach().cpu().numpy(), eps.detach().cpu().numpy()
     out = np.full(eh.shape, math.nan)
     for s, k in np.ndindex(*eh.shape):
@@ -174,9 +165,8 @@ def log_temperatures(R: Tensor, eps: Tensor) -> Tensor:
 def _nudge(
     parts: Callable[[float], tuple[float, float, float, float]], a: float, eps: float
 ) -> tuple[float, tuple[float, float, float, float]] | None:
-    """The smallest of a few steps up in log eta (units of round-off; the KL falls as eta
-    grows) that brings a KL above eps by round-off to at most eps, with its parts; None if
-    none does."""
+    """The smallest of a few round-off steps up in log eta that bring a KL above eps by round-off to
+    at most eps, with its parts; None if none does."""
     unit = math.ulp(max(abs(a), 1.0))
     for k in range(1, 12):
         trial = parts(a + unit * 2.0**k)

@@ -1,28 +1,22 @@
 """Time-indexed HiREPS: :func:`solve_time_indexed_dual`, one distribution per decision step
 k = 1..K, the steps chained by feature consistency.
 
-Sample i is an episode of K decisions: states s_k,i, parameters theta_k,i, rewards R_k,i.
-Step k's distribution P_k,io ∝ p~_k,io^(1 + xi_k/eta_k) exp(delta_k,i / eta_k) uses the
-Bellman error with per-step value functions V_k(s) = v_k^T phi(s),
+Sample i is an episode of K decisions (states s_k,i, rewards R_k,i). Step k's
+P_k,io ∝ p~_k,io^(1 + xi_k/eta_k) exp(delta_k,i / eta_k) uses per-step values V_k(s) = v_k^T phi(s):
 
     delta_k,i = R_k,i + v_{k+1}^T phi(s_{k+1,i}) - v_k^T phi(s_k,i),    V_{K+1} = 0,
-
-and (eta, xi, v) minimise
-
     g = v_1^T phi_hat_1 + sum_k [eta_k eps_k + xi_k kappa_k
                                  + eta_k log((1/N) sum_io exp(A_k,io / eta_k))],
     A_k,io = delta_k,i + (eta_k + xi_k) log p~_k,io.
 
-At the optimum KL_k = eps_k, E_P_k[-log p~_k] <= kappa_k and the state distributions are
-chained (``feature_error`` is the largest violation):
+At the optimum KL_k = eps_k, E_P_k[-log p~_k] <= kappa_k and (``feature_error``: the largest
+violation)
 
     sum_i w_1i phi(s_1i) = phi_hat_1,
     sum_i w_ki phi(s_ki) = sum_i w_{k-1,i} phi(s_ki)   (k >= 2; s_ki follows s_{k-1,i}).
 
-This is :func:`~hireps_torch.dual.solve_reps_dual` with the stacked v = [v_1 .. v_K],
-c = [phi_hat_1, 0, ..] and D_k mapping v to v_{k+1}^T phi(s_{k+1}) - v_k^T phi(s_k). The term
-v_1^T phi_hat_1 is folded into step 1's log-sum-exp (D_1 = -(phi(s_1) - phi_hat_1) in slot 1,
-c = 0), as in the episodic dual: the same dual value, weights and residuals.
+Solved by :func:`~hireps_torch.dual.solve_reps_dual` with the stacked v = [v_1 .. v_K], v_1^T
+phi_hat_1 folded into step 1 (D_1 = -(phi(s_1) - phi_hat_1) in slot 1, c = 0).
 """
 
 from __future__ import annotations
@@ -55,38 +49,32 @@ def solve_time_indexed_dual(
     max_iter: int = 300,
     population: bool = False,
 ) -> DualSolution:
-    """Solve the time-indexed HiREPS dual (the module docstring): one distribution per
-    decision step k = 1..K.
+    """Solve the time-indexed HiREPS dual (see the module docstring).
 
     Args:
         rewards: (N, K) reward of each episode at each decision step, N >= 2, K >= 1.
         features: (N, K, F) value features phi(s_k,i) of the state where step k's decision
-            was taken. Directions without spread within a step (a constant feature, all states
-            equal) are dropped from the solve: their chained constraint holds for every
-            distribution (unless ``initial_features`` disagrees with the samples there).
-        epsilon: KL bound per step, > 0: one float or (K,). Values >= log N let that step's
-            weights collapse onto one sample (a
-            :class:`~hireps_torch.dual.DegenerateWeightsWarning` is issued).
+            was taken. Directions without spread within a step are dropped from the solve.
+        epsilon: KL bound per step, > 0: one float or (K,); values >= log N collapse the
+            weights (a :class:`~hireps_torch.dual.DegenerateWeightsWarning`).
         log_responsibilities: (N, K, O) log p~_k(o | s_k,i, theta_k,i) of each step's old
             policy, normalised over options (-inf for options a step does not have); None
             means one option per step.
         kappa: absolute bound on each step's option cross-entropy, >= 0: one float or (K,)
-            (with ``population`` also (S, K), one row per problem); inf leaves that step
-            unbounded; None means no bound (xi = 0).
+            (with ``population`` also (S, K)); inf leaves that step unbounded; None means no
+            bound (xi = 0).
         initial_features: (F,) mean features of the start distribution, phi_hat_1; by default
-            the sample mean of ``features[:, 0]`` (then uniform weights are feasible).
+            the sample mean of ``features[:, 0]``.
         max_iter: LBFGS iterations per phase, an integer >= 1.
         population: the inputs hold S independent problems along a leading dimension
-            (rewards (S, N, K), features (S, N, K, F), initial_features (F,) or (S, F), ...),
-            each solved as alone; every field of the solution leads with S.
+            (rewards (S, N, K), features (S, N, K, F), initial_features (F,) or (S, F), ...).
 
     Returns:
-        :class:`~hireps_torch.dual.DualSolution` with a step dimension: eta, xi, kl, ... (K,), v (K,
-        F) (V_k(s) = v[k]^T phi(s)), ``weights`` (K, N, O), each step summing to 1 (``step(k)``:
-        step k alone), ``kl <= epsilon (1 + 1e-6)`` per step. A step whose KL bound is inactive
-        (rewards the value features cancel, e.g. all 0 before a contact) has eta at its floor, e^-10
-        of the return spread, and KL below epsilon. ``converged`` False comes with a warning naming
-        what failed.
+        :class:`~hireps_torch.dual.DualSolution` with a step dimension: eta, xi, kl, ... (K,),
+        v (K, F) (V_k(s) = v[k]^T phi(s)), ``weights`` (K, N, O), each step summing to 1
+        (``step(k)``: step k alone), ``kl <= epsilon (1 + 1e-6)`` per step. A step whose KL
+        bound is inactive has eta at its floor (e^-10 of the return spread) and KL below
+        epsilon. ``converged`` False comes with a warning.
 
     Raises:
         ValueError, TypeError: on non-finite rewards or features, shape mismatches, N < 2,
@@ -127,11 +115,9 @@ def time_indexed_solution(
     settings: LbfgsSettings,
     stacklevel: int = 2,
 ) -> DualSolution:
-    """:func:`solve_time_indexed_dual` of S problems (an (S, K) solution, v (S, K F)) on inputs
-    already checked, block-major: float64 rewards R (S, K, N), log responsibilities (S, K, N, O)
-    (normalised, log 0 floored), epsilon (S, K), finite features phi (S, K, N, F), initial features
-    phi1 (S, F) or None (the sample mean of step 1's) and kappa (S, K) or None. Warnings are
-    attributed ``stacklevel`` frames up (2: the caller of this function)."""
+    """:func:`solve_time_indexed_dual` of S checked float64 problems (an (S, K) solution, v
+    (S, K F)): R (S, K, N), log_resp (S, K, N, O), eps (S, K), phi (S, K, N, F), phi1 (S, F) or
+    None, kappa (S, K) or None; warnings ``stacklevel`` frames up."""
     D = _chained_map(phi, phi1)
     sol = solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)
     warn_if_collapsed(sol, eps, stacklevel)
@@ -140,8 +126,8 @@ def time_indexed_solution(
 
 def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:
     """D (S, K, N, K F) of features phi (S, K, N, F): block k holds -phi(s_k,i) in slot k and
-    phi(s_{k+1},i) in slot k + 1, and block 1 also phi_hat_1 (S, F) in slot 1 (the sample mean
-    when ``phi1`` is None: then constant columns are exactly 0 there)."""
+    phi(s_{k+1},i) in slot k + 1; block 1 also phi_hat_1 (S, F) (the sample mean when ``phi1`` is
+    None) in slot 1."""
     S, K, N, F = phi.shape
     D = torch.zeros(S, K, N, K, F, dtype=torch.float64, device=phi.device)
     steps = torch.arange(K, device=phi.device)

@@ -1,5 +1,4 @@
-"""The construction checks of :class:`~hireps_torch.policies.HierarchicalPolicy`: the initial
-option means, the gating and the feature maps (all checked before anything is built)."""
+"""Construction checks of :class:`~hireps_torch.policies.HierarchicalPolicy`."""
 
 from __future__ import annotations
 
@@ -31,8 +30,7 @@ def initial_means(init_mean: Tensor | None, n_options: int, action_dim: int) -> 
 
 
 def check_gating(gating: object, n_options: int, in_features: int | None = None) -> None:
-    """``gating`` a :class:`Gating` over ``n_options`` options taking ``in_features``
-    gating features (when given); a ``TypeError`` / ``ValueError`` naming the mismatch."""
+    """``gating`` a :class:`Gating` over ``n_options`` taking ``in_features`` (when given)."""
     if not isinstance(gating, Gating):
         raise TypeError(
             f"gating must be a Gating (e.g. SoftmaxGating), got {type(gating).__name__}"

@@ -1,29 +1,87 @@
-"""The base of the policy modules: checkpoints that do not fit are refused before anything is
-copied, and a refit's new values are set all at once (or not at all)."""
+"""The base of the policy modules: all-or-nothing loading and setting of parameters."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+import copy
+from collections.abc import Mapping, Sequence
+from typing import Any, TypeVar
 
 import torch
 from torch import Tensor, nn
 
-from hireps_torch.checks import all_finite, check_state_dict
+from hireps_torch.checks import all_finite, check_count, check_state_dict
+from hireps_torch.policies._population import check_members
 
 __all__ = ["PolicyModule"]
+
+M = TypeVar("M", bound="PolicyModule")
 
 
 class PolicyModule(nn.Module):
     """An ``nn.Module`` whose :meth:`load_state_dict` and :meth:`set_parameters` either
-    complete or leave the module exactly as it was.
-
-    Subclasses add their own rules for a loaded state in :meth:`check_state` (e.g. a Cholesky
-    factor must be lower triangular with a positive diagonal).
-    """
+    complete or leave the module as it was; subclasses add rules in :meth:`check_state`."""
 
     OPTIONAL_STATE: tuple[str, ...] = ()
-    """This module's entries that an older checkpoint may lack; they keep their value."""
+    """Entries an older checkpoint may lack; they keep their value."""
+
+    population: int | None = None
+    """S for a population of S modules stacked by :meth:`stack`; None for one module."""
+    _stacked: tuple[str, ...] = ()
+    """Parameters and buffers a population stacks along S (the others the members share)."""
+    _shared: tuple[str, ...] = ()
+    """Attributes the members of a population must share."""
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """() for one module, (S,) for a population."""
+        return () if self.population is None else (self.population,)
+
+    @classmethod
+    def stack(cls: type[M], members: Sequence[M]) -> M:
+        """A population of S modules of one kind (copies) stacked along a leading S of every
+        input and output; the members must share :attr:`_shared`, dtype and unstacked buffers."""
+        items: list[M] = check_members("members", members, cls)
+        first = items[0]
+        for s, m in enumerate(items[1:], 1):
+            if type(m) is not type(first):
+                raise TypeError(
+                    f"members[{s}] is a {type(m).__name__} but members[0] a "
+                    f"{type(first).__name__}: a population holds one kind"
+                )
+            for what in first._shared:
+                if getattr(m, what) != getattr(first, what):
+                    raise ValueError(
+                        f"members[{s}].{what} = {getattr(m, what)} but members[0].{what} = "
+                        f"{getattr(first, what)}: a population shares it"
+                    )
+            for name, value in first.named_buffers(recurse=False):
+                if name not in first._stacked and not torch.equal(getattr(m, name), value):
+                    raise ValueError(f"members[{s}].{name} differs from members[0]'s")
+            a, b = getattr(m, first._stacked[-1]), getattr(first, first._stacked[-1])
+            if a.dtype != b.dtype:
+                raise ValueError(f"members[{s}] is {a.dtype} but members[0] is {b.dtype}")
+        out = copy.deepcopy(first)
+        out.population = len(items)
+        with torch.no_grad():
+            for name in first._stacked:
+                _replace(out, name, torch.stack([getattr(m, name) for m in items]))
+        return out
+
+    def member(self: M, s: int) -> M:
+        """Member ``s`` of a population as an ordinary module (a copy)."""
+        if self.population is None:
+            raise ValueError(
+                "member() takes a member of a population; this module holds one policy"
+            )
+        index = check_count("s", s, 0)
+        if index >= self.population:
+            raise ValueError(f"member s must be in [0, {self.population}), got {index}")
+        out = copy.deepcopy(self)
+        out.population = None
+        with torch.no_grad():
+            for name in self._stacked:
+                _replace(out, name, getattr(self, name)[index].clone())
+        return out
 
     def _completed(self, state_dict: Mapping[str, Any]) -> Mapping[str, Any]:
         """``state_dict`` with the optional entries it lacks taken from this module."""
@@ -38,14 +96,10 @@ class PolicyModule(nn.Module):
         return state_dict if not missing else {**state_dict, **{k: mine[k] for k in missing}}
 
     def check_state(self, state: Mapping[str, Tensor]) -> None:
-        """Module-specific checks of this module's own entries of a state (names without the
-        module's prefix; keys and shapes are already checked, entries may be absent when not
-        strict). Raises a ``ValueError`` naming the entry."""
+        """Checks of this module's own entries (unprefixed, may be absent); a ``ValueError``."""
 
     def check_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True) -> None:
-        """Raise (``ValueError`` / ``TypeError``, naming the entry and, for a shape, both the
-        saved and the expected shape) unless :meth:`load_state_dict` would load
-        ``state_dict`` completely. Changes nothing."""
+        """Raise, naming the entry, unless :meth:`load_state_dict` would load ``state_dict``."""
         what = type(self).__name__
         state_dict = self._completed(state_dict)
         check_state_dict(what, self.state_dict(), state_dict, strict)
@@ -65,16 +119,13 @@ class PolicyModule(nn.Module):
     def load_state_dict(
         self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False
     ) -> Any:
-        """``nn.Module.load_state_dict`` after :meth:`check_state_dict`: a checkpoint of
-        another number of options or dimension, with a missing key or a non-finite value is
-        refused with a message naming it, before anything is copied."""
+        """``nn.Module.load_state_dict`` after :meth:`check_state_dict`."""
         self.check_state_dict(state_dict, strict)
         return super().load_state_dict(self._completed(state_dict), strict, assign)
 
     @torch.no_grad()
     def set_parameters(self, values: Mapping[str, Tensor]) -> None:
-        """Copy new values into parameters and buffers (``state_dict`` names -> tensors of
-        the same shapes), all checked (names, shapes, finiteness) before the first copy."""
+        """Copy values (``state_dict`` names -> same-shape tensors), all checked first."""
         current = {**dict(self.named_parameters()), **dict(self.named_buffers())}
         for key, value in values.items():
             if key not in current:
@@ -89,8 +140,7 @@ class PolicyModule(nn.Module):
 
     @torch.no_grad()
     def set_checked(self, values: Mapping[str, Tensor]) -> None:
-        """:meth:`set_parameters` of values already checked (names, shapes, finiteness), as
-        the refits' ``fit_checked`` return them."""
+        """:meth:`set_parameters` of values already checked (as ``fit_checked`` returns)."""
         modules: dict[str, nn.Module] = {"": self}
         for key, value in values.items():
             path, _, name = key.rpartition(".")
@@ -98,3 +148,11 @@ class PolicyModule(nn.Module):
             if module is None:
                 module = modules[path] = self.get_submodule(path)
             getattr(module, name).copy_(value)
+
+
+def _replace(module: nn.Module, name: str, value: Tensor) -> None:
+    """Replace parameter or buffer ``name`` by ``value`` (of another shape)."""
+    if name in module._parameters:
+        setattr(module, name, nn.Parameter(value, requires_grad=False))
+    else:
+        module.register_buffer(name, value)

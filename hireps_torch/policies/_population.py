@@ -1,12 +1,6 @@
-"""What the policy modules share to hold a population: S independent policies stacked along
-a leading dimension (``torch.distributions``' ``batch_shape``), built by ``stack`` from S
-ordinary modules and taken apart again by ``member``.
-
-A population module's inputs and outputs carry the same leading S: features (S, N, F),
-parameters (S, N, D), log densities (S, N). Each member may draw its noise from its own
-generator (a sequence of S generators), so that a member's samples are those it would draw
-alone; the arithmetic is one batched call for all members.
-"""
+"""Helpers for populations: S independent policies stacked along a leading dimension of every
+input and output (``stack`` builds one, ``member`` takes one out); each member may sample from
+its own generator and then draws what it would alone."""
 
 from __future__ import annotations
 
@@ -25,8 +19,7 @@ Generators = torch.Generator | Sequence[torch.Generator] | None
 
 
 def check_members(name: str, members: object, cls: type) -> list[Any]:
-    """``members`` as a non-empty list of ordinary (not population) ``cls`` modules; a
-    ``TypeError`` / ``ValueError`` naming the bad entry."""
+    """``members`` as a non-empty list of ordinary ``cls`` modules on one device."""
     if isinstance(members, torch.nn.Module) or not isinstance(members, Sequence):
         raise TypeError(
             f"{name} must be a sequence of {cls.__name__}s, got {type(members).__name__}"
@@ -57,8 +50,7 @@ def _devices(module: torch.nn.Module) -> set[str]:
 def check_population_generators(
     population: int | None, generator: object
 ) -> torch.Generator | list[torch.Generator] | None:
-    """``generator`` checked: None or a ``torch.Generator``, or for a population of S also a
-    sequence of S generators (one per member)."""
+    """``generator`` checked: None, a ``torch.Generator`` or (population) S generators."""
     if population is None or generator is None or isinstance(generator, torch.Generator):
         return check_generator("generator", generator)
     if not isinstance(generator, Sequence) or isinstance(generator, str | bytes):
@@ -82,10 +74,8 @@ def normal(
     dtype: torch.dtype,
     device: torch.device,
 ) -> Tensor:
-    """Standard normal draws of ``shape`` on ``device``; with one generator per member, member
-    s's ``shape[1:]`` draws come from ``generator[s]`` (as it would draw them alone). A
-    generator draws on its own device (a CPU generator for a policy on a GPU: the draws, and
-    so a seed's samples, are those of the same run on the CPU) and the draws are moved."""
+    """Standard normal draws of ``shape`` on ``device``, drawn on the generator's device; with
+    S generators member s's ``shape[1:]`` come from ``generator[s]``."""
     if isinstance(generator, list):
         draws = [
             torch.randn(shape[1:], generator=g, dtype=dtype, device=g.device) for g in generator
@@ -96,11 +86,8 @@ def normal(
 
 
 def categorical(probs: Tensor, generator: torch.Generator | list[torch.Generator] | None) -> Tensor:
-    """One index per row of ``probs`` (..., O), as int64 (...) on the device of ``probs``:
-    ``torch.multinomial(p, 1)``'s own draw bit for bit (the argmax of p / q with q ~ Exp(1),
-    the same stream), with the exponentials drawn on the generator's device (as
-    :func:`normal`). With one generator per member, member s's rows (``probs[s]``) draw from
-    ``generator[s]`` as it would alone, and the argmax is taken once for all."""
+    """One int64 index per row of ``probs`` (..., O), ``torch.multinomial(p, 1)``'s draw bit
+    for bit (argmax of p / q, q ~ Exp(1)); generators as in :func:`normal`."""
     if isinstance(generator, list):
         host = probs.to(generator[0].device)  # one transfer
         pairs = zip(host, generator, strict=True)

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import copy
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
@@ -20,7 +19,7 @@ from hireps_torch.checks import (
     check_weights,
 )
 from hireps_torch.policies._module import PolicyModule
-from hireps_torch.policies._population import batch_text, check_members
+from hireps_torch.policies._population import batch_text
 
 __all__ = ["ConstantGating", "Gating", "SoftmaxGating"]
 
@@ -28,75 +27,19 @@ __all__ = ["ConstantGating", "Gating", "SoftmaxGating"]
 class Gating(PolicyModule):
     """Base of the gatings: ``features (N, F) -> log pi(o | s) (N, O)`` over the active options.
 
-    Holds ``in_features``, ``n_options`` and the ``active`` bool buffer (pruned options are
-    masked, never removed, so ``state_dict`` shapes never change). Subclasses implement
-    :meth:`log_probs` and :meth:`fit_parameters` (the new parameter values of a weighted fit,
-    computed without changing the gating; :meth:`weighted_fit` then sets them).
+    Pruned options are masked by the ``active`` bool buffer, never removed. Subclasses
+    implement :meth:`log_probs`, :meth:`fit_parameters` and :meth:`fit_checked`.
     """
 
     active: Tensor
-    population: int | None = None
-    """S for a population of S gatings stacked by :meth:`stack`; None for one gating."""
+    _stacked: tuple[str, ...] = ("active",)
+    _shared: tuple[str, ...] = ("in_features", "n_options")
 
     def __init__(self, in_features: int, n_options: int) -> None:
         super().__init__()
         self.n_options = check_count("n_options", n_options, 1)
         self.in_features = check_count("in_features", in_features, 0)
         self.register_buffer("active", torch.ones(self.n_options, dtype=torch.bool))
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        """() for one gating, (S,) for a population."""
-        return () if self.population is None else (self.population,)
-
-    _stacked: tuple[str, ...] = ("active",)
-    """The parameters and buffers that a population stacks along its leading S."""
-
-    @classmethod
-    def stack(cls, members: Sequence[Gating]) -> Gating:
-        """A population of S gatings of the same kind (the members' parameters and ``active``
-        masks stacked along a leading S; inputs and outputs then carry it too: features
-        (S, N, F) -> (S, N, O)). The members must share the kind, ``in_features``,
-        ``n_options`` and their settings; they are copied, not shared."""
-        items: list[Gating] = check_members("members", members, Gating)
-        first = items[0]
-        for s, m in enumerate(items[1:], 1):
-            if type(m) is not type(first):
-                raise TypeError(
-                    f"members[{s}] is a {type(m).__name__} but members[0] a "
-                    f"{type(first).__name__}: a population holds one kind"
-                )
-            for what in ("in_features", "n_options", *first._settings()):
-                if getattr(m, what) != getattr(first, what):
-                    raise ValueError(
-                        f"members[{s}].{what} = {getattr(m, what)} but members[0].{what} = "
-                        f"{getattr(first, what)}: a population shares it"
-                    )
-        out = copy.deepcopy(first)
-        out.population = len(items)
-        with torch.no_grad():
-            for name in first._stacked:
-                value = torch.stack([getattr(m, name) for m in items])
-                _replace(out, name, value)
-        return out
-
-    def member(self, s: int) -> Gating:
-        """Member ``s`` of a population as an ordinary gating (a copy)."""
-        if self.population is None:
-            raise ValueError("member() takes a member of a population; this is one gating")
-        index = check_count("s", s, 0)
-        if index >= self.population:
-            raise ValueError(f"member s must be in [0, {self.population}), got {index}")
-        out = copy.deepcopy(self)
-        out.population = None
-        with torch.no_grad():
-            for name in self._stacked:
-                _replace(out, name, getattr(self, name)[index].clone())
-        return out
-
-    def _settings(self) -> tuple[str, ...]:
-        """Attributes the members of a population must share."""
-        return ()
 
     def _features(self, features: Tensor) -> Tensor:
         x = as_float_tensor("gating features", features, device=self.active.device)
@@ -112,8 +55,7 @@ class Gating(PolicyModule):
     def _fit_inputs(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Checked float64 features ([S,] N, F), targets ([S,] N, O) and weights ([S,] N)
-        normalised to sum 1 (for each member)."""
+        """Checked features ([S,] N, F), targets ([S,] N, O), weights ([S,] N) summing to 1."""
         x = self._features(features)
         N = x.shape[-2]
         lead = self.batch_shape
@@ -140,9 +82,7 @@ class Gating(PolicyModule):
         return x, t, w / w.sum(-1, keepdim=True)
 
     def _check_target_rows(self, t: Tensor, w: Tensor) -> None:
-        """Each row with a positive sample weight must be a distribution over the active
-        options (sum 1 to 1e-6; nothing on pruned options): another row sum would act as a
-        hidden sample weight."""
+        """Rows with a positive weight must sum to 1 (to 1e-6) over the active options."""
         active = self.active.unsqueeze(-2)
         sums = torch.where(active, t, 0.0).sum(-1)
         off = (w > 0) & ((sums - 1.0).abs() > 1e-6)
@@ -168,23 +108,21 @@ class Gating(PolicyModule):
     def fit_parameters(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
     ) -> dict[str, Tensor]:
-        """The new parameter values (name -> tensor) of a fit to soft targets (N, O) with
-        sample weights (N,); the gating is unchanged."""
+        """The new parameters (name -> tensor) of :meth:`weighted_fit`, not set."""
         raise NotImplementedError
 
     def fit_checked(
         self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
     ) -> dict[str, Tensor]:
-        """:meth:`fit_parameters` on inputs already checked: float64 features x ([S,] N, F),
-        targets t ([S,] N, O) and sample weights w ([S,] N) summing to 1."""
+        """:meth:`fit_parameters` on checked float64 x ([S,] N, F), t ([S,] N, O), w ([S,] N)
+        (w summing to 1)."""
         raise NotImplementedError
 
     @torch.no_grad()
     def weighted_fit(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
     ) -> None:
-        """Fit to soft targets (N, O) with sample weights (N,): everything is computed and
-        checked before the first parameter changes (a failed fit changes nothing)."""
+        """Fit to soft targets (N, O) with sample weights (N,); a failed fit changes nothing."""
         self.set_parameters(self.fit_parameters(features, targets, sample_weights, max_iter))
 
     def check_state(self, state: Mapping[str, Tensor]) -> None:
@@ -197,15 +135,12 @@ class Gating(PolicyModule):
 class SoftmaxGating(Gating):
     """Softmax gating ``pi(o | s) = softmax_o(weight @ phi(s) + bias)`` over the active options.
 
-    Shapes: ``features: (N, F)`` -> ``(N, O)``. Pruned options are kept in the parameter
-    tensors (so ``state_dict`` shapes never change) but masked by the ``active`` buffer; their
-    probability is exactly 0.
+    Shapes: ``features: (N, F)`` -> ``(N, O)``; pruned options have probability exactly 0.
 
     Args:
         in_features: F (0 gives a context-free prior over options).
         n_options: O.
-        l2: L2 penalty on the weights in :meth:`weighted_fit` (keeps the logistic fit finite on
-            separable data).
+        l2: L2 penalty on the weights in :meth:`weighted_fit`.
         dtype: parameter dtype.
     """
 
@@ -222,9 +157,7 @@ class SoftmaxGating(Gating):
         self.bias = nn.Parameter(torch.zeros(n_options, dtype=dtype), False)
 
     _stacked = ("active", "weight", "bias")
-
-    def _settings(self) -> tuple[str, ...]:
-        return ("l2",)
+    _shared = ("in_features", "n_options", "l2")
 
     def _features(self, features: Tensor) -> Tensor:
         return super()._features(features).to(self.bias.dtype)
@@ -243,16 +176,12 @@ class SoftmaxGating(Gating):
         """Weighted multinomial logistic regression onto soft targets (the gating unchanged).
 
         Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 ||weight||^2``
-        over the active options by Newton's method from the current parameters, to its
-        minimiser at round-off (:data:`NEWTON_GTOL`), each member of a population on its own
-        in one batched call. An option without target mass gets probability 0
-        (:data:`DEAD_LOGIT`). Without features (F = 0) this has the closed form
-        ``pi(o) = sum_i w_i t_io / sum_i w_i``, which is used directly.
+        over the active options by Newton steps (:func:`_newton_fit`); an option without target
+        mass gets :data:`DEAD_LOGIT`; F = 0: ``pi(o) = sum_i w_i t_io / sum_i w_i``.
 
         Args:
             features: (N, F).
-            targets: (N, O) rows are distributions over options (0 on pruned options; a row
-                with positive sample weight that does not sum to 1 is refused).
+            targets: (N, O) distributions over the active options where sample_weights > 0.
             sample_weights: (N,) non-negative, not all zero.
 
         Returns:
@@ -264,16 +193,14 @@ class SoftmaxGating(Gating):
     def fit_checked(
         self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
     ) -> dict[str, Tensor]:
-        """:meth:`fit_parameters` on inputs already checked: float64 features x ([S,] N, F),
-        targets t ([S,] N, O) and sample weights w ([S,] N) summing to 1."""
+        """See :meth:`Gating.fit_checked`."""
         act = self.active
         if self.in_features == 0:
             prior = torch.where(act, (w[..., None] * t).sum(-2).clamp_min(1e-300), 0.0)
             logp = torch.log(prior / prior.sum(-1, keepdim=True))
             centred = logp - _active_mean(torch.where(act, logp, 0.0), act)
             return {"bias": torch.where(act, centred.to(self.bias.dtype), self.bias)}
-        # an option without any target mass has its minimiser at logit -inf: it is left out
-        # of the fit and set to DEAD_LOGIT (probability 0, pruned next)
+        # no target mass: minimiser at logit -inf, so left out and set to DEAD_LOGIT
         dead = act & ((w[..., None] * t).sum(-2) <= 0)
         fit = act & ~dead
         W0, b0 = self.weight.to(torch.float64), self.bias.to(torch.float64)
@@ -305,21 +232,16 @@ class SoftmaxGating(Gating):
 
 
 DEAD_LOGIT = -1000.0
-"""The bias the gating fit gives an option without any target mass (its probability is then
-0 in float64, and pruning removes it)."""
+"""The bias the gating fit gives an option without target mass (probability 0 in float64)."""
 
 NEWTON_GTOL = 1e-12
-"""The gating fit takes Newton steps until the largest gradient entry of the (weight-sum
-normalised) cross-entropy is below this: it is then the minimiser to round-off, whatever the
-start (LBFGS, which the fit used before, stopped on its change tolerance with gradients of
-~1e-7, parameters ~1e-6 from it, and took ~100 loss evaluations where Newton takes ~10)."""
+"""The gating fit's Newton steps stop when the largest gradient entry is below this."""
 
 
 def _cross_entropy(
     x: Tensor, t: Tensor, w: Tensor, W: Tensor, b: Tensor, active: Tensor, l2: float
 ) -> Tensor:
-    """The gating fit's loss ([S]): sum_i w_i sum_o t_io (-log pi(o | x_i)) + l2/2 ||W||^2
-    over the active options."""
+    """The gating fit's loss ([S]) over the active options (see :meth:`fit_parameters`)."""
     keep = active.unsqueeze(-2)
     logits = (x @ W.mT + b.unsqueeze(-2)).masked_fill(~keep, float("-inf"))
     logp = log_softmax(logits)
@@ -337,13 +259,8 @@ def _newton_fit(
     l2: float,
     max_iter: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Newton steps (halved until the loss does not rise) on the gating's cross-entropy from
-    (W (..., O, F), b (..., O)) until the gradient is below :data:`NEWTON_GTOL` (at most
-    ``max_iter``), each member of a population on its own (a converged member stops).
-    Pruned options are held fixed. The loss is convex, strictly so with ``l2 > 0``; a
-    damping of 1e-10 of the Hessian's mean diagonal keeps the Newton system solvable
-    without it. Returns W, b and the ([S]) members whose loss, gradient or Newton system was
-    not finite (features too large)."""
+    """Damped Newton steps on :func:`_cross_entropy` from W (..., O, F), b (..., O) until the
+    gradient is below :data:`NEWTON_GTOL`; pruned options fixed. Returns W, b, failed ([S])."""
     X = torch.cat([x.new_ones(*x.shape[:-1], 1, dtype=torch.float64), x], -1)  # (.., N, F+1)
     theta = torch.cat([b[..., None], W], -1)  # (..., O, F+1)
     O, F1 = theta.shape[-2:]
@@ -399,11 +316,8 @@ def _newton_fit(
 
 
 class ConstantGating(Gating):
-    """Fixed hard gating: each state goes to the option of its nearest k-means centroid.
-
-    The paper's constant-gating baseline (Fig. 17): the state space is divided by k-means and
-    the division is never refitted (:meth:`weighted_fit` leaves it unchanged); only the
-    options learn. ``pi(o | s) = 1`` for the nearest centroid, 0 (log = -inf) otherwise.
+    """Fixed hard gating (the paper's Fig. 17 baseline): ``pi(o | s) = 1`` for the nearest
+    centroid, 0 otherwise; never refitted.
 
     Args:
         centroids: (O, F) centroids in the gating-feature space.
@@ -440,8 +354,7 @@ class ConstantGating(Gating):
         return cls(torch.from_numpy(centroids))
 
     def log_probs(self, features: Tensor) -> Tensor:
-        """features: ([S,] N, F) -> ([S,] N, O) with 0 at the nearest centroid and -inf
-        elsewhere."""
+        """features: ([S,] N, F) -> ([S,] N, O): 0 at the nearest centroid, -inf elsewhere."""
         x = self._features(features)
         nearest = torch.cdist(x, self.centroids.to(x.dtype)).argmin(dim=-1)
         out = x.new_full((*x.shape[:-1], self.n_options), float("-inf"))
@@ -450,25 +363,17 @@ class ConstantGating(Gating):
     def fit_parameters(
         self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
     ) -> dict[str, Tensor]:
-        """Constant gating: nothing to fit (the inputs are checked all the same)."""
+        """Nothing to fit (the inputs are checked)."""
         self._fit_inputs(features, targets, sample_weights)
         return {}
 
     def fit_checked(
         self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
     ) -> dict[str, Tensor]:
-        """Constant gating: nothing to fit."""
+        """Nothing to fit."""
         return {}
 
 
 def _active_mean(values: Tensor, active: Tensor) -> Tensor:
-    """Mean of ``values`` (S, O) over each member's active options (zeros elsewhere): (S, 1)."""
+    """Mean of ``values`` (S, O) over the active options: (S, 1)."""
     return values.sum(-1, keepdim=True) / active.sum(-1, keepdim=True)
-
-
-def _replace(module: nn.Module, name: str, value: Tensor) -> None:
-    """Replace the parameter or buffer ``name`` of ``module`` by ``value`` (another shape)."""
-    if name in module._parameters:
-        setattr(module, name, nn.Parameter(value, requires_grad=False))
-    else:
-        module.register_buffer(name, value)

@@ -46,16 +46,12 @@ __all__ = ["HierarchicalPolicy"]
 class HierarchicalPolicy(PolicyModule):
     """Mixture policy ``pi(theta | s) = sum_o pi(o | s) pi(theta | s, o)``.
 
-    The gating sees ``gating_features(s)``, every option sees ``policy_features(s)``.
-    Shapes: ``context: (N, C)`` (C may be 0), ``theta: (N, D)``, options ``(N,)`` int64.
-    Contexts and parameters may be bool, integer or floating tensors (used as float64); a
-    wrong shape, a non-finite entry or a tensor on another device raises a ``ValueError``
-    naming it. :meth:`weighted_fit`, :meth:`prune` and :meth:`load_state_dict` either
-    complete or leave the policy exactly as it was.
+    The gating sees ``gating_features(s)``, every option ``policy_features(s)``. Shapes:
+    ``context: (N, C)`` (C may be 0), ``theta: (N, D)``, options ``(N,)`` int64. A wrong
+    shape, non-finite entry or other device raises a ``ValueError`` naming it.
 
     Args:
-        gating: a :class:`Gating` (``log_probs(features) -> ([S,] N, O)``, ``fit_checked``
-            and an ``active`` mask; e.g. :class:`SoftmaxGating`).
+        gating: a :class:`Gating` over O options (e.g. :class:`SoftmaxGating`).
         options: O :class:`LinearGaussian` sub-policies, all with the same action_dim.
         gating_features: feature map for the gating (identity by default).
         policy_features: feature map for the sub-policies (identity by default).
@@ -93,6 +89,7 @@ class HierarchicalPolicy(PolicyModule):
         self.gating_features = gf
         self.policy_features = pf
         self.action_dim = dims.pop()
+        self.population = gating.population
 
     @classmethod
     def create(
@@ -113,13 +110,9 @@ class HierarchicalPolicy(PolicyModule):
     ) -> HierarchicalPolicy:
         """Build a mixture of linear-Gaussian options.
 
-        Option means start at ``init_mean + spread * init_std * randn`` (exactly ``init_mean``
-        for one option) when ``init_mean`` is (D,) or None (zeros), and exactly at the rows of
-        ``init_mean`` when it is (O, D), one mean per option (no random spread); covariances
-        at ``init_std^2 I``. The gating is ``gating`` when given (e.g. a
-        :class:`ConstantGating` on ``gating_features``), else a uniform
-        :class:`SoftmaxGating`. ``covariance_prior`` and ``mean_prior`` go to every option (see
-        :class:`LinearGaussian`).
+        Option means: the rows of an (O, D) ``init_mean``, else ``init_mean + spread * init_std
+        * randn`` (exactly ``init_mean`` for one option); covariances ``init_std^2 I``. The
+        gating: ``gating``, else a uniform :class:`SoftmaxGating`. The priors go to every option.
         """
         n_options = check_count("n_options", n_options, 1)
         context_dim = check_count("context_dim", context_dim, 0)
@@ -170,12 +163,8 @@ class HierarchicalPolicy(PolicyModule):
 
     @classmethod
     def stack(cls, members: Sequence[HierarchicalPolicy]) -> HierarchicalPolicy:
-        """A population of S policies: gatings and options stacked along a leading S
-        (:meth:`Gating.stack`, :meth:`LinearGaussian.stack`); every input and output then
-        carries it (contexts (S, N, C), theta (S, N, D), weights (S, N, O)) and member s
-        computes what ``members[s]`` would, to round-off. The members must share the number of
-        options, the action dimension and the feature maps (same kind and values); they are
-        copied, not shared."""
+        """A population of S policies (copies) stacked along a leading S of every input and
+        output; the members must share the option count, action_dim and feature maps."""
         items: list[HierarchicalPolicy] = check_members("members", members, cls)
         first = items[0]
         for s, m in enumerate(items[1:], 1):
@@ -211,16 +200,6 @@ class HierarchicalPolicy(PolicyModule):
 
     # ---- helpers ----------------------------------------------------------------------------
     @property
-    def population(self) -> int | None:
-        """S for a population of S policies (:meth:`stack`); None for one policy."""
-        return self.gating.population
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        """() for one policy, (S,) for a population."""
-        return self.gating.batch_shape
-
-    @property
     def sub_policies(self) -> list[LinearGaussian]:
         """The options as a typed list (the same modules as ``self.options``)."""
         return cast(list[LinearGaussian], list(self.options))
@@ -240,7 +219,7 @@ class HierarchicalPolicy(PolicyModule):
         return self.gating.active
 
     def _context(self, context: Tensor) -> Tensor:
-        """context as a checked float64 ([S,] N, C) tensor."""
+        """context checked, as float64 ([S,] N, C)."""
         device = self.sub_policies[0].bias.device
         c = as_float_tensor("context", context, device=device)
         C, lead = self.context_dim, self.batch_shape
@@ -280,9 +259,7 @@ class HierarchicalPolicy(PolicyModule):
         """log p(o | s, theta): ([S,] N, O); -inf for pruned options.
 
         Raises:
-            ValueError: when a sample has zero density under every active option (e.g.
-                parameters so far out, like 1e200, that every log density is -inf): its
-                responsibilities would be NaN.
+            ValueError: when a sample has zero density under every active option.
         """
         joint = self.log_joint(context, theta)
         impossible = torch.isneginf(joint).all(dim=-1)
@@ -301,10 +278,7 @@ class HierarchicalPolicy(PolicyModule):
         return self.log_responsibilities(context, theta).exp()
 
     def sample(self, context: Tensor, generator: Generators = None) -> tuple[Tensor, Tensor]:
-        """Draw an option from the gating, then theta from that option.
-
-        A population may take one generator per member: member s then draws exactly what it
-        would draw alone (its option, then every option's noise, in order).
+        """Draw an option from the gating, then theta from it (a population may take S generators).
 
         Returns:
             theta ([S,] N, D) and option ([S,] N) int64 (empty for N = 0).
@@ -320,8 +294,7 @@ class HierarchicalPolicy(PolicyModule):
         option = categorical(probs, gen)  # each member with its own generator, where given
         subs, D = self.sub_policies, self.action_dim
         noise = torch.stack([normal((*lead, N, D), gen, dtype, pf.device) for _ in subs], -3)
-        # every option draws its noise for all samples (the same draws whichever is chosen);
-        # the chosen option's mean plus its Cholesky factor times its noise
+        # every option draws noise for all samples (the same draws whichever is chosen)
         weight = torch.stack([o.weight for o in subs], -3)  # ([S,] O, D, F)
         bias = torch.stack([o.bias for o in subs], -2)  # ([S,] O, D)
         chol = torch.stack([o.chol for o in subs], -3)  # ([S,] O, D, D)
@@ -347,12 +320,10 @@ class HierarchicalPolicy(PolicyModule):
     # ---- refit and pruning ------------------------------------------------------------------
     @torch.no_grad()
     def fit_parameters(self, context: Tensor, theta: Tensor, weights: Tensor) -> dict[str, Tensor]:
-        """The new values (``state_dict`` names -> tensors) of :meth:`weighted_fit`, computed
-        and checked without changing the policy (:meth:`set_parameters` sets them).
+        """The new values (``state_dict`` names -> tensors) of :meth:`weighted_fit`, not set.
 
         Raises:
-            ValueError: for bad inputs (naming them) or a refit that fails, naming the option
-                (e.g. parameters so large that the option's covariance overflows).
+            ValueError: for bad inputs or a failed refit, naming the input or the option.
         """
         gf, pf = self._features(context)
         N, lead = pf.shape[-2], self.batch_shape
@@ -383,11 +354,8 @@ class HierarchicalPolicy(PolicyModule):
         return self.fit_checked(gf, pf, t, power_of_two_scaled(w, self.population is not None))
 
     def fit_checked(self, gf: Tensor | None, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
-        """:meth:`fit_parameters` on inputs already checked: gating and option features gf, pf
-        ([S,] N, .) of checked contexts (gf None for one option: the gating is not
-        refitted), float64 theta t ([S,] N, D) and weights w ([S,] N, O) (non-negative,
-        finite, zero on pruned options, some positive weight, at most 2^200 as
-        :func:`power_of_two_scaled` leaves them; the dual's weights, which sum to 1, are)."""
+        """:meth:`fit_parameters` on checked features gf, pf ([S,] N, .) (gf None: one option),
+        float64 t ([S,] N, D) and w ([S,] N, O) (0 on pruned options, at most 2^200)."""
         new: dict[str, Tensor] = {}
         O = self.n_options
         if O > 1:  # one option: pi(o | s) = 1 whatever the gating holds
@@ -420,19 +388,14 @@ class HierarchicalPolicy(PolicyModule):
 
     @torch.no_grad()
     def weighted_fit(self, context: Tensor, theta: Tensor, weights: Tensor) -> None:
-        """Refit gating and options to the weighted samples.
-
-        Every new value is computed and checked first (:meth:`fit_parameters`), then all are
-        set: a failure (a bad input, option 3's refit after options 1 and 2) changes nothing.
+        """Refit gating and options to the weighted samples; a failure changes nothing.
 
         Args:
             context: ([S,] N, C).
             theta: ([S,] N, D).
-            weights: ([S,] N, O) non-negative joint sample-option weights P_io (any scale;
-                each member's not all zero). Option o is refitted with weights P[..., o];
-                the gating with targets P_io / sum_o P_io and sample weights sum_o P_io.
-                Options without weight keep their parameters (they are left to pruning);
-                weight on a pruned option is refused (its column must be 0).
+            weights: ([S,] N, O) joint weights P_io >= 0 (0 on pruned options): option o is
+                fitted to P[..., o], the gating to targets P_io / sum_o P_io with sample
+                weights sum_o P_io; options without weight are kept.
         """
         self.set_parameters(self.fit_parameters(context, theta, weights))
 
@@ -440,12 +403,9 @@ class HierarchicalPolicy(PolicyModule):
     def prune(
         self, context: Tensor, threshold: float = 1e-4, members: Tensor | None = None
     ) -> list[int] | list[list[int]]:
-        """Deactivate options whose prior mass ``mean_i pi(o | s_i)`` is below ``threshold``.
-
-        The most probable option is never pruned; ``members`` (([S,]) bool) limits pruning to
-        the members where it is True. Returns the indices pruned by this call (a population:
-        one list per member).
-        """
+        """Deactivate options whose mass ``mean_i pi(o | s_i)`` is below ``threshold`` (never the
+        most probable; only where ``members`` ([S]) is True). Returns the pruned indices (per
+        member for a population)."""
         limit = as_float("threshold", threshold)
         if not 0.0 <= limit < 1.0:
             raise ValueError(f"threshold must be in [0, 1), got {threshold}")
@@ -464,15 +424,14 @@ class HierarchicalPolicy(PolicyModule):
         return [[int(i) for i in row.nonzero().flatten()] for row in drop]
 
     def option_entropy(self, context: Tensor, theta: Tensor) -> Tensor:
-        """Mean entropy of the responsibilities p(o | s, theta) over the samples (a scalar;
-        (S,) for a population)."""
+        """Mean entropy of p(o | s, theta) over the samples: a scalar or (S,)."""
         lr = self.log_responsibilities(context, theta)
         p = lr.exp()
         return -(torch.where(p > 0, p * lr, torch.zeros_like(p))).sum(-1).mean(-1)
 
 
 def _same_map(a: FeatureMap, b: FeatureMap) -> bool:
-    """Whether two feature maps are of one kind, width and value (buffers and parameters)."""
+    """Whether two feature maps have one kind, widths and state."""
     if type(a) is not type(b) or (a.in_features, a.out_features) != (b.in_features, b.out_features):
         return False
     sa, sb = a.state_dict(), b.state_dict()

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import copy
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
@@ -25,7 +24,6 @@ from hireps_torch.policies._module import PolicyModule
 from hireps_torch.policies._population import (
     Generators,
     batch_text,
-    check_members,
     check_population_generators,
     normal,
 )
@@ -46,15 +44,13 @@ __all__ = [
 def weighted_least_squares(
     inputs: Tensor, targets: Tensor, weights: Tensor, ridge: float = 0.0
 ) -> tuple[Tensor, Tensor]:
-    """Weighted least squares with an (unpenalised) bias, in float64.
-
-    Any leading batch dimensions (e.g. a population S) are independent problems.
+    """Weighted least squares with an unpenalised bias, in float64 (leading dims: batches).
 
     Args:
         inputs: (..., N, F) regressors (F may be 0).
         targets: (..., N, D).
-        weights: (..., N) non-negative sample weights, not all zero.
-        ridge: Tikhonov penalty on the slopes (not the bias), relative to the weight sum.
+        weights: (..., N) non-negative, not all zero.
+        ridge: penalty on the slopes (not the bias), relative to the weight sum.
 
     Returns:
         (weight (..., D, F), bias (..., D)) minimising
@@ -83,10 +79,8 @@ def weighted_least_squares(
 
 
 def power_of_two_scaled(w: Tensor, population: bool = False) -> Tensor:
-    """Weights of any scale brought near 1 by an exact power of 2 (the fit is invariant to
-    it), so that weights like 1e-320 or 1e300 neither underflow nor overflow the sums; weights
-    already within 2^-200 .. 2^200 are returned as they are. With ``population`` the leading
-    dimension holds independent members, each scaled on its own."""
+    """``w`` times an exact power of 2 bringing its peak near 1, unless the peak is within
+    2^-200 .. 2^200; with ``population`` each member (leading dim) on its own."""
     if population:
         peak = w.flatten(1).amax(1).view(-1, *[1] * (w.dim() - 1))
         far = (peak < 2.0**-200) | (peak > 2.0**200)
@@ -101,8 +95,7 @@ def power_of_two_scaled(w: Tensor, population: bool = False) -> Tensor:
 
 
 def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
-    """``min_variance`` (a float or a (D,) tensor, finite and > 0) as a (D,) float64 tensor;
-    a ``ValueError`` naming it otherwise."""
+    """``min_variance`` (a float or (D,)) checked, as a (D,) float64 tensor."""
     floor = as_float_tensor("min_variance", min_variance, allow_bool=False).clone()
     if floor.dim() == 0:
         floor = floor.expand(action_dim).clone()
@@ -111,14 +104,11 @@ def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
 
 
 FLOOR_RANGE = (1e-100, 1e100)
-"""The variance floors :class:`LinearGaussian` takes: the refit divides covariances by the
-floor (a floor near float64's smallest normal overflows that for a covariance of 5), and
-samples of a floor near its largest overflow."""
+"""The variance floors :class:`LinearGaussian` takes (beyond them the fit or sampling overflows)."""
 
 
 def check_floor(floor: Tensor, action_dim: int, given: object) -> None:
-    """A ``ValueError`` (naming ``given``) unless the (D,) float64 variance floor is in
-    :data:`FLOOR_RANGE`."""
+    """A ``ValueError`` naming ``given`` unless the (D,) floor is in :data:`FLOOR_RANGE`."""
     low, high = FLOOR_RANGE
     if (
         floor.shape != (action_dim,)
@@ -132,8 +122,7 @@ def check_floor(floor: Tensor, action_dim: int, given: object) -> None:
 
 
 def pseudo_samples(name: str, value: float) -> float:
-    """A prior's pseudo-sample count (finite and >= 0) as a float; a ``ValueError`` naming
-    ``name``."""
+    """A prior's pseudo-sample count (finite, >= 0) as a float."""
     prior = as_float(name, value)
     if not (math.isfinite(prior) and prior >= 0):
         raise ValueError(f"{name} must be finite and >= 0, got {value}")
@@ -141,12 +130,12 @@ def pseudo_samples(name: str, value: float) -> float:
 
 
 def covariance_pseudo_samples(covariance_prior: float) -> float:
-    """``covariance_prior`` (finite and >= 0) as a float; a ``ValueError`` naming it."""
+    """:func:`pseudo_samples` of ``covariance_prior``."""
     return pseudo_samples("covariance_prior", covariance_prior)
 
 
 def _matvec(A: Tensor, x: Tensor) -> Tensor:
-    """A (..., D, F) times x (..., F): (..., D) (a matrix-vector product without batch)."""
+    """A (..., D, F) @ x (..., F) -> (..., D)."""
     return A @ x if x.dim() == 1 else (A @ x[..., None])[..., 0]
 
 
@@ -161,32 +150,23 @@ def map_linear_regression(
 ) -> tuple[Tensor, Tensor]:
     """Weighted linear regression with a Gaussian prior on the coefficients (MAP), in float64.
 
-    The inputs are centred and scaled by their weighted mean ``m`` and standard deviation
-    ``s`` (columns without spread keep ``s = 1``), ``z_i = [1, (x_i - m) / s]``, and the
-    coefficients ``beta`` of ``y ~ beta^T z`` (the mean at the weighted centre and the change
-    per standard deviation of each input) get a prior centred on ``beta_old`` (those of
-    ``prior_weight``, ``prior_bias``) worth ``k = prior_samples`` samples against the
-    data's ``n_eff = 1 / sum_i w_i^2`` (``w`` normalised to sum 1):
+    On standardised inputs ``z_i = [1, (x_i - m) / s]`` (weighted mean m, std s; s = 1 where
+    an input has no spread), w normalised to sum 1 and ``n_eff = 1 / sum_i w_i^2``:
 
         beta = argmin  sum_i w_i ||y_i - beta^T z_i||^2 + (k / n_eff) ||beta - beta_old||^2
                        + ridge ||W||^2,
 
-    i.e. ``beta = (Z^T W Z + (k / n_eff) I + ridge diag(0, 1 / s^2))^-1 (Z^T W Y + (k / n_eff)
-    beta_old)``. The fit is therefore unchanged by shifting or rescaling an input, an option
-    with few effective samples moves little from where it was, and an input without spread in
-    the samples keeps its old slope (the data say nothing about it). ``k = 0`` is weighted
-    least squares.
-
-    Any leading batch dimensions (e.g. a population S) are independent problems.
+    beta_old from ``prior_weight``, ``prior_bias``; ``k = 0``: weighted least squares; leading
+    dims are batches.
 
     Args:
         inputs: (..., N, F) regressors.
         targets: (..., N, D).
-        weights: (..., N) non-negative sample weights, not all zero.
-        prior_weight: (..., D, F) slopes the prior is centred on (the current ones).
+        weights: (..., N) non-negative, not all zero.
+        prior_weight: (..., D, F) slopes the prior is centred on.
         prior_bias: (..., D) bias the prior is centred on.
         prior_samples: k >= 0.
-        ridge: Tikhonov penalty on the slopes W, relative to the weight sum.
+        ridge: penalty on the slopes W, relative to the weight sum.
 
     Returns:
         (weight (..., D, F), bias (..., D)).
@@ -216,7 +196,7 @@ def map_linear_regression(
 
 
 def initial_std(init_std: float | Tensor, action_dim: int) -> Tensor:
-    """``init_std`` (a float or a (D,) tensor, finite and > 0) as a (D,) float64 tensor."""
+    """``init_std`` (a float or (D,), > 0) as a (D,) float64 tensor."""
     std = as_float_tensor("init_std", init_std, allow_bool=False)
     if std.dim() == 0:
         std = std.expand(action_dim)
@@ -229,35 +209,23 @@ def initial_std(init_std: float | Tensor, action_dim: int) -> Tensor:
 
 
 class LinearGaussian(PolicyModule):
-    """Gaussian with a mean linear in the features and a full covariance held by its Cholesky
-    factor: ``theta ~ N(weight @ psi + bias, chol @ chol.T)``.
+    """Gaussian ``theta ~ N(weight @ psi + bias, chol @ chol.T)`` with a full covariance.
 
-    Shapes: ``features: (N, F)``, ``theta: (N, D)``. ``F = 0`` gives a context-free Gaussian.
-    Parameters are ``nn.Parameter``s without gradients (the fit is closed form), so they travel
-    with ``state_dict`` and TorchRL weight updates. Inputs may be bool, integer or floating
-    tensors (converted to the parameter dtype); non-finite ones raise a ``ValueError``.
+    Shapes: ``features: (N, F)`` (F = 0: context-free), ``theta: (N, D)``. Parameters are
+    ``nn.Parameter``s without gradients (the fit is closed form). Bool, integer or floating
+    inputs are converted to the parameter dtype; non-finite ones raise a ``ValueError``.
 
     Args:
-        in_features: F, number of input features.
-        action_dim: D, dimension of theta.
-        init_mean: (D,) initial mean (bias); zeros by default.
-        init_std: initial standard deviation (scalar or (D,)).
-        min_variance: floor on the covariance after every fit: a float floors its eigenvalues;
-            a (D,) tensor m floors the eigenvalues of ``diag(m)^-1/2 Sigma diag(m)^-1/2`` at 1
-            (per-dimension floors for parameters in different units).
-        covariance_prior: k, pseudo-samples of a prior centred on the current covariance: a
-            refit returns ``(n_eff Sigma_w + k Sigma_old) / (n_eff + k)`` with Sigma_w the
-            weighted residual covariance and ``n_eff = (sum w)^2 / sum w^2`` the effective
-            number of samples (the MAP estimate under an inverse-Wishart-type prior). It keeps
-            exploration from collapsing when an option has fewer effective samples than
-            dimensions; 0 (default) is plain weighted maximum likelihood.
-        mean_prior: k, pseudo-samples of a Gaussian prior on the mean's coefficients centred
-            on the current ones, on centred and scaled features: the refit is the posterior
-            mode of :func:`map_linear_regression` (a Bayesian linear regression), so an option
-            fitted from a handful of effective samples moves toward the data in proportion
-            ``n_eff / (n_eff + k)`` instead of jumping to an over-fitted slope; 0 (default)
-            is weighted least squares.
-        dtype: parameter dtype (float64 by default: parameter spaces are small).
+        in_features: F.
+        action_dim: D.
+        init_mean: (D,) initial bias; zeros by default.
+        init_std: initial standard deviation, scalar or (D,).
+        min_variance: covariance floor after every fit: a float floors the eigenvalues; a (D,)
+            tensor m floors those of ``diag(m)^-1/2 Sigma diag(m)^-1/2`` at 1.
+        covariance_prior: k; a refit returns ``(n_eff Sigma_w + k Sigma_old) / (n_eff + k)``
+            (Sigma_w the weighted residual covariance, ``n_eff = (sum w)^2 / sum w^2``).
+        mean_prior: k of :func:`map_linear_regression`, centred on the current coefficients.
+        dtype: parameter dtype.
     """
 
     def __init__(
@@ -296,57 +264,8 @@ class LinearGaussian(PolicyModule):
         self.bias = nn.Parameter(mean, requires_grad=False)
         self.chol = nn.Parameter(torch.diag(std), requires_grad=False)
 
-    population: int | None = None
-    """S for a population of S options stacked by :meth:`stack`; None for one option."""
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        """() for one option, (S,) for a population."""
-        return () if self.population is None else (self.population,)
-
-    @classmethod
-    def stack(cls, members: Sequence[LinearGaussian]) -> LinearGaussian:
-        """A population of S options: the members' parameters stacked along a leading S.
-
-        Every input and output of the population gets the same leading S (features (S, N, F),
-        theta (S, N, D), log densities (S, N)); member s computes what ``members[s]`` would
-        (to round-off: batched products). The members must share ``in_features``,
-        ``action_dim``, dtype, device, ``min_variance`` and the priors (a ``ValueError`` naming
-        the first that differs). The members are copied, not shared.
-        """
-        opts: list[LinearGaussian] = check_members("members", members, cls)
-        first = opts[0]
-        for s, m in enumerate(opts[1:], 1):
-            for what in ("in_features", "action_dim", "covariance_prior", "mean_prior"):
-                if getattr(m, what) != getattr(first, what):
-                    raise ValueError(
-                        f"members[{s}].{what} = {getattr(m, what)} but members[0].{what} = "
-                        f"{getattr(first, what)}: a population shares it"
-                    )
-            if not torch.equal(m.min_variance, first.min_variance):
-                raise ValueError(f"members[{s}].min_variance differs from members[0]'s")
-            if (m.bias.dtype, m.bias.device) != (first.bias.dtype, first.bias.device):
-                raise ValueError(
-                    f"members[{s}] is {m.bias.dtype} on {m.bias.device} but members[0] is "
-                    f"{first.bias.dtype} on {first.bias.device}"
-                )
-        out = copy.deepcopy(first)
-        out.population = len(opts)
-        with torch.no_grad():
-            for name in ("weight", "bias", "chol"):
-                stacked = torch.stack([getattr(m, name) for m in opts])
-                setattr(out, name, nn.Parameter(stacked, requires_grad=False))
-        return out
-
-    def member(self, s: int) -> LinearGaussian:
-        """Member ``s`` of a population as an ordinary option (a copy)."""
-        index = _member_index(self.population, s)
-        out = copy.deepcopy(self)
-        out.population = None
-        with torch.no_grad():
-            for name in ("weight", "bias", "chol"):
-                setattr(out, name, nn.Parameter(getattr(self, name)[index].clone(), False))
-        return out
+    _stacked = ("weight", "bias", "chol")
+    _shared = ("in_features", "action_dim", "covariance_prior", "mean_prior")
 
     # ---- distribution ---------------------------------------------------------------------
     def _features(self, features: Tensor) -> Tensor:
@@ -379,8 +298,7 @@ class LinearGaussian(PolicyModule):
         return self.chol @ self.chol.mT
 
     def sample(self, features: Tensor, generator: Generators = None) -> Tensor:
-        """features: ([S,] N, F) -> theta ([S,] N, D). A population may take one generator per
-        member (member s then draws what it would draw alone)."""
+        """features: ([S,] N, F) -> theta ([S,] N, D); a population may take S generators."""
         gen = check_population_generators(self.population, generator)
         mu = self.mean(features)
         noise = normal(tuple(mu.shape), gen, mu.dtype, mu.device)
@@ -399,8 +317,7 @@ class LinearGaussian(PolicyModule):
         )
 
     def entropy(self) -> Tensor:
-        """Differential entropy ([S] or a scalar) of the Gaussian (independent of the
-        features)."""
+        """Differential entropy: ([S]) or a scalar."""
         half_logdet = torch.log(torch.diagonal(self.chol, dim1=-2, dim2=-1)).sum(-1)
         return half_logdet + 0.5 * self.action_dim * (1.0 + math.log(2 * math.pi))
 
@@ -409,14 +326,11 @@ class LinearGaussian(PolicyModule):
     def fit_parameters(
         self, inputs: Tensor, targets: Tensor, weights: Tensor, ridge: float = 1e-6
     ) -> dict[str, Tensor]:
-        """The new ``weight``, ``bias`` and ``chol`` of :meth:`weighted_fit`, without setting
-        them (the option is unchanged; :meth:`set_parameters` sets them). A population fits
-        each member to its own samples (shapes with a leading S).
+        """The new ``weight``, ``bias`` and ``chol`` of :meth:`weighted_fit`, not set.
 
         Raises:
-            ValueError: naming the argument (and the member of a population), for a wrong
-                shape, a non-finite input, negative or all-zero weights; or a fit that is not
-                finite (parameters so large that their covariance overflows).
+            ValueError: naming the argument (and member) for a wrong shape, a non-finite input,
+                negative or all-zero weights, or a fit that overflows.
         """
         x = self._features(inputs).to(torch.float64)
         N = x.shape[-2]
@@ -439,10 +353,8 @@ class LinearGaussian(PolicyModule):
         return self.fit_checked(x, y, power_of_two_scaled(w, self.population is not None), r)
 
     def fit_checked(self, x: Tensor, y: Tensor, w: Tensor, r: float = 1e-6) -> dict[str, Tensor]:
-        """:meth:`fit_parameters` on inputs already checked: float64 features x ([S,] N, F)
-        (after the option's feature map), targets y ([S,] N, D), non-negative weights w
-        ([S,] N) with some positive weight for each member, at most 2^200 (as
-        :func:`power_of_two_scaled` leaves them), ridge r >= 0."""
+        """:meth:`fit_parameters` on checked float64 x ([S,] N, F), y ([S,] N, D) and w ([S,] N)
+        (a positive entry per member, at most 2^200: :func:`power_of_two_scaled`)."""
         try:
             if self.mean_prior > 0:
                 W, b = map_linear_regression(x, y, w, self.weight, self.bias, self.mean_prior, r)
@@ -472,7 +384,7 @@ class LinearGaussian(PolicyModule):
         return new
 
     def _overflow(self, x: Tensor, y: Tensor, bad: Tensor | None) -> ValueError:
-        """The error of a fit that overflows (naming the member of a population)."""
+        """The error of an overflowing fit."""
         who = ""
         if bad is not None and self.population is not None:
             s = int(bad.nonzero()[0, 0])
@@ -487,15 +399,11 @@ class LinearGaussian(PolicyModule):
     def weighted_fit(
         self, inputs: Tensor, targets: Tensor, weights: Tensor, ridge: float = 1e-6
     ) -> None:
-        """Weighted maximum-likelihood refit of mean and covariance.
+        """Weighted maximum-likelihood refit; a failed fit changes nothing.
 
-        The mean is the weighted least-squares fit of ``targets`` on ``[1, inputs]`` (ridge on
-        the slopes), or its posterior mode under the coefficient prior when ``mean_prior > 0``
-        (:func:`map_linear_regression`); the covariance is the weighted covariance of the residuals
-        ``sum_i w_i r_i r_i^T / sum_i w_i``, shrunk toward the current covariance when
-        ``covariance_prior > 0``, then floored by ``min_variance`` (see the class docstring).
-        Everything is computed (and checked) before the parameters change: a failed fit
-        leaves the option as it was.
+        Mean: :func:`weighted_least_squares` (:func:`map_linear_regression` if ``mean_prior``);
+        covariance: ``sum_i w_i r_i r_i^T / sum_i w_i`` of the residuals, then the prior and
+        floor of the class docstring.
 
         Args:
             inputs: ([S,] N, F) features.
@@ -506,14 +414,13 @@ class LinearGaussian(PolicyModule):
         self.set_parameters(self.fit_parameters(inputs, targets, weights, ridge))
 
     def _floor_scale(self, cov: Tensor) -> Tensor:
-        """sqrt(m_i m_j) of the variance floor m, as cov's dtype and device: (D, D)."""
+        """sqrt(m_i m_j) of the floor m: (D, D)."""
         root = self.min_variance.to(cov.device).sqrt()
         return torch.outer(root, root)
 
     def _unfloored_cholesky(self, cov: Tensor) -> Tensor | None:
-        """The Cholesky factor (float64) of cov ([S,] D, D) where cov is finite and the
-        variance floor m does not bind (cov - diag(m) positive definite: every eigenvalue of
-        the scaled covariance cov / sqrt(m_i m_j) above 1); None otherwise. One transfer."""
+        """Cholesky factor of cov ([S,] D, D) if finite and cov - diag(m) is positive definite
+        (the floor does not bind); None otherwise."""
         floor = torch.diag_embed(self.min_variance.to(cov))  # the factor reads one triangle
         factor = torch.linalg.cholesky_ex(torch.stack([cov, cov - floor]))
         chol: Tensor = factor.L[0]
@@ -556,12 +463,10 @@ class LinearGaussian(PolicyModule):
         self.set_parameters({"chol": self._floored_cholesky(c)})
 
     OPTIONAL_STATE = ("min_variance",)
-    """Entries a checkpoint may lack (written before they were saved): they keep the
-    module's value, the one its config built."""
+    """Entries a checkpoint may lack (they keep the module's value)."""
 
     def check_state(self, state: Mapping[str, Tensor]) -> None:
-        """A loaded ``chol`` must be lower triangular with a positive diagonal, a loaded
-        ``min_variance`` a valid floor."""
+        """A loaded ``chol`` lower triangular, positive diagonal; ``min_variance`` in range."""
         floor = state.get("min_variance")
         if floor is not None:
             check_floor(floor.to(torch.float64), self.action_dim, floor.tolist())
@@ -578,15 +483,5 @@ class LinearGaussian(PolicyModule):
 
 
 def _finite_members(t: Tensor) -> Tensor:
-    """Whether each member of ``t`` ([S,] a, b) is finite: ([S])."""
+    """t ([S,] a, b) -> ([S]) all finite."""
     return torch.isfinite(t).flatten(-2).all(-1)
-
-
-def _member_index(population: int | None, s: object) -> int:
-    """``s`` checked as a member index of a population of ``population``."""
-    if population is None:
-        raise ValueError("member() takes a member of a population; this module holds one policy")
-    index = check_count("s", s, 0)
-    if index >= population:
-        raise ValueError(f"member s must be in [0, {population}), got {index}")
-    return index

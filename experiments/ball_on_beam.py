@@ -192,11 +192,7 @@ def _make_algorithm(
 
 def _checked(cfg: BallOnBeamConfig) -> int:
     """Every option of ``cfg`` checked; the number of iterations."""
-    check_options(
-        cfg,
-        counts=("fourier_coupling",),
-        positive=("init_std", "max_velocity"),
-    )
+    check_options(cfg, counts=("fourier_coupling",), positive=("init_std", "max_velocity"))
     check_variance_floor(cfg)
     check_fourier_bases(cfg, 3 if cfg.value_beam_angle else 2)
     if cfg.fourier_coupling is not None and cfg.fourier_coupling > 3:
@@ -275,17 +271,13 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
     active = policy.active.sum(-1).tolist()
     return finish_run(
         session,
-        curve=CURVE,
+        curve=("episodes", ["average_return", "eval_return"]),
         title=label,
         summaries=[
             _summary(c, r, iterations, int(n))
             for c, r, n in zip(session.members.configs, session.rows, active, strict=True)
         ],
     )
-
-
-CURVE = ("episodes", ["average_return", "eval_return"])
-"""The learning curve's columns."""
 
 
 def _summary(

@@ -59,11 +59,7 @@ class BimodalConfig(RunOptions):
 
 
 def _validate(cfg: BimodalConfig) -> None:
-    check_options(
-        cfg,
-        counts=("n_options",),
-        positive=("bump_width", "init_std"),
-    )
+    check_options(cfg, counts=("n_options",), positive=("bump_width", "init_std"))
     check_variance_floor(cfg)
     if cfg.samples_per_iteration < 2:
         raise ValueError(f"samples_per_iteration must be >= 2, got {cfg.samples_per_iteration}")
@@ -162,8 +158,8 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
     ]
     return finish_run(
         session,
-        curve=CURVE,
-        title=_title(cfg),
+        curve=("episodes", ["mean_return", "eval_return"]),
+        title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
         extra_plots=[_plots(a, task) for a in solo],
         summaries=[
             _summary(c, a, task, r, iterations)
@@ -172,18 +168,10 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
     )
 
 
-CURVE = ("episodes", ["mean_return", "eval_return"])
-"""The learning curve's columns."""
-
-
 def _task(cfg: BimodalConfig) -> TwoGaussians | ContextualTwoGaussians:
     if cfg.contextual:
         return ContextualTwoGaussians(width=cfg.bump_width)
     return TwoGaussians(width=cfg.bump_width)
-
-
-def _title(cfg: BimodalConfig) -> str:
-    return f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})"
 
 
 def _plots(
@@ -226,18 +214,16 @@ def option_summary(
         ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None]
     prior = pol.gating.probs(pol.gating_features(ctx)).mean(0)
     zero = torch.zeros(1, task.context_dim, dtype=torch.float64)
-    out = []
-    for o, opt in enumerate(pol.sub_policies):
-        if bool(pol.active[o]):
-            out.append(
-                {
-                    "option": o,
-                    "prior": float(prior[o]),
-                    "mean": [float(v) for v in opt.mean(pol.policy_features(zero))[0]],
-                    "std": [float(v) for v in opt.covariance.diagonal().sqrt()],
-                }
-            )
-    return out
+    return [
+        {
+            "option": o,
+            "prior": float(prior[o]),
+            "mean": [float(v) for v in opt.mean(pol.policy_features(zero))[0]],
+            "std": [float(v) for v in opt.covariance.diagonal().sqrt()],
+        }
+        for o, opt in enumerate(pol.sub_policies)
+        if bool(pol.active[o])
+    ]
 
 
 def modes_covered(

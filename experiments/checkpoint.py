@@ -104,8 +104,7 @@ class RunState:
         rng = state["rng"]
         if not isinstance(rng, Mapping):
             raise ValueError(f"the checkpoint's rng must be a mapping, got {type(rng).__name__}")
-        missing = [name for name in ("torch", *self.generators) if name not in rng]
-        if missing:
+        if missing := [name for name in ("torch", *self.generators) if name not in rng]:
             raise ValueError(f"the checkpoint has no state for the generators {missing}")
         for name in ("torch", *self.generators):  # checked before anything is restored
             try:
@@ -146,8 +145,7 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
             f"{path} was written by another version of this code (format "
             f"{ckpt.get('format')!r}, expected {FORMAT}); it cannot be resumed exactly"
         )
-    missing = [k for k in CHECKPOINT_KEYS if k not in ckpt]
-    if missing:
+    if missing := [k for k in CHECKPOINT_KEYS if k not in ckpt]:
         raise ValueError(f"{path} is not a complete checkpoint: it has no {missing}")
     it, members = ckpt["iteration"], ckpt["rows"]
     if not (
@@ -189,16 +187,12 @@ def changed_options(
 ) -> list[str]:
     """Differing options as ``name (run: saved, now: current)`` (``labels`` name the two
     sides), ignoring :data:`RUN_ONLY_OPTIONS`."""
-    out = []
     a, b = labels
-    for key in sorted(set(saved) | set(now)):
-        if key in RUN_ONLY_OPTIONS:
-            continue
-        if saved.get(key, "<absent>") != now.get(key, "<absent>"):
-            out.append(
-                f"{key} ({a}: {saved.get(key, '<absent>')!r}, {b}: {now.get(key, '<absent>')!r})"
-            )
-    return out
+    return [
+        f"{key} ({a}: {saved.get(key, '<absent>')!r}, {b}: {now.get(key, '<absent>')!r})"
+        for key in sorted(set(saved) | set(now))
+        if key not in RUN_ONLY_OPTIONS and saved.get(key, "<absent>") != now.get(key, "<absent>")
+    ]
 
 
 def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
@@ -215,12 +209,9 @@ def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
     from hireps_torch.experiments.options import ABSENT_MEANS
 
     fields = {f.name for f in dataclasses.fields(config_cls)}
-    values = {k: v for k, v in data.items() if k in fields}
-    for key, before in ABSENT_MEANS.items():  # left out of config.json at that value
-        if key in fields and key not in data:
-            values[key] = before
-    values["run_dir"] = run_dir
-    values["resume"] = None
+    # an option left out of config.json was at its ABSENT_MEANS value
+    values = {k: v for k, v in (ABSENT_MEANS | data).items() if k in fields}
+    values |= {"run_dir": run_dir, "resume": None}
     try:
         return config_cls(**values)
     except (TypeError, ValueError) as exc:

@@ -15,15 +15,6 @@ import torch
 __all__ = ["BatchedTaskState"]
 
 
-def _warn_not_exact(what: str) -> None:
-    warnings.warn(
-        f"resuming with worker processes: the {what} are not restored, so the resumed run is "
-        "not bit-identical to an uninterrupted one (resume with --workers 1 for that)",
-        RuntimeWarning,
-        stacklevel=3,
-    )
-
-
 def _tensors(obj: Any) -> dict[str, torch.Tensor]:
     return {k: v for k, v in vars(obj).items() if isinstance(v, torch.Tensor)}
 
@@ -67,7 +58,13 @@ class BatchedTaskState:
     def load_state_dict(self, state: Mapping[str, Any] | None) -> None:
         task = self._task()
         if task is None or state is None:
-            _warn_not_exact("environment states")
+            warnings.warn(
+                "resuming with worker processes: the environment states are not restored, so the "
+                "resumed run is not bit-identical to an uninterrupted one (resume with --workers 1 "
+                "for that)",
+                RuntimeWarning,
+                stacklevel=2,
+            )
             return
         _check_fits(state["tensors"], _tensors(task))
         if len(state["members"]) != len(task.tasks):

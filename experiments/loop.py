@@ -82,8 +82,7 @@ def _checked_resume(experiment: str, cfg: RunOptions, run_dir: Path) -> Resume:
         raise ValueError(
             f"cannot resume {run_dir}: it is a {saved.get('experiment')!r} run, not {experiment!r}"
         )
-    diff = changed_options(saved, config_dict(experiment, cfg))
-    if diff:
+    if diff := changed_options(saved, config_dict(experiment, cfg)):
         raise ValueError(
             f"cannot resume {run_dir} with other options than it was started with: "
             + "; ".join(diff)
@@ -116,8 +115,7 @@ def _checked_resume(experiment: str, cfg: RunOptions, run_dir: Path) -> Resume:
                 f"{ckpt.get('experiment')!r} run, not of this {experiment!r} run (nothing was "
                 "changed)"
             )
-        mismatch = changed_options(theirs, saved, ("checkpoint.pt", "config.json"))
-        if mismatch:
+        if mismatch := changed_options(theirs, saved, ("checkpoint.pt", "config.json")):
             raise ValueError(
                 f"cannot resume {run_dir}: its checkpoint.pt was written by a run with other "
                 "options than its config.json holds: "
@@ -201,10 +199,9 @@ class Run:
             state.load_state_dict(ckpt)
             self.start_iteration = int(ckpt["iteration"])
         rows: list[Any] = [None] * len(members.seeds)  # None: a new run
-        elapsed = 0.0
         if resume is not None:
             rows = [[] for _ in members.seeds] if ckpt is None else ckpt["rows"]
-            elapsed = 0.0 if ckpt is None else float(ckpt["elapsed"])
+        elapsed = 0.0 if ckpt is None else float(ckpt["elapsed"])
         pop = members.population
         first = rows[0] if not pop else None if resume is None else []
         self.root = RunWriter(
@@ -435,9 +432,7 @@ def finish_run(
         for plot in mine:
             plot(writer.dir)
         written.append(writer.finish(summary))
-    if not run.members.population:
-        return written[0]
-    return _population_summary(run, written)
+    return _population_summary(run, written) if run.members.population else written[0]
 
 
 def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, Any]:
@@ -450,7 +445,7 @@ def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, 
     print(summarize(runs, results, root, stem="population"))
     metric = METRICS[experiment][0]
     values = [float(s[metric]) for s in summaries]
-    out: dict[str, Any] = run.root.finish(
+    return run.root.finish(
         {
             "experiment": experiment,
             "seeds": seeds,
@@ -463,7 +458,6 @@ def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, 
             "plot": str(root / "population.png"),
         }
     )
-    return out
 
 
 MAX_COUNT = 10**9

@@ -232,20 +232,16 @@ def check_options(
     import math
 
     check_types(cfg)
-    bad = option_error
     for name in counts:
         value = getattr(cfg, name)
         if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
-            raise bad(name, value, "an integer >= 1")
-    for name, low, strict in [(n, 0.0, True) for n in positive] + [
-        (n, 0.0, False) for n in nonnegative
-    ]:
+            raise option_error(name, value, "an integer >= 1")
+    for name, strict in [(n, True) for n in positive] + [(n, False) for n in nonnegative]:
         value = getattr(cfg, name)
-        if value is None:
-            continue
-        ok = math.isfinite(float(value)) and (value > low if strict else value >= low)
-        if not ok:
-            raise bad(name, value, "finite and > 0" if strict else "finite and >= 0")
+        if value is not None and not (
+            math.isfinite(float(value)) and (value > 0.0 if strict else value >= 0.0)
+        ):
+            raise option_error(name, value, "finite and > 0" if strict else "finite and >= 0")
 
 
 def check_variance_floor(cfg: Any) -> None:

@@ -275,7 +275,8 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
     algo = _make_algorithm(cfg, params, seeds).to(cfg.device)
     policy, dev = algo.policy, algo.device
     collector = _make_collector(cfg, algo, params, iterations, seeds)
-    label = _label(cfg)
+    n_opt = cfg.n_options if cfg.gating != "flat" else 1
+    label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
     state = RunState(algo, env=BatchedTaskState(collector, carry=not cfg.reset_each_iteration))
     eval_seeds = [stream_seed(s, "eval") for s in seeds]
 
@@ -300,15 +301,11 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
             for m in range(len(seeds))
         ]
 
+    update = infinite_horizon_update(algo, rows, mirror_decisions if cfg.mirror_samples else None)
     session = collector_loop(
         collector,
         lambda: Run("pendulum", cfg, state, resume),
-        _scheduled(
-            cfg,
-            algo,
-            iterations,
-            infinite_horizon_update(algo, rows, mirror_decisions if cfg.mirror_samples else None),
-        ),
+        _scheduled(cfg, algo, iterations, update),
         iterations=iterations,
         episodes_per_iteration=B,
         label=label,
@@ -341,11 +338,6 @@ def _scheduled(
         return step(batch)
 
     return scheduled
-
-
-def _label(cfg: PendulumConfig) -> str:
-    n_opt = cfg.n_options if cfg.gating != "flat" else 1
-    return f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
 
 
 def _summary(

@@ -31,7 +31,6 @@ __all__ = [
 
 LoggerName = Literal["csv", "tensorboard", "wandb"]
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb")
-_EXTRA_PACKAGE = {"tensorboard": "tensorboard", "wandb": "wandb"}
 
 
 def default_run_dir(experiment: str, root: str | Path = "runs") -> Path:
@@ -177,8 +176,7 @@ class RunWriter:
         if not self.rows:
             path.unlink(missing_ok=True)
             return
-        self._fields = list(self.rows[0])
-        fields = self._fields
+        self._fields = fields = list(self.rows[0])
 
         def write(p: Path) -> None:
             with p.open("w", newline="") as f:
@@ -247,8 +245,7 @@ class RunWriter:
 
     def finish(self, summary: Mapping[str, Any]) -> dict[str, Any]:
         """Write ``summary.json`` (adds ``wall_seconds``) and return what it holds."""
-        out = dict(summary)
-        out["wall_seconds"] = round(self.elapsed(), 3)
+        out = {**summary, "wall_seconds": round(self.elapsed(), 3)}
         self.write_json("summary.json", out)
         self.release()
         written: dict[str, Any] = jsonable(out)  # what summary.json holds (NaN -> None)
@@ -278,12 +275,11 @@ def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
         raise ValueError(f"logger must be one of {', '.join(LOGGERS)}, got {kind!r}")
     if kind == "csv":
         return None
-    package = _EXTRA_PACKAGE[kind]
     import importlib.util
 
-    if importlib.util.find_spec(package) is None:
+    if importlib.util.find_spec(kind) is None:  # the package is named as the logger
         raise ImportError(
-            f"--logger {kind} needs the {package} package: pip install '{package}' "
+            f"--logger {kind} needs the {kind} package: pip install '{kind}' "
             f"(or the project's '{kind}' extra: pip install -e '.[{kind}]')"
         )
     from torchrl.record.loggers import get_logger

@@ -171,10 +171,9 @@ def _check_same_run(root: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any
             f"{root / 'config.json'} of a {saved.get('experiment')!r} run"
         )
     theirs = ckpt.get("config")
-    diff = changed_options(
+    if diff := changed_options(
         theirs if isinstance(theirs, dict) else {}, saved, ("checkpoint.pt", "config.json")
-    )
-    if diff:
+    ):
         raise ValueError(
             f"{root / 'checkpoint.pt'} was written by a run with other options than "
             f"{root / 'config.json'} holds: " + "; ".join(diff)
@@ -184,10 +183,9 @@ def _check_same_run(root: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any
 def _check_member(run_dir: Path, root: Path, saved: Mapping[str, Any]) -> None:
     """A member's config.json is its population's with its own seed."""
     population = {k: v for k, v in read_config(root).items() if k not in ("seed", "seeds")}
-    diff = changed_options(
+    if diff := changed_options(
         population, {k: v for k, v in saved.items() if k != "seed"}, ("population", "member")
-    )
-    if diff:
+    ):
         raise ValueError(
             f"{run_dir / 'config.json'} does not match its population's {root / 'config.json'}: "
             + "; ".join(diff)

@@ -219,8 +219,7 @@ def run_one(run: SweepRun) -> dict[str, Any]:
             f"sweep run directory {d} holds files but no config.json (a run stopped before it "
             "started, or something else was written there); delete it and run the sweep again"
         )
-    summary: dict[str, Any] = run_fn(cfg)
-    return summary
+    return run_fn(cfg)
 
 
 class DamagedSummary(ValueError):
@@ -301,6 +300,7 @@ class SweepFailed(Exception):
         )
 
 
+Done = Callable[[SweepRun, dict[str, Any]], None]
 Failed = Callable[[SweepRun, BaseException], None]
 
 
@@ -311,12 +311,7 @@ def _one_thread(run: SweepRun) -> dict[str, Any]:
     return run_one(run)
 
 
-def _local(
-    runs: Sequence[SweepRun],
-    workers: int,
-    done: Callable[[SweepRun, dict[str, Any]], None],
-    failed: Failed,
-) -> None:
+def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
     if workers == 1:  # one thread as in the worker processes: the same sums, the same results
         for run in runs:
             try:
@@ -392,15 +387,9 @@ def _stop_workers(procs: Sequence[Any]) -> None:
 
 
 def _ray(
-    runs: Sequence[SweepRun],
-    workers: int,
-    address: str | None,
-    done: Callable[[SweepRun, dict[str, Any]], None],
-    failed: Failed,
+    runs: Sequence[SweepRun], workers: int, address: str | None, done: Done, failed: Failed
 ) -> None:
     ray = import_ray()
-    if address is not None:
-        check_ray_address(address)
     owns = not ray.is_initialized()
     # hockey needs reproducible MKL in every process (experiments/workers.py); the rest one thread
     hockey = runs[0].experiment.startswith("hockey")
@@ -631,13 +620,12 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
         table = summarize(ended, results, out) if ended else ""
     finally:
         lock.release()
+    print(table)
     if failure is not None:
-        print(table)
         raise ValueError(
             f"{failure}. The table in {out / 'sweep.md'} holds the runs that ended; run the "
             "sweep again once the failed runs are fixed (the others are reused)"
         )
-    print(table)
     return {
         "experiment": cfg.experiment,
         "runs": len(runs),

@@ -46,8 +46,6 @@ __all__ = [
 
 Backend = Literal["local", "ray"]
 _TAG = 0x686F636B  # separates these streams from any other use of the run's seed
-
-
 MKL_MODE = "COMPATIBLE"
 
 
@@ -87,9 +85,7 @@ def reproducible_mkl(warn: bool = True) -> bool:
         mode = _mkl_mode()
     if mode is None or user_mode != MKL_MODE:
         return False
-    if mode == 1:
-        if not warn:
-            return False
+    if mode == 1 and warn:
         warnings.warn(
             "MKL started before MKL_CBWR=COMPATIBLE was set (arithmetic ran before the run "
             "began): episodes played in this process can differ in the last bits from those "
@@ -97,8 +93,7 @@ def reproducible_mkl(warn: bool = True) -> bool:
             RuntimeWarning,
             stacklevel=2,
         )
-        return False
-    return True
+    return mode != 1
 
 
 def episode_seeds(seed: int, episode: int) -> tuple[int, int]:
@@ -107,9 +102,7 @@ def episode_seeds(seed: int, episode: int) -> tuple[int, int]:
     if episode < 0:
         raise ValueError(f"episode must be >= 0, got {episode}")
     words = np.random.SeedSequence([int(seed) + 2**62, int(episode), _TAG]).generate_state(3)
-    env_seed = int(words[0])
-    policy_seed = (int(words[1]) << 31) ^ int(words[2])
-    return env_seed, policy_seed
+    return int(words[0]), (int(words[1]) << 31) ^ int(words[2])
 
 
 def _actor_net(actor: Any) -> Any:
@@ -167,19 +160,6 @@ def play_episodes(
 _ENV: dict[str, Any] = {}
 
 
-def _worker_env(make_env: Callable[[], Any], key: str) -> Any:
-    """The environment of run ``key`` in this worker process (built once; another's closed)."""
-    if key not in _ENV:
-        for old in _ENV.values():
-            try:
-                old.close()
-            except Exception:  # pragma: no cover - best effort
-                pass
-        _ENV.clear()
-        _ENV[key] = make_env()
-    return _ENV[key]
-
-
 def _play_chunk(
     make_env: Callable[[], Any],
     key: str,
@@ -188,13 +168,21 @@ def _play_chunk(
     episodes: Sequence[int],
     steps: int,
 ) -> TensorDictBase:
-    return play_episodes(_worker_env(make_env, key), actor, seed, episodes, steps)
+    """Play ``episodes`` on the environment of run ``key`` in this worker process (built once;
+    another run's closed)."""
+    if key not in _ENV:
+        for old in _ENV.values():
+            with contextlib.suppress(Exception):  # best effort
+                old.close()
+        _ENV.clear()
+        _ENV[key] = make_env()
+    return play_episodes(_ENV[key], actor, seed, episodes, steps)
 
 
 def split_episodes(episodes: Sequence[int], parts: int) -> list[list[int]]:
     """Contiguous, nearly equal chunks (no empty ones) of ``episodes`` for ``parts`` workers."""
-    eps = [int(e) for e in episodes]
-    return [c.tolist() for c in np.array_split(np.asarray(eps, dtype=np.int64), parts) if c.size]
+    eps = np.asarray([int(e) for e in episodes], dtype=np.int64)
+    return [c.tolist() for c in np.array_split(eps, parts) if c.size]
 
 
 # ---- pools ------------------------------------------------------------------------------------
@@ -241,19 +229,16 @@ class LocalProcessPool:
         self._executor: ProcessPoolExecutor | None = None
         self.restarts = 0
 
-    def _pool(self) -> ProcessPoolExecutor:
-        if self._executor is None:
-            self._executor = ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn")
-            )
-        return self._executor
-
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
         from hireps_torch.rollout import workers_ignore_sigint
 
         chunks = split_episodes(episodes, self.workers)
         for attempt in range(self.max_retries + 1):
-            pool = self._pool()
+            if self._executor is None:
+                self._executor = ProcessPoolExecutor(
+                    self.workers, mp_context=multiprocessing.get_context("spawn")
+                )
+            pool = self._executor
             # workers spawn during submit; one starts MKL while it imports torch, before any
             # initializer could run: it gets the reproducible mode from its environment
             with mkl_environment(), workers_ignore_sigint():
@@ -264,7 +249,7 @@ class LocalProcessPool:
             try:
                 return torch.cat([f.result() for f in futures])
             except BrokenProcessPool:
-                self._shutdown()
+                self.close()
                 self.restarts += 1
                 if attempt == self.max_retries:
                     raise RuntimeError(
@@ -273,13 +258,10 @@ class LocalProcessPool:
                     ) from None
         raise AssertionError("unreachable")  # pragma: no cover
 
-    def _shutdown(self) -> None:
+    def close(self) -> None:
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
             self._executor = None
-
-    def close(self) -> None:
-        self._shutdown()
 
 
 def import_ray() -> Any:
@@ -417,13 +399,12 @@ class RayPool:
         self._task = ray.remote(num_cpus=1, max_retries=max_retries)(_play_chunk)
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
-        ray = self._ray
-        actor_ref = ray.put(actor)
+        actor_ref = self._ray.put(actor)
         refs = [
             self._task.remote(self.make_env, self.key, actor_ref, seed, chunk, steps)
             for chunk in split_episodes(episodes, self.workers)
         ]
-        return torch.cat(ray.get(refs))
+        return torch.cat(self._ray.get(refs))
 
     def close(self) -> None:
         if self.owns_ray and self._ray.is_initialized():
@@ -445,9 +426,7 @@ def make_pool(
         raise ValueError(f"--ray-address {address!r} needs --backend ray (got {backend!r})")
     if backend == "ray":
         return RayPool(make_env, workers, address)
-    if workers == 1:
-        return InProcessPool(make_env)
-    return LocalProcessPool(make_env, workers)
+    return InProcessPool(make_env) if workers == 1 else LocalProcessPool(make_env, workers)
 
 
 class EpisodeCollector:

@@ -177,10 +177,8 @@ class DMP(nn.Module):
         gram = gram + ridge * float(gram.diagonal().mean()) * eye
         C = self._end_constraint()
         C = C / C.norm(dim=1, keepdim=True)  # row scaling only improves the KKT conditioning
-        kkt = torch.zeros(self.n_basis + 2, self.n_basis + 2, dtype=torch.float64)
-        kkt[: self.n_basis, : self.n_basis] = gram
-        kkt[: self.n_basis, self.n_basis :] = C.T
-        kkt[self.n_basis :, : self.n_basis] = C
+        corner = torch.zeros(2, 2, dtype=torch.float64)
+        kkt = torch.cat([torch.cat([gram, C.T], 1), torch.cat([C, corner], 1)])
         rhs = torch.cat([phi.T @ f_target, torch.zeros(2, self.n_joints, dtype=torch.float64)])
         sol = torch.linalg.solve(kkt, rhs)
 

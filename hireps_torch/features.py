@@ -86,8 +86,7 @@ class QuadraticFeatures(FeatureMap):
 
     def __init__(self, in_features: int, scale: Tensor | None = None) -> None:
         super().__init__()
-        in_features = check_count("in_features", in_features, 0)
-        self.in_features = in_features
+        self.in_features = in_features = check_count("in_features", in_features, 0)
         self.out_features = in_features + in_features * (in_features + 1) // 2
         iu = torch.triu_indices(in_features, in_features)
         self.register_buffer("_rows", iu[0], persistent=False)

@@ -52,14 +52,9 @@ class PolicyActor(nn.Module):
         lead = observation.shape[:-1]
         members = self.policy.batch_shape
         s = observation.reshape(*members, -1, observation.shape[-1]).to(torch.float64)
-        if self.deterministic:
-            a, o = self.policy.mean_action(s)
-        else:
-            a, o = self.policy.sample(s, self.generator)
-        return (
-            a.to(observation.dtype).reshape(*lead, a.shape[-1]),
-            o.reshape(lead),
-        )
+        policy = self.policy
+        a, o = policy.mean_action(s) if self.deterministic else policy.sample(s, self.generator)
+        return a.to(observation.dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
 
 
 def _check_policies(policies: object) -> None:
@@ -116,11 +111,8 @@ class TimeIndexedActor(nn.Module):
         o = torch.zeros(s.shape[0], dtype=torch.long, device=s.device)
         for step in torch.unique(k).tolist():
             rows = k == step
-            pol = self.policies[step]
-            if self.deterministic:
-                out = pol.mean_action(s[rows])
-            else:
-                out = pol.sample(s[rows], self.generator)
+            pol, x = self.policies[step], s[rows]
+            out = pol.mean_action(x) if self.deterministic else pol.sample(x, self.generator)
             a[rows], o[rows] = out[0], out[1]
         return a.to(observation.dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
 
@@ -167,18 +159,16 @@ def make_collector(
             f"create_env_fn must be a callable that builds the environment, got "
             f"{type(create_env_fn).__name__}"
         )
-    if seed is not None:
-        seed = check_seed("seed", seed)
+    seed = None if seed is None else check_seed("seed", seed)
+    common: dict[str, Any] = {
+        "frames_per_batch": frames_per_batch,
+        "total_frames": total_frames,
+        "reset_at_each_iter": reset_at_each_iter,
+        "auto_register_policy_transforms": False,
+    }
     collector: Collector | MultiSyncCollector
     if num_workers == 1:
-        collector = Collector(
-            create_env_fn,
-            policy,
-            frames_per_batch=frames_per_batch,
-            total_frames=total_frames,
-            reset_at_each_iter=reset_at_each_iter,
-            auto_register_policy_transforms=False,
-        )
+        collector = Collector(create_env_fn, policy, **common)
     else:
         if frames_per_batch % num_workers:
             raise ValueError(
@@ -187,13 +177,7 @@ def make_collector(
             )
         with workers_ignore_sigint():
             collector = MultiSyncCollector(
-                [create_env_fn] * num_workers,
-                policy,
-                frames_per_batch=frames_per_batch,
-                total_frames=total_frames,
-                cat_results="stack",
-                reset_at_each_iter=reset_at_each_iter,
-                auto_register_policy_transforms=False,
+                [create_env_fn] * num_workers, policy, cat_results="stack", **common
             )
     if seed is not None:
         collector.set_seed(seed)
@@ -224,10 +208,8 @@ def shutdown_collector(collector: Any) -> None:
         for scheme in list(schemes.values()):
             stop = getattr(scheme, "shutdown", None)
             if callable(stop):
-                try:
+                with contextlib.suppress(Exception):  # best effort at teardown
                     stop()
-                except Exception:  # pragma: no cover - best effort at teardown
-                    pass
         gc.collect()
 
 
@@ -247,9 +229,8 @@ def episodes(
     done = flat.get(("next", "done")).reshape(-1, K)
     if not bool(done[:, -1].all()) or bool(done[:, :-1].any()):
         raise ValueError(f"the batch is not made of whole {K}-step episodes (done flags)")
-    s = flat.get(state_key).to(torch.float64)
     N = T // K
-    states = s.reshape(N, K, -1)
+    states = flat.get(state_key).to(torch.float64).reshape(N, K, -1)
     actions = flat.get("action").to(torch.float64).reshape(N, K, -1)
     rewards = flat.get(("next", "reward")).to(torch.float64).reshape(N, K)
     final = flat.get(("next", state_key)).to(torch.float64).reshape(N, K, -1)[:, -1]

@@ -42,10 +42,7 @@ def option_bound(
 
     context ([S,] N, C), theta ([S,] N, D); kappa_rel: fraction of the mean entropy, or None.
     """
-    if policy.n_options < 2:
-        return OptionBound(None, context.new_zeros(policy.batch_shape), None)
-    several = policy.active.sum(-1) >= 2
-    if not bool(several.any()):
+    if policy.n_options < 2 or not bool((several := policy.active.sum(-1) >= 2).any()):
         return OptionBound(None, context.new_zeros(policy.batch_shape), None)
     lr = policy.log_responsibilities(context, theta)
     p = lr.exp()

@@ -136,8 +136,7 @@ def population_seeds(seed: object, population: int | None) -> list[int] | None:
     """The members' distinct seeds (default 0 .. S-1), or None without a population."""
     if population is not None:
         population = check_count("population", population, 1)
-    many = isinstance(seed, Sequence) and not isinstance(seed, str | bytes)
-    if not many:
+    if not isinstance(seed, Sequence) or isinstance(seed, str | bytes):
         if population is None:
             return None  # one seed (checked where it is used)
         if seed is not None:
@@ -146,7 +145,6 @@ def population_seeds(seed: object, population: int | None) -> list[int] | None:
                 f"{list(range(population))}), got the single seed {seed!r}"
             )
         return list(range(population))
-    assert isinstance(seed, Sequence)
     seeds = [check_seed(f"seed[{s}]", x, headroom=1) for s, x in enumerate(seed)]
     if not seeds:
         raise ValueError("a population needs at least one seed, got an empty sequence")
@@ -340,9 +338,8 @@ class HiREPSBase:
     @property
     def device(self) -> torch.device:
         """Where the policies, the update's samples and its dual live."""
-        policy: HierarchicalPolicy = getattr(self, "policies")[0]  # noqa: B009
-        bias: Tensor = policy.sub_policies[0].bias
-        return bias.device
+        policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
+        return policies[0].sub_policies[0].bias.device
 
     def to(self, device: torch.device | str) -> Self:
         """Move policies, feature maps and learned values to ``device``; return ``self``. The

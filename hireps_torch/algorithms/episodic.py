@@ -147,11 +147,7 @@ class EpisodicHiREPS(HiREPSBase):
             seed, population, [init_mean], n_options, context_dim, param_dim, **policy_kwargs
         )
         return cls(
-            policy[0],
-            epsilon=epsilon,
-            kappa_rel=kappa_rel,
-            context_dim=context_dim,
-            seed=sampling,
+            policy[0], epsilon=epsilon, kappa_rel=kappa_rel, context_dim=context_dim, seed=sampling
         )
 
     # ---- input handling ---------------------------------------------------------------------
@@ -298,16 +294,9 @@ class EpisodicHiREPS(HiREPSBase):
 
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from contexts (N, 1, C), parameters (N, 1, D) and returns (N, 1)."""
-        name = type(self).__name__
-        D = self.policy.action_dim
+        name, C, D = type(self).__name__, self.context_dim, self.policy.action_dim
         check_experience(
-            experience,
-            1,
-            self.context_dim,
-            D,
-            transitions=False,
-            algorithm=name,
-            population=self.population,
+            experience, 1, C, D, transitions=False, algorithm=name, population=self.population
         )
         e = experience
         return self.tell(e.states[..., 0, :], e.actions[..., 0, :], e.rewards[..., 0])

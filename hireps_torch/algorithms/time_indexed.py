@@ -57,20 +57,10 @@ __all__ = ["TimeIndexedHiREPS"]
 
 _SETTINGS = checked_settings(300)  # the dual's LBFGS settings (the wrapper's defaults)
 
-# diagnostics that tell() reports as one entry per step
-_PER_STEP = (
-    "eta",
-    "xi",
-    "kappa",
-    "kl",
-    "cross_entropy",
-    "effective_sample_size",
-    "option_entropy",
-    "policy_entropy",
-    "n_active_options",
-    "pruned",
-    "refitted",
-)
+_PER_STEP = (  # diagnostics that tell() reports as one entry per step
+    "eta xi kappa kl cross_entropy effective_sample_size option_entropy policy_entropy "
+    "n_active_options pruned refitted"
+).split()
 
 
 class TimeIndexedHiREPS(HiREPSBase):
@@ -212,9 +202,6 @@ class TimeIndexedHiREPS(HiREPSBase):
         return len(self.policies)
 
     # ---- input handling ---------------------------------------------------------------------
-    def _step(self, step: int) -> int:
-        return check_step(step, self.n_steps)
-
     def _contexts(self, contexts: Tensor) -> Tensor:
         """States ([S,] N, C) at one step, N >= 1, as checked float64."""
         C, lead = self.value_features.in_features, self.policies[0].batch_shape
@@ -267,19 +254,19 @@ class TimeIndexedHiREPS(HiREPSBase):
         Returns:
             theta: (N, D) float64.
         """
-        k = self._step(step)
+        k = check_step(step, self.n_steps)
         theta, _ = self.policies[k].sample(self._contexts(contexts), self.generator)
         return theta
 
     @torch.no_grad()
     def act(self, step: int, contexts: Tensor) -> Tensor:
         """Noise-free policy of step ``step`` (mean of the most probable option): (N, D)."""
-        k = self._step(step)
+        k = check_step(step, self.n_steps)
         return self.policies[k].mean_action(self._contexts(contexts))[0]
 
     def value(self, step: int, contexts: Tensor) -> Tensor:
         """V_k(s) = v_k^T phi(s) from the last update, up to a constant: (N, C) -> (N,)."""
-        k = self._step(step)
+        k = check_step(step, self.n_steps)
         phi = self.value_features(self._contexts(contexts))
         return (phi @ self.value_weights[..., k, :, None])[..., 0]
 
@@ -359,15 +346,9 @@ class TimeIndexedHiREPS(HiREPSBase):
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from states (N, K, C), parameters (N, K, D) and rewards (N, K)."""
         C, D = self.value_features.in_features, self.policies[0].action_dim
-        name = type(self).__name__
+        K, name = self.n_steps, type(self).__name__
         check_experience(
-            experience,
-            self.n_steps,
-            C,
-            D,
-            transitions=False,
-            algorithm=name,
-            population=self.population,
+            experience, K, C, D, transitions=False, algorithm=name, population=self.population
         )
         return self.tell(experience.states, experience.actions, experience.rewards)
 

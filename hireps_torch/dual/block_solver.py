@@ -54,6 +54,7 @@ _DAMPINGS = 16  # tries per Newton step: halvings, then a damping growing tenfol
 _LAM_MIN = 1e-4  # the damping a try starts from once halving the step did not help
 _ARMIJO = 1e-4  # sufficient decrease of a Newton step
 _FLAT = 1e-13  # relative change of the dual value within round-off
+_KKT_LOOSE = 1e-3  # the merit at which the entropy bound's active set is first decided
 _STALLS = 2  # steps in a row at the gradient's round-off floor that stop Newton (descend)
 _MAX_LOG_STEP = 1.5  # largest change of a log eta or log xi in one Newton step
 _FLAT_FLOOR = 1e-9  # round-off allowed below the weak-duality bound (BlockSolver.floor)
@@ -301,20 +302,27 @@ class BlockSolver:
         block changes."""
         prob, K = self.prob, self.prob.K
         prob.xi_on = torch.where(mask[:, None], False, prob.xi_on)
-        self.phase(mask)
-        for _ in range(2 * K + 2):
+        self.unstick(mask)
+        self.descend(mask, _KKT_LOOSE)  # near enough to decide the active set
+        fresh = mask  # solved loosely: a phase finishes those whose active set stands
+        for _ in range(2 * K + 3):
             ce = block_cross_entropy(self.end.weights, prob.lr)
             violated = mask[:, None] & self.bounded & (ce > prob.kappa + 1e-6)
             _, eta, _, v = prob.unpack(self.x)
             P0, _, _ = prob.weights_at(eta, torch.zeros_like(eta), v)
             slack = mask[:, None] & prob.xi_on & (block_cross_entropy(P0, prob.lr) <= prob.kappa)
             restart = violated & ~slack
-            if not bool((restart | slack).any()):
+            changed = (restart | slack).any(-1)
+            settled, fresh = fresh & ~changed, torch.zeros_like(mask)
+            if bool(settled.any()):
+                self.phase(settled)  # then checked again
+            elif not bool(changed.any()):
                 break
-            prob.xi_on = (prob.xi_on | restart) & ~slack
-            log_xi = prob.log_xi_meeting_bound(self.x)
-            self.x[:, K : 2 * K] = torch.where(restart, log_xi, self.x[:, K : 2 * K])
-            self.phase((restart | slack).any(-1))
+            if bool(changed.any()):
+                prob.xi_on = (prob.xi_on | restart) & ~slack
+                log_xi = prob.log_xi_meeting_bound(self.x)
+                self.x[:, K : 2 * K] = torch.where(restart, log_xi, self.x[:, K : 2 * K])
+                self.phase(changed)
 
     def unstick(self, mask: Tensor) -> None:
         """Lift each eta of ``mask`` held at its floor whose KL bound is broken there to where the

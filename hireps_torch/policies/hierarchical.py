@@ -33,7 +33,6 @@ from hireps_torch.policies._population import (
 from hireps_torch.policies.gating import Gating, SoftmaxGating
 from hireps_torch.policies.linear_gaussian import (
     LinearGaussian,
-    covariance_pseudo_samples,
     initial_std,
     power_of_two_scaled,
     pseudo_samples,
@@ -134,7 +133,7 @@ class HierarchicalPolicy(PolicyModule):
         if not (math.isfinite(spread) and spread >= 0):
             raise ValueError(f"spread must be finite and >= 0, got {spread}")
         variance_floor(min_variance, action_dim)  # checked before the generator draws
-        covariance_pseudo_samples(covariance_prior)
+        pseudo_samples("covariance_prior", covariance_prior)
         pseudo_samples("mean_prior", mean_prior)
         opts = []
         for o in range(n_options):
@@ -238,10 +237,6 @@ class HierarchicalPolicy(PolicyModule):
         return self.gating_features(c), self.policy_features(c)
 
     # ---- distribution -----------------------------------------------------------------------
-    def gating_log_probs(self, context: Tensor) -> Tensor:
-        """context: ([S,] N, C) -> log pi(o | s): ([S,] N, O)."""
-        return self.gating.log_probs(self._features(context)[0])
-
     def log_joint(self, context: Tensor, theta: Tensor) -> Tensor:
         """context: ([S,] N, C), theta: ([S,] N, D) -> log pi(o | s) + log pi(theta | s, o):
         ([S,] N, O)."""

@@ -31,7 +31,6 @@ from hireps_torch.policies._population import (
 __all__ = [
     "FLOOR_RANGE",
     "LinearGaussian",
-    "covariance_pseudo_samples",
     "initial_std",
     "map_linear_regression",
     "pseudo_samples",
@@ -127,11 +126,6 @@ def pseudo_samples(name: str, value: float) -> float:
     if not (math.isfinite(prior) and prior >= 0):
         raise ValueError(f"{name} must be finite and >= 0, got {value}")
     return prior
-
-
-def covariance_pseudo_samples(covariance_prior: float) -> float:
-    """:func:`pseudo_samples` of ``covariance_prior``."""
-    return pseudo_samples("covariance_prior", covariance_prior)
 
 
 def _matvec(A: Tensor, x: Tensor) -> Tensor:
@@ -244,7 +238,7 @@ class LinearGaussian(PolicyModule):
         in_features = check_count("in_features", in_features, 0)
         check_float_dtype(dtype)
         floor = variance_floor(min_variance, action_dim)
-        prior = covariance_pseudo_samples(covariance_prior)
+        self.covariance_prior = pseudo_samples("covariance_prior", covariance_prior)
         self.mean_prior = pseudo_samples("mean_prior", mean_prior)
         std = initial_std(init_std, action_dim).to(dtype)
         mean = (
@@ -255,7 +249,6 @@ class LinearGaussian(PolicyModule):
         if mean.shape != (action_dim,):
             raise ValueError(f"init_mean must have shape ({action_dim},), got {tuple(mean.shape)}")
         check_finite("init_mean", mean, "")
-        self.covariance_prior = prior
         self.in_features = in_features
         self.action_dim = action_dim
         self.min_variance: Tensor
@@ -413,11 +406,6 @@ class LinearGaussian(PolicyModule):
         """
         self.set_parameters(self.fit_parameters(inputs, targets, weights, ridge))
 
-    def _floor_scale(self, cov: Tensor) -> Tensor:
-        """sqrt(m_i m_j) of the floor m: (D, D)."""
-        root = self.min_variance.to(cov.device).sqrt()
-        return torch.outer(root, root)
-
     def _unfloored_cholesky(self, cov: Tensor) -> Tensor | None:
         """Cholesky factor of cov ([S,] D, D) if finite and cov - diag(m) is positive definite
         (the floor does not bind); None otherwise."""
@@ -430,7 +418,8 @@ class LinearGaussian(PolicyModule):
         """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""
         cov = cov.to(torch.float64)
         cov = 0.5 * (cov + cov.mT)
-        scale = self._floor_scale(cov)
+        root = self.min_variance.to(cov.device).sqrt()
+        scale = torch.outer(root, root)  # sqrt(m_i m_j) of the floor m
         scaled = cov / scale
         if not all_finite(scaled):
             raise ValueError(
@@ -444,9 +433,8 @@ class LinearGaussian(PolicyModule):
         cov = torch.where(low[..., None, None], floored, cov)
         factor = torch.linalg.cholesky_ex(cov)
         chol: Tensor = factor.L
-        info = factor.info
-        if bool((info != 0).any()):
-            who = "" if cov.dim() == 2 else f" (member {int((info != 0).nonzero()[0, 0])})"
+        if bool((factor.info != 0).any()):
+            who = "" if cov.dim() == 2 else f" (member {int((factor.info != 0).nonzero()[0, 0])})"
             raise ValueError(f"the floored covariance is not positive definite{who}")
         return chol.to(self.chol.dtype)
 

@@ -212,24 +212,27 @@ class MemberTasks(BatchedTask):
             self.batch, self.state_dim, dtype=torch.float64, device=self.device
         )
 
-    def _member(self, x: Tensor, s: int) -> Tensor:
-        """Member s's rows of an (S B, ...) tensor."""
-        return x[s * self.per_member : (s + 1) * self.per_member]
-
     def seed(self, seed: int | None) -> None:
         if self.members > 1:
             raise ValueError("the members' tasks are seeded one by one (each its own seed)")
         self.tasks[0].seed(seed)
 
     def start_states(self, mask: Tensor) -> Tensor:
-        parts = []
-        for s, task in enumerate(self.tasks):
-            m = self._member(mask, s)
-            if bool(m.any()):
-                task.t = self._member(self.t, s)  # the systems that took a decision
+        hit = mask.view(self.members, -1).any(1).tolist()
+        B, parts = self.per_member, []
+        for task, m, t, state, h in zip(
+            self.tasks,
+            torch.split(mask, B),
+            torch.split(self.t, B),
+            torch.split(self.state, B),
+            hit,
+            strict=True,
+        ):
+            if h:
+                task.t = t  # the systems that took a decision
                 parts.append(task.start_states(m).to(self.device, torch.float64))
             else:
-                parts.append(self._member(self.state, s))
+                parts.append(state)
         return torch.cat(parts)
 
     def transition(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -237,9 +240,12 @@ class MemberTasks(BatchedTask):
 
     def truncated(self, terminated: Tensor) -> Tensor:
         parts = []
-        for s, task in enumerate(self.tasks):
-            task.t = self._member(self.t, s)
-            parts.append(task.truncated(self._member(terminated, s)))
+        B = self.per_member
+        for task, t, ended in zip(
+            self.tasks, torch.split(self.t, B), torch.split(terminated, B), strict=True
+        ):
+            task.t = t
+            parts.append(task.truncated(ended))
         return torch.cat(parts)
 
 

@@ -6,10 +6,11 @@
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
    (each unique configuration runs once per seed and is shared between figures). By default
    each configuration's seeds run as one population (``train.py pendulum --seeds 0-4``: one
-   process, one batched simulation; :class:`hireps_torch.experiments.loop.Members`), one
-   configuration after the other. With ``--separate``, as one sweep of separate runs
-   (:mod:`hireps_torch.experiments.sweep`): ``--workers`` runs at a time, 2 by default,
-   one per core of the 2-core reference machine, in local processes or (``--backend ray``)
+   process, one batched simulation; :class:`hireps_torch.experiments.loop.Members`),
+   ``--workers`` populations at a time (2 by default, one process and one thread each, one
+   per core of the 2-core reference machine; the slow configurations first). With
+   ``--separate``, as one sweep of separate runs (:mod:`hireps_torch.experiments.sweep`):
+   ``--workers`` runs at a time, in local processes or (``--backend ray``)
    as Ray tasks, on this machine or a cluster (``--ray-address``). ``--resume`` of an
    interrupted ablation reuses what finished:
 
@@ -152,29 +153,50 @@ def _first(summary: dict[str, Any]) -> str:
 SLOWNESS = {"d1": 7.0, "d2": 2.7, "learned-10": 1.4}
 
 
-def run_populations(runs: list[SweepRun], report: Any) -> dict[tuple[str, int], dict[str, Any]]:
-    """Each configuration's seeds as one population (``train.py pendulum --seeds``), one
-    configuration after the other in this process; a configuration whose population finished
-    before (its ``population.json``) is read back, after each member's ``config.json`` is
-    checked against the options asked for (a ValueError naming those that differ, e.g. a
-    default changed since). Returns every run's summary."""
-    import json
-
+def _population(options: dict[str, Any], seeds: str, root: Path, threads: int | None) -> None:
+    """One configuration's seeds as one population (in a worker process)."""
     from hireps_torch.experiments import run_experiment
 
-    done: dict[tuple[str, int], dict[str, Any]] = {}
-    for name in dict.fromkeys(r.name for r in runs):
-        mine = [r for r in runs if r.name == name]
-        root = mine[0].run_dir.parent
+    if threads is not None:
+        torch.set_num_threads(threads)
+    run_experiment(PendulumConfig(**options, seeds=seeds, run_dir=root, progress=False))
+
+
+def run_populations(
+    runs: list[SweepRun], report: Any, workers: int, threads: int | None
+) -> dict[tuple[str, int], dict[str, Any]]:
+    """Each configuration's seeds as one population (``train.py pendulum --seeds``), ``workers``
+    populations at a time in spawned processes (in this process for 1), in the order of
+    ``runs``; a configuration whose population finished before (its ``population.json``) is read
+    back, after each member's ``config.json`` is checked against the options asked for (a
+    ValueError naming those that differ, e.g. a default changed since). Returns every run's
+    summary."""
+    import json
+    import multiprocessing
+    import shutil
+    from concurrent.futures import ProcessPoolExecutor
+
+    names = list(dict.fromkeys(r.name for r in runs))
+    mine = {name: [r for r in runs if r.name == name] for name in names}
+    todo = []
+    for name in names:
+        root = mine[name][0].run_dir.parent
         if not (root / "population.json").is_file():
             if root.exists():  # an unfinished population: run it again
-                import shutil
-
                 shutil.rmtree(root)
-            seeds = ",".join(str(r.seed) for r in mine)
-            cfg = PendulumConfig(**mine[0].options, seeds=seeds, run_dir=root, progress=False)
-            run_experiment(cfg)
-        for r in mine:
+            seeds = ",".join(str(r.seed) for r in mine[name])
+            todo.append((mine[name][0].options, seeds, root, threads))
+    if workers == 1:
+        for job in todo:
+            _population(*job)
+    elif todo:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx) as pool:
+            for future in [pool.submit(_population, *job) for job in todo]:
+                future.result()
+    done: dict[tuple[str, int], dict[str, Any]] = {}
+    for name in names:
+        for r in mine[name]:
             member = PendulumConfig(**r.options, seed=r.seed, run_dir=r.run_dir, progress=False)
             check_same_options(r, member)
             summary = json.loads((r.run_dir / "summary.json").read_text())
@@ -197,7 +219,12 @@ def main() -> None:
         help="run every seed as its own run (a sweep) instead of each configuration's seeds "
         "as one population (train.py pendulum --seeds, one process, torch's threads)",
     )
-    ap.add_argument("--workers", type=int, default=2, help="with --separate: runs at the same time")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="runs (with --separate) or populations at the same time, one process each",
+    )
     ap.add_argument("--backend", choices=["local", "ray"], default="local")
     ap.add_argument("--ray-address", default=None, help="an existing Ray cluster (--backend ray)")
     ap.add_argument(
@@ -207,10 +234,14 @@ def main() -> None:
         "--threads",
         type=int,
         default=None,
-        help="torch threads (default: 1 with --separate, torch's default for populations)",
+        help="torch threads per process (default: 1 with --separate or --workers > 1, else "
+        "torch's default)",
     )
     args = ap.parse_args()
-    threads = args.threads if args.threads is not None else (1 if args.separate else None)
+    if args.workers < 1:
+        raise SystemExit(f"--workers must be >= 1, got {args.workers}")
+    one = args.separate or args.workers > 1
+    threads = args.threads if args.threads is not None else (1 if one else None)
     if args.resume is not None:
         out = args.resume
         if threads is not None:
@@ -249,7 +280,7 @@ def main() -> None:
             on_result=report,
         )
     else:
-        done = run_populations(runs, report)
+        done = run_populations(runs, report, args.workers, threads)
     for run in runs:
         x, y = read_curve(run.run_dir)
         done[(run.name, run.seed)] = {**done[(run.name, run.seed)], "curve": y, "episodes_axis": x}

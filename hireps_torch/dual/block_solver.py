@@ -362,7 +362,7 @@ class BlockSolver:
             active &= (merit > target) & (bounded | (g >= self.floor)) & (stalls < _STALLS)
             if not bool(active.any()):
                 break
-            curvature = self._hessians(grad, M)
+            curvature = self._hessians(grad, P, M)
             taken = torch.zeros_like(active)
             t = torch.ones_like(g)
             base: Tensor | None = None  # the undamped-length step, recomputed when lam moves
@@ -414,11 +414,13 @@ class BlockSolver:
         self._set(mask, merit <= self.settings.converged_grad, g, P)
         return merit
 
-    def _hessians(self, grad: Tensor, M: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    def _hessians(
+        self, grad: Tensor, P: Tensor, M: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """(exact Hessian (S, n, n), its PSD part (S, n, n), moving coordinates (S, n)) at x for
-        gradients (S, n); with M, that curvature instead of a new one."""
+        gradients (S, n) and weights P; with M, that curvature instead of a new one."""
         K = self.prob.K
-        M = self.prob.curvature(self.x, raw=True) if M is None else M
+        M = self.prob.curvature(self.x, raw=True, weights=P) if M is None else M
         H = M.clone()
         H.diagonal(dim1=1, dim2=2)[:, : 2 * K] += grad[:, : 2 * K]
         return H, M, self._moving()

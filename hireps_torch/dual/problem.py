@@ -98,9 +98,10 @@ class DualProblem:
         lse = (m + s.log()).squeeze(-1) - self.log_n
         return (e / s).reshape(z.shape), lse
 
-    def curvature(self, x: Tensor, raw: bool = False) -> Tensor:
+    def curvature(self, x: Tensor, raw: bool = False, weights: Tensor | None = None) -> Tensor:
         """(S, n, n) PSD part of each problem's Hessian at x, as a preconditioner (identity on
-        unused and flat directions) or, ``raw``, for Newton steps.
+        unused and flat directions) or, ``raw``, for Newton steps (``weights``: P at x, if at
+        hand).
 
         In y = (eta, xi, v) block k's Hessian is (1 / eta_k) Cov_P(z), z = [-h / eta_k, log p~, D],
         h = delta + xi log p~; in log space scaled by diag(eta, xi, 1) on both sides (first-order
@@ -109,7 +110,10 @@ class DualProblem:
         S, K, N, O = self.S, self.K, self.N, self.O
         n = x.shape[-1]
         _, eta, xi, v = self.unpack(x)
-        P, _, delta = self.weights_at(eta, xi, v)
+        if weights is None:
+            P, _, delta = self.weights_at(eta, xi, v)
+        else:
+            P, delta = weights, self.advantage(v)
         free = self.eta_free(x)
         M = x.new_zeros(S, n, n)
         for k in range(K):

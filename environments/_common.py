@@ -365,6 +365,17 @@ class ScalarActionBatchEnv(EnvBase):
         self._needs_reset = False
         return self._td()
 
+    def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """TorchRL's ``maybe_reset``: the systems whose ``done`` / ``terminated`` /
+        ``truncated`` is set restart, the others keep their entries; the same tensordict as
+        :meth:`~torchrl.envs.EnvBase.maybe_reset` gives, without its generic reset machinery
+        (a population's collector resets some system on most steps)."""
+        ended = tensordict.get("done") | tensordict.get("terminated") | tensordict.get("truncated")
+        if not bool(ended.any()):
+            return tensordict
+        self.task.reset(ended)
+        return tensordict.update(self._td())
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._needs_reset:
             raise ResetNeeded("call reset() before the first step()")

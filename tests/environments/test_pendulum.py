@@ -215,3 +215,41 @@ def test_a_non_finite_state_is_named_not_propagated():
     state = torch.tensor([[0.1, math.nan]], dtype=torch.float64)
     with pytest.raises(ValueError, match="state contains non-finite"):
         pendulum_step(state, torch.zeros(1), PendulumParams())
+
+
+@pytest.mark.parametrize("env_cls", ["pendulum", "ball_on_beam"])
+def test_maybe_reset_gives_what_torchrl_s_generic_reset_gives(env_cls, monkeypatch):
+    """The batched adapters' own partial reset against EnvBase.maybe_reset: collected batches
+    (restarts and terminations included) equal entry for entry."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import EnvBase
+
+    from hireps_torch.envs._common import ScalarActionBatchEnv
+    from hireps_torch.envs.ball_on_beam import BallOnBeamBatchEnv
+    from hireps_torch.rollout import make_collector
+
+    make = {
+        "pendulum": lambda: PendulumSwingUpBatchEnv(
+            30, PendulumParams(restart_probability=0.05), 3
+        ),
+        "ball_on_beam": lambda: BallOnBeamBatchEnv(30, seed=3),
+    }[env_cls]
+
+    class Noise(torch.nn.Module):
+        def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor]:
+            return (torch.randn(obs.shape[0], 1) * 0.5,)
+
+    def collect() -> list:
+        torch.manual_seed(0)
+        actor = TensorDictModule(Noise(), in_keys=["observation"], out_keys=["action"])
+        col = make_collector(make, actor, frames_per_batch=900, total_frames=2700)
+        return [batch.clone() for batch in col]
+
+    ours = collect()
+    monkeypatch.setattr(ScalarActionBatchEnv, "maybe_reset", EnvBase.maybe_reset)
+    generic = collect()
+    assert sum(int(b["next", "done"].sum()) for b in ours) > 20  # resets did happen
+    for a, b in zip(ours, generic, strict=True):
+        assert set(a.keys(True, True)) == set(b.keys(True, True))
+        for key in a.keys(True, True):
+            assert torch.equal(a[key], b[key]), key

@@ -163,7 +163,7 @@ def _population(options: dict[str, Any], seeds: str, root: Path, threads: int | 
 
 
 def run_populations(
-    runs: list[SweepRun], report: Any, workers: int, threads: int | None
+    runs: list[SweepRun], report: Any, workers: int = 1, threads: int | None = None
 ) -> dict[tuple[str, int], dict[str, Any]]:
     """Each configuration's seeds as one population (``train.py pendulum --seeds``), ``workers``
     populations at a time in spawned processes (in this process for 1), in the order of

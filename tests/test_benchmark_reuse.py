@@ -52,3 +52,28 @@ def test_ablation_refuses_a_finished_population_with_other_options(tmp_path):
     ]
     done = module.run_populations(held, lambda r, summary: seen.append(r.seed))
     assert seen == [0, 1] and done[("learned-5", 1)]["seed"] == 1
+
+
+@pytest.mark.slow
+def test_ablation_populations_side_by_side_equal_one_after_the_other(tmp_path, monkeypatch):
+    """Two configurations' populations in two worker processes write the metrics they write one
+    after the other in this process."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # the workers import the module
+    import pendulum_ablations as module
+
+    options = {
+        "learned-2": {"n_options": 2, "episodes": 40},
+        "d10": {"steps_per_decision": 10, "episodes": 40},
+    }
+    metrics = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}"
+        runs = [
+            SweepRun("pendulum", name, 0, opts, out / name / "seed0")
+            for name, opts in options.items()
+        ]
+        seen = []
+        module.run_populations(runs, lambda r, summary, seen=seen: seen.append(r.name), workers, 1)
+        assert seen == list(options)
+        metrics[workers] = [(r.run_dir / "metrics.csv").read_text() for r in runs]
+    assert metrics[1] == metrics[2]

@@ -368,12 +368,12 @@ class ScalarActionBatchEnv(EnvBase):
     def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
         """TorchRL's ``maybe_reset``: the systems whose ``done`` / ``terminated`` /
         ``truncated`` is set restart, the others keep their entries; the same tensordict as
-        :meth:`~torchrl.envs.EnvBase.maybe_reset` gives, without its generic reset machinery
-        (a population's collector resets some system on most steps)."""
+        :meth:`~torchrl.envs.EnvBase.maybe_reset` gives, without its generic reset machinery."""
         ended = tensordict.get("done") | tensordict.get("terminated") | tensordict.get("truncated")
         if not bool(ended.any()):
             return tensordict
         self.task.reset(ended)
+        self._needs_reset = False
         return tensordict.update(self._td())
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:

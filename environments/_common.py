@@ -361,20 +361,44 @@ class ScalarActionBatchEnv(EnvBase):
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
-        self.task.reset(None if tensordict is None else tensordict.get("_reset", None))
-        self._needs_reset = False
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        self.task.reset(mask)
+        if mask is None or bool(mask.any()):  # an all-False mask restarted nothing
+            self._needs_reset = False
         return self._td()
 
     def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
         """TorchRL's ``maybe_reset``: the systems whose ``done`` / ``terminated`` /
-        ``truncated`` is set restart, the others keep their entries; the same tensordict as
-        :meth:`~torchrl.envs.EnvBase.maybe_reset` gives, without its generic reset machinery."""
-        ended = tensordict.get("done") | tensordict.get("terminated") | tensordict.get("truncated")
-        if not bool(ended.any()):
+        ``truncated`` (those present) is set restart, the other rows keep their entries; the
+        same tensordict as :meth:`~torchrl.envs.EnvBase.maybe_reset` gives, without its generic
+        reset machinery.
+
+        Raises:
+            ValueError: for a done entry that is not a bool tensor of shape (B, 1) or (B,).
+        """
+        B, ended = self.task.batch, None
+        for key in ("done", "terminated", "truncated"):
+            flag = tensordict.get(key, None)
+            if flag is None:
+                continue
+            if not isinstance(flag, Tensor) or flag.dtype != torch.bool or flag.numel() != B:
+                what = f"{flag.dtype} {tuple(flag.shape)}" if isinstance(flag, Tensor) else flag
+                raise ValueError(
+                    f"{key!r} must be a bool tensor of shape ({B}, 1), got {what}; nothing was "
+                    "reset"
+                )
+            flag = flag.reshape(B)
+            ended = flag if ended is None else ended | flag
+        if ended is None or not bool(ended.any()):
             return tensordict
         self.task.reset(ended)
         self._needs_reset = False
-        return tensordict.update(self._td())
+        for key, fresh in self._td().items():
+            old = tensordict.get(key, None)
+            if old is not None and old.shape == fresh.shape:
+                fresh = torch.where(ended.view(B, *[1] * (fresh.dim() - 1)), fresh, old)
+            tensordict.set(key, fresh)
+        return tensordict
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._needs_reset:

@@ -77,7 +77,7 @@ def entry() -> None:
     except RunFinished as done:
         print(done, file=sys.stderr)
     except KeyboardInterrupt as stop:  # RunInterrupted: the checkpoint is written
-        print(f"\ninterrupted: {stop}", file=sys.stderr)
+        print(f"\ninterrupted: {stop}" if str(stop) else "\ninterrupted", file=sys.stderr)
         raise SystemExit(130) from None
     except (ValueError, TypeError, OSError, ImportError) as exc:  # OSError: FileExistsError,
         print(f"error: {exc}", file=sys.stderr)  # a --run-dir that cannot be written

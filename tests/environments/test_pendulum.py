@@ -253,3 +253,36 @@ def test_maybe_reset_gives_what_torchrl_s_generic_reset_gives(env_cls, monkeypat
         assert set(a.keys(True, True)) == set(b.keys(True, True))
         for key in a.keys(True, True):
             assert torch.equal(a[key], b[key]), key
+
+
+def test_maybe_reset_keeps_the_rows_that_did_not_end_and_names_bad_flags():
+    """Rows not done keep whatever the tensordict holds; missing done keys are allowed (as in
+    TorchRL); a non-bool flag is refused by name and resets nothing."""
+    from tensordict import TensorDict
+
+    B = 4
+    env = PendulumSwingUpBatchEnv(B, seed=0)
+    env.reset()
+    before = env.task.state.clone()
+    d = torch.tensor([[True], [False], [False], [False]])
+    td = TensorDict({"done": d, "observation": torch.full((B, 2), 7.0)}, [B])
+    out = env.maybe_reset(td)
+    assert torch.equal(out["observation"][1:], torch.full((3, 2), 7.0))
+    assert torch.equal(out["observation"][0], env.task.state[0].to(torch.float32))
+    assert not bool(out["done"].any()) and torch.equal(env.task.state[1:], before[1:])
+    assert env.maybe_reset(TensorDict({}, [B])).is_empty()
+    state = env.task.state.clone()
+    with pytest.raises(ValueError, match="'done' must be a bool tensor"):
+        env.maybe_reset(TensorDict({"done": torch.ones(B, 1)}, [B]))
+    assert torch.equal(env.task.state, state)
+
+
+def test_an_all_false_reset_mask_does_not_count_as_the_first_reset():
+    from tensordict import TensorDict
+
+    from hireps_torch.envs._common import ResetNeeded
+
+    env = PendulumSwingUpBatchEnv(3, seed=0)
+    env.reset(TensorDict({"_reset": torch.zeros(3, 1, dtype=torch.bool)}, [3]))
+    with pytest.raises(ResetNeeded):
+        env.step(TensorDict({"action": torch.zeros(3, 1)}, [3]))

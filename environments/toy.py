@@ -44,18 +44,20 @@ def two_gaussians_reward(theta: Tensor, modes: Tensor, heights: Tensor, width: f
     """Sum of Gaussian bumps.
 
     Args:
-        theta: (N, 2) parameters.
-        modes: (M, 2) or (N, M, 2) bump centres (per sample when contextual).
+        theta: ([S,] N, 2) parameters (S: a population's members).
+        modes: (M, 2) or ([S,] N, M, 2) bump centres (per sample when contextual).
         heights: (M,) bump heights.
         width: bump standard deviation.
 
     Returns:
-        (N,) rewards.
+        ([S,] N) rewards.
     """
-    if theta.dim() != 2 or theta.shape[1] != modes.shape[-1]:
-        raise ValueError(f"theta must have shape (N, {modes.shape[-1]}), got {tuple(theta.shape)}")
+    if theta.dim() not in (2, 3) or theta.shape[-1] != modes.shape[-1]:
+        raise ValueError(
+            f"theta must have shape ([S,] N, {modes.shape[-1]}), got {tuple(theta.shape)}"
+        )
     as_finite_f64("theta", theta)
-    d2 = ((theta.unsqueeze(-2) - modes) ** 2).sum(-1)  # (N, M)
+    d2 = ((theta.unsqueeze(-2) - modes) ** 2).sum(-1)  # ([S,] N, M)
     return (heights * torch.exp(-0.5 * d2 / width**2)).sum(-1)
 
 
@@ -88,7 +90,8 @@ def _check_table(name: str, value: object, shape: tuple[int | None, ...]) -> int
 
 @dataclass
 class TwoGaussians:
-    """Bimodal 2-D objective (see the module docstring); ``__call__(theta (N, 2)) -> (N,)``."""
+    """Bimodal 2-D objective (see the module docstring); ``__call__(theta ([S,] N, 2))`` ->
+    ``([S,] N)`` (S: a population's members)."""
 
     modes: Tensor = field(default_factory=lambda: torch.tensor([[-2.0, -2.0], [2.0, 2.0]]))
     heights: Tensor = field(default_factory=lambda: torch.tensor([1.0, 1.0]))
@@ -113,7 +116,8 @@ class TwoGaussians:
 
 @dataclass
 class ContextualTwoGaussians:
-    """Contextual bimodal objective; ``__call__(context (N, 1), theta (N, 2)) -> (N,)``."""
+    """Contextual bimodal objective; ``__call__(context ([S,] N, 1), theta ([S,] N, 2))`` ->
+    ``([S,] N)`` (S: a population's members)."""
 
     offsets: Tensor = field(default_factory=lambda: torch.tensor([[-2.0, -2.0], [2.0, 2.0]]))
     slope: Tensor = field(default_factory=lambda: torch.tensor([1.0, -1.0]))
@@ -126,11 +130,11 @@ class ContextualTwoGaussians:
     context_dim: int = 1
 
     def modes(self, context: Tensor) -> Tensor:
-        """context: (N, 1) -> bump centres (N, M, 2)."""
+        """context: ([S,] N, 1) -> bump centres ([S,] N, M, 2)."""
         s = _floats("context", context)
-        if s.dim() != 2 or s.shape[1] != 1:
-            raise ValueError(f"context must have shape (N, 1), got {tuple(s.shape)}")
-        return self.offsets.to(s.dtype) + s[:, :, None] * self.slope.to(s.dtype)
+        if s.dim() not in (2, 3) or s.shape[-1] != 1:
+            raise ValueError(f"context must have shape ([S,] N, 1), got {tuple(s.shape)}")
+        return self.offsets.to(s.dtype) + s[..., None] * self.slope.to(s.dtype)
 
     def __post_init__(self) -> None:
         _check_width(self.width)
@@ -152,8 +156,11 @@ class ContextualTwoGaussians:
         t = _floats("theta", theta)
         s = as_float_tensor("context", context, t.dtype)
         as_finite_f64("context", s)
-        if s.shape[0] != t.shape[0]:
-            raise ValueError(f"got {s.shape[0]} contexts for {t.shape[0]} parameter vectors")
+        if s.shape[:-1] != t.shape[:-1]:
+            raise ValueError(
+                f"got contexts of shape {tuple(s.shape)} for parameters of shape "
+                f"{tuple(t.shape)} (the same ([S,] N) wanted)"
+            )
         return two_gaussians_reward(t, self.modes(s), self.heights.to(t.dtype), self.width)
 
     @property

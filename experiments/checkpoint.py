@@ -191,8 +191,22 @@ def changed_options(
     return [
         f"{key} ({a}: {saved.get(key, '<absent>')!r}, {b}: {now.get(key, '<absent>')!r})"
         for key in sorted(set(saved) | set(now))
-        if key not in RUN_ONLY_OPTIONS and saved.get(key, "<absent>") != now.get(key, "<absent>")
+        if key not in RUN_ONLY_OPTIONS
+        and _meaning(key, saved.get(key, "<absent>")) != _meaning(key, now.get(key, "<absent>"))
     ]
+
+
+def _meaning(key: str, value: Any) -> Any:
+    """What an option's value means when two are compared: ``seeds`` as the seeds it names
+    (``0-2`` and ``0,1,2`` are the same population), anything else as it is."""
+    from hireps_torch.experiments.options import parse_seeds
+
+    if key == "seeds" and isinstance(value, str):
+        try:
+            return parse_seeds(value)
+        except ValueError:
+            return value
+    return value
 
 
 def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:

@@ -62,6 +62,11 @@ class RunOptions:
             raise ValueError(f"seed must be an integer in [-2**62, 2**62], got {self.seed}")
         if self.seeds is not None:
             parse_seeds(self.seeds)
+            if self.seed != 0 and self.resume is None:
+                raise ValueError(
+                    f"--seed {self.seed} and --seeds {self.seeds} both name the seeds to run; "
+                    "pass one (--seeds replaces --seed)"
+                )
         check_run_device(self.device)
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")

@@ -118,6 +118,7 @@ def test_pendulum_population_members_follow_the_kl_schedule(tmp_path):
         (["bimodal", "--seeds", "2-1"], ValueError, "--seeds must look like 0-4"),
         (["hockey-episodic", "--seeds", "0-1"], ValueError, "hockey runs one seed per process"),
         (["pendulum", "--seeds", "0-1", "--workers", "2"], ValueError, r"workers \(--workers\)"),
+        (["bimodal", "--seeds", "0-1", "--seed", "5"], ValueError, "--seed 5 and --seeds 0-1"),
     ],
 )
 def test_bad_population_options_name_the_value(tmp_path, argv, error, match):

@@ -264,6 +264,19 @@ def test_resuming_with_changed_options_is_refused_and_names_them(tmp_path):
     assert {q.name: q.read_bytes() for q in run.iterdir()} == before
 
 
+def test_seeds_compare_by_the_seeds_they_name():
+    """``--seeds 0-2`` and ``--seeds 0,1,2`` name one population: a resume with either agrees;
+    other seeds (or another order: another member order) differ."""
+    from hireps_torch.experiments.checkpoint import changed_options
+
+    assert changed_options({"seeds": "0-2"}, {"seeds": "0, 1,2"}) == []
+    assert changed_options({"seeds": "0-2"}, {"seeds": "0-3"}) == [
+        "seeds (run: '0-2', now: '0-3')"
+    ]
+    assert changed_options({"seeds": "0-2"}, {"seeds": "2,1,0"}) != []
+    assert changed_options({"seeds": "0-2"}, {}) == ["seeds (run: '0-2', now: '<absent>')"]
+
+
 def test_the_final_checkpoint_loads_with_weights_only_and_gives_the_same_actions(tmp_path):
     """A finished run's checkpoint restores the policy: the same noise-free actions."""
     from hireps_torch.experiments import bimodal

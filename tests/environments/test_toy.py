@@ -29,12 +29,28 @@ def test_contextual_modes_move_with_the_context():
 
 
 def test_bad_input_raises():
-    with pytest.raises(ValueError, match=r"theta must have shape \(N, 2\)"):
+    with pytest.raises(ValueError, match=r"theta must have shape \(\[S,\] N, 2\)"):
         TwoGaussians()(torch.zeros(3, 3))
     with pytest.raises(ValueError, match="non-finite"):
         TwoGaussians()(torch.tensor([[math.nan, 0.0]]))
-    with pytest.raises(ValueError, match=r"context must have shape \(N, 1\)"):
+    with pytest.raises(ValueError, match=r"context must have shape \(\[S,\] N, 1\)"):
         ContextualTwoGaussians()(torch.zeros(3, 2), torch.zeros(3, 2))
+
+
+def test_a_population_of_parameters_scores_as_each_member_alone():
+    g = torch.Generator().manual_seed(1)
+    theta = torch.randn(3, 5, 2, generator=g, dtype=torch.float64)  # (S, N, 2)
+    s = torch.rand(3, 5, 1, generator=g, dtype=torch.float64)
+    flat, contextual = TwoGaussians(), ContextualTwoGaussians()
+    r, rc = flat(theta), contextual(s, theta)
+    assert r.shape == rc.shape == (3, 5)
+    for m in range(3):
+        assert torch.equal(r[m], flat(theta[m]))
+        assert torch.equal(rc[m], contextual(s[m], theta[m]))
+    with pytest.raises(ValueError, match=r"contexts of shape \(3, 4, 1\) for parameters"):
+        contextual(s[:, :4], theta)
+    with pytest.raises(ValueError, match="theta must have shape"):
+        flat(theta[None])  # (1, S, N, 2): too many dimensions
 
 
 def test_bad_widths_and_counts_are_named():

@@ -107,7 +107,7 @@ class DualProblem:
         h = delta + xi log p~; in log space scaled by diag(eta, xi, 1) on both sides (first-order
         term left out).
         """
-        S, K, N, O = self.S, self.K, self.N, self.O
+        S, K = self.S, self.K
         n = x.shape[-1]
         _, eta, xi, v = self.unpack(x)
         if weights is None:
@@ -117,8 +117,9 @@ class DualProblem:
         free = self.eta_free(x)
         M = x.new_zeros(S, n, n)
         for k in range(K):
-            # columns log eta_k, log xi_k (a (S, N, O, c)) and v (D (S, N, P), not expanded over
-            # the options), centred under P: Cov = E[a a^T], E[a D^T], E[D D^T]
+            # columns log eta_k, log xi_k (a (S, c, N, O), one contiguous (N, O) per column) and
+            # v (D (S, N, P), not expanded over the options), centred under P: Cov = E[a a^T],
+            # E[a D^T], E[D D^T]
             pk = P[:, k]  # (S, N, O)
             h = delta[:, k, :, None] + xi[:, k, None, None] * self.lr[:, k]  # (S, N, O)
             zs = [-h * free[:, k, None, None]]
@@ -126,19 +127,18 @@ class DualProblem:
             if self.multi:
                 zs.append(self.lr[:, k] * (xi[:, k] * self.xi_on[:, k])[:, None, None])
                 cols.append(K + k)
-            a = torch.stack(zs, -1)  # (S, N, O, c)
-            a = a - (pk[..., None] * a).sum((1, 2), keepdim=True)
-            pa = pk[..., None] * a
-            c = len(cols)
+            a = torch.stack(zs, 1)  # (S, c, N, O)
+            a = a - (pk[:, None] * a).sum((2, 3), keepdim=True)
+            pa = pk[:, None] * a
             idx = torch.tensor(cols, device=x.device)
-            aa = pa.reshape(S, N * O, c).transpose(1, 2) @ a.reshape(S, N * O, c)
+            aa = pa.flatten(2) @ a.flatten(2).mT  # (S, c, c)
             M[:, idx[:, None], idx[None, :]] += aa / eta[:, k, None, None]
             if self.P:
                 # D centred under P, from D centred once under uniform weights
                 Dm = self._centred_features()[:, k]
                 w = pk.sum(-1)  # (S, N)
                 Dc = Dm - (w[:, None, :] @ Dm)
-                ad = pa.sum(2).transpose(1, 2) @ Dc  # (S, c, P)
+                ad = pa.sum(3) @ Dc  # (S, c, P)
                 dd = (w[..., None] * Dc).transpose(1, 2) @ Dc  # (S, P, P)
                 vi = torch.arange(2 * K, n, device=x.device)
                 M[:, idx[:, None], vi[None, :]] += ad / eta[:, k, None, None]

@@ -267,6 +267,7 @@ def _newton_fit(
     pen = x.new_full((F1,), l2, dtype=torch.float64)
     pen[0] = 0.0  # no penalty on the biases (the softmax's shift is fixed by the damping)
     keep = active[..., None].expand_as(theta).flatten(-2)  # (..., P)
+    XX, entry = _feature_pairs(X), _entries(O, F1, x.device)
 
     def loss_of(th: Tensor) -> Tensor:
         return _cross_entropy(x, t, w, th[..., 1:], th[..., 0], active, l2)
@@ -282,13 +283,7 @@ def _newton_fit(
         running &= g.abs().amax(-1) > NEWTON_GTOL
         if not bool(running.any()):
             break
-        # H = sum_i w_i (diag(p_i) - p_i p_i^T) (x) x_i x_i^T + l2 I, as products over samples
-        A = ((w[..., None] * p)[..., None] * X[..., None, :]).flatten(-2)  # (..., N, O F1)
-        B = (p[..., None] * X[..., None, :]).flatten(-2)
-        blocks = (A.mT @ X).view(*A.shape[:-2], O, F1, F1)  # sum_i w_i p_io x_i x_i^T
-        H = -(A.mT @ B).view(*A.shape[:-2], O, F1, O, F1)
-        eye = torch.eye(O, dtype=torch.bool, device=x.device)
-        H = H + torch.where(eye[:, None, :, None], blocks[..., :, :, None, :], 0.0)
+        H = _hessian(XX, w, p, entry)
         H = H + torch.diag_embed(pen.repeat(O)).view(O, F1, O, F1)
         H = H.reshape(*H.shape[:-4], O * F1, O * F1)
         H = torch.where(keep[..., :, None] & keep[..., None, :], H, 0.0)
@@ -313,6 +308,38 @@ def _newton_fit(
             step = 0.5 * step
         running &= moved
     return theta[..., 1:].contiguous(), theta[..., 0].contiguous(), failed
+
+
+def _feature_pairs(X: Tensor) -> Tensor:
+    """(..., N, F1 (F1 + 1) / 2) products x_ij x_ik of X (..., N, F1) for j <= k (row-major)."""
+    F1 = X.shape[-1]
+    return torch.cat([X[..., j : j + 1] * X[..., j:] for j in range(F1)], -1)
+
+
+def _entries(O: int, F1: int, device: torch.device) -> tuple[Tensor, Tensor]:
+    """Index maps (O, 1, O, 1) and (1, F1, 1, F1) from the Hessian's entry (o, j, o', k) to its
+    option pair (o <= o') and feature pair (j <= k), each in row-major upper-triangle order."""
+    maps = []
+    for n in (O, F1):
+        iu = torch.triu_indices(n, n, device=device)
+        m = torch.zeros(n, n, dtype=torch.long, device=device)
+        m[iu[0], iu[1]] = m[iu[1], iu[0]] = torch.arange(iu.shape[1], device=device)
+        maps.append(m)
+    return maps[0][:, None, :, None], maps[1][None, :, None, :]
+
+
+def _hessian(XX: Tensor, w: Tensor, p: Tensor, entry: tuple[Tensor, Tensor]) -> Tensor:
+    """(..., O, F1, O, F1) Hessian of the weighted cross-entropy in theta = [b, W] (penalty left
+    out): sum_i w_i (diag(p_i) - p_i p_i^T) (x) x_i x_i^T, each entry computed once per unordered
+    option pair and feature pair. XX: :func:`_feature_pairs` of X; w (..., N); p (..., N, O)."""
+    O = p.shape[-1]
+    wp = w[..., None] * p
+    c = []  # w_i p_io (delta_oo' - p_io') for o <= o'
+    for o in range(O):
+        q = -p[..., o:]
+        q[..., 0] += 1.0
+        c.append(wp[..., o : o + 1] * q)
+    return (torch.cat(c, -1).mT @ XX)[(..., *entry)]
 
 
 class ConstantGating(Gating):

@@ -73,3 +73,26 @@ def test_constant_gating_assigns_the_nearest_kmeans_centroid_and_never_changes(g
 def test_constant_gating_needs_enough_points():
     with pytest.raises(ValueError, match=r"M >= n_options = 5, got \(3, 2\)"):
         ConstantGating.from_kmeans(torch.zeros(3, 2), 5)
+
+
+def test_newton_hessian_is_the_weighted_cross_entropys_hessian(gen):
+    """The gating fit's Newton Hessian (each option pair and feature pair computed once) equals
+    autograd's Hessian of sum_i w_i sum_o t_io (-log pi(o | x_i)), also with a leading S."""
+    from hireps_torch.policies.gating import _entries, _feature_pairs, _hessian
+
+    S, N, F, O = 2, 60, 3, 4
+    x = torch.randn(S, N, F, generator=gen, dtype=torch.float64)
+    X = torch.cat([torch.ones(S, N, 1, dtype=torch.float64), x], -1)
+    t = torch.softmax(torch.randn(S, N, O, generator=gen, dtype=torch.float64), -1)
+    w = torch.rand(S, N, generator=gen, dtype=torch.float64)
+    theta = torch.randn(S, O, F + 1, generator=gen, dtype=torch.float64)
+    p = torch.softmax(X @ theta.mT, -1)
+    H = _hessian(_feature_pairs(X), w, p, _entries(O, F + 1, x.device))
+    assert H.shape == (S, O, F + 1, O, F + 1)
+    for s in range(S):
+
+        def loss(th, s=s):
+            return -(w[s, :, None] * t[s] * torch.log_softmax(X[s] @ th.T, -1)).sum()
+
+        expected = torch.autograd.functional.hessian(loss, theta[s])
+        assert torch.allclose(H[s], expected, rtol=1e-10, atol=1e-12)

@@ -27,7 +27,12 @@ from hireps_torch.experiments.checkpoint import (
     stop_on_signals,
 )
 from hireps_torch.experiments.options import RunOptions, config_dict, member_seeds, parse_seeds
-from hireps_torch.experiments.rundir import DirectoryLock, RunWriter, default_run_dir
+from hireps_torch.experiments.rundir import (
+    DirectoryLock,
+    RunWriter,
+    default_run_dir,
+    plot_learning_curves,
+)
 
 __all__ = [
     "Members",
@@ -426,9 +431,9 @@ def finish_run(
     band plot and summary. Returns the summary (of the member, or of the population)."""
     run.root.checkpoint(run.snapshot(len(run.writers[0].rows), finished=True))
     plots = extra_plots or [[] for _ in run.writers]
+    plot_learning_curves(run.writers, curve[0], list(curve[1]), title=title, ylabel=ylabel)
     written = []
     for writer, summary, mine in zip(run.writers, summaries, plots, strict=True):
-        writer.plot_learning_curve(curve[0], list(curve[1]), title=title, ylabel=ylabel)
         for plot in mine:
             plot(writer.dir)
         written.append(writer.finish(summary))

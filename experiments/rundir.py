@@ -216,33 +216,6 @@ class RunWriter:
     def checkpoint(self, state: Mapping[str, Any], name: str = "checkpoint.pt") -> None:
         atomic_write(self.dir / name, lambda p: torch.save(dict(state), p))
 
-    def plot_learning_curve(
-        self,
-        x: str,
-        ys: Sequence[str],
-        title: str,
-        ylabel: str = "return",
-        name: str = "learning_curve.png",
-    ) -> None:
-        """Line plot of metric columns ``ys`` against column ``x``."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(6, 4))
-        xs = [r[x] for r in self.rows]
-        for y in ys:
-            ax.plot(xs, [r[y] for r in self.rows], label=y.replace("_", " "))
-        ax.set_xlabel(x)
-        ax.set_ylabel(ylabel)
-        ax.set_title(title)
-        ax.grid(alpha=0.3)
-        ax.legend()
-        fig.tight_layout()
-        atomic_write(self.dir / name, lambda p: fig.savefig(p, format="png", dpi=110))
-        plt.close(fig)
-
     def finish(self, summary: Mapping[str, Any]) -> dict[str, Any]:
         """Write ``summary.json`` (adds ``wall_seconds``) and return what it holds."""
         out = {**summary, "wall_seconds": round(self.elapsed(), 3)}
@@ -294,3 +267,38 @@ def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
             wandb_kwargs={"project": "hireps-torch", "dir": str(run_dir)},
         )
     return get_logger(kind, str(run_dir), kind)
+
+
+def plot_learning_curves(
+    writers: Sequence[RunWriter],
+    x: str,
+    ys: Sequence[str],
+    title: str,
+    ylabel: str = "return",
+    name: str = "learning_curve.png",
+) -> None:
+    """Line plot of metric columns ``ys`` against column ``x`` in each writer's directory: one
+    figure, its lines' data swapped per writer."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    lines = [ax.plot([], [], label=y.replace("_", " "))[0] for y in ys]
+    ax.set_xlabel(x)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.subplots_adjust(left=0.14, right=0.97, bottom=0.12, top=0.92)
+    try:
+        for writer in writers:
+            xs = [r[x] for r in writer.rows]
+            for line, y in zip(lines, ys, strict=True):
+                line.set_data(xs, [r[y] for r in writer.rows])
+            ax.relim()
+            ax.autoscale_view()
+            atomic_write(writer.dir / name, lambda p: fig.savefig(p, format="png", dpi=110))
+    finally:
+        plt.close(fig)

@@ -397,7 +397,7 @@ def test_ctrl_c_of_a_sweep_with_workers_says_how_to_finish_it(tmp_path):
         ["--workers", "0"],
         ["--ray-address", "127.0.0.1:6379"],  # with the local backend
         ["--grid", "checkpoint_every=0,1"],  # a run option only the run checks
-        ["--grid", "device=cuda,cpu"],  # a device an ordinary run refuses
+        ["--grid", "device=cuda:99,cpu"],  # a device present on no machine
     ],
     ids=["workers", "ray-address", "checkpoint-every", "device"],
 )

@@ -182,7 +182,6 @@ def _aim_options(algo: Algorithm, demo: torch.Tensor, params: Any) -> None:
     """Every option's mean = bias + W (f(p) - f(p0)) on its features f, W the aim mapping's
     slopes at the start mean p0 (the same for every shot), its mean at p0 kept."""
     from hireps_torch.envs.hockey.aim import AimFeatures, aim_slopes, turn_derivative
-    from hireps_torch.features import IdentityFeatures
 
     p0 = torch.tensor(params.target_mean, dtype=torch.float64)  # f0: its features
     for policy in algo.policies:
@@ -191,13 +190,8 @@ def _aim_options(algo: Algorithm, demo: torch.Tensor, params: Any) -> None:
             # linear in (angle, distance): the turn's derivative on the angle, none on distance
             d = turn_derivative(demo, float(f0[0]), params.geometry)
             W = torch.stack([d, torch.zeros_like(d)], dim=-1)
-        elif isinstance(policy.policy_features, IdentityFeatures):
-            W = aim_slopes(demo, p0, params.geometry)  # (14, 2) on (x, y)
-        else:  # pragma: no cover - the experiment builds only the two above
-            raise TypeError(
-                f"aim slopes need options on (x, y) or AimFeatures, got "
-                f"{type(policy.policy_features).__name__}"
-            )
+        else:  # IdentityFeatures: options on (x, y)
+            W = aim_slopes(demo, p0, params.geometry)  # (14, 2)
         slopes = W.repeat(policy.action_dim // 14, 1)
         with torch.no_grad():
             for option in policy.sub_policies:

@@ -50,7 +50,7 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place; a
     failed write is an ``OSError`` naming ``path`` (the file there before is kept)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -188,11 +188,7 @@ class RunWriter:
 
     def write_json(self, name: str, data: Mapping[str, Any]) -> None:
         text = json.dumps(jsonable(data), indent=2, sort_keys=False) + "\n"
-
-        def write(p: Path) -> None:
-            p.write_text(text)
-
-        atomic_write(self.dir / name, write)
+        atomic_write(self.dir / name, lambda p: p.write_text(text))
 
     def log(self, row: Mapping[str, Any]) -> None:
         """Append one row to ``metrics.csv`` (columns fixed by the first row)."""

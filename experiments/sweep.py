@@ -540,13 +540,9 @@ def summarize(
     table = "\n".join(lines)
     out.mkdir(parents=True, exist_ok=True)
     payload = {f"{n}/seed{s}": dict(v) for (n, s), v in results.items()}
-    text = {f"{stem}.json": json.dumps(payload, indent=1), f"{stem}.md": table + "\n"}
-    for fname, content in text.items():
-
-        def write(p: Path, c: str = content) -> None:
-            p.write_text(c)
-
-        atomic_write(out / fname, write)
+    as_json = json.dumps(payload, indent=1)
+    atomic_write(out / f"{stem}.json", lambda p: p.write_text(as_json))
+    atomic_write(out / f"{stem}.md", lambda p: p.write_text(table + "\n"))
     _plot(curves, out / f"{stem}.png", f"{experiment}: {curve} (mean ± std over seeds)")
     return table
 

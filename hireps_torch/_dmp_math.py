@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["finite_differences", "integrate", "quintic_coefficients", "response_from_rest"]
+__all__ = ["finite_differences", "quintic_coefficients", "response_from_rest"]
 
 
 def quintic_coefficients(y0: Tensor, z0: Tensor, g: Tensor, gz: Tensor) -> Tensor:
@@ -17,37 +17,23 @@ def quintic_coefficients(y0: Tensor, z0: Tensor, g: Tensor, gz: Tensor) -> Tenso
     return torch.stack([y0, z0, zero, 10 * D - 4 * V, -15 * D + 7 * V, 6 * D - 3 * V], dim=-1)
 
 
-def integrate(
-    drive: Tensor,
-    forcing: Tensor,
-    y0: Tensor,
-    z0: Tensor,
-    n_steps: int,
-    substeps: int,
-    stiffness: float,
-    damping: float,
+def response_from_rest(
+    forcing: Tensor, n_steps: int, substeps: int, stiffness: float, damping: float
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """RK4 for ``y' = z, z' = P(s) + F(s) - stiffness y - damping z`` on s in [0, 1], with
-    P from ``drive`` (B, J, 6), F from ``forcing`` (2 n_steps substeps + 1, J) on the half-step
-    grid and y0, z0 (B, J). Returns y, z, z', each (B, n_steps + 1, J)."""
+    """e, e', e'' (each (n_steps + 1, W)) of ``e'' + damping e' + stiffness e = F`` from rest by
+    RK4 on s in [0, 1], F from ``forcing`` (2 n_steps substeps + 1, W) on the half-step grid."""
     n_total = n_steps * substeps
     h = 1.0 / n_total
-    s_half = torch.arange(2 * n_total + 1, dtype=torch.float64) * (0.5 * h)
-    powers = s_half[:, None] ** torch.arange(6, dtype=torch.float64)  # (2N+1, 6)
     k, d = stiffness, damping
 
-    B, J = y0.shape
-    drive_flat = drive.reshape(B * J, 6)
-
     def acc(y: Tensor, z: Tensor, j: int) -> Tensor:
-        u = (drive_flat @ powers[j]).view(B, J) + forcing[j]
-        return u.sub_(y, alpha=k).sub_(z, alpha=d)
+        return forcing[j].sub(y, alpha=k).sub_(z, alpha=d)
 
-    ys = torch.empty(B, n_steps + 1, J, dtype=torch.float64)
+    ys = torch.empty(n_steps + 1, forcing.shape[1], dtype=torch.float64)
     zs = torch.empty_like(ys)
     accs = torch.empty_like(ys)
-    y, z = y0.clone(), z0.clone()
-    ys[:, 0], zs[:, 0], accs[:, 0] = y, z, acc(y, z, 0)
+    y, z = torch.zeros_like(ys[0]), torch.zeros_like(ys[0])
+    ys[0], zs[0], accs[0] = y, z, acc(y, z, 0)
     for i in range(n_total):
         j = 2 * i
         a1 = acc(y, z, j)
@@ -61,19 +47,8 @@ def integrate(
         z = z + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
         if (i + 1) % substeps == 0:
             o = (i + 1) // substeps
-            ys[:, o], zs[:, o], accs[:, o] = y, z, acc(y, z, j + 2)
+            ys[o], zs[o], accs[o] = y, z, acc(y, z, j + 2)
     return ys, zs, accs
-
-
-def response_from_rest(
-    forcing: Tensor, n_steps: int, substeps: int, stiffness: float, damping: float
-) -> tuple[Tensor, Tensor, Tensor]:
-    """e, e', e'' (each (n_steps + 1, W)) of ``e'' + damping e' + stiffness e = F`` from rest
-    (``forcing`` as in :func:`integrate`)."""
-    zeros = torch.zeros(1, forcing.shape[1], dtype=torch.float64)
-    drive = torch.zeros(1, forcing.shape[1], 6, dtype=torch.float64)
-    e, ez, ezdot = integrate(drive, forcing, zeros, zeros, n_steps, substeps, stiffness, damping)
-    return e[0], ez[0], ezdot[0]
 
 
 def finite_differences(pos: Tensor, dt: float) -> tuple[Tensor, Tensor]:

@@ -69,15 +69,13 @@ class _End(NamedTuple):
 
 
 class _Whitened:
-    """LBFGS closure: the sum of the S duals in z, x = x0 + L^-T z (x0 + z when L is None)."""
+    """LBFGS closure: the sum of the S duals in z, x = x0 + L^-T z."""
 
-    def __init__(self, prob: DualProblem, x0: Tensor, L: Tensor | None, floor: Tensor) -> None:
+    def __init__(self, prob: DualProblem, x0: Tensor, L: Tensor, floor: Tensor) -> None:
         self.prob, self.x0, self.L, self.floor = prob, x0, L, floor
         self.z = torch.zeros_like(x0)
 
     def x(self) -> Tensor:
-        if self.L is None:
-            return self.x0 + self.z
         step: Tensor = torch.linalg.solve_triangular(
             self.L.transpose(1, 2), self.z[..., None], upper=True
         )
@@ -89,9 +87,7 @@ class _Whitened:
         below = (self.floor - g).clamp_min(0.0)
         g = torch.where(below > 0, self.floor - torch.log1p(below), g)
         grad = grad / (1.0 + below)[:, None]
-        if self.L is not None:
-            grad = torch.linalg.solve_triangular(self.L, grad[..., None], upper=False)[..., 0]
-        self.z.grad = grad
+        self.z.grad = torch.linalg.solve_triangular(self.L, grad[..., None], upper=False)[..., 0]
         return g.sum()
 
 
@@ -430,9 +426,9 @@ class BlockSolver:
     ) -> Tensor:
         """(S, n) Newton steps with damping lam (S,) on the moving coordinates, within the log
         eta / log xi trust region."""
-        step, ok = _newton_step(H, grad, moving, cholesky=True, ridge=lam)
+        step, ok = _newton_step(H, grad, moving, lam)
         if not bool(ok.all()):
-            psd, _ = _newton_step(M, grad, moving, cholesky=True, ridge=lam + 1e-8)
+            psd, _ = _newton_step(M, grad, moving, lam + 1e-8)
             step = torch.where(ok[:, None], step, psd)
         # a block's temperature (and xi) changes by at most e^_MAX_LOG_STEP per step
         K2 = 2 * self.prob.K
@@ -505,15 +501,9 @@ class BlockSolver:
         return used, spent, stalled
 
 
-def _newton_step(
-    H: Tensor,
-    grad: Tensor,
-    moving: Tensor,
-    cholesky: bool = False,
-    ridge: float | Tensor = 1e-12,
-) -> tuple[Tensor, Tensor]:
-    """(-H^-1 grad on ``moving``, 0 elsewhere (S, n); H regular (S,)) for H (S, n, n), scaled to
-    unit diagonal first."""
+def _newton_step(H: Tensor, grad: Tensor, moving: Tensor, ridge: Tensor) -> tuple[Tensor, Tensor]:
+    """(-(H + ridge I)^-1 grad on ``moving``, 0 elsewhere (S, n); H + ridge I positive definite
+    (S,)) for H (S, n, n) scaled to unit diagonal first, ridge (S,)."""
     n = H.shape[-1]
     eye = torch.eye(n, dtype=H.dtype, device=H.device)
     both = moving[:, :, None] & moving[:, None, :]
@@ -521,13 +511,9 @@ def _newton_step(
     g = torch.where(moving, grad, 0.0)
     d = Hm.diagonal(dim1=1, dim2=2)
     scale = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
-    lam = ridge[:, None, None] if isinstance(ridge, Tensor) else ridge
-    Hs = scale[:, :, None] * Hm * scale[:, None, :] + (lam + 1e-12) * eye
-    if cholesky:  # positive definite only
-        L, info = torch.linalg.cholesky_ex(Hs)
-        sol = torch.cholesky_solve((scale * g)[..., None], L)
-    else:
-        sol, info = torch.linalg.solve_ex(Hs, (scale * g)[..., None])
+    Hs = scale[:, :, None] * Hm * scale[:, None, :] + (ridge[:, None, None] + 1e-12) * eye
+    L, info = torch.linalg.cholesky_ex(Hs)
+    sol = torch.cholesky_solve((scale * g)[..., None], L)
     ok = (info == 0) & torch.isfinite(sol).all(dim=(1, 2))
     step = torch.where(ok[:, None], -scale * sol[..., 0], 0.0)
     return torch.where(moving, step, 0.0), ok

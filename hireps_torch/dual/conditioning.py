@@ -201,7 +201,7 @@ def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: Tensor, rounds: int 
         root = weight.sqrt()[..., None]
         A = (root[..., None] * Dc).reshape(S, K * N, P)
         b = (root * Rc).reshape(S, K * N, 1)
-        v = -_lstsq(A, b)
+        v = -min_norm_lstsq(A, b).squeeze(-1)  # (S, P)
         spread = (Rc + torch.einsum("sknp,sp->skn", Dc, v)).std(dim=-1)
         new = (2.0 * eps).sqrt() / torch.maximum(spread, floor[:, None])
         new = new / new.amax(dim=-1, keepdim=True)
@@ -222,11 +222,6 @@ def _one_block_fit(Dc: Tensor, Rc: Tensor) -> tuple[Tensor, tuple[Tensor, Tensor
     proj = (U.mT @ R[:, :P, P:])[..., 0]
     inv = torch.where(sv > cut, proj / sv.clamp_min(1e-300), 0.0)
     return -(Vh.mT @ inv[..., None])[..., 0], (sv, Vh)
-
-
-def _lstsq(A: Tensor, b: Tensor) -> Tensor:
-    """(S, P) minimum-norm least-squares solutions of A (S, M, P) x = b (S, M, 1)."""
-    return min_norm_lstsq(A, b).squeeze(-1)
 
 
 def whitening(Dc: Tensor, weight: Tensor, svd: tuple[Tensor, Tensor] | None = None) -> Tensor:

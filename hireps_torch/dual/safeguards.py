@@ -77,14 +77,13 @@ def _tilt(lr: Tensor, log_t: Tensor) -> tuple[Tensor, Tensor]:
     return block_kl(P, lr), block_cross_entropy(P, lr)
 
 
-def _bisect_log_t(lr: Tensor, target: Tensor, use_kl: bool) -> Tensor:
-    """(S, K) log t where the tilt's KL (rising in t) or CE (falling) meets ``target``."""
+def _bisect_log_t(lr: Tensor, target: Tensor) -> Tensor:
+    """(S, K) log t where the tilt's KL (rising in t) meets ``target``."""
     lo = torch.full_like(target, _LOG_T_RANGE[0])
     hi = torch.full_like(target, _LOG_T_RANGE[1])
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        kl, ce = _tilt(lr, mid)
-        short = kl < target if use_kl else ce > target  # t must grow
+        short = _tilt(lr, mid)[0] < target  # t must grow
         lo = torch.where(short, mid, lo)
         hi = torch.where(short, hi, mid)
     return hi
@@ -130,9 +129,9 @@ def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Ten
     if not bool(unreachable.any()):  # (``best`` is only read where a bound is unreachable)
         return kappa, unreachable, ce0
     budget = torch.minimum(eps, kl_top)
-    t_full = _bisect_log_t(lr, budget, use_kl=True)
+    t_full = _bisect_log_t(lr, budget)
     _, best = _tilt(lr, t_full)
-    t_half = _bisect_log_t(lr, 0.5 * budget, use_kl=True)
+    t_half = _bisect_log_t(lr, 0.5 * budget)
     _, ce_half = _tilt(lr, t_half)
     return torch.where(unreachable, ce_half, kappa), unreachable, best
 

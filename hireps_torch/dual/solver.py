@@ -173,7 +173,7 @@ def _solve_one(
         if sol is not None:
             return sol, []
     r_scale = _pow2_scale(R.abs().amax(dim=(1, 2)))  # (S,)
-    f_scale = _pow2_scale(_column_max(D, S, R))  # (S, P)
+    f_scale = _pow2_scale(R.new_zeros(S, 0) if D is None else D.abs().amax(dim=(1, 2)))  # (S, P)
     st = standardise(
         R * r_scale[:, None, None],
         None if D is None else D * f_scale[:, None, None, :],
@@ -273,13 +273,6 @@ def _caller_units(
         v = torch.where(flat[:, None], st.v0, v)
         dual = torch.where(flat, st.level, dual)
     return eta, xi, v, dual
-
-
-def _column_max(D: Tensor | None, S: int, like: Tensor) -> Tensor:
-    """(S, P) largest |entry| of each column of D (S, K, N, P); (S, 0) without features."""
-    if D is None:
-        return like.new_zeros(S, 0)
-    return D.abs().amax(dim=(1, 2))
 
 
 def _pow2_scale(m: Tensor) -> Tensor:

@@ -267,7 +267,7 @@ def record_early_stops() -> None:
 def stop_on_signals(then: str = "then saving the checkpoint") -> Iterator[StopRequest]:
     """While active, a first SIGINT/SIGTERM requests a stop at the next iteration boundary
     (printing ``then``), a second interrupts at once; does nothing outside the main thread."""
-    request = StopRequest(EARLY.signame)
+    request = StopRequest()
     names: dict[int, str] = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
     previous: dict[int, Any] = {}
 
@@ -286,6 +286,7 @@ def stop_on_signals(then: str = "then saving the checkpoint") -> Iterator[StopRe
             previous[sig] = signal.signal(sig, handler)
     except ValueError:  # not the main thread: leave the signals alone
         previous.clear()
+    request.signame = request.signame or EARLY.signame  # read once ours is in place: none lost
     try:
         yield request
     finally:

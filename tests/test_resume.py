@@ -270,9 +270,7 @@ def test_seeds_compare_by_the_seeds_they_name():
     from hireps_torch.experiments.checkpoint import changed_options
 
     assert changed_options({"seeds": "0-2"}, {"seeds": "0, 1,2"}) == []
-    assert changed_options({"seeds": "0-2"}, {"seeds": "0-3"}) == [
-        "seeds (run: '0-2', now: '0-3')"
-    ]
+    assert changed_options({"seeds": "0-2"}, {"seeds": "0-3"}) == ["seeds (run: '0-2', now: '0-3')"]
     assert changed_options({"seeds": "0-2"}, {"seeds": "2,1,0"}) != []
     assert changed_options({"seeds": "0-2"}, {}) == ["seeds (run: '0-2', now: '<absent>')"]
 
@@ -596,3 +594,21 @@ def test_a_run_dir_that_is_a_dangling_link_is_named(tmp_path):
     assert p.returncode == 2
     assert "is a link to" in p.stderr and "which does not exist" in p.stderr
     assert not (tmp_path / "missing").exists()
+
+
+def test_a_signal_while_the_stop_handler_is_installed_is_not_lost(monkeypatch):
+    """A SIGINT landing after stop_on_signals began but before its handler is in place goes to
+    the early handler (EARLY); the stop request must still see it."""
+    from hireps_torch.experiments import checkpoint
+
+    install = signal.signal
+
+    def signal_lands_first(sig, handler):
+        if sig == signal.SIGINT:
+            checkpoint.EARLY.signame = "SIGINT"  # what record_early_stops' handler does
+        return install(sig, handler)
+
+    monkeypatch.setattr(checkpoint.EARLY, "signame", None)
+    monkeypatch.setattr(checkpoint.signal, "signal", signal_lands_first)
+    with checkpoint.stop_on_signals() as stop:
+        assert stop.signame == "SIGINT"

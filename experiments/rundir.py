@@ -287,14 +287,19 @@ def plot_learning_curves(
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.subplots_adjust(left=0.14, right=0.97, bottom=0.12, top=0.92)
+    ax.ticklabel_format(style="sci", scilimits=(-3, 4), useMathText=True)  # short tick labels
+    fig.subplots_adjust(left=0.14, right=0.97, bottom=0.12, top=0.92)  # that fit these margins
     try:
         for writer in writers:
             xs = [r[x] for r in writer.rows]
             for line, y in zip(lines, ys, strict=True):
                 line.set_data(xs, [r[y] for r in writer.rows])
             ax.relim()
-            ax.autoscale_view()
+            if all(map(math.isfinite, ax.dataLim.bounds)):
+                ax.autoscale_view()
+            else:  # nothing finite to show: a fresh figure's limits, not the last writer's
+                ax.set_xlim(-0.055, 0.055, auto=None)
+                ax.set_ylim(-0.055, 0.055, auto=None)
             atomic_write(writer.dir / name, lambda p: fig.savefig(p, format="png", dpi=110))
     finally:
         plt.close(fig)

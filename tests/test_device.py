@@ -235,7 +235,8 @@ def test_algorithms_on_cuda_equal_the_cpu(population):
     for name, (diag, learned) in on_gpu.items():
         assert learned.device.type == "cuda", name
         torch.testing.assert_close(learned.cpu(), on_cpu[name][1], rtol=1e-6, atol=1e-8)
-        kl_gpu, kl_cpu = torch.tensor(diag["kl"]), torch.tensor(on_cpu[name][0]["kl"])  # (S[, K])
+        kl_gpu = torch.tensor(diag["kl"], dtype=torch.float64)  # (S[, K])
+        kl_cpu = torch.tensor(on_cpu[name][0]["kl"], dtype=torch.float64)
         torch.testing.assert_close(kl_gpu, kl_cpu, rtol=1e-6, atol=1e-9, msg=name)
 
 

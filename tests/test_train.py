@@ -720,3 +720,37 @@ def test_runs_keep_freed_memory_where_the_c_library_is_glibc():
     from hireps_torch.experiments.loop import keep_freed_memory
 
     assert keep_freed_memory() is (platform.libc_ver()[0] == "glibc")
+
+
+def test_learning_curves_of_members_share_a_figure_but_not_its_limits(tmp_path, monkeypatch):
+    """One figure is redrawn per member: each PNG shows that member's data range, and a member
+    with nothing finite gets a fresh figure's limits, not its predecessor's."""
+    import types
+
+    from matplotlib.figure import Figure
+
+    from hireps_torch.experiments.rundir import plot_learning_curves
+
+    nan, seen = float("nan"), []
+    save = Figure.savefig
+
+    def recording(fig, path, **kw):
+        seen.append((fig.axes[0].get_xlim(), fig.axes[0].get_ylim()))
+        return save(fig, path, **kw)
+
+    monkeypatch.setattr(Figure, "savefig", recording)
+    rows = {
+        "wide": [{"episodes": e, "ret": -1e5 + e, "ev": nan} for e in (0, 1000, 2000)],
+        "diverged": [{"episodes": 20, "ret": nan, "ev": nan}],
+        "small": [{"episodes": 1, "ret": 0.5, "ev": 0.25}, {"episodes": 2, "ret": 1.0, "ev": 0.75}],
+    }
+    writers = []
+    for name, r in rows.items():
+        (tmp_path / name).mkdir()
+        writers.append(types.SimpleNamespace(rows=r, dir=tmp_path / name))
+    plot_learning_curves(writers, "episodes", ["ret", "ev"], "t")
+    assert all((tmp_path / n / "learning_curve.png").stat().st_size > 0 for n in rows)
+    (wide_x, wide_y), (div_x, div_y), (small_x, small_y) = seen
+    assert wide_x[0] <= 0 and wide_x[1] >= 2000 and wide_y[0] <= -1e5 < -98000 <= wide_y[1]
+    assert div_x == pytest.approx((-0.055, 0.055)) and div_y == pytest.approx((-0.055, 0.055))
+    assert small_x[0] <= 1 < 2 <= small_x[1] < 3 and small_y[0] <= 0.25 < 1.0 <= small_y[1] < 2

@@ -1,8 +1,9 @@
 """A population of seeds in one process against one seed alone, side by side.
 
-1. ``train.py pendulum --seed 0`` (the ordinary run, TorchRL collector) and
-   ``train.py pendulum --seeds 0-(S-1)`` (one population), the same episodes, one after the
-   other in this run: wall times and their ratio.
+1. ``train.py pendulum --seed 0`` (the ordinary run), ``train.py pendulum --seeds 0-(S-1)``
+   (one population) and ``--seed 0`` again, the same episodes, one after the other in this
+   run: wall times, and the population's against the mean of the two single seeds (the
+   machine's speed drifts between runs minutes apart).
 2. The population's learning: final success per seed, and the share of seeds ending with
    success >= 0.9, next to separate runs of the same seeds (``--separate DIR``: a finished
    ``train.py sweep --experiment pendulum`` whose ``sweep.json`` is read, or
@@ -59,11 +60,13 @@ def main() -> None:
     print(f"torch threads: {torch.get_num_threads()}")
     S = args.seeds
 
-    t = time.perf_counter()
-    one = run_experiment(
-        PendulumConfig(episodes=args.episodes, seed=0, run_dir=out / "one", progress=False)
-    )
-    t_one = time.perf_counter() - t
+    def one_seed(folder: str) -> tuple[float, dict[str, Any]]:
+        cfg = PendulumConfig(episodes=args.episodes, seed=0, run_dir=out / folder, progress=False)
+        t = time.perf_counter()
+        result = run_experiment(cfg)
+        return time.perf_counter() - t, result
+
+    t_before, one = one_seed("one")
     t = time.perf_counter()
     pop = run_experiment(
         PendulumConfig(
@@ -71,8 +74,16 @@ def main() -> None:
         )
     )
     t_pop = time.perf_counter() - t
-    print(f"one seed ({args.episodes} episodes): {t_one:.1f} s (success {one['success_rate']})")
-    print(f"population of {S} seeds: {t_pop:.1f} s = {t_pop / t_one:.2f} x one seed")
+    t_after, _ = one_seed("one_after")  # the machine's speed drifts: one seed on either side
+    t_one = (t_before + t_after) / 2
+    print(
+        f"one seed ({args.episodes} episodes): {t_before:.1f} s before, {t_after:.1f} s after "
+        f"the population (success {one['success_rate']})"
+    )
+    print(
+        f"population of {S} seeds: {t_pop:.1f} s = {t_pop / t_one:.2f} x one seed (their mean; "
+        f"{t_pop / max(t_before, t_after):.2f}-{t_pop / min(t_before, t_after):.2f} x either)"
+    )
 
     success = {int(k): float(v) for k, v in pop["per_seed"].items()}
     good = sum(v >= 0.9 for v in success.values())
@@ -101,6 +112,7 @@ def main() -> None:
         "seeds": S,
         "episodes": args.episodes,
         "one_seed_seconds": t_one,
+        "one_seed_seconds_before_after": [t_before, t_after],
         "population_seconds": t_pop,
         "ratio": t_pop / t_one,
         "population_success": success,

@@ -244,23 +244,35 @@ def saved_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
 
 @dataclasses.dataclass
 class StopRequest:
-    """Set by SIGINT/SIGTERM; the training loop stops at the next iteration boundary."""
+    """Set by SIGINT/SIGTERM (``signals`` counts them) or :func:`request_stop`; the training loop
+    stops at the next iteration boundary."""
 
     signame: str | None = None
+    signals: int = 0
 
 
 EARLY = StopRequest()
-"""A SIGINT / SIGTERM from before :func:`stop_on_signals` took over: stop after iteration 1."""
+"""A stop asked for before :func:`stop_on_signals` took over: stop after iteration 1."""
+ACTIVE: StopRequest | None = None
+"""The request of the :func:`stop_on_signals` in force (None outside one)."""
 
 
 def record_early_stops() -> None:
     """Until :func:`stop_on_signals` takes over, SIGINT / SIGTERM only set :data:`EARLY`."""
 
     def handler(signum: int, frame: types.FrameType | None) -> None:
-        EARLY.signame = signal.Signals(signum).name
+        EARLY.signame = EARLY.signame or signal.Signals(signum).name
+        EARLY.signals += 1
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, handler)
+
+
+def request_stop(reason: str) -> None:
+    """Ask, from any thread, for a stop at the next iteration boundary, as a first signal does
+    (a signal after it still counts as the first)."""
+    request = ACTIVE or EARLY
+    request.signame = request.signame or reason
 
 
 @contextmanager
@@ -272,12 +284,13 @@ def stop_on_signals(then: str = "then saving the checkpoint") -> Iterator[StopRe
     previous: dict[int, Any] = {}
 
     def handler(signum: int, frame: types.FrameType | None) -> None:
-        if request.signame is not None:
+        request.signals += 1
+        if request.signals > 1:
             raise KeyboardInterrupt(f"second {names.get(signum, signum)}: stopping now")
-        request.signame = names.get(signum, str(signum))
+        name = names.get(signum, str(signum))
+        request.signame = request.signame or name
         print(
-            f"\n{request.signame}: finishing this iteration, {then} "
-            "(send it again to stop at once)",
+            f"\n{name}: finishing this iteration, {then} (send it again to stop at once)",
             file=sys.stderr,
         )
 
@@ -286,9 +299,14 @@ def stop_on_signals(then: str = "then saving the checkpoint") -> Iterator[StopRe
             previous[sig] = signal.signal(sig, handler)
     except ValueError:  # not the main thread: leave the signals alone
         previous.clear()
-    request.signame = request.signame or EARLY.signame  # read once ours is in place: none lost
+    global ACTIVE
+    outer, ACTIVE = ACTIVE, (request if previous else ACTIVE)
+    # read once ours is in place, so that nothing is lost in between
+    request.signame = request.signame or EARLY.signame
+    request.signals += EARLY.signals
     try:
         yield request
     finally:
+        ACTIVE = outer
         for sig, old in previous.items():
             signal.signal(sig, old)

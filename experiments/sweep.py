@@ -17,6 +17,7 @@ import json
 import math
 import multiprocessing
 import multiprocessing.connection
+import signal
 import statistics
 import typing
 from collections.abc import Callable, Mapping, Sequence
@@ -322,6 +323,7 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
             done(run, summary)
         return
     ctx = multiprocessing.get_context("spawn")
+    stop = ctx.Event()  # set as the sweep stops: each run going stops at its next boundary
     queued = list(runs)
     going: dict[Any, tuple[SweepRun, Any]] = {}  # the result pipe -> (run, process)
     try:
@@ -329,8 +331,13 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
             while queued and len(going) < workers:
                 run = queued.pop(0)
                 reader, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_in_worker, args=(run, send), daemon=True)
-                proc.start()
+                proc = ctx.Process(target=_in_worker, args=(run, send, stop), daemon=True)
+                # the worker starts with SIGINT blocked: a Ctrl-C waits until it is ready
+                mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+                try:
+                    proc.start()
+                finally:
+                    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
                 send.close()
                 going[reader] = (run, proc)
             for ready in multiprocessing.connection.wait(list(going)):
@@ -349,18 +356,28 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
                 else:
                     failed(run, RuntimeError(value))
     finally:  # an error or Ctrl-C: the runs going stop at their next iteration boundary
+        stop.set()
         _stop_workers([proc for _, proc in going.values()])
 
 
-def _in_worker(run: SweepRun, send: Any) -> None:
-    """A local worker process: one run, its outcome sent back as (kind, value)."""
-    from hireps_torch.experiments.checkpoint import record_early_stops
+def _in_worker(run: SweepRun, send: Any, stop: Any) -> None:
+    """A local worker process: one run, its outcome sent back as (kind, value); ``stop`` (an
+    event) set asks for a stop at the next iteration boundary, as a first SIGINT does."""
+    import threading
+
+    from hireps_torch.experiments.checkpoint import record_early_stops, request_stop
+
+    def watch() -> None:
+        stop.wait()
+        request_stop("the sweep's stop")
 
     record_early_stops()
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one held since the start lands
+    threading.Thread(target=watch, daemon=True).start()
     try:
         out: tuple[str, Any] = ("ok", _one_thread(run))
-    except KeyboardInterrupt as stop:
-        out = ("interrupted", str(stop))
+    except KeyboardInterrupt as interrupted:
+        out = ("interrupted", str(interrupted))
     except BaseException as exc:
         out = ("error", f"{type(exc).__name__}: {exc}")
     send.send(out)

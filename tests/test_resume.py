@@ -5,9 +5,11 @@ import csv
 import dataclasses
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -612,3 +614,45 @@ def test_a_signal_while_the_stop_handler_is_installed_is_not_lost(monkeypatch):
     monkeypatch.setattr(checkpoint.signal, "signal", signal_lands_first)
     with checkpoint.stop_on_signals() as stop:
         assert stop.signame == "SIGINT"
+
+
+def test_a_stop_asked_from_another_thread_is_taken_at_the_boundary_and_a_signal_after_it_is_first():
+    """request_stop (a sweep worker's watcher thread) asks for what a first signal asks for; a
+    SIGINT after it is still a first (no stop at once), a second one stops at once."""
+    from hireps_torch.experiments import checkpoint
+
+    with checkpoint.stop_on_signals() as stop:
+        assert checkpoint.ACTIVE is stop
+        watcher = threading.Thread(target=checkpoint.request_stop, args=("the sweep's stop",))
+        watcher.start()
+        watcher.join()
+        assert stop.signame == "the sweep's stop"
+        os.kill(os.getpid(), signal.SIGINT)  # handled here: a first signal only asks to stop
+        with pytest.raises(KeyboardInterrupt, match="second SIGINT: stopping now"):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)  # the handler runs at the next bytecode
+    assert checkpoint.ACTIVE is None
+
+
+def test_a_sweep_worker_stops_at_its_boundary_when_the_sweep_stops(tmp_path, monkeypatch):
+    """A worker that never saw the Ctrl-C (it was starting up) stops at its next iteration
+    boundary once the sweep sets its stop event, and says so."""
+    import multiprocessing
+
+    from hireps_torch.experiments import checkpoint, sweep
+
+    monkeypatch.setattr(checkpoint, "EARLY", checkpoint.StopRequest())
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop, (reader, send) = threading.Event(), multiprocessing.Pipe(duplex=False)
+    stop.set()
+    options = {"episodes": 400000, "samples_per_iteration": 20}
+    run = sweep.SweepRun("bimodal", "default", 0, options, tmp_path / "seed0")
+    try:
+        sweep._in_worker(run, send, stop)  # it installs its own signal handlers
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+    kind, message = reader.recv()
+    assert kind == "interrupted"
+    assert re.match(r"the sweep's stop: stopped after iteration \d+;", message), message
+    assert (tmp_path / "seed0" / "checkpoint.pt").is_file()

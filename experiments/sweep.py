@@ -323,7 +323,9 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
             done(run, summary)
         return
     ctx = multiprocessing.get_context("spawn")
-    stop = ctx.Event()  # set as the sweep stops: each run going stops at its next boundary
+    # set to 1 as the sweep stops: each run going stops at its next boundary (a plain shared
+    # byte: an Event's set() waits for every waiter to wake, and an exited worker never does)
+    stop = ctx.RawValue("b", 0)
     queued = list(runs)
     going: dict[Any, tuple[SweepRun, Any]] = {}  # the result pipe -> (run, process)
     try:
@@ -356,19 +358,21 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
                 else:
                     failed(run, RuntimeError(value))
     finally:  # an error or Ctrl-C: the runs going stop at their next iteration boundary
-        stop.set()
+        stop.value = 1
         _stop_workers([proc for _, proc in going.values()])
 
 
 def _in_worker(run: SweepRun, send: Any, stop: Any) -> None:
-    """A local worker process: one run, its outcome sent back as (kind, value); ``stop`` (an
-    event) set asks for a stop at the next iteration boundary, as a first SIGINT does."""
+    """A local worker process: one run, its outcome sent back as (kind, value); ``stop.value``
+    (a shared byte) set asks for a stop at the next iteration boundary, as a first SIGINT does."""
     import threading
+    import time
 
     from hireps_torch.experiments.checkpoint import record_early_stops, request_stop
 
     def watch() -> None:
-        stop.wait()
+        while not stop.value:
+            time.sleep(0.1)
         request_stop("the sweep's stop")
 
     record_early_stops()

@@ -643,8 +643,7 @@ def test_a_sweep_worker_stops_at_its_boundary_when_the_sweep_stops(tmp_path, mon
 
     monkeypatch.setattr(checkpoint, "EARLY", checkpoint.StopRequest())
     saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    stop, (reader, send) = threading.Event(), multiprocessing.Pipe(duplex=False)
-    stop.set()
+    stop, (reader, send) = multiprocessing.RawValue("b", 1), multiprocessing.Pipe(duplex=False)
     options = {"episodes": 400000, "samples_per_iteration": 20}
     run = sweep.SweepRun("bimodal", "default", 0, options, tmp_path / "seed0")
     try:

@@ -19,7 +19,13 @@ from hireps_torch.experiments.loop import (
     resume_point,
 )
 from hireps_torch.experiments.options import RunOptions, check_options, option_error
-from hireps_torch.experiments.workers import Backend, EpisodeCollector, make_pool, reproducible_mkl
+from hireps_torch.experiments.workers import (
+    Backend,
+    EpisodeCollector,
+    check_pool,
+    make_pool,
+    reproducible_mkl,
+)
 
 __all__ = [
     "HockeyConfig",
@@ -240,10 +246,7 @@ def _check(cfg: HockeyConfig) -> int:
         raise ValueError(f"exploration_floor_end must be in [0, 1) or None, got {end!r}")
     if not 0.0 <= cfg.puck_restitution <= 1.0:
         raise ValueError(f"puck_restitution must be in [0, 1], got {cfg.puck_restitution}")
-    if cfg.backend not in ("local", "ray"):
-        raise ValueError(f"backend must be 'local' or 'ray', got {cfg.backend!r}")
-    if cfg.ray_address is not None and cfg.backend != "ray":
-        raise ValueError(f"--ray-address {cfg.ray_address!r} needs --backend ray")
+    check_pool(W, cfg.backend, cfg.ray_address)
     return iterations
 
 

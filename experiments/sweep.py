@@ -33,6 +33,7 @@ from hireps_torch.experiments.rundir import DirectoryLock
 from hireps_torch.experiments.workers import (
     RAY_ENV,
     Backend,
+    check_pool,
     check_ray_address,
     import_ray,
     init_ray,
@@ -442,12 +443,7 @@ def _ray(
 def check_backend(backend: str, workers: object, ray_address: str | None) -> None:
     """A ``ValueError`` naming a bad ``--backend``, ``--workers`` or ``--ray-address`` (an
     ``ImportError`` when Ray is asked for and missing)."""
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
-    if backend not in ("local", "ray"):
-        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
-    if ray_address is not None and backend != "ray":
-        raise ValueError(f"--ray-address {ray_address!r} needs --backend ray")
+    check_pool(workers, backend, ray_address)
     if ray_address is not None:
         check_ray_address(ray_address)
     if backend == "ray":

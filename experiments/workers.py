@@ -36,6 +36,7 @@ __all__ = [
     "InProcessPool",
     "LocalProcessPool",
     "RayPool",
+    "check_pool",
     "episode_seeds",
     "import_ray",
     "make_pool",
@@ -411,6 +412,16 @@ class RayPool:
             self._ray.shutdown()
 
 
+def check_pool(workers: object, backend: object, address: str | None) -> None:
+    """A ``ValueError`` naming a bad ``--workers``, ``--backend`` or ``--ray-address``."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if address is not None and backend != "ray":
+        raise ValueError(f"--ray-address {address!r} needs --backend ray (got {backend!r})")
+
+
 def make_pool(
     make_env: Callable[[], Any],
     workers: int = 1,
@@ -418,12 +429,7 @@ def make_pool(
     address: str | None = None,
 ) -> EpisodePool:
     """The pool for ``backend`` (see the module docstring); ``address`` only with ``ray``."""
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
-    if backend not in ("local", "ray"):
-        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
-    if address is not None and backend != "ray":
-        raise ValueError(f"--ray-address {address!r} needs --backend ray (got {backend!r})")
+    check_pool(workers, backend, address)
     if backend == "ray":
         return RayPool(make_env, workers, address)
     return InProcessPool(make_env) if workers == 1 else LocalProcessPool(make_env, workers)

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.checks import check_device, check_present_device
 from hireps_torch.experiments.rundir import LoggerName, jsonable
 
@@ -93,19 +94,6 @@ def check_run_device(device: str) -> torch.device:
     except ValueError as exc:
         raise option_error("device", device, f"a device present here ({exc})") from None
     return dev
-
-
-STREAMS = ("policy", "sampling", "env", "eval", "contexts")
-"""The named random streams of a run, each seeded by :func:`stream_seed`."""
-
-
-def stream_seed(seed: int, stream: str) -> int:
-    """The seed in [0, 2**32) of stream ``stream`` (one of :data:`STREAMS`) of the run with
-    ``seed``: numpy's ``SeedSequence`` of ``(seed, stream index)``, so streams are unrelated."""
-    import numpy as np
-
-    entropy = (seed % 2**64, STREAMS.index(stream))
-    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
 
 
 def member_seeds(cfg: RunOptions) -> list[int]:

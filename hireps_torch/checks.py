@@ -32,26 +32,8 @@ __all__ = [
 
 
 def as_f64(name: str, value: Tensor | object, device: torch.device | None = None) -> Tensor:
-    """``value`` (numbers or a tensor) as a detached float64 tensor; numbers go on ``device``
-    (CPU when None), tensors keep theirs. A ``TypeError`` for non-numbers and complex values, a
-    ``ValueError`` for a meta tensor or one on another ``device`` (when given)."""
-    if not isinstance(value, Tensor):
-        try:
-            value = torch.as_tensor(value, dtype=torch.float64, device=device or "cpu")
-        except Exception as exc:
-            raise TypeError(
-                f"{name} must be a tensor or numbers, got {type(value).__name__} {_short(value)}"
-            ) from exc
-    if value.is_complex():
-        raise TypeError(f"{name} must be real, got a {value.dtype} tensor")
-    if device is not None and value.device != torch.device(device):
-        raise ValueError(
-            f"{name} is on device {value.device} but the other inputs are on {device}: move "
-            "them to one device first"
-        )
-    if value.is_meta:
-        raise ValueError(f"{name} is a meta tensor (no values); pass a tensor with data")
-    return value.detach().to(dtype=torch.float64)
+    """:func:`as_float_tensor` in float64 (bools as 0 / 1)."""
+    return as_float_tensor(name, value, torch.float64, device)
 
 
 def _short(value: object) -> str:
@@ -133,13 +115,10 @@ def as_float_tensor(
     *,
     allow_bool: bool = True,
 ) -> Tensor:
-    """``value`` (tensor, numbers; bool only with ``allow_bool``) as a detached ``dtype`` tensor,
-    values unchecked. A ``TypeError`` for complex or non-numbers, a ``ValueError`` for a meta
-    tensor or one on another ``device`` (when given)."""
-    if not allow_bool and (
-        isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool)
-    ):
-        raise TypeError(f"{name} must be a number or a tensor of numbers, got the bool {value!r}")
+    """``value`` (a tensor or numbers; bools as 0 / 1 only with ``allow_bool``) as a detached
+    ``dtype`` tensor, values unchecked; numbers go on ``device`` (CPU when None), tensors keep
+    theirs. A ``TypeError`` for bools, complex values or non-numbers, a ``ValueError`` for a
+    meta tensor or one on another ``device`` (when given)."""
     if isinstance(value, Tensor):
         t = value.detach()
     else:
@@ -152,15 +131,19 @@ def as_float_tensor(
             raise TypeError(
                 f"{name} must be a tensor of numbers, got {type(value).__name__} {_short(value)}"
             ) from exc
+    if t.dtype == torch.bool and not allow_bool:
+        raise TypeError(
+            f"{name} must be a number or a tensor of numbers, got bools: {_short(value)}"
+        )
     if t.is_complex() or not (t.is_floating_point() or t.dtype == torch.bool or _is_int(t)):
         raise TypeError(f"{name} must hold real numbers, got dtype {t.dtype}")
-    if t.is_meta and device is None:
-        raise ValueError(f"{name} is a meta tensor (no values); pass a tensor with data")
-    if device is not None and t.device != device:
+    if device is not None and t.device != torch.device(device):
         raise ValueError(
-            f"{name} is on device {t.device} but the model is on {device}; move one of them "
-            f"(e.g. {name}.to({str(device)!r}))"
+            f"{name} is on device {t.device} but the other inputs are on {device}: move them "
+            f"to one device (e.g. {name}.to({str(device)!r}))"
         )
+    if t.is_meta:
+        raise ValueError(f"{name} is a meta tensor (no values); pass a tensor with data")
     return t.to(dtype)
 
 
@@ -242,12 +225,11 @@ SEED_RANGE = (-(2**63), 2**64 - 1)
 """The seeds ``torch.Generator.manual_seed`` takes."""
 
 
-def check_seed(name: str, value: object, headroom: int = 0) -> int:
-    """An integer seed in :data:`SEED_RANGE`, less ``headroom`` at the top, as an int."""
+def check_seed(name: str, value: object) -> int:
+    """An integer seed in :data:`SEED_RANGE`, as an int."""
     seed = check_count(name, value, SEED_RANGE[0])
-    top = SEED_RANGE[1] - headroom
-    if seed > top:
-        raise ValueError(f"{name} must be an integer in [-2**63, {top}], got {seed}")
+    if seed > SEED_RANGE[1]:
+        raise ValueError(f"{name} must be an integer in [-2**63, {SEED_RANGE[1]}], got {seed}")
     return seed
 
 
@@ -288,8 +270,8 @@ def check_state_dict(
     ]
     if wrong:
         raise ValueError(
-            f"{what}: the checkpoint was made for other shapes (another number of options or "
-            f"another dimension?): {'; '.join(wrong)}"
+            f"{what}: the checkpoint was made for other shapes (another population size, "
+            f"number of options or dimension?): {'; '.join(wrong)}"
         )
     missing = [k for k in expected if k not in state]
     unexpected = [k for k in state if k not in expected]

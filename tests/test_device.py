@@ -171,14 +171,14 @@ def test_dual_inputs_on_two_devices_are_named():
 
 def test_algorithm_refuses_samples_on_another_device():
     algo = EpisodicHiREPS.create(context_dim=2, param_dim=2, n_options=2, seed=0)
-    with pytest.raises(ValueError, match="contexts is on device meta but the model is on cpu"):
+    with pytest.raises(ValueError, match="contexts is on device meta but the other inputs are on"):
         algo.ask(torch.empty(5, 2, device="meta"))
     features = FourierFeatures(low=[-1.0], high=[1.0], n_bases=3)
     ih = InfiniteHorizonHiREPS.create(
         1, 1, value_features=features, initial_states=torch.zeros(4, 1), gamma=0.9, seed=0
     )
     s, a = torch.zeros(6, 1), torch.zeros(6, 1)
-    with pytest.raises(ValueError, match="terminated is on device meta but the model is on cpu"):
+    with pytest.raises(ValueError, match="terminated is on device meta but the other inputs"):
         ih.update(s, a, torch.zeros(6), s, torch.empty(6, dtype=torch.bool, device="meta"))
 
 

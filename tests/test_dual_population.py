@@ -169,7 +169,7 @@ def test_a_population_of_one_is_the_single_solve():
     [
         (
             lambda: solve_episodic_dual(torch.zeros(10), epsilon=0.5, population=True),
-            r"returns must have shape \(S, N,\), got \(10,\)",
+            r"returns must have shape \(S, N\), got \(10,\)",
         ),
         (
             lambda: solve_episodic_dual(torch.zeros(3, 10), epsilon=0.5),

@@ -117,11 +117,11 @@ DUAL_PROBES = {
     ),
     "string returns name the value": (
         lambda: solve_episodic_dual("abc", epsilon=0.5),
-        "returns must be a tensor or numbers, got str 'abc'",
+        "returns must be a tensor of numbers, got str 'abc'",
     ),
     "string epsilon names the value": (
         lambda: solve_episodic_dual(R, epsilon="0.5"),
-        "epsilon must be a tensor or numbers, got str '0.5'",
+        "epsilon must be a tensor of numbers, got str '0.5'",
     ),
     "O = 0 option columns": (
         lambda: solve_episodic_dual(R, epsilon=0.5, log_responsibilities=LR[:, :0]),
@@ -197,7 +197,7 @@ DUAL_PROBES = {
     "epsilon -0.0": (lambda: solve_episodic_dual(R, epsilon=-0.0), "epsilon must be finite"),
     "complex returns": (
         lambda: solve_episodic_dual(R.to(torch.complex128), epsilon=0.5),
-        "returns must be real",
+        "returns must hold real numbers",
     ),
     "3-d returns": (
         lambda: solve_episodic_dual(R[:, None, None], epsilon=0.5),
@@ -472,9 +472,9 @@ ALGO_CREATE_PROBES = {
         lambda: EpisodicHiREPS.create(2, seed=2**70),
         r"seed must be an integer in \[-2\*\*63, ",
     ),
-    "seed whose seed + 1 overflows": (
-        lambda: EpisodicHiREPS.create(2, seed=2**64 - 1),
-        r"seed must be an integer in \[-2\*\*63, 18446744073709551614\]",
+    "seeds that are one seed to torch": (
+        lambda: EpisodicHiREPS.create(2, seed=[-3, 2**64 - 3]),
+        r"seeds -3 and 18446744073709551613 .* are one seed to torch \(equal modulo 2\*\*64\)",
     ),
     "context_features string": (
         lambda: EpisodicHiREPS(
@@ -527,7 +527,7 @@ IH_PROBES = {
     ),
     "terminated meta": (
         lambda: IH.update(_s, _a, _r, _s + 0.1, torch.zeros(20, dtype=torch.bool, device="meta")),
-        "terminated is on device meta but the model is on cpu",
+        "terminated is on device meta but the other inputs are on cpu",
     ),
     "terminated ints": (
         lambda: IH.update(_s, _a, _r, _s + 0.1, torch.zeros(20, dtype=torch.int64)),

@@ -8,6 +8,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, Self, TypedDict, runtime_checkable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -43,6 +44,7 @@ __all__ = [
     "next_seed",
     "population_seeds",
     "seeded_generator",
+    "stream_seed",
 ]
 
 
@@ -145,24 +147,44 @@ def population_seeds(seed: object, population: int | None) -> list[int] | None:
                 f"{list(range(population))}), got the single seed {seed!r}"
             )
         return list(range(population))
-    seeds = [check_seed(f"seed[{s}]", x, headroom=1) for s, x in enumerate(seed)]
+    seeds = [check_seed(f"seed[{s}]", x) for s, x in enumerate(seed)]
     if not seeds:
         raise ValueError("a population needs at least one seed, got an empty sequence")
     if population is not None and len(seeds) != population:
         raise ValueError(
             f"population = {population} does not match the {len(seeds)} seeds given ({seeds})"
         )
-    repeated = sorted({x for x in seeds if seeds.count(x) > 1})
-    if repeated:
-        raise ValueError(
-            f"seed {repeated[0]} is repeated in {seeds}: members with one seed would be copies"
-        )
+    first: dict[int, int] = {}  # torch seeds modulo 2**64
+    for x in seeds:
+        y = first.setdefault(x % 2**64, x)
+        if y != x:
+            raise ValueError(
+                f"seeds {y} and {x} in {seeds} are one seed to torch (equal modulo 2**64): "
+                "members with one seed would be copies"
+            )
+        if seeds.count(x) > 1:
+            raise ValueError(
+                f"seed {x} is repeated in {seeds}: members with one seed would be copies"
+            )
     return seeds
 
 
-def next_seed(seed: int | None) -> int | None:
-    """The seed of the sampling generator of a ``create``d algorithm: ``seed + 1``."""
-    return None if seed is None else check_seed("seed", seed, headroom=1) + 1
+STREAMS = ("policy", "sampling", "env", "eval", "contexts")
+"""The named random streams of a run, each seeded by :func:`stream_seed`."""
+
+
+def stream_seed(seed: int, stream: str) -> int:
+    """The seed in [0, 2**32) of stream ``stream`` (one of :data:`STREAMS`) of the run with
+    ``seed``: numpy's ``SeedSequence`` of ``(seed mod 2**64, stream index)``, so streams are
+    unrelated."""
+    entropy = (seed % 2**64, STREAMS.index(stream))
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
+
+
+def next_seed(seed: int | None) -> int:
+    """The seed of the sampling generator of a ``create``d algorithm: the ``"sampling"``
+    :func:`stream_seed` of ``seed`` (None: 0)."""
+    return stream_seed(0 if seed is None else check_seed("seed", seed), "sampling")
 
 
 def fresh_policies(
@@ -214,7 +236,7 @@ def member_policies(
         fresh_policies(means, n_options, state_dim, action_dim, s, **policy_kwargs) for s in seeds
     ]
     stacked = [HierarchicalPolicy.stack([m[k] for m in members]) for k in range(len(means))]
-    return stacked, [s + 1 for s in seeds]
+    return stacked, [next_seed(s) for s in seeds]
 
 
 def check_step(step: int, n_steps: int) -> int:

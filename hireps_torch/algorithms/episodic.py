@@ -123,6 +123,7 @@ class EpisodicHiREPS(HiREPSBase):
         init_mean: Tensor | None = None,
         epsilon: float = 1.0,
         kappa_rel: float | None = 0.9,
+        prune_threshold: float = 1e-4,
         seed: int | Sequence[int] | None = None,
         population: int | None = None,
         **policy_kwargs: Unpack[PolicyKwargs],
@@ -136,8 +137,9 @@ class EpisodicHiREPS(HiREPSBase):
             init_mean: (D,) or (O, D) initial option means; zeros by default.
             epsilon: KL bound.
             kappa_rel: relative entropy bound (None: off).
-            seed: seeds the initial option means (and, as seed + 1, the sampling generator);
-                a sequence of S distinct seeds builds a population.
+            prune_threshold: prior mass below which options are pruned (0: never).
+            seed: seeds the initial option means (None: 0) and, by its "sampling" ``stream_seed``,
+                the sampling generator; a sequence of S distinct seeds builds a population.
             population: S independent runs in one algorithm (default seeds 0 .. S-1): every
                 input and output gains a leading S, diagnostics one entry per member; member
                 s draws and learns what it would alone (to round-off).
@@ -147,7 +149,12 @@ class EpisodicHiREPS(HiREPSBase):
             seed, population, [init_mean], n_options, context_dim, param_dim, **policy_kwargs
         )
         return cls(
-            policy[0], epsilon=epsilon, kappa_rel=kappa_rel, context_dim=context_dim, seed=sampling
+            policy[0],
+            epsilon=epsilon,
+            kappa_rel=kappa_rel,
+            prune_threshold=prune_threshold,
+            context_dim=context_dim,
+            seed=sampling,
         )
 
     # ---- input handling ---------------------------------------------------------------------
@@ -251,7 +258,8 @@ class EpisodicHiREPS(HiREPSBase):
             Diagnostics: ``eta, xi, kappa, kl, cross_entropy, effective_sample_size,
             option_entropy`` (before), ``policy_entropy`` (after), ``n_active_options, pruned,
             refitted`` (False: no information), ``mean_return, max_return, dual_converged,
-            dual_iterations, feature_error, iteration``.
+            dual_iterations, feature_error, iteration``; ``kappa`` is NaN where the entropy
+            bound is off.
         """
         c, theta, R = self._samples(contexts, params, returns)
         bound = option_bound(self.policy, c, theta, self.kappa_rel)

@@ -138,8 +138,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             epsilon: KL bound.
             kappa_rel: relative entropy bound (None: off).
             prune_threshold: prior mass below which options are pruned (0: never).
-            seed: seeds the initial option means (and, as seed + 1, the sampling generator);
-                a sequence of S distinct seeds builds a population.
+            seed: seeds the initial option means (None: 0) and, by its "sampling" ``stream_seed``,
+                the sampling generator; a sequence of S distinct seeds builds a population.
             population: S independent runs (see :meth:`EpisodicHiREPS.create`); the
                 ``initial_states`` are shared.
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
@@ -212,8 +212,9 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 ) from None
             if term.device != self.device:
                 raise ValueError(
-                    f"terminated is on device {term.device} but the model is on {self.device}; "
-                    f"move one of them (e.g. terminated.to({str(self.device)!r}))"
+                    f"terminated is on device {term.device} but the other inputs are on "
+                    f"{self.device}: move them to one device (e.g. terminated.to("
+                    f"{str(self.device)!r}))"
                 )
             if term.shape != (*lead, N) or term.dtype != torch.bool:
                 raise ValueError(

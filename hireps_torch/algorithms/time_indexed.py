@@ -152,6 +152,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         epsilon: float | Sequence[float] = 1.0,
         kappa_rel: float | None = 0.9,
         value_features: FeatureMap | None = None,
+        prune_threshold: float = 1e-4,
         seed: int | Sequence[int] | None = None,
         population: int | None = None,
         **policy_kwargs: Unpack[PolicyKwargs],
@@ -167,8 +168,9 @@ class TimeIndexedHiREPS(HiREPSBase):
             epsilon: KL bound, one float or K floats.
             kappa_rel: relative entropy bound (None: off).
             value_features: value features phi (default: the squared expansion of the state).
-            seed: seeds the initial option means (and, as seed + 1, the sampling generator);
-                a sequence of S distinct seeds builds a population.
+            prune_threshold: prior mass below which options are pruned (0: never).
+            seed: seeds the initial option means (None: 0) and, by its "sampling" ``stream_seed``,
+                the sampling generator; a sequence of S distinct seeds builds a population.
             population: S independent runs (see :meth:`EpisodicHiREPS.create`).
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
@@ -193,6 +195,7 @@ class TimeIndexedHiREPS(HiREPSBase):
             value_features or QuadraticFeatures(context_dim),
             epsilon=epsilon,
             kappa_rel=kappa_rel,
+            prune_threshold=prune_threshold,
             seed=sampling,
         )
 
@@ -283,7 +286,8 @@ class TimeIndexedHiREPS(HiREPSBase):
             Diagnostics: lists of K ``eta, xi, kappa, kl, cross_entropy,
             effective_sample_size, option_entropy, policy_entropy, n_active_options, pruned,
             refitted, mean_rewards``; scalars ``feature_error, dual_converged,
-            dual_iterations, mean_return`` (of the summed rewards), ``max_return, iteration``.
+            dual_iterations, mean_return`` (of the summed rewards), ``max_return, iteration``;
+            ``kappa`` is NaN where the entropy bound is off.
         """
         s, theta, R = self._episodes(states, params, rewards)
         lead, (N, K) = R.shape[:-2], R.shape[-2:]

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from hireps_torch._linalg import logsumexp
-from hireps_torch.checks import as_f64, as_float, check_finite, check_positive
+from hireps_torch.checks import as_f64, as_float, as_float_tensor, check_finite, check_positive
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
 __all__ = [
@@ -63,18 +63,22 @@ def check_log_resp(log_resp: Tensor, name: str = "log_responsibilities") -> Tens
 
 
 def per_block(
-    name: str, value: float | Tensor, K: int, device: torch.device | None = None
+    name: str,
+    value: float | Tensor,
+    K: int,
+    device: torch.device | None = None,
+    S: int | None = None,
 ) -> Tensor:
-    """A bound (one float or (K,)) as a (K,) float64 tensor on ``device``; a bool is a
-    ``TypeError``."""
-    if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
-        raise TypeError(f"{name} must be a number or a tensor of numbers, got {value!r}")
-    t = as_f64(name, value).to(device)
+    """A bound (one float or (K,)) as a (K,) float64 tensor on ``device``; ``S``: the messages
+    name a population's per-member shapes too."""
+    t = as_float_tensor(name, value, allow_bool=False).to(device)
     if t.dim() == 0:
         return t.expand(K).clone()
     if t.shape != (K,):
+        members = "" if S is None else f", or per member ({S}, {K})"
+        members += f" or ({S},)" if S is not None and K == 1 else ""
         raise ValueError(
-            f"{name} must be a float or have shape ({K},) (one per decision step), got "
+            f"{name} must be a float or have shape ({K},) (one per block){members}, got "
             f"{tuple(t.shape)}"
         )
     return t
@@ -109,7 +113,8 @@ def common_inputs(
         raise TypeError(f"population must be True or False, got {population!r}")
     R = as_f64(name, returns)
     dev = R.device
-    dims = ("S, " if population else "") + ("N, K" if per_step else "N,")
+    names = ["S"] * population + ["N"] + ["K"] * per_step
+    dims = ", ".join(names) + ("," if len(names) == 1 else "")
     if R.dim() != (2 if per_step else 1) + int(population):
         raise ValueError(f"{name} must have shape ({dims}), got {tuple(R.shape)}")
     if population and R.shape[0] < 1:
@@ -127,7 +132,8 @@ def common_inputs(
     R = R.reshape(S, N, -1).transpose(1, 2).contiguous()
     K = R.shape[1]
     per_problem = population and isinstance(kappa, Tensor) and _per_problem(kappa, S, K)
-    eps, kap = check_bounds(epsilon, None if per_problem else kappa, K, N, 4, dev)
+    members = S if population else 0
+    eps, kap = check_bounds(epsilon, None if per_problem else kappa, K, N, 4, dev, members)
     if per_problem:
         kap = as_f64("kappa", kappa).to(dev).reshape(S, K)
         if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
@@ -148,15 +154,17 @@ def check_bounds(
     N: int,
     stacklevel: int,
     device: torch.device | None = None,
+    S: int = 0,
 ) -> tuple[Tensor, Tensor | None]:
     """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, on ``device``; warns
-    (``stacklevel`` frames up) where epsilon >= log N."""
+    (``stacklevel`` frames up) where epsilon >= log N. ``S`` > 0: a population's kappa may also
+    be (S, K) (messages)."""
     eps = per_block("epsilon", epsilon, K, device)
     check_positive("epsilon", eps)
     warn_if_degenerate(eps.tolist(), N, stacklevel)
     kap = None
     if kappa is not None:
-        kap = per_block("kappa", kappa, K, device)
+        kap = per_block("kappa", kappa, K, device, S or None)
         if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
             raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
     return eps, kap

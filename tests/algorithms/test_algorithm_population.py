@@ -13,6 +13,7 @@ from hireps_torch.algorithms import (
     InfiniteHorizonHiREPS,
     TimeIndexedHiREPS,
 )
+from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.features import FourierFeatures
 
 SEEDS = [3, 5, 11]
@@ -148,6 +149,8 @@ def test_bad_population_settings_name_the_value():
         EpisodicHiREPS.create(2, seed=[0, 1, 2], population=4)
     with pytest.raises(ValueError, match="seed 1 is repeated"):
         EpisodicHiREPS.create(2, seed=[0, 1, 1])
+    with pytest.raises(ValueError, match="seeds -1 and 18446744073709551615 .* are one seed"):
+        EpisodicHiREPS.create(2, seed=[-1, 2**64 - 1])
     with pytest.raises(ValueError, match="takes one seed per member"):
         EpisodicHiREPS.create(2, seed=3, population=2)
     assert EpisodicHiREPS.create(2, population=2).population == 2
@@ -159,6 +162,58 @@ def test_bad_population_settings_name_the_value():
         pop.tell(torch.zeros(2, 5, 1), theta, torch.zeros(5))
     with pytest.raises(ValueError, match="is on device meta"):
         pop.tell(torch.zeros(2, 5, 1), theta.to("meta"), torch.zeros(2, 5))
+
+
+def test_a_members_sampling_stream_is_not_another_members_policy_stream():
+    # member s's sampling generator is its seed's "sampling" stream, not seed + 1: with the
+    # default seeds 0 .. S-1, seed + 1 would replay member s + 1's initial option means
+    pop = EpisodicHiREPS.create(2, n_options=3, population=3)
+    for s, gen in enumerate(pop.generator):
+        assert torch.equal(
+            gen.get_state(), torch.Generator().manual_seed(stream_seed(s, "sampling")).get_state()
+        )
+        for t in range(4):  # the policy streams of every member (and of seed 3)
+            assert not torch.equal(gen.get_state(), torch.Generator().manual_seed(t).get_state())
+    assert torch.equal(
+        EpisodicHiREPS.create(2, seed=None).ask(4), EpisodicHiREPS.create(2, seed=0).ask(4)
+    )
+
+
+def test_the_top_seed_works_alone_and_in_a_population():
+    top = 2**64 - 1
+    alone, pop = EpisodicHiREPS.create(2, seed=top), EpisodicHiREPS.create(2, seed=[top, 0])
+    torch.testing.assert_close(pop.ask(5)[0], alone.ask(5), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda **kw: EpisodicHiREPS.create(2, n_options=2, **kw),
+        lambda **kw: TimeIndexedHiREPS.create(2, 1, 1, n_options=2, **kw),
+        lambda **kw: InfiniteHorizonHiREPS.create(
+            1, 1, n_options=2, value_features=FourierFeatures([-1.0], [1.0], 3),
+            initial_states=torch.zeros(4, 1, dtype=torch.float64), gamma=0.9, **kw,
+        ),
+    ],
+)  # fmt: skip
+def test_every_create_takes_the_prune_threshold(make):
+    assert make(prune_threshold=0.25, seed=0).prune_threshold == 0.25
+    with pytest.raises(ValueError, match="prune_threshold"):
+        make(prune_threshold=-1.0, seed=0)
+
+
+def test_a_population_kappa_of_the_wrong_length_names_the_member_shapes():
+    from hireps_torch.dual import solve_episodic_dual
+
+    R = torch.randn(3, 20, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    lr = torch.full((3, 20, 3), -torch.log(torch.tensor(3.0)), dtype=torch.float64)
+    kw = dict(epsilon=0.5, log_responsibilities=lr, population=True)
+    with pytest.raises(
+        ValueError, match=r"kappa must be .* or per member \(3, 1\) or \(3,\), got \(2,\)"
+    ):
+        solve_episodic_dual(R, kappa=torch.tensor([0.9, 0.8]), **kw)
+    sol = solve_episodic_dual(R, kappa=torch.tensor([0.9, 0.8, 0.7]), **kw)
+    assert sol.eta.shape[0] == 3
 
 
 @pytest.mark.parametrize("kappa_rel", [None, 0.9])

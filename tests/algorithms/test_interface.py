@@ -15,6 +15,7 @@ from hireps_torch.algorithms import (
     InfiniteHorizonHiREPS,
     TimeIndexedHiREPS,
 )
+from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.features import QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -238,7 +239,8 @@ def test_infinite_horizon_create_is_the_manual_construction():
         4, 2, 3, init_std=0.5, spread=2.0, gating_features=QuadraticFeatures(2),
         generator=torch.Generator().manual_seed(5),
     )  # fmt: skip
-    manual = InfiniteHorizonHiREPS(policy, kappa_rel=0.8, prune_threshold=0.0, seed=6, **kw)
+    sampling = stream_seed(5, "sampling")
+    manual = InfiniteHorizonHiREPS(policy, kappa_rel=0.8, prune_threshold=0.0, seed=sampling, **kw)
     a, b = algo.state_dict(), manual.state_dict()
     assert a.keys() == b.keys()
     for k, v in a["policy"].items():

@@ -260,7 +260,7 @@ def test_bad_parameters_to_log_prob_and_responsibilities_are_named():
 
 def test_wrong_device_empty_batches_and_all_pruned():
     pol, s, theta = fitted_policy()
-    with pytest.raises(ValueError, match="context is on device meta but the model is on cpu"):
+    with pytest.raises(ValueError, match="context is on device meta but the other inputs are on"):
         pol.sample(torch.zeros(3, 1, device="meta"))
     th, opt = pol.sample(s[:0])
     assert th.shape == (0, 2) and opt.shape == (0,)

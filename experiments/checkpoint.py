@@ -51,6 +51,7 @@ class RunInterrupted(KeyboardInterrupt):
         )
         self.run_dir = run_dir
         self.iteration = iteration
+        self.signame = signame
 
 
 class RunFinished(Exception):
@@ -135,8 +136,8 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
     except Exception as exc:  # truncated, empty, not a torch file, pickled objects, ...
         why = next(iter(str(exc).splitlines()), "")[:200] or "no message"
         raise ValueError(
-            f"{path} cannot be read ({type(exc).__name__}: {why}); "
-            "move it away to restart this run from its first iteration"
+            f"{path} cannot be read ({type(exc).__name__}: {why}); restore it, or move the "
+            "run directory away and start the run again (nothing was changed)"
         ) from exc
     if not isinstance(ckpt, dict):
         raise ValueError(f"{path} holds a {type(ckpt).__name__}, not a checkpoint of this code")
@@ -161,7 +162,7 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
     if isinstance(it, bool) or not isinstance(it, int) or counts != [it]:
         raise ValueError(
             f"{path} is damaged: it is at iteration {it!r} but holds {counts} metrics row(s) "
-            "per member; move it away to restart this run from its first iteration"
+            "per member; restore it, or move the run directory away and start the run again"
         )
     if isinstance(ckpt["elapsed"], bool) or not isinstance(ckpt["elapsed"], (int, float)):
         raise ValueError(f"{path} is damaged: its elapsed time is {ckpt['elapsed']!r}")

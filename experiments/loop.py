@@ -45,6 +45,7 @@ __all__ = [
     "finish_run",
     "infinite_horizon_postfix",
     "infinite_horizon_update",
+    "logged_rows",
     "resume_point",
 ]
 
@@ -95,7 +96,7 @@ def _checked_resume(experiment: str, cfg: RunOptions, run_dir: Path) -> Resume:
         )
     seeds = saved.get("seeds")
     dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
-    logged = {d: _logged_rows(d / "metrics.csv") for d in dirs}
+    logged = {d: logged_rows(d / "metrics.csv") for d in dirs}
     ckpt = load_checkpoint(run_dir)
     parent = run_dir.resolve().parent
     if ckpt is None and seeds is None and (parent / "checkpoint.pt").is_file():
@@ -130,7 +131,7 @@ def _checked_resume(experiment: str, cfg: RunOptions, run_dir: Path) -> Resume:
     return Resume(run_dir, ckpt)
 
 
-def _logged_rows(path: Path) -> int:
+def logged_rows(path: Path) -> int:
     """The data rows of a ``metrics.csv`` (0 if absent; a ``ValueError`` if not a file)."""
     if path.exists() and not path.is_file():
         raise ValueError(f"{path} is not a file; move it away (nothing was changed)")
@@ -473,7 +474,8 @@ MAX_WORKERS = 1024
 
 def check_budget(episodes: int, episodes_per_iteration: int, **positive: int) -> int:
     """Every count >= 1 and at least one iteration's episodes; returns the iterations."""
-    for name, value in {**positive, "episodes_per_iteration": episodes_per_iteration}.items():
+    counts = {**positive, "episodes_per_iteration": episodes_per_iteration, "episodes": episodes}
+    for name, value in counts.items():
         top = MAX_WORKERS if name == "workers" else MAX_COUNT
         if not 1 <= value <= top:
             raise ValueError(f"{name} must be in 1..{top}, got {value}")

@@ -150,7 +150,10 @@ class RunWriter:
                 "exist; pass another --run-dir or create its target (nothing was written)"
             )
         created = not self.dir.exists()
-        self.dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OSError(f"cannot create the run directory {self.dir}: {exc}") from None
         try:
             self.lock = DirectoryLock(self.dir)
             self.logger = make_logger(logger, self.dir, config.get("experiment", "run"))
@@ -163,7 +166,7 @@ class RunWriter:
         self.rows: list[dict[str, Any]] = []
         if resuming:
             self._rewrite_metrics(rows or [])
-        else:
+        if not resuming or not (self.dir / "config.json").is_file():  # a member's, deleted
             self.write_json("config.json", config)
 
     def elapsed(self) -> float:

@@ -21,6 +21,7 @@ from hireps_torch.experiments.checkpoint import (
     read_config,
     run_config,
 )
+from hireps_torch.experiments.loop import logged_rows
 
 __all__ = ["LoadedRun", "load_run"]
 
@@ -68,8 +69,10 @@ class LoadedRun:
                 raise ValueError(
                     f"states must be a (N, {C}) tensor, got {type(states).__name__}"
                 ) from None
-            if x.dim() != 2 or x.shape[-1] != C:
-                raise ValueError(f"states must have shape (N, {C}), got {tuple(x.shape)}")
+            if x.dim() != 2 or x.shape[-1] != C or x.shape[0] == 0:
+                raise ValueError(
+                    f"states must have shape (N, {C}) with N >= 1, got {tuple(x.shape)}"
+                )
         if self.algorithm.population is None:  # hockey: one ordinary algorithm
             return act(x, step)
         return act(x[None], step)[0]
@@ -99,9 +102,14 @@ def load_run(run_dir: str | Path) -> LoadedRun:
     root, member = _checkpoint_dir(run_dir, config.seed)
     ckpt = load_checkpoint(root, map_location="cpu")
     if ckpt is None:
+        rows = logged_rows(run_dir / "metrics.csv")
         raise ValueError(
             f"{root} holds no checkpoint.pt: the run had not finished its first iteration, "
             "so nothing was learned yet"
+            if not rows
+            else f"{root} holds no checkpoint.pt but {rows} metrics row(s): a population "
+            "member's policy is in its population's checkpoint (load it inside the population's "
+            "directory), or the checkpoint was moved away"
         )
     _check_same_run(root, ckpt, saved if member is None else read_config(root))
     state = ckpt["algorithm"]

@@ -67,18 +67,28 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 def entry() -> None:
     """``hireps-train``: :func:`main` with hockey in ``MKL_CBWR=COMPATIBLE`` (unless set) and
-    exit codes (130 on Ctrl-C, 2 on bad options or an unwritable run directory)."""
+    exit codes (130 on Ctrl-C, 143 on SIGTERM, 2 on bad options or an unwritable run directory,
+    1 when memory runs out)."""
     if any("hockey-" in arg for arg in sys.argv[1:]):  # before MKL's first call
         os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
-    from hireps_torch.experiments.checkpoint import RunFinished
+    try:  # the imports too: Ctrl-C while they load is an interrupt like any other
+        from hireps_torch.experiments.checkpoint import RunFinished
 
-    try:
-        main()
-    except RunFinished as done:
-        print(done, file=sys.stderr)
+        try:
+            main()
+        except RunFinished as done:
+            print(done, file=sys.stderr)
     except KeyboardInterrupt as stop:  # RunInterrupted: the checkpoint is written
         print(f"\ninterrupted: {stop}" if str(stop) else "\ninterrupted", file=sys.stderr)
-        raise SystemExit(130) from None
+        raise SystemExit(143 if getattr(stop, "signame", None) == "SIGTERM" else 130) from None
     except (ValueError, TypeError, OSError, ImportError) as exc:  # OSError: FileExistsError,
         print(f"error: {exc}", file=sys.stderr)  # a --run-dir that cannot be written
         raise SystemExit(2) from None
+    except (MemoryError, RuntimeError) as exc:
+        if isinstance(exc, RuntimeError) and "allocate" not in str(exc):
+            raise
+        print(
+            f"error: out of memory ({exc}): fewer --episodes-per-iteration or seeds need less",
+            file=sys.stderr,
+        )
+        raise SystemExit(1) from None

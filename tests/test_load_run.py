@@ -196,8 +196,12 @@ def test_acting_takes_the_ordinary_shapes_and_names_a_bad_one(tmp_path):
     train("pendulum", tmp_path / "pendulum")
     run = hireps_torch.load_run(tmp_path / "pendulum")
     assert run.mean_action([[3.0, 0.0]]).shape == (1, 1)  # a list of states is fine
-    with pytest.raises(ValueError, match=r"states must have shape \(N, 2\), got \(3, 3\)"):
+    with pytest.raises(
+        ValueError, match=r"states must have shape \(N, 2\) with N >= 1, got \(3, 3"
+    ):
         run.mean_action(torch.zeros(3, 3))
+    with pytest.raises(ValueError, match=r"N >= 1, got \(0, 2\)"):
+        run.mean_action(torch.zeros(0, 2))
     with pytest.raises(ValueError, match=r"states must be a \(N, 2\) tensor, got NoneType"):
         run.sample(None)
 

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -215,7 +216,7 @@ def test_sigterm_with_sparse_checkpoints_resumes_from_the_last_iteration(tmp_pat
     run = tmp_path / "run"
     args = ["bimodal", *cli(options), "--checkpoint-every", "1000"]
     code, err = interrupt(args, run, 4, sig=signal.SIGTERM)
-    assert code == 130, err
+    assert code == 143, err  # 128 + SIGTERM
     ckpt = torch.load(run / "checkpoint.pt")
     assert ckpt["iteration"] >= 4  # written on the signal, not only every 1000 iterations
     resume_in_process("bimodal", run)
@@ -521,6 +522,47 @@ def test_resuming_a_member_of_a_population_points_to_the_population(tmp_path):
     with pytest.raises(ValueError, match=rf"member of the population in .*{run.name}; resume"):
         resume_in_process("bimodal", run / "seed1")
     assert (_files(run), _files(run / "seed1")) == before
+
+
+def test_a_resume_rewrites_a_deleted_member_directory_and_a_copied_member_is_named(tmp_path):
+    """A member directory deleted from an unfinished population comes back on --resume with
+    its config.json and metrics.csv; a member copied out of its population is refused by
+    load_run with the reason (its policy is in the population's checkpoint)."""
+    from hireps_torch import load_run
+
+    run = tmp_path / "pop"
+    in_process("bimodal", run, seeds="0-1", episodes=600)
+    kept = {n: (run / "seed1" / n).read_bytes() for n in ("config.json", "metrics.csv")}
+    copy = tmp_path / "copy"
+    shutil.copytree(run / "seed1", copy)
+    with pytest.raises(ValueError, match="member's policy is in its population's checkpoint"):
+        load_run(copy)
+    for summary in run.rglob("summary.json"):
+        summary.unlink()  # as if stopped before its end
+    shutil.rmtree(run / "seed1")
+    resume_in_process("bimodal", run)
+    assert {n: (run / "seed1" / n).read_bytes() for n in kept} == kept
+    iterations = len(kept["metrics.csv"].splitlines()) - 1
+    assert load_run(run / "seed1").iteration == load_run(run / "seed0").iteration == iterations
+
+
+def test_ctrl_c_while_the_command_starts_ends_it_without_a_traceback(tmp_path):
+    """SIGINT while train.py still imports (or any time before its first iteration): the
+    one-line message and exit code 130, as later."""
+    p = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), "pendulum", "--run-dir", str(tmp_path / "r")],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    time.sleep(1.0)  # importing torch (``import hireps_torch`` alone takes ~0.2 s)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=240)
+    assert p.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and "interrupted" in err
 
 
 WORKER_RUNS = {

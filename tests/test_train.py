@@ -644,6 +644,8 @@ def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
     ("args", "message"),
     [
         (["pendulum", "--workers", "100000000000000000000"], "workers must be in 1..1024"),
+        (["pendulum", "--episodes", str(2**70)], "episodes must be in 1..1000000000"),
+        (["ball-on-beam", "--episodes", str(2**70)], "episodes must be in 1..1000000000"),
         (["pendulum", "--seeds", "0-99999"], "a range hold at most 10000 seeds"),
         (["bimodal", "--seeds", "0-6000,7000-12000"], "names more than 10000 seeds"),
         (["bimodal", "--min-variance", "5e-324"], "min_variance (--min-variance) must be in"),

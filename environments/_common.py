@@ -165,6 +165,8 @@ class BatchedTask:
                 f"got {what}; nothing was reset"
             )
         m = torch.ones(self.batch, dtype=torch.bool) if mask is None else mask.reshape(-1).cpu()
+        if not bool(m.any()):  # draws nothing: a seed then starts the same episodes
+            return
         fresh = self.start_states(m).to(self.device)
         md = m.to(self.device)
         self.state = torch.where(md[:, None], fresh, self.state)

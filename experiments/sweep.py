@@ -635,9 +635,10 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
         lock.release()
     print(table)
     if failure is not None:
+        table_note = f"The table in {out / 'sweep.md'} holds the runs that ended. " if ended else ""
         raise ValueError(
-            f"{failure}. The table in {out / 'sweep.md'} holds the runs that ended; run the "
-            "sweep again once the failed runs are fixed (the others are reused)"
+            f"{failure}. {table_note}Run the sweep again once the failed runs are fixed (the "
+            "others are reused)"
         )
     return {
         "experiment": cfg.experiment,

@@ -36,8 +36,9 @@ class PolicyActor(nn.Module):
     """``observation (B, C) -> action (B, A), option (B,)`` for a :class:`HierarchicalPolicy`.
 
     Samples (from ``self.generator``, else the global RNG) or, with ``deterministic``, takes
-    :meth:`~HierarchicalPolicy.mean_action`; the action has the observation's dtype. A
-    population of S takes observations (S B, C), member after member.
+    :meth:`~HierarchicalPolicy.mean_action`; the action has the observation's dtype (float64
+    for integer observations). A population of S takes observations (..., S B, C): the last
+    batch dimension holds its members' rows, member after member.
     """
 
     def __init__(self, policy: HierarchicalPolicy, deterministic: bool = False) -> None:
@@ -49,12 +50,24 @@ class PolicyActor(nn.Module):
 
     @torch.no_grad()
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
-        lead = observation.shape[:-1]
-        members = self.policy.batch_shape
-        s = observation.reshape(*members, -1, observation.shape[-1]).to(torch.float64)
+        lead, C = observation.shape[:-1], observation.shape[-1]
+        s = observation.to(torch.float64)
+        S = self.policy.batch_shape[0] if self.policy.batch_shape else None
+        if S is not None:  # (..., S B, C) -> (S, ... B, C)
+            if not lead or lead[-1] % S:
+                raise ValueError(
+                    f"a population of {S} takes observations (..., S B, C), its members' rows "
+                    f"one after another; got shape {tuple(observation.shape)}"
+                )
+            s = s.reshape(*lead[:-1], S, lead[-1] // S, C).movedim(-3, 0)
+        s = s.reshape(*self.policy.batch_shape, -1, C)
         policy = self.policy
         a, o = policy.mean_action(s) if self.deterministic else policy.sample(s, self.generator)
-        return a.to(observation.dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
+        if S is not None:  # back to (..., S B)
+            a = a.reshape(S, *lead[:-1], -1, a.shape[-1]).movedim(0, -3)
+            o = o.reshape(S, *lead[:-1], -1).movedim(0, -2)
+        dtype = observation.dtype if observation.is_floating_point() else torch.float64
+        return a.to(dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
 
 
 def _check_policies(policies: object) -> None:
@@ -81,7 +94,8 @@ def policy_module(
 
 class TimeIndexedActor(nn.Module):
     """``observation (B, C), step_count (B, 1) -> action (B, A), option (B,)``: row b acts with
-    ``policies[step_count[b]]``, otherwise as :class:`PolicyActor`."""
+    ``policies[step_count[b]]``, otherwise as :class:`PolicyActor`; the policies of one run
+    (not a population)."""
 
     def __init__(self, policies: list[HierarchicalPolicy], deterministic: bool = False) -> None:
         super().__init__()
@@ -91,6 +105,12 @@ class TimeIndexedActor(nn.Module):
             raise ValueError(
                 f"need >= 1 policies sharing one action dimension, got dimensions "
                 f"{[int(p.action_dim) for p in policies]}"
+            )
+        if populations := [k for k, p in enumerate(policies) if p.batch_shape]:
+            raise ValueError(
+                f"time_indexed_module takes the policies of one run; policy {populations[0]} "
+                f"holds a population of {policies[populations[0]].batch_shape[0]} (act with "
+                "one member's policies)"
             )
         self.policies = nn.ModuleList(policies)
         self.deterministic = deterministic
@@ -102,6 +122,11 @@ class TimeIndexedActor(nn.Module):
         s = observation.reshape(-1, observation.shape[-1]).to(torch.float64)
         if step_count.is_floating_point() or step_count.is_complex():
             raise ValueError(f"step_count must be an integer tensor, got {step_count.dtype}")
+        if step_count.shape not in (lead, (*lead, 1)):
+            raise ValueError(
+                f"step_count must have shape {tuple(lead)} or {(*lead, 1)} (one per "
+                f"observation row), got {tuple(step_count.shape)}"
+            )
         k = step_count.reshape(-1).long()
         K = len(self.policies)
         if bool(((k < 0) | (k >= K)).any()):
@@ -114,7 +139,8 @@ class TimeIndexedActor(nn.Module):
             pol, x = self.policies[step], s[rows]
             out = pol.mean_action(x) if self.deterministic else pol.sample(x, self.generator)
             a[rows], o[rows] = out[0], out[1]
-        return a.to(observation.dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
+        dtype = observation.dtype if observation.is_floating_point() else torch.float64
+        return a.to(dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
 
 
 def time_indexed_module(

@@ -148,3 +148,39 @@ def test_actors_take_an_empty_batch():
         )
         out = module(td)
         assert out["action"].shape == (0, 3) and out["option"].shape == (0,)
+
+
+def test_a_population_actor_pairs_the_last_batch_dimension_with_its_members():
+    pop = HierarchicalPolicy.stack(
+        [
+            HierarchicalPolicy.create(3, 2, 1, generator=torch.Generator().manual_seed(s))
+            for s in range(3)
+        ]
+    )
+    actor = policy_module(pop, deterministic=True)
+    obs = torch.randn(2, 6, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    both = actor(TensorDict({"observation": obs}, [2, 6]))
+    for t in range(2):  # (T, S B, C) acts as T calls on (S B, C)
+        one = actor(TensorDict({"observation": obs[t]}, [6]))
+        assert torch.equal(both["action"][t], one["action"])
+        assert torch.equal(both["option"][t], one["option"])
+    with pytest.raises(
+        ValueError, match=r"a population of 3 takes observations \(\.\.\., S B, C\)"
+    ):
+        actor(TensorDict({"observation": torch.zeros(10, 2)}, [10]))
+    ints = actor(TensorDict({"observation": torch.zeros(6, 2, dtype=torch.long)}, [6]))
+    assert ints["action"].dtype == torch.float64  # not truncated to the observation's integers
+
+
+def test_the_time_indexed_actor_names_a_population_and_a_bad_step_count():
+    pop = HierarchicalPolicy.stack([HierarchicalPolicy.create(2, 2, 1) for _ in range(2)])
+    with pytest.raises(
+        ValueError, match="takes the policies of one run; policy 0 holds a population of 2"
+    ):
+        time_indexed_module([pop])
+    actor = time_indexed_module([HierarchicalPolicy.create(2, 2, 1) for _ in range(3)])
+    td = TensorDict(
+        {"observation": torch.zeros(4, 2), "step_count": torch.zeros(4, 2, dtype=torch.long)}, [4]
+    )
+    with pytest.raises(ValueError, match=r"step_count must have shape \(4,\) or \(4, 1\)"):
+        actor(td)

@@ -439,3 +439,18 @@ def test_a_finished_run_with_a_damaged_summary_fails_alone(tmp_path):
     assert f"{bad} is damaged" in p.stderr and "Traceback" not in p.stderr
     assert (out / "bimodal" / "default" / "seed1" / "summary.json").is_file()
     assert bad.read_text() == "{}"
+
+
+def test_a_sweep_whose_every_run_failed_points_to_no_table(tmp_path):
+    from hireps_torch.experiments.sweep import SweepConfig, main
+
+    out = tmp_path / "sw"
+    (out / "bimodal").mkdir(parents=True)
+    (out / "bimodal" / "default").write_text("x")  # where the runs' directories would go
+    cfg = SweepConfig(
+        experiment="bimodal", seeds="0-1", set=("episodes=400",), out=out, progress=False
+    )
+    with pytest.raises(ValueError) as failed:
+        main(cfg)
+    assert "run(s) of the sweep failed" in str(failed.value)
+    assert "sweep.md" not in str(failed.value) and not (out / "bimodal" / "sweep.md").exists()

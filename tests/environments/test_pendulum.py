@@ -286,3 +286,13 @@ def test_an_all_false_reset_mask_does_not_count_as_the_first_reset():
     env.reset(TensorDict({"_reset": torch.zeros(3, 1, dtype=torch.bool)}, [3]))
     with pytest.raises(ResetNeeded):
         env.step(TensorDict({"action": torch.zeros(3, 1)}, [3]))
+
+
+def test_the_constructor_seed_starts_the_episodes_that_set_seed_and_gym_start():
+    # the adapters' provisional state at construction draws nothing from the task's generator
+    built = PendulumSwingUpBatchEnv(1, seed=4).reset()["state"]
+    env = PendulumSwingUpBatchEnv(1)
+    env.set_seed(4)
+    assert torch.equal(built, env.reset()["state"])
+    obs, _ = gym.make("hireps/PendulumSwingUp-v0").reset(seed=4)
+    np.testing.assert_array_equal(obs, built[0].numpy().astype(obs.dtype))  # gym: float32

@@ -23,7 +23,7 @@ train: $(STAMP)
 test: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m pytest -q -m "not slow"
 
-# the end-to-end runs of Ray, worker processes and pybullet subprocesses (~5 min more)
+# the end-to-end runs of Ray, worker processes, pybullet, the sweep and the wheel (~10-18 min more)
 test-slow: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m pytest -q -m slow
 

@@ -234,6 +234,7 @@ def test_ray_missing_names_the_distributed_extra(monkeypatch):
         make_pool(lambda: None, workers=2, backend="ray")
 
 
+@pytest.mark.slow
 def test_core_library_and_local_runs_work_without_ray(tmp_path):
     """With ``ray`` unimportable, the library, the experiments and a local hockey run work
     (torchrl imports ray on its own when it is installed; nothing of ours needs it)."""

@@ -103,6 +103,7 @@ def test_the_installed_wheel_imports_the_tasks_and_runs_the_command(wheel, tmp_p
         assert experiment in done.stdout
 
 
+@pytest.mark.slow
 def test_the_wheel_in_a_fresh_virtualenv_imports_each_module_once(wheel, tmp_path):
     """pip install of the wheel into a new virtualenv (its dependencies lent from this one):
     the library, its tasks and its command come from the installed files alone."""

@@ -1050,6 +1050,7 @@ def test_train_run_dir_under_a_file_exits_2_without_a_traceback(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["afile"]
 
 
+@pytest.mark.slow
 def test_train_resumes_a_moved_run_directory_in_place(finished_run, tmp_path):
     """config.json names the directory the run started in; a copy is resumed where it is
     (it was refused: '--resume and --run-dir name different directories')."""

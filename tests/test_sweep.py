@@ -305,6 +305,7 @@ def test_every_configuration_is_checked_before_the_first_run(tmp_path):
     assert not out.exists()  # nothing ran, nothing was written
 
 
+@pytest.mark.slow
 def test_a_failing_run_is_named_and_the_others_still_run(tmp_path):
     """Seed 1's run directory holds a damaged checkpoint: seeds 0 and 2 run, the sweep names
     seed 1 and writes the table of the others; once it is fixed, a rerun finishes."""
@@ -346,6 +347,7 @@ def test_a_sweep_directory_has_one_sweep_at_a_time(tmp_path):
     held.release()
 
 
+@pytest.mark.slow
 def test_ctrl_c_of_a_sweep_with_workers_says_how_to_finish_it(tmp_path):
     out = tmp_path / "sw"
     args = [

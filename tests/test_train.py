@@ -208,6 +208,7 @@ def test_hockey_sequential_subprocess_writes_the_run_directory(tmp_path):
             assert f"{key}_{k}" in rows[0]
 
 
+@pytest.mark.slow
 def test_hockey_same_seed_same_run(tmp_path):
     pytest.importorskip("pybullet")
     from hireps_torch.experiments import hockey
@@ -665,6 +666,7 @@ def test_absurd_counts_and_floors_are_refused_before_anything_is_written(tmp_pat
     assert not run.exists()
 
 
+@pytest.mark.slow
 def test_the_installed_command_runs_an_experiment(tmp_path):
     command = Path(sys.executable).with_name("hireps-train")
     if not command.is_file():

@@ -7,6 +7,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 SCRIPT = textwrap.dedent(
@@ -36,6 +38,7 @@ SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_workers_act_with_the_updated_policy_after_a_weight_sync(tmp_path):
     script = tmp_path / "workers.py"
     script.write_text(SCRIPT)

@@ -21,7 +21,7 @@ def executed_outputs(name: str, timeout: int) -> list[dict]:
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name,timeout,needs",
-    [("pendulum_ablations.ipynb", 300, None), ("hockey.ipynb", 600, "pybullet")],
+    [("pendulum_ablations.ipynb", 300, None), ("hockey.ipynb", 1500, "pybullet")],
 )
 def test_notebook_executes_and_shows_figures(name, timeout, needs):
     if needs:

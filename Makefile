@@ -21,7 +21,7 @@ train: $(STAMP)
 	$(PY) train.py bimodal
 
 test: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) -m pytest -q -m "not slow"
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n 2 -m "not slow"
 
 # the end-to-end runs of Ray, worker processes, pybullet, the sweep and the wheel (~10-18 min more)
 test-slow: $(STAMP)

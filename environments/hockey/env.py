@@ -212,6 +212,7 @@ class RobotHockeyEnv(gym.Env):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         if seed is not None:
             seed = check_count("seed", seed, 0)  # gymnasium's np_random takes seeds >= 0
+        self._check_open()
         super().reset(seed=seed)
         p = self.params
         self._target = np.asarray(p.target_mean) + p.target_std * self.np_random.standard_normal(2)
@@ -223,6 +224,7 @@ class RobotHockeyEnv(gym.Env):
         return self._target.copy(), {"target_distance": float(np.linalg.norm(self._target))}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        self._check_open()
         if self.needs_reset:
             raise ResetNeeded("call reset() before the first step()")
         a, clipped = clip_action(action, self._low, self._high)
@@ -231,6 +233,7 @@ class RobotHockeyEnv(gym.Env):
     def play(self, action: Tensor, clipped: bool) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One shot of an already checked and clipped (14,) action (what :meth:`step` does
         after :func:`clip_action`); ``clipped`` is reported in ``info``."""
+        self._check_open()
         if self.shot_index >= self.params.n_shots:
             raise RuntimeError(f"the episode ended after {self.params.n_shots} shots: call reset()")
         result = self.sim.shot(action[:7], action[7:], frame_every=self.frame_every)
@@ -258,10 +261,15 @@ class RobotHockeyEnv(gym.Env):
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array":
             return None
+        self._check_open()
         return self.sim.render()
 
     def close(self) -> None:
         self.sim.close()
+
+    def _check_open(self) -> None:
+        if self.sim.closed:
+            raise RuntimeError("the environment was closed: make a new one")
 
 
 class RobotHockeyEpisodicEnv(gym.Env):
@@ -296,6 +304,7 @@ class RobotHockeyEpisodicEnv(gym.Env):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         n = self.params.n_shots
+        self.inner._check_open()
         if self.inner.needs_reset:
             raise ResetNeeded("call reset() before the first step()")
         if self.inner.shot_index != 0:

@@ -353,6 +353,11 @@ class HockeySim:
         )[2]
         return np.asarray(img, dtype=np.uint8).reshape(height, width, 4)[:, :, :3].copy()
 
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` disconnected the pybullet client."""
+        return self._closed
+
     def close(self) -> None:
         if not self._closed:
             self._closed = True

@@ -17,6 +17,7 @@ from hireps_torch.envs.hockey import (  # noqa: E402
     ArmKinematics,
     HockeyParams,
     RobotHockeyEnv,
+    RobotHockeyEpisodicEnv,
     demonstration,
     zone_reward,
 )
@@ -306,3 +307,16 @@ def test_goal_velocity_exploration_scaled_to_each_joint():
     assert std[7:14].max() > 3 * std[7:14].min()  # the wrist moves far faster than the base
     plain = _exploration_std(HockeySequentialConfig(), 1, demo)
     assert torch.all(plain[7:] == 0.3)
+
+
+@pytest.mark.parametrize("episodic", [False, True])
+def test_a_closed_env_names_its_closing(episodic):
+    """reset, step and render after close() raise one clear error, not pybullet's."""
+    e = (RobotHockeyEpisodicEnv if episodic else RobotHockeyEnv)(render_mode="rgb_array")
+    e.reset(seed=0)
+    action = e.action_space.sample()
+    e.close()
+    for call in (lambda: e.step(action), lambda: e.reset(seed=1), e.render):
+        with pytest.raises(RuntimeError, match="the environment was closed: make a new one"):
+            call()
+    e.close()  # a second close is harmless

@@ -11,12 +11,15 @@ are reused and interrupted ones resumed. At the end: ``sweep.md`` (table), ``swe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import itertools
 import json
 import math
 import multiprocessing
 import multiprocessing.connection
+import re
 import signal
 import statistics
 import typing
@@ -143,11 +146,14 @@ def _typed(config_cls: type, assignments: Mapping[str, str]) -> dict[str, Any]:
             args.append(f"--{flag}" if truth[value.strip().lower()] else f"--no-{flag}")
         else:
             args.append(f"--{flag}={value}")
+    said = io.StringIO()  # tyro prints its error box even without console outputs
     try:
-        cfg: Any = tyro.cli(config_cls, args=args, console_outputs=False)
+        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
+            cfg: Any = tyro.cli(config_cls, args=args, console_outputs=False)
     except SystemExit:
-        bad = " ".join(args)
-        raise ValueError(f"bad option value(s) for {config_cls.__name__}: {bad}") from None
+        why = re.search(r"Error parsing (--[\w-]+: .*?)[\s│]*$", said.getvalue(), re.MULTILINE)
+        bad = why.group(1) if why else " ".join(args)
+        raise ValueError(f"bad option value for {config_cls.__name__}: {bad}") from None
     return {key: getattr(cfg, key) for key in assignments}
 
 

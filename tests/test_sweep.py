@@ -95,6 +95,18 @@ def test_parse_grid_names_bad_entries(grid, fixed, message):
         parse_grid("pendulum", grid, fixed)
 
 
+def test_a_bad_grid_value_is_one_line_naming_the_option_and_value(capsys):
+    """A value the option's type refuses: one ValueError naming --option and the value, and
+    nothing printed (no help box)."""
+    with pytest.raises(ValueError) as err:
+        parse_grid("pendulum", ["epsilon=abc,0.1"])
+    assert str(err.value) == (
+        "bad option value for PendulumConfig: --epsilon: could not convert string to float: 'abc'"
+    )
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == ""
+
+
 def test_unknown_experiment_and_bad_sweep_options(tmp_path):
     with pytest.raises(ValueError, match="unknown experiment 'tennis'"):
         parse_grid("tennis")

@@ -288,14 +288,14 @@ class HierarchicalPolicy(PolicyModule):
             return pf.new_empty((*lead, 0, self.action_dim), dtype=dtype), empty
         option = categorical(probs, gen)  # each member with its own generator, where given
         subs, D = self.sub_policies, self.action_dim
-        noise = torch.stack([normal((*lead, N, D), gen, dtype, pf.device) for _ in subs], -3)
-        # every option draws noise for all samples (the same draws whichever is chosen)
+        # one standard normal per sample, whichever option is chosen (theta = mean_o + L_o noise)
+        noise = normal((*lead, N, D), gen, dtype, pf.device)
         weight = torch.stack([o.weight for o in subs], -3)  # ([S,] O, D, F)
         bias = torch.stack([o.bias for o in subs], -2)  # ([S,] O, D)
         chol = torch.stack([o.chol for o in subs], -3)  # ([S,] O, D, D)
         x = pf.to(weight.dtype)
         mean = torch.einsum("...nf,...odf->...ond", x, weight) + bias[..., :, None, :]
-        all_theta = mean + torch.einsum("...ode,...one->...ond", chol, noise)
+        all_theta = mean + torch.einsum("...ode,...ne->...ond", chol, noise)
         index = option[..., None, :, None].expand(*option.shape[:-1], 1, N, D)
         theta = all_theta.gather(-3, index).squeeze(-3)
         return theta, option

@@ -98,9 +98,9 @@ def test_per_option_initial_means_are_used_exactly(gen):
 
 
 @pytest.mark.parametrize("O,D,N", [(3, 1, 5), (5, 2, 40), (100, 1, 20)])
-def test_sample_draws_the_same_stream_as_sampling_every_option(O, D, N):
-    # sample() computes only the chosen options but must advance the generator as if it had
-    # sampled all of them (runs stay reproducible across versions)
+def test_sample_draws_the_option_then_one_normal_per_sample(O, D, N):
+    # the stream a run's reproducibility rests on: torch.multinomial's option, then one (N, D)
+    # standard normal, theta = mean_o + L_o noise for the chosen o (nothing else drawn)
     pol = HierarchicalPolicy.create(
         O,
         2,
@@ -111,12 +111,18 @@ def test_sample_draws_the_same_stream_as_sampling_every_option(O, D, N):
     )
     g0 = torch.Generator().manual_seed(0)
     pol.gating.weight.data = torch.randn(pol.gating.weight.shape, generator=g0, dtype=torch.float64)
+    for o in pol.sub_policies:  # options of distinct shapes
+        o.set_covariance(torch.diag(torch.rand(D, generator=g0, dtype=torch.float64) + 0.1))
     ctx = torch.randn(N, 2, generator=g0, dtype=torch.float64)
     g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
     theta, option = pol.sample(ctx, g1)
     gf, pf = pol.gating_features(ctx), pol.policy_features(ctx)
     ref_opt = torch.multinomial(pol.gating.probs(gf), 1, generator=g2).squeeze(-1)
-    every = torch.stack([o.sample(pf, g2) for o in pol.sub_policies], dim=1)
+    noise = torch.randn(N, D, generator=g2, dtype=torch.float64)
+    subs = pol.sub_policies
+    ref = torch.stack(
+        [subs[o].mean(pf[i : i + 1])[0] + subs[o].chol @ noise[i] for i, o in enumerate(ref_opt)]
+    )
     assert torch.equal(option, ref_opt)
-    assert torch.equal(theta, every[torch.arange(N), ref_opt])
+    torch.testing.assert_close(theta, ref, rtol=1e-12, atol=1e-12)
     assert torch.equal(g1.get_state(), g2.get_state())

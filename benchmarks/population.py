@@ -9,8 +9,8 @@
    ``train.py sweep --experiment pendulum`` whose ``sweep.json`` is read, or
    ``--run-separate`` to run that sweep here, two at a time). The two are compared with
    Fisher's exact test on the 2 x 2 table (population / separate x success / not): a member
-   draws what its ordinary run draws, but its arithmetic may round differently (the duals run
-   side by side), which a long run can amplify, so the two are compared in distribution.
+   draws what its ordinary run draws, but batched arithmetic may round differently, which a
+   long run can amplify, so the two are compared in distribution.
 
     python benchmarks/population.py [--seeds 20] [--episodes 1000] [--separate DIR]
         [--run-separate] [--out DIR]

@@ -19,7 +19,6 @@ import json
 import math
 import multiprocessing
 import multiprocessing.connection
-import re
 import signal
 import statistics
 import typing
@@ -151,10 +150,27 @@ def _typed(config_cls: type, assignments: Mapping[str, str]) -> dict[str, Any]:
         with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
             cfg: Any = tyro.cli(config_cls, args=args, console_outputs=False)
     except SystemExit:
-        why = re.search(r"Error parsing (--[\w-]+: .*?)[\s│]*$", said.getvalue(), re.MULTILINE)
-        bad = why.group(1) if why else " ".join(args)
-        raise ValueError(f"bad option value for {config_cls.__name__}: {bad}") from None
+        raise ValueError(
+            f"bad option value for {config_cls.__name__}: {_why(said.getvalue(), hints, args)}"
+        ) from None
     return {key: getattr(cfg, key) for key in assignments}
+
+
+def _why(said: str, hints: Mapping[str, Any], args: Sequence[str]) -> str:
+    """What tyro's error text ``said`` (one paragraph after "Error parsing ") says, or the
+    choices of a Literal option, or the arguments."""
+    lines = [line.strip(" │") for line in said.splitlines()]
+    start = next((i for i, line in enumerate(lines) if line.startswith("Error parsing ")), None)
+    if start is not None:
+        para = itertools.takewhile(lambda line: line and set(line) - set("─-"), lines[start:])
+        return " ".join(para).removeprefix("Error parsing ")
+    for arg in args:
+        flag, _, value = arg.partition("=")
+        hint = hints.get(flag.removeprefix("--").replace("-", "_"))
+        choices = [str(c) for c in typing.get_args(hint)]
+        if typing.get_origin(hint) is typing.Literal and value not in choices:
+            return f"{flag} is one of {', '.join(choices)}, got {value!r}"
+    return " ".join(args)
 
 
 def parse_grid(

@@ -95,14 +95,23 @@ def test_parse_grid_names_bad_entries(grid, fixed, message):
         parse_grid("pendulum", grid, fixed)
 
 
-def test_a_bad_grid_value_is_one_line_naming_the_option_and_value(capsys):
-    """A value the option's type refuses: one ValueError naming --option and the value, and
-    nothing printed (no help box)."""
+@pytest.mark.parametrize(
+    ("grid", "why"),
+    [
+        ("epsilon=abc,0.1", "--epsilon: could not convert string to float: 'abc'"),
+        ("gating=learned,foo", "--gating is one of learned, constant, flat, got 'foo'"),
+        (
+            "epsilon_end=None,abc",
+            "--epsilon-end: no type matching {None}|FLOAT could be instantiated from ['abc'].",
+        ),
+    ],
+)
+def test_a_bad_grid_value_is_one_line_naming_the_option_and_value(capsys, grid, why):
+    """A value the option's type refuses: one ValueError naming --option, the value and why,
+    and nothing printed (no help box)."""
     with pytest.raises(ValueError) as err:
-        parse_grid("pendulum", ["epsilon=abc,0.1"])
-    assert str(err.value) == (
-        "bad option value for PendulumConfig: --epsilon: could not convert string to float: 'abc'"
-    )
+        parse_grid("pendulum", [grid])
+    assert str(err.value) == f"bad option value for PendulumConfig: {why}"
     out = capsys.readouterr()
     assert out.out == "" and out.err == ""
 

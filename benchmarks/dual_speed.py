@@ -40,9 +40,9 @@ def solve_all(root: Path, problems: Path, repeats: int) -> list[dict[str, Any]]:
     import torch
 
     torch.set_num_threads(1)
-    from hireps_torch.dual.solver import checked_settings, solve_blocks
+    from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 
-    settings = checked_settings(300)
+    settings = LbfgsSettings()
     rows = []
     for p in torch.load(problems, weights_only=False):
         args = [

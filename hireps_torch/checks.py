@@ -24,6 +24,7 @@ __all__ = [
     "check_generator",
     "check_positive",
     "check_positive_float",
+    "check_prune_threshold",
     "check_seed",
     "check_nonnegative_float",
     "check_state_dict",
@@ -241,14 +242,20 @@ def check_positive_float(name: str, value: float) -> float:
     return v
 
 
-def check_nonnegative_float(name: str, value: float | None) -> float | None:
-    """A finite scalar >= 0 or None, as a float."""
-    if value is None:
-        return None
+def check_nonnegative_float(name: str, value: float) -> float:
+    """A finite scalar >= 0 (:func:`as_float`), as a float."""
     v = as_float(name, value)
     if not (math.isfinite(v) and v >= 0):
-        raise ValueError(f"{name} must be finite and >= 0 (or None), got {value}")
+        raise ValueError(f"{name} must be finite and >= 0, got {value}")
     return v
+
+
+def check_prune_threshold(value: float, name: str = "prune_threshold") -> float:
+    """A prior mass in [0, 1) below which options are pruned (0: never), as a float."""
+    threshold = as_float(name, value)
+    if not 0.0 <= threshold < 1.0:
+        raise ValueError(f"{name} must be in [0, 1) (0: never prune), got {value}")
+    return threshold
 
 
 def check_state_dict(

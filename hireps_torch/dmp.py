@@ -25,7 +25,12 @@ import torch
 from torch import Tensor, nn
 
 from hireps_torch._dmp_math import finite_differences, quintic_coefficients, response_from_rest
-from hireps_torch.checks import as_finite_f64, check_count, check_positive_float
+from hireps_torch.checks import (
+    as_finite_f64,
+    check_count,
+    check_nonnegative_float,
+    check_positive_float,
+)
 
 __all__ = ["DMP", "DMPTrajectory"]
 
@@ -151,8 +156,7 @@ class DMP(nn.Module):
             self, with ``duration = (T - 1) dt``.
         """
         dt = check_positive_float("dt", dt)
-        if not math.isfinite(ridge) or ridge < 0:
-            raise ValueError(f"ridge must be finite and >= 0, got {ridge}")
+        ridge = check_nonnegative_float("ridge", ridge)
         pos = torch.as_tensor(positions, dtype=torch.float64)
         if pos.dim() != 2 or pos.shape[1] != self.n_joints or pos.shape[0] < 4:
             raise ValueError(

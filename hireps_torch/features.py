@@ -146,10 +146,8 @@ class FourierFeatures(FeatureMap):
                 f"{tuple(lo.shape)} and {tuple(hi.shape)}"
             )
         finite = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all())
-        if lo.shape != hi.shape or not finite or not bool((hi > lo).all()):
-            raise ValueError(
-                f"need finite high > low elementwise with equal shapes, got {lo}, {hi}"
-            )
+        if not finite or not bool((hi > lo).all()):
+            raise ValueError(f"need finite high > low elementwise, got {lo}, {hi}")
         C = lo.shape[0]
         counts = _bases_per_dimension(n_bases, C)
         per = _periodic_flags(periodic, C)

@@ -62,14 +62,14 @@ def test_dual_gradient_matches_finite_differences(gen, O, P, xi_on):
     # each problem's gradient is the derivative of its own dual (and of no other's)
     prob = make_problem(gen, O=O, P=P, xi_on=xi_on)
     x = 0.5 * torch.randn(prob.S, 2 * prob.K + prob.P, generator=gen, dtype=torch.float64)
-    _, grad = prob.value_and_grad(x)
+    _, grad, _ = prob.evaluate(x)
     h = 1e-6
     fd = torch.zeros(prob.S, *x.shape, dtype=torch.float64)  # d g_s / d x_tj
     for t in range(prob.S):
         for j in range(x.shape[1]):
             e = torch.zeros_like(x)
             e[t, j] = h
-            fd[:, t, j] = (prob.value_and_grad(x + e)[0] - prob.value_and_grad(x - e)[0]) / (2 * h)
+            fd[:, t, j] = (prob.evaluate(x + e)[0] - prob.evaluate(x - e)[0]) / (2 * h)
     own = torch.stack([fd[s, s] for s in range(prob.S)])
     assert torch.allclose(grad, own, atol=1e-7, rtol=1e-6)
     for s in range(prob.S):
@@ -104,7 +104,7 @@ def test_curvature_matches_finite_difference_hessian_at_optimum(gen):
     for j in range(4):
         e = torch.zeros(1, 4, dtype=torch.float64)
         e[0, j] = h
-        H[:, j] = (prob.value_and_grad(x + e)[1] - prob.value_and_grad(x - e)[1])[0] / (2 * h)
+        H[:, j] = (prob.evaluate(x + e)[1] - prob.evaluate(x - e)[1])[0] / (2 * h)
     assert torch.allclose(prob.curvature(x)[0], H, atol=1e-5, rtol=1e-4)
 
 
@@ -112,8 +112,8 @@ def test_dual_derivatives_are_the_constraint_residuals(gen):
     # dg/d(eta) = eps - KL and dg/d(xi) = kappa - cross-entropy: the optimum sits on the bounds.
     prob = make_problem(gen, K=1, N=50, O=3, P=0, S=1)
     x = torch.tensor([[0.3, -0.5]], dtype=torch.float64)
-    _, grad = prob.value_and_grad(x)
-    w, _, _ = prob.weights(x)
+    _, grad, _ = prob.evaluate(x)
+    w = prob.evaluate(x)[2]
     lr = prob.lr
     kl = float((w * (torch.log(w) - lr + math.log(50))).sum())
     ce = float(-(w * lr).sum())
@@ -499,7 +499,7 @@ def test_returns_the_features_explain_have_the_dual_value_c_v():
 
 
 def test_the_block_start_temperatures_are_the_plain_reps_temperatures():
-    from hireps_torch.dual.solver import checked_settings
+    from hireps_torch.dual.solver import LbfgsSettings
     from hireps_torch.dual.temperature import log_temperatures, solve_temperature
 
     gen = torch.Generator().manual_seed(7)
@@ -509,6 +509,6 @@ def test_the_block_start_temperatures_are_the_plain_reps_temperatures():
     got = log_temperatures(R, eps)
     assert got.shape == (2, 3) and bool(got[1, 2].isnan())
     for s, k in [(0, 0), (0, 1), (0, 2), (1, 0), (1, 1)]:
-        sol = solve_temperature(R[s, k], float(eps[s, k]), checked_settings(300))
+        sol = solve_temperature(R[s, k], float(eps[s, k]), LbfgsSettings())
         assert sol is not None
         assert float(got[s, k]) == pytest.approx(math.log(float(sol.eta.reshape(-1)[0])), rel=1e-12)

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from hireps_torch.dual import InfeasibleConstraintsWarning, solve_episodic_dual
-from hireps_torch.dual.solver import checked_settings, solve_blocks
+from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 from hireps_torch.dual.temperature import solve_temperature
 
 PROBLEMS = Path(__file__).resolve().parents[1] / "benchmarks" / "dual_problems.pt"
@@ -30,7 +30,7 @@ def solve(p: dict) -> tuple[object, list[str]]:
     ]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        sol = solve_blocks(*args, checked_settings(300))
+        sol = solve_blocks(*args, LbfgsSettings())
     return sol, [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
 
 
@@ -57,7 +57,7 @@ def test_recorded_duals_converge_in_tens_of_iterations_or_name_the_conflict(expe
 def test_temperature_solve_is_the_general_solution(scale, N):
     R = torch.randn(N, generator=torch.Generator().manual_seed(N), dtype=f64) * scale
     eps = torch.full((1, 1), 0.3, dtype=f64)
-    settings = checked_settings(300)
+    settings = LbfgsSettings()
     fast = solve_temperature(R, 0.3, settings)
     assert fast is not None
     assert float(fast.kl) <= 0.3 * (1 + 1e-6) and float(fast.kl) >= 0.3 * (1 - 1e-6)
@@ -77,7 +77,7 @@ def test_temperature_solve_is_the_general_solution(scale, N):
 
 
 def test_temperature_solve_leaves_returns_without_spread_to_the_general_solver():
-    settings = checked_settings(300)
+    settings = LbfgsSettings()
     assert solve_temperature(torch.full((10,), 3.0, dtype=f64), 0.5, settings) is None
     sol = solve_episodic_dual(torch.full((10,), 3.0, dtype=f64), epsilon=0.5)
     assert math.isinf(sol.eta) and sol.converged  # the old distribution, as before
@@ -99,7 +99,7 @@ def test_conflicting_features_are_stopped_by_the_weak_duality_bound():
             D,
             c,
             None,
-            checked_settings(300),
+            LbfgsSettings(),
         )
     assert not bool(sol.converged[0])
     assert bool((sol.kl <= 0.5 * (1 + 1e-6)).all())
@@ -121,7 +121,7 @@ def test_a_pendulum_member_solves_as_it_does_alone_whatever_its_companions():
     gives what it gives alone, to round-off (the issue's seeds 3,5 against 5,3 differed by
     1.6e-4 in eta)."""
     first, second, third = recorded(("pendulum",))
-    settings = checked_settings(300)
+    settings = LbfgsSettings()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         alone = solve_blocks(*_stacked([first]), settings)

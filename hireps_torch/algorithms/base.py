@@ -6,6 +6,7 @@ import numbers
 import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING, Any, Protocol, Self, TypedDict, runtime_checkable
 
 import numpy as np
@@ -13,13 +14,14 @@ import torch
 from torch import Tensor
 
 from hireps_torch.checks import (
-    as_float,
+    as_finite_f64,
     as_float_tensor,
     check_count,
     check_finite,
     check_nonnegative_float,
     check_positive_float,
     check_present_device,
+    check_prune_threshold,
     check_seed,
 )
 from hireps_torch.features import FeatureMap, QuadraticFeatures
@@ -37,11 +39,9 @@ __all__ = [
     "check_experience",
     "check_state_keys",
     "check_step",
-    "check_prune_threshold",
     "check_saved_values",
-    "fresh_policies",
+    "checked_states",
     "member_policies",
-    "next_seed",
     "population_seeds",
     "seeded_generator",
     "stream_seed",
@@ -181,42 +181,6 @@ def stream_seed(seed: int, stream: str) -> int:
     return int(np.random.SeedSequence(entropy).generate_state(1)[0])
 
 
-def next_seed(seed: int | None) -> int:
-    """The seed of the sampling generator of a ``create``d algorithm: the ``"sampling"``
-    :func:`stream_seed` of ``seed`` (None: 0)."""
-    return stream_seed(0 if seed is None else check_seed("seed", seed), "sampling")
-
-
-def fresh_policies(
-    means: Sequence[Tensor | None],
-    n_options: int,
-    state_dim: int,
-    action_dim: int,
-    seed: int | None,
-    **policy_kwargs: Unpack[PolicyKwargs],
-) -> list[HierarchicalPolicy]:
-    """One fresh softmax-gated mixture of linear-Gaussian options per entry of ``means``.
-
-    Args:
-        means: each policy's ``init_mean``: (D,), (O, D) or None (zeros).
-        n_options: options per policy.
-        state_dim: C (0: no context).
-        action_dim: D.
-        seed: one generator for all policies' initial option means.
-        **policy_kwargs: see :class:`PolicyKwargs`.
-    """
-    gen = seeded_generator(seed)
-    kwargs = policy_kwargs.copy()
-    if kwargs.get("gating_features") is None and state_dim > 0:
-        kwargs["gating_features"] = QuadraticFeatures(state_dim)
-    return [
-        HierarchicalPolicy.create(
-            n_options, state_dim, action_dim, init_mean=m, generator=gen, **kwargs
-        )
-        for m in means
-    ]
-
-
 def member_policies(
     seed: int | Sequence[int] | None,
     population: int | None,
@@ -226,17 +190,35 @@ def member_policies(
     action_dim: int,
     **policy_kwargs: Unpack[PolicyKwargs],
 ) -> tuple[list[HierarchicalPolicy], int | list[int] | None]:
-    """:func:`fresh_policies` and the sampling seed(s), stacked over a population's members."""
+    """One fresh softmax-gated mixture of linear-Gaussian options per entry of ``means``
+    (stacked over a population's members) and the sampling seed(s).
+
+    Args:
+        seed: one seed (None: 0) or S (see :func:`population_seeds`): a member's seed seeds one
+            generator for all its policies' initial option means; its ``"sampling"``
+            :func:`stream_seed` is returned.
+        population: S, or None.
+        means: each policy's ``init_mean``: (D,), (O, D) or None (zeros).
+        n_options: options per policy.
+        state_dim: C (0: no context).
+        action_dim: D.
+        **policy_kwargs: see :class:`PolicyKwargs`.
+    """
     seeds = population_seeds(seed, population)
+    one = seeds is None
     if seeds is None:
-        one = None if seed is None else check_seed("seed", seed)
-        policies = fresh_policies(means, n_options, state_dim, action_dim, one, **policy_kwargs)
-        return policies, next_seed(one)
-    members = [
-        fresh_policies(means, n_options, state_dim, action_dim, s, **policy_kwargs) for s in seeds
-    ]
+        seeds = [0 if seed is None else check_seed("seed", seed)]
+    kwargs = policy_kwargs.copy()
+    if kwargs.get("gating_features") is None and state_dim > 0:
+        kwargs["gating_features"] = QuadraticFeatures(state_dim)
+    create = partial(HierarchicalPolicy.create, n_options, state_dim, action_dim, **kwargs)
+    gens = [torch.Generator().manual_seed(s) for s in seeds]
+    members = [[create(init_mean=m, generator=g) for m in means] for g in gens]
+    sampling = [stream_seed(s, "sampling") for s in seeds]
+    if one:
+        return members[0], sampling[0]
     stacked = [HierarchicalPolicy.stack([m[k] for m in members]) for k in range(len(means))]
-    return stacked, [next_seed(s) for s in seeds]
+    return stacked, sampling
 
 
 def check_step(step: int, n_steps: int) -> int:
@@ -250,6 +232,34 @@ def check_step(step: int, n_steps: int) -> int:
     if not 0 <= k < n_steps:
         raise ValueError(f"step must be in [0, {n_steps}) (K = {n_steps} decision steps), got {k}")
     return k
+
+
+def checked_states(
+    value: object,
+    name: str,
+    lead: tuple[int, ...],
+    C: int,
+    device: torch.device,
+    *,
+    noun: str = "state",
+    hint: str = "",
+    squeeze: bool = False,
+) -> Tensor:
+    """``value`` as finite float64 states ([S,] N, C) on ``device``, N >= 1 (``lead``: (S,) or
+    ()); ``squeeze``: (N,) is read as (N, 1) when C = 1 without S. A ValueError naming ``name``
+    (``hint`` ends the shape error, ``noun`` names a row)."""
+    s = as_float_tensor(name, value, device=device)
+    if squeeze and not lead and s.dim() == 1 and C == 1:
+        s = s[:, None]
+    if s.dim() != 2 + len(lead) or s.shape[:-2] != lead or s.shape[-1] != C:
+        names, sizes = ("(S, N, C) = ", f"{lead[0]}, ") if lead else ("", "")
+        raise ValueError(
+            f"{name} must have shape {names}({sizes}N, {C}), got {tuple(s.shape)}{hint}"
+        )
+    if s.shape[-2] < 1:
+        raise ValueError(f"{name} must hold at least one {noun}, got {tuple(s.shape)}")
+    as_finite_f64(name, s)
+    return s
 
 
 def _check_shape(name: str, value: object, expected: tuple[int | str, ...]) -> Tensor:
@@ -346,7 +356,9 @@ class HiREPSBase:
         seed: int | Sequence[int] | None,
         population: int | None = None,
     ) -> None:
-        self.kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
+        if kappa_rel is not None:
+            kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
+        self.kappa_rel = kappa_rel
         self.prune_threshold = check_prune_threshold(prune_threshold)
         seeds = population_seeds(seed, population)
         self.population = population
@@ -362,6 +374,28 @@ class HiREPSBase:
         """Where the policies, the update's samples and its dual live."""
         policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
         return policies[0].sub_policies[0].bias.device
+
+    def _states(self, states: Any) -> Tensor:
+        """``states`` ([S,] N, C) checked, as float64: each variant's own check."""
+        raise NotImplementedError
+
+    def _at(self, states: Any, step: int) -> tuple[HierarchicalPolicy, Tensor]:
+        """Step ``step``'s policy (the step checked first) and the checked ``states``."""
+        policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
+        return policies[check_step(step, len(policies))], self._states(states)
+
+    @torch.no_grad()
+    def sample(self, states: Tensor | int | None, step: int = 0) -> Tensor:
+        """Exploring actions ([S,] N, D) for states ([S,] N, C) at ``step`` (in [0, K)), from
+        the seeded generator(s); the episodic variant without context also takes a count N."""
+        policy, s = self._at(states, step)
+        return policy.sample(s, self.generator)[0]
+
+    @torch.no_grad()
+    def mean_action(self, states: Tensor | int | None, step: int = 0) -> Tensor:
+        """Noise-free actions ([S,] N, D) at ``step``: the mean of the most probable option."""
+        policy, s = self._at(states, step)
+        return policy.mean_action(s)[0]
 
     def to(self, device: torch.device | str) -> Self:
         """Move policies, feature maps and learned values to ``device``; return ``self``. The
@@ -406,7 +440,9 @@ class HiREPSBase:
                 msg = f"the state's generator is not a CPU generator state: {exc}"
                 raise ValueError(msg) from None
         iteration = check_count("iteration", state["iteration"], 0)
-        kappa_rel = check_nonnegative_float("kappa_rel", state["kappa_rel"])
+        kappa_rel = state["kappa_rel"]
+        if kappa_rel is not None:
+            kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
         return _Shared(gen, iteration, kappa_rel)
 
     def _set_shared(self, shared: _Shared) -> None:
@@ -453,11 +489,3 @@ def check_saved_values(saved: object, current: Tensor) -> Tensor:
         )
     check_finite("value_weights", v, "")
     return v.to(current.device)
-
-
-def check_prune_threshold(value: float) -> float:
-    """A prior mass in [0, 1) below which options are pruned (0: never), as a float."""
-    threshold = as_float("prune_threshold", value)
-    if not 0.0 <= threshold < 1.0:
-        raise ValueError(f"prune_threshold must be in [0, 1) (0: never prune), got {value}")
-    return threshold

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Self
 
 import torch
 from torch import Tensor
@@ -25,29 +25,22 @@ from hireps_torch.algorithms.base import (
     PolicyKwargs,
     check_experience,
     check_state_keys,
-    check_step,
+    checked_states,
     member_policies,
 )
-from hireps_torch.checks import (
-    as_finite_f64,
-    as_float_tensor,
-    check_count,
-    check_finite,
-    check_positive_float,
-)
+from hireps_torch.checks import as_float_tensor, check_count, check_finite, check_positive_float
 from hireps_torch.dual.episodic import episodic_solution
 from hireps_torch.dual.inputs import warn_if_degenerate
-from hireps_torch.dual.solver import checked_settings
+from hireps_torch.dual.solver import LbfgsSettings
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
-from hireps_torch.policies._population import batch_text
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["REPS", "EpisodicHiREPS"]
 
-_SETTINGS = checked_settings(300)  # the dual's LBFGS settings (solve_episodic_dual's defaults)
+_SETTINGS = LbfgsSettings()  # the dual's LBFGS settings (solve_episodic_dual's defaults)
 
 
 class EpisodicHiREPS(HiREPSBase):
@@ -127,7 +120,7 @@ class EpisodicHiREPS(HiREPSBase):
         seed: int | Sequence[int] | None = None,
         population: int | None = None,
         **policy_kwargs: Unpack[PolicyKwargs],
-    ) -> EpisodicHiREPS:
+    ) -> Self:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
 
         Args:
@@ -158,7 +151,7 @@ class EpisodicHiREPS(HiREPSBase):
         )
 
     # ---- input handling ---------------------------------------------------------------------
-    def _contexts(self, contexts: Tensor | int | None, n: int | None = None) -> Tensor:
+    def _states(self, contexts: Tensor | int | None, n: int | None = None) -> Tensor:
         """Checked float64 contexts ([S,] N, C); a count / None (``n`` samples) without context."""
         if _is_count(contexts):
             if self.context_dim > 0:
@@ -171,25 +164,12 @@ class EpisodicHiREPS(HiREPSBase):
                 raise ValueError(f"the number of samples must be >= 1, got {count}")
             shape = (*self.policy.batch_shape, count, 0)
             return torch.zeros(shape, dtype=torch.float64, device=self.device)
-        c = as_float_tensor("contexts", contexts, device=self.device)
         lead, C = self.policy.batch_shape, self.context_dim
-        if not lead and c.dim() == 1 and C == 1:
-            c = c[:, None]
-        if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
-            names = "(S, N, C) = " if lead else ""
-            hint = (
-                " (this algorithm has no context: pass the number of samples, or None to tell)"
-                if C == 0
-                else ""
-            )
-            raise ValueError(
-                f"contexts must have shape {names}({batch_text(self.population)}N, {C}), got "
-                f"{tuple(c.shape)}{hint}"
-            )
-        if c.shape[-2] < 1:
-            raise ValueError(f"contexts must hold at least one context, got {tuple(c.shape)}")
-        as_finite_f64("contexts", c)
-        return c
+        hint = " (this algorithm has no context: pass the number of samples, or None to tell)"
+        hint = hint if C == 0 else ""
+        return checked_states(
+            contexts, "contexts", lead, C, self.device, noun="context", hint=hint, squeeze=True
+        )
 
     def _samples(
         self, contexts: Tensor | int | None, params: Tensor, returns: Tensor
@@ -216,7 +196,7 @@ class EpisodicHiREPS(HiREPSBase):
         if not math.isfinite(float(R.sum()) + float(theta.sum())):  # else: which one?
             check_finite("returns", R)
             check_finite("params", theta)
-        c = self._contexts(contexts, n=N)
+        c = self._states(contexts, n=N)
         if c.shape[-2] != N:
             raise ValueError(f"got {c.shape[-2]} contexts for {N} params and returns")
         if N < 2:
@@ -224,7 +204,6 @@ class EpisodicHiREPS(HiREPSBase):
         return c, theta, R
 
     # ---- ask / tell -------------------------------------------------------------------------
-    @torch.no_grad()
     def ask(self, contexts: Tensor | int | None) -> Tensor:
         """Sample one parameter vector per context.
 
@@ -234,14 +213,11 @@ class EpisodicHiREPS(HiREPSBase):
         Returns:
             theta: (N, D) float64.
         """
-        c = self._contexts(contexts)
-        theta, _ = self.policy.sample(c, self.generator)
-        return theta
+        return self.sample(contexts)
 
-    @torch.no_grad()
     def act(self, contexts: Tensor | int | None) -> Tensor:
         """Noise-free policy (mean of the most probable option): (N, D)."""
-        return self.policy.mean_action(self._contexts(contexts))[0]
+        return self.mean_action(contexts)
 
     @torch.no_grad()
     def tell(
@@ -289,16 +265,6 @@ class EpisodicHiREPS(HiREPSBase):
     def policies(self) -> tuple[HierarchicalPolicy]:
         """``(policy,)``."""
         return (self.policy,)
-
-    def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`ask` for contexts (N, C) (C = 0 without context); ``step`` must be 0."""
-        check_step(step, 1)
-        return self.ask(states)
-
-    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`act` for contexts (N, C); ``step`` must be 0."""
-        check_step(step, 1)
-        return self.act(states)
 
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from contexts (N, 1, C), parameters (N, 1, D) and returns (N, 1)."""
@@ -354,9 +320,9 @@ class REPS(EpisodicHiREPS):
         mean_prior: float = 0.0,
         seed: int | Sequence[int] | None = None,
         population: int | None = None,
-    ) -> REPS:
+    ) -> Self:
         """Build REPS with one linear-Gaussian option (see :meth:`EpisodicHiREPS.create`)."""
-        algo = super().create(
+        return super().create(
             param_dim,
             context_dim=context_dim,
             n_options=1,
@@ -371,5 +337,3 @@ class REPS(EpisodicHiREPS):
             covariance_prior=covariance_prior,
             mean_prior=mean_prior,
         )
-        assert isinstance(algo, REPS)
-        return algo

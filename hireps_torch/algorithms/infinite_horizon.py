@@ -27,7 +27,7 @@ from hireps_torch.algorithms.base import (
     check_experience,
     check_saved_values,
     check_state_keys,
-    check_step,
+    checked_states,
     member_policies,
 )
 from hireps_torch.checks import (
@@ -40,7 +40,7 @@ from hireps_torch.checks import (
 )
 from hireps_torch.dual.infinite_horizon import infinite_horizon_solution
 from hireps_torch.dual.inputs import warn_if_degenerate
-from hireps_torch.dual.solver import checked_settings
+from hireps_torch.dual.solver import LbfgsSettings
 from hireps_torch.features import FeatureMap, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -49,7 +49,7 @@ if TYPE_CHECKING:
 
 __all__ = ["InfiniteHorizonHiREPS"]
 
-_SETTINGS = checked_settings(300)  # the dual's LBFGS settings (the wrapper's defaults)
+_SETTINGS = LbfgsSettings()  # the dual's LBFGS settings (the wrapper's defaults)
 
 
 class InfiniteHorizonHiREPS(HiREPSBase):
@@ -96,8 +96,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         C = value_features.in_features
         if policy.context_dim != C:
             raise ValueError(
-                f"the policy takes states of dimension {policy.context_dim} but the value "
-                f"features take C = {C}"
+                f"value_features take states of dimension {C}, the policy of dimension "
+                f"{policy.context_dim}"
             )
         self.policy = policy
         self.value_features = value_features.to(self.device)  # where the policy is
@@ -145,13 +145,6 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
         state_dim = check_count("state_dim", state_dim, 1)
-        if check_feature_map("value_features", value_features) is None:
-            raise TypeError("value_features must be a feature map (e.g. FourierFeatures)")
-        if value_features.in_features != state_dim:
-            raise ValueError(
-                f"value_features take states of dimension {value_features.in_features}, "
-                f"not state_dim = {state_dim}"
-            )
         policy, sampling = member_policies(
             seed, population, [init_mean], n_options, state_dim, action_dim, **policy_kwargs
         )
@@ -289,28 +282,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
     def _states(self, states: Tensor, name: str = "states", *, population: bool = True) -> Tensor:
         """Checked float64 states ([S,] N, C) (no S when ``population`` is False)."""
-        C = self.value_features.in_features
-        s = as_float_tensor(name, states, device=self.device)
         lead = self.policy.batch_shape if population else ()
-        if s.dim() != 2 + len(lead) or s.shape[:-2] != lead or s.shape[-1] != C:
-            shape = ", ".join(map(str, (*lead, "N", C)))
-            raise ValueError(f"{name} must have shape ({shape}), got {tuple(s.shape)}")
-        if s.shape[-2] < 1:
-            raise ValueError(f"{name} must hold at least one state, got {tuple(s.shape)}")
-        as_finite_f64(name, s)
-        return s
-
-    @torch.no_grad()
-    def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """Exploring actions (N, A) for states (N, C); ``step`` must be 0."""
-        check_step(step, 1)
-        return self.policy.sample(self._states(states), self.generator)[0]
-
-    @torch.no_grad()
-    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
-        """Noise-free actions (N, A) (mean of the most probable option); ``step`` must be 0."""
-        check_step(step, 1)
-        return self.policy.mean_action(self._states(states))[0]
+        return checked_states(states, name, lead, self.value_features.in_features, self.device)
 
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`update` from an :class:`Experience` with K = 1."""

@@ -35,6 +35,7 @@ from hireps_torch.algorithms.base import (
     check_saved_values,
     check_state_keys,
     check_step,
+    checked_states,
     member_policies,
 )
 from hireps_torch.checks import (
@@ -44,18 +45,17 @@ from hireps_torch.checks import (
     check_finite,
 )
 from hireps_torch.dual.inputs import warn_if_degenerate
-from hireps_torch.dual.solver import checked_settings
+from hireps_torch.dual.solver import LbfgsSettings
 from hireps_torch.dual.time_indexed import time_indexed_solution
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
-from hireps_torch.policies._population import batch_text
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["TimeIndexedHiREPS"]
 
-_SETTINGS = checked_settings(300)  # the dual's LBFGS settings (the wrapper's defaults)
+_SETTINGS = LbfgsSettings()  # the dual's LBFGS settings (the wrapper's defaults)
 
 _PER_STEP = (  # diagnostics that tell() reports as one entry per step
     "eta xi kappa kl cross_entropy effective_sample_size option_entropy policy_entropy "
@@ -175,7 +175,6 @@ class TimeIndexedHiREPS(HiREPSBase):
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
         K = check_count("K (the number of decision steps)", K, 1)
-        check_feature_map("value_features", value_features)
         context_dim = check_count("context_dim (the state dimension)", context_dim, 1)
         param_dim = check_count("param_dim", param_dim, 1)
         mean = torch.zeros(K, param_dim, dtype=torch.float64)
@@ -192,7 +191,7 @@ class TimeIndexedHiREPS(HiREPSBase):
         )
         return cls(
             policies,
-            value_features or QuadraticFeatures(context_dim),
+            QuadraticFeatures(context_dim) if value_features is None else value_features,
             epsilon=epsilon,
             kappa_rel=kappa_rel,
             prune_threshold=prune_threshold,
@@ -205,22 +204,10 @@ class TimeIndexedHiREPS(HiREPSBase):
         return len(self.policies)
 
     # ---- input handling ---------------------------------------------------------------------
-    def _contexts(self, contexts: Tensor) -> Tensor:
+    def _states(self, states: Tensor) -> Tensor:
         """States ([S,] N, C) at one step, N >= 1, as checked float64."""
         C, lead = self.value_features.in_features, self.policies[0].batch_shape
-        c = as_float_tensor("contexts", contexts, device=self.device)
-        if not lead and c.dim() == 1 and C == 1:
-            c = c[:, None]
-        if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
-            names = "(population, N, C) = " if lead else ""
-            raise ValueError(
-                f"contexts must have shape {names}({batch_text(self.population)}N, {C}), got "
-                f"{tuple(c.shape)}"
-            )
-        if c.shape[-2] < 1:
-            raise ValueError(f"contexts must hold at least one state, got {tuple(c.shape)}")
-        as_finite_f64("contexts", c)
-        return c
+        return checked_states(states, "contexts", lead, C, self.device, squeeze=True)
 
     def _episodes(
         self, states: Tensor, params: Tensor, rewards: Tensor
@@ -246,7 +233,6 @@ class TimeIndexedHiREPS(HiREPSBase):
         return s, theta, R
 
     # ---- ask / tell -------------------------------------------------------------------------
-    @torch.no_grad()
     def ask(self, step: int, contexts: Tensor) -> Tensor:
         """Sample one parameter vector per state from step ``step``'s policy.
 
@@ -257,20 +243,16 @@ class TimeIndexedHiREPS(HiREPSBase):
         Returns:
             theta: (N, D) float64.
         """
-        k = check_step(step, self.n_steps)
-        theta, _ = self.policies[k].sample(self._contexts(contexts), self.generator)
-        return theta
+        return self.sample(contexts, step)
 
-    @torch.no_grad()
     def act(self, step: int, contexts: Tensor) -> Tensor:
         """Noise-free policy of step ``step`` (mean of the most probable option): (N, D)."""
-        k = check_step(step, self.n_steps)
-        return self.policies[k].mean_action(self._contexts(contexts))[0]
+        return self.mean_action(contexts, step)
 
     def value(self, step: int, contexts: Tensor) -> Tensor:
         """V_k(s) = v_k^T phi(s) from the last update, up to a constant: (N, C) -> (N,)."""
         k = check_step(step, self.n_steps)
-        phi = self.value_features(self._contexts(contexts))
+        phi = self.value_features(self._states(contexts))
         return (phi @ self.value_weights[..., k, :, None])[..., 0]
 
     @torch.no_grad()
@@ -339,14 +321,6 @@ class TimeIndexedHiREPS(HiREPSBase):
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------
-    def sample(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`ask` for states (N, C) at ``step``."""
-        return self.ask(step, states)
-
-    def mean_action(self, states: Tensor, step: int = 0) -> Tensor:
-        """:meth:`act` for states (N, C) at ``step``."""
-        return self.act(step, states)
-
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from states (N, K, C), parameters (N, K, D) and rewards (N, K)."""
         C, D = self.value_features.in_features, self.policies[0].action_dim

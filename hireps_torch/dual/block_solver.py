@@ -82,7 +82,7 @@ class _Whitened:
         return self.x0 + step[..., 0]
 
     def __call__(self) -> Tensor:
-        g, grad = self.prob.value_and_grad(self.x())
+        g, grad, _ = self.prob.evaluate(self.x())
         # below its floor a dual running off counts only logarithmically (monotone, C1)
         below = (self.floor - g).clamp_min(0.0)
         g = torch.where(below > 0, self.floor - torch.log1p(below), g)
@@ -167,7 +167,14 @@ class BlockSolver:
         if not prob.P:
             self.solve(todo)
             return self.end, texts
-        need, conflict = self._solve_and_detect(todo, x_start)
+        self.x = torch.where(todo[:, None], x_start, self.x)
+        self.solve(todo)
+        # an unconverged solve that broke the KL bound ran off too, only more slowly
+        ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
+        # a converged solve met every constraint: no conflict
+        shows = prob.shows_conflict(self.x, self.end.value) | self._sunk()
+        conflict = todo & ~self.end.converged & shows
+        need = conflict | (todo & ran_off)
         if not bool(need.any()):
             return self.end, texts
         kept = self.relax(x_start, need)
@@ -191,19 +198,6 @@ class BlockSolver:
             )
         self._set(need, torch.zeros_like(need), self.end.value, self.end.weights)
         return self.end, texts
-
-    def _solve_and_detect(self, todo: Tensor, x_start: Tensor) -> tuple[Tensor, Tensor]:
-        """Solve ``todo`` from x_start; returns (S,) masks: ran off or broke the KL bound
-        unconverged, and showed a conflict."""
-        prob = self.prob
-        self.x = torch.where(todo[:, None], x_start, self.x)
-        self.solve(todo)
-        # an unconverged solve that broke the KL bound ran off too, only more slowly
-        ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
-        sunk = self._sunk()
-        # a converged solve met every constraint: no conflict
-        clash = todo & ~self.end.converged & (prob.shows_conflict(self.x, self.end.value) | sunk)
-        return clash | (todo & ran_off), clash
 
     def relax(self, x_start: Tensor, need: Tensor) -> Tensor:
         """Re-solve ``need`` (S,) from x_start with a ridge on v, stronger while the KL bound stays
@@ -431,8 +425,7 @@ class BlockSolver:
             psd, _ = _newton_step(M, grad, moving, lam + 1e-8)
             step = torch.where(ok[:, None], step, psd)
         # a block's temperature (and xi) changes by at most e^_MAX_LOG_STEP per step
-        K2 = 2 * self.prob.K
-        big = step[:, :K2].abs().amax(-1, keepdim=True) if K2 else step[:, :0].sum(-1, True)
+        big = step[:, : 2 * self.prob.K].abs().amax(-1, keepdim=True)
         return step * (_MAX_LOG_STEP / big.clamp_min(_MAX_LOG_STEP))
 
     def _moving(self) -> Tensor:

@@ -36,38 +36,32 @@ _INFORMATIVE_RTOL = 1e-13  # Bellman residual spread below this of the returns: 
 class Standardised:
     """S K-block duals in standardised units: v = v0 + scale * T u, and the solver sees
 
-        R_s = (R + D v0 - offset) / scale,    D_s = D T,    c_s = T^T c.
+        R_s = (R + D v0 - offset) / scale,    D_s = D T,    c_s = T^T c
+
+    (offset: the block means of R + D v0; scale: their common spread).
 
     Attributes:
-        residuals: (S, K, N) Bellman errors at v0, centred per block (R_s times ``scale``).
+        returns: (S, K, N) R_s (zeros where not informative).
         D, c, T: (S, K, N, P) D_s, (S, P) c_s, (S, P, P) T, or None (no features / no c).
         v0: (S, P) value start in the caller's feature units.
-        offset: (S, K, 1) the block means taken out; scale: (S,) their common spread.
+        scale: (S,) the common spread.
         informative: (S,) ``scale`` above 1e-13 of the largest |return| (else a projection solve).
         level: (S,) what the centring and c^T v0 took out of the dual value (caller's units).
-        dropped: (S,) feature directions without spread in the samples, left out of the solve.
-        fixed_residual: (S,) the constraint residual along them, relative to its terms.
+        fixed_residual: (S,) the constraint residual along feature directions without spread in
+            the samples (left out of the solve), relative to its terms.
         reward_spread: (S, K) spread of each block's returns (before v0) over ``scale``.
     """
 
-    residuals: Tensor
+    returns: Tensor
     D: Tensor | None
     c: Tensor | None
     v0: Tensor
     T: Tensor | None
-    offset: Tensor
     scale: Tensor
     informative: Tensor
     level: Tensor
-    dropped: Tensor
     fixed_residual: Tensor
     reward_spread: Tensor
-
-    @property
-    def returns(self) -> Tensor:
-        """(S, K, N) standardised returns R_s (zeros where not informative)."""
-        r = self.residuals / self.scale[:, None, None]
-        return torch.where(self.informative[:, None, None], r, torch.zeros_like(r))
 
     def value(self, u: Tensor) -> Tensor:
         """The caller's v (S, P) of the standardised u (S, P)."""
@@ -92,9 +86,8 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
     v0 = R.new_zeros(S, P)
     magnitude = R.abs().amax(dim=(1, 2))
     floor = torch.where(magnitude > 0, _SPREAD_RTOL * magnitude, torch.ones_like(magnitude))
-    dropped = torch.zeros(S, dtype=torch.long, device=R.device)
     fixed = R.new_zeros(S)
-    if D is not None and P > 0:
+    if D is not None:
         col = column_scales(D)  # (S, P)
         Dc = (D - D.mean(dim=2, keepdim=True)) / col[:, None, None, :]
         y, svd = _one_block_fit(Dc, resid) if K == 1 and N > P else (None, None)
@@ -118,24 +111,23 @@ def standardise(R: Tensor, D: Tensor | None, c: Tensor | None, eps: Tensor) -> S
         Ds = torch.einsum("sknp,spq->sknq", D, T)
         cs = None if c is None else torch.einsum("sp,spq->sq", c, T)
         if B is not None:
-            dropped = P - (B.abs().amax(dim=1) > 0).sum(-1)
             fixed = fixed_residual(D, c, col, B)
     offset = resid.mean(dim=-1, keepdim=True)
     resid = resid - offset
     linear = R.new_zeros(S) if c is None else (c * v0).sum(-1)  # the dual's c^T v at v0
-    scale = resid.reshape(S, -1).std(dim=-1) if K * N > 1 else R.new_ones(S)
+    scale = resid.reshape(S, -1).std(dim=-1)
+    informative = scale > _INFORMATIVE_RTOL * magnitude
+    r = resid / scale[:, None, None]
     spread_r = R.std(dim=-1)
     return Standardised(
-        residuals=resid,
+        returns=torch.where(informative[:, None, None], r, torch.zeros_like(r)),
         D=Ds,
         c=cs,
         v0=v0,
         T=T,
-        offset=offset,
         scale=scale,
-        informative=scale > _INFORMATIVE_RTOL * magnitude,
+        informative=informative,
         level=R.mean(dim=-1).sum(-1) + offset.sum(dim=(1, 2)) + linear,
-        dropped=dropped,
         fixed_residual=fixed,
         reward_spread=torch.where(
             scale[:, None] > 0, spread_r / scale[:, None], torch.zeros_like(spread_r)
@@ -153,15 +145,15 @@ def column_scales(D: Tensor) -> Tensor:
     return torch.where(constant, torch.where(mag > 0, mag, torch.ones_like(mag)), col)
 
 
-def identified_basis(Dc: Tensor, svd: tuple[Tensor, Tensor] | None = None) -> Tensor | None:
+def identified_basis(Dc: Tensor, svd: tuple[Tensor, Tensor]) -> Tensor | None:
     """(S, P, P) orthonormal bases (as columns, 0 for the rest) of the directions the centred
-    unit-column features Dc (S, K, N, P) identify (singular value above 1e-12 of the largest and of
-    sqrt(K N)), or None when every problem identifies all P (``svd``: :func:`right_svd` of Dc as
-    (S, K N, P), if at hand)."""
+    unit-column features Dc (S, K, N, P), P >= 1, identify (singular value above 1e-12 of the
+    largest and of sqrt(K N)), or None when every problem identifies all P (``svd``:
+    :func:`right_svd` of Dc as (S, K N, P))."""
     S, K, N, P = Dc.shape
-    sv, Vh = right_svd(Dc.reshape(S, K * N, P)) if svd is None else svd
+    sv, Vh = svd
     m = sv.shape[-1]
-    top = sv.amax(dim=-1, keepdim=True) if m else sv.new_zeros(S, 1)
+    top = sv.amax(dim=-1, keepdim=True)
     keep = sv > _RANK_RTOL * top.clamp_min(math.sqrt(K * N))
     if m == P and bool(keep.all()):
         return None
@@ -195,8 +187,6 @@ def value_start(Rc: Tensor, Dc: Tensor, eps: Tensor, floor: Tensor, rounds: int 
     S, K, N, P = Dc.shape
     weight = Rc.new_ones(S, K)
     v = Rc.new_zeros(S, P)
-    if P == 0:
-        return v
     for _ in range(rounds if K > 1 else 1):
         root = weight.sqrt()[..., None]
         A = (root[..., None] * Dc).reshape(S, K * N, P)
@@ -231,8 +221,6 @@ def whitening(Dc: Tensor, weight: Tensor, svd: tuple[Tensor, Tensor] | None = No
     without spread keep the largest direction's scale."""
     S, K, N, P = Dc.shape
     eye = torch.eye(P, dtype=Dc.dtype, device=Dc.device).expand(S, P, P).clone()
-    if P == 0:
-        return eye
     if svd is None:
         A = (weight.sqrt()[..., None, None] * Dc).reshape(S, K * N, P) / math.sqrt(N)
         svd = right_svd(A)

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from hireps_torch.dual.inputs import centred, check_features, common_inputs
-from hireps_torch.dual.solutions import DualSolution, public, warn_if_collapsed
-from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
+from hireps_torch.dual.inputs import centred, check_features, check_settings, common_inputs
+from hireps_torch.dual.solutions import DualSolution, public
+from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 
 __all__ = ["episodic_solution", "solve_episodic_dual"]
 
@@ -52,7 +52,7 @@ def solve_episodic_dual(
         ValueError, TypeError: on non-finite returns or features, shape mismatches, N < 2,
             epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
-    opts = checked_settings(max_iter)
+    opts = check_settings(max_iter)
     R, eps, lr, kap = common_inputs(
         returns, epsilon, log_responsibilities, kappa, population=population
     )
@@ -85,6 +85,5 @@ def episodic_solution(
     if phi is not None:
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
         D = -centred(phi).reshape(S, 1, N, -1)
-    sol = solve_blocks(R[:, None], log_resp[:, None], eps, D, None, kappa, settings, stacklevel + 1)
-    warn_if_collapsed(sol, eps, stacklevel)
-    return sol
+    one_block = R[:, None], log_resp[:, None], eps
+    return solve_blocks(*one_block, D, None, kappa, settings, stacklevel + 1)

@@ -8,9 +8,14 @@ import math
 from torch import Tensor
 
 from hireps_torch.checks import as_float
-from hireps_torch.dual.inputs import check_feature_vector, check_features, common_inputs
-from hireps_torch.dual.solutions import DualSolution, public, warn_if_collapsed
-from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
+from hireps_torch.dual.inputs import (
+    check_feature_vector,
+    check_features,
+    check_settings,
+    common_inputs,
+)
+from hireps_torch.dual.solutions import DualSolution, public
+from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 
 __all__ = ["infinite_horizon_solution", "solve_infinite_horizon_dual"]
 
@@ -65,7 +70,7 @@ def solve_infinite_horizon_dual(
         ValueError, TypeError: on non-finite or mis-shaped input, gamma outside (0, 1),
             epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
-    opts = checked_settings(max_iter)
+    opts = check_settings(max_iter)
     R, eps, lr, kap = common_inputs(
         rewards, epsilon, log_responsibilities, kappa, "rewards", population=population
     )
@@ -121,6 +126,4 @@ def infinite_horizon_solution(
     S, N, F = phi.shape
     D = (gamma * phi_next - phi).reshape(S, 1, N, F)
     c = (1.0 - gamma) * phi0
-    sol = solve_blocks(R[:, None], log_resp[:, None], eps, D, c, kappa, settings, stacklevel + 1)
-    warn_if_collapsed(sol, eps, stacklevel)
-    return sol
+    return solve_blocks(R[:, None], log_resp[:, None], eps, D, c, kappa, settings, stacklevel + 1)

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from hireps_torch._linalg import logsumexp
 from hireps_torch.checks import as_f64, as_float, as_float_tensor, check_finite, check_positive
+from hireps_torch.dual.block_solver import LbfgsSettings
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
 __all__ = [
@@ -69,19 +70,21 @@ def per_block(
     device: torch.device | None = None,
     S: int | None = None,
 ) -> Tensor:
-    """A bound (one float or (K,)) as a (K,) float64 tensor on ``device``; ``S``: the messages
-    name a population's per-member shapes too."""
+    """A bound (one float or (K,)) as a (K,) float64 tensor on ``device``; with ``S`` (a
+    population's) also (S, K), or (S,) with K = 1, as (S, K)."""
     t = as_float_tensor(name, value, allow_bool=False).to(device)
     if t.dim() == 0:
         return t.expand(K).clone()
-    if t.shape != (K,):
-        members = "" if S is None else f", or per member ({S}, {K})"
-        members += f" or ({S},)" if S is not None and K == 1 else ""
-        raise ValueError(
-            f"{name} must be a float or have shape ({K},) (one per block){members}, got "
-            f"{tuple(t.shape)}"
-        )
-    return t
+    if t.shape == (K,):
+        return t
+    if S is not None and (t.shape == (S, K) or (K == 1 and t.shape == (S,))):
+        return t.reshape(S, K)
+    members = "" if S is None else f", or per member ({S}, {K})"
+    members += f" or ({S},)" if S is not None and K == 1 else ""
+    raise ValueError(
+        f"{name} must be a float or have shape ({K},) (one per block){members}, got "
+        f"{tuple(t.shape)}"
+    )
 
 
 def _shape_text(lead: tuple[int, ...], last: str, population: bool = False) -> str:
@@ -131,20 +134,9 @@ def common_inputs(
     lead = tuple(int(d) for d in R.shape)
     R = R.reshape(S, N, -1).transpose(1, 2).contiguous()
     K = R.shape[1]
-    per_problem = population and isinstance(kappa, Tensor) and _per_problem(kappa, S, K)
-    members = S if population else 0
-    eps, kap = check_bounds(epsilon, None if per_problem else kappa, K, N, 4, dev, members)
-    if per_problem:
-        kap = as_f64("kappa", kappa).to(dev).reshape(S, K)
-        if bool(torch.isnan(kap).any()) or bool((kap < 0).any()):
-            raise ValueError(f"kappa must be >= 0 (inf: no bound), got {kap.tolist()}")
+    eps, kap = check_bounds(epsilon, kappa, K, N, 4, dev, S if population else 0)
     lr = _log_responsibilities(log_responsibilities, lead, S, K, population, dev)
     return R, eps.expand(S, K), lr, None if kap is None else kap.expand(S, K)
-
-
-def _per_problem(kappa: Tensor, S: int, K: int) -> bool:
-    """Whether a population's ``kappa`` is (S, K), or (S,) with K = 1."""
-    return kappa.shape == (S, K) or (K == 1 and kappa.shape == (S,))
 
 
 def check_bounds(
@@ -158,7 +150,7 @@ def check_bounds(
 ) -> tuple[Tensor, Tensor | None]:
     """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, on ``device``; warns
     (``stacklevel`` frames up) where epsilon >= log N. ``S`` > 0: a population's kappa may also
-    be (S, K) (messages)."""
+    be (S, K) or, with K = 1, (S,) (returned as (S, K))."""
     eps = per_block("epsilon", epsilon, K, device)
     check_positive("epsilon", eps)
     warn_if_degenerate(eps.tolist(), N, stacklevel)
@@ -245,8 +237,8 @@ def check_feature_vector(
 
 def check_settings(
     max_iter: object, tolerance_grad: object = 1e-7, converged_grad: object = 1e-6
-) -> tuple[int, float, float]:
-    """The solver options: ``max_iter`` an integer >= 1, the tolerances finite and > 0."""
+) -> LbfgsSettings:
+    """The solver options checked: ``max_iter`` an integer >= 1, the tolerances finite and > 0."""
     if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral | Tensor):
         raise TypeError(f"max_iter must be an integer >= 1, got {max_iter!r}")
     try:
@@ -264,7 +256,7 @@ def check_settings(
         if not (math.isfinite(t) and t > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         tols.append(t)
-    return n, tols[0], tols[1]
+    return LbfgsSettings(n, tols[0], tols[1])
 
 
 def check_blocks(
@@ -275,9 +267,10 @@ def check_blocks(
     c: Tensor | None,
     kappa: float | Tensor | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
-    """The inputs of :func:`~hireps_torch.dual.solve_reps_dual` checked, in float64: R (K, N),
-    K >= 1, N >= 2; log_resp (K, N, O); epsilon, kappa per block; D (K, N, P), c (P,)
-    (only with D)."""
+    """The inputs of :func:`~hireps_torch.dual.solve_reps_dual` checked, in float64, as a
+    population of one (the leading 1 of :func:`~hireps_torch.dual.solver.solve_blocks`): R
+    (1, K, N), K >= 1, N >= 2; log_resp (1, K, N, O); epsilon, kappa (1, K); D (1, K, N, P), c
+    (1, P) (only with D)."""
     Rt = as_f64("R", R)
     if Rt.dim() != 2 or Rt.shape[0] < 1 or Rt.shape[1] < 2:
         raise ValueError(f"R must have shape (K, N) with K >= 1, N >= 2, got {tuple(Rt.shape)}")
@@ -301,7 +294,11 @@ def check_blocks(
         if Dt is None:
             raise ValueError("c (the linear term in v) needs D (the features)")
         ct = check_feature_vector("c", c, Dt.shape[-1], device=dev)
-    return Rt, lr, eps, Dt, ct, kap
+
+    def one(x: Tensor | None) -> Tensor | None:
+        return None if x is None else x[None]
+
+    return Rt[None], lr[None], eps[None], one(Dt), one(ct), one(kap)
 
 
 def centred(phi: Tensor) -> Tensor:

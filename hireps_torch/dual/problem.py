@@ -67,11 +67,6 @@ class DualProblem:
         xi = torch.where(self.xi_on, x[:, K : 2 * K].clamp(max=LOG_ETA_MAX).exp(), 0.0)
         return a, eta, xi, x[:, 2 * K :]
 
-    def weights(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(P (S, K, N, O), lse (S, K), delta (S, K, N)) at x."""
-        _, eta, xi, v = self.unpack(x)
-        return self.weights_at(eta, xi, v)
-
     def advantage(self, v: Tensor) -> Tensor:
         """(S, K, N) delta = R + D v at v (S, P)."""
         if self.D is None:
@@ -148,7 +143,7 @@ class DualProblem:
         d[:, 2 * K :] += self.ridge[:, None]
         if raw:
             return M
-        top = d.amax(dim=1, keepdim=True) if n else x.new_ones(S, 1)
+        top = d.amax(dim=1, keepdim=True)
         # unused or flat directions (xi switched off, O = 1, a constant feature): identity
         d.copy_(torch.where(d > 1e-10 * top, d, torch.ones_like(d)) + 1e-10 * top)
         return M
@@ -165,11 +160,6 @@ class DualProblem:
         a = x[:, : self.K]
         free: Tensor = (a > self.log_eta_min) & (a < LOG_ETA_MAX) & self.eta_on
         return free
-
-    def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """Dual values (S,) and their gradients (S, n) in x."""
-        g, grad, _ = self.evaluate(x)
-        return g, grad
 
     def evaluate(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Dual values (S,), gradients (S, n) and weights P (S, K, N, O) at x, from one pass."""

@@ -28,7 +28,6 @@ __all__ = [
     "KL_RTOL",
     "Verdict",
     "enforce_kl",
-    "entropy_slack",
     "judge",
     "reachable_kappa",
 ]
@@ -136,11 +135,6 @@ def reachable_kappa(lr: Tensor, eps: Tensor, kappa: Tensor) -> tuple[Tensor, Ten
     return torch.where(unreachable, ce_half, kappa), unreachable, best
 
 
-def entropy_slack(kappa: Tensor) -> Tensor:
-    """How far the cross-entropy may exceed kappa: 1e-6 of max(kappa, 1 nat)."""
-    return ENTROPY_RTOL * kappa.clamp_min(1.0)
-
-
 @dataclass(frozen=True)
 class Verdict:
     """One problem's end: converged, what failed (``parts``), and whether a constraint is
@@ -165,7 +159,8 @@ def judge(
     kl = block_kl(P, prob.lr)
     over = kl > prob.eps * (1.0 + KL_RTOL)
     ce = block_cross_entropy(P, prob.lr)
-    bad_ce = torch.isfinite(kappa) & (ce > kappa + entropy_slack(kappa)) & prob.multi
+    # the cross-entropy may exceed kappa by 1e-6 of max(kappa, 1 nat)
+    bad_ce = torch.isfinite(kappa) & (ce > kappa + ENTROPY_RTOL * kappa.clamp_min(1.0)) & prob.multi
     worst = torch.zeros(prob.S, dtype=P.dtype, device=P.device)
     if prob.P:
         assert prob.D is not None

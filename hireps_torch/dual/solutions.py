@@ -1,9 +1,8 @@
 """What the duals return: the solution type, its diagnostics and the dual's warnings.
 
-Every solution keeps ``kl <= epsilon (1 + 1e-6)`` on every block. ``converged`` is True only when,
-besides, the entropy bound (``cross_entropy <= kappa + 1e-6 max(kappa, 1)``) and the feature
-constraints (residual below 1e-6 of the features' spread) hold and the solver met its gradient
-tolerance; otherwise one :class:`InfeasibleConstraintsWarning` (a constraint cannot be met) or
+Every solution keeps the KL bound; ``converged`` is True only when every constraint holds to its
+tolerance (:mod:`~hireps_torch.dual.safeguards`) and the solver met its gradient tolerance;
+otherwise one :class:`InfeasibleConstraintsWarning` (a constraint cannot be met) or
 :class:`DualConvergenceWarning` says what failed.
 
 Returns without information (constant, or fixed by the features) give eta = inf (xi = inf where the
@@ -21,6 +20,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "TENSORS",
     "DegenerateWeightsWarning",
     "DualConvergenceWarning",
     "DualSolution",
@@ -29,7 +29,6 @@ __all__ = [
     "block_kl",
     "finish",
     "public",
-    "stack_solutions",
     "warn_if_collapsed",
 ]
 
@@ -102,7 +101,7 @@ class DualSolution:
         S = self.converged.shape[0]
         if not -S <= s < S:
             raise ValueError(f"problem must be in [0, {S}), got {s}")
-        return replace(self, numbers=None, **{f.name: getattr(self, f.name)[s] for f in _TENSORS})
+        return replace(self, numbers=None, **{f.name: getattr(self, f.name)[s] for f in TENSORS})
 
     def step(self, k: int) -> DualSolution:
         """Block k as a one-block solution (its v the step's own where v has a block dimension;
@@ -122,7 +121,7 @@ class DualSolution:
         )
 
 
-_TENSORS = [f for f in fields(DualSolution) if f.name != "numbers"]
+TENSORS = [f for f in fields(DualSolution) if f.name != "numbers"]  # DualSolution's tensors
 _BLOCKED = ("eta", "xi", "weights", "kl", "cross_entropy", "effective_sample_size")
 
 
@@ -131,14 +130,6 @@ def public(sol: DualSolution, population: bool, blocks: bool) -> DualSolution:
     (else problem 0), the block dimension kept where ``blocks`` (else block 0)."""
     out = sol if population else sol.problem(0)
     return out if blocks else out.step(0)
-
-
-def stack_solutions(parts: list[DualSolution]) -> DualSolution:
-    """The solutions of problems solved one by one (each S = 1) as one population's."""
-    if len(parts) == 1:
-        return parts[0]
-    stacked = {f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in _TENSORS}
-    return replace(parts[0], numbers=None, **stacked)
 
 
 def block_kl(w: Tensor, log_resp: Tensor) -> Tensor:
@@ -169,7 +160,7 @@ def finish(
     inputs with a leading S (D (S, K, N, P), c (S, P))."""
     ws = w.sum(-1)  # (S, K, N)
     feat_err = w.new_zeros(w.shape[0])
-    if D is not None and D.shape[-1] > 0:
+    if D is not None:
         grad_v = torch.einsum("skn,sknp->sp", ws, D)
         if c is not None:
             grad_v = grad_v + c

@@ -4,7 +4,7 @@ Returns and feature columns are scaled by exact powers of 2 (magnitudes from 1e-
 fine) and standardised (:mod:`~hireps_torch.dual.conditioning`); plain REPS goes to
 :func:`~hireps_torch.dual.temperature.solve_temperature`, the rest to
 :class:`~hireps_torch.dual.block_solver.BlockSolver`, then :mod:`~hireps_torch.dual.safeguards`.
-What ``converged`` promises: :mod:`~hireps_torch.dual.solutions`.
+What ``converged`` promises: :mod:`~hireps_torch.dual.safeguards`.
 """
 
 from __future__ import annotations
@@ -23,21 +23,16 @@ from hireps_torch.dual.conditioning import Standardised, standardise
 from hireps_torch.dual.inputs import check_blocks, check_settings
 from hireps_torch.dual.safeguards import Verdict, enforce_kl, judge, reachable_kappa
 from hireps_torch.dual.solutions import (
+    TENSORS,
     DualConvergenceWarning,
     DualSolution,
     InfeasibleConstraintsWarning,
     finish,
-    stack_solutions,
+    warn_if_collapsed,
 )
 from hireps_torch.dual.temperature import log_temperatures, solve_temperature
 
-__all__ = [
-    "LbfgsSettings",
-    "checked_settings",
-    "population_of_one",
-    "solve_blocks",
-    "solve_reps_dual",
-]
+__all__ = ["LbfgsSettings", "solve_blocks", "solve_reps_dual"]
 
 
 def solve_reps_dual(
@@ -82,38 +77,9 @@ def solve_reps_dual(
             responsibilities, epsilon <= 0, kappa < 0 or nonsensical solver options; each
             message names the value.
     """
-    opts = checked_settings(max_iter, tolerance_grad, converged_grad)
-    Rt, lr, eps, Dt, ct, kap = check_blocks(R, log_resp, epsilon, D, c, kappa)
-    sol = solve_blocks(*population_of_one(Rt, lr, eps, Dt, ct, kap), opts, stacklevel=3)
-    return sol.problem(0)
-
-
-def population_of_one(
-    R: Tensor,
-    log_resp: Tensor,
-    eps: Tensor,
-    D: Tensor | None,
-    c: Tensor | None,
-    kappa: Tensor | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
-    """One problem's checked inputs (R (K, N), ...) with a leading S = 1, as :func:`solve_blocks`
-    takes them."""
-    return (
-        R[None],
-        log_resp[None],
-        eps[None],
-        None if D is None else D[None],
-        None if c is None else c[None],
-        None if kappa is None else kappa[None],
-    )
-
-
-def checked_settings(
-    max_iter: object, tolerance_grad: object = 1e-7, converged_grad: object = 1e-6
-) -> LbfgsSettings:
-    """Checked :class:`~hireps_torch.dual.block_solver.LbfgsSettings` of the public solvers'
-    options."""
-    return LbfgsSettings(*check_settings(max_iter, tolerance_grad, converged_grad))
+    opts = check_settings(max_iter, tolerance_grad, converged_grad)
+    inputs = check_blocks(R, log_resp, epsilon, D, c, kappa)
+    return solve_blocks(*inputs, opts, stacklevel=3, collapse=False).problem(0)
 
 
 def solve_blocks(
@@ -125,11 +91,13 @@ def solve_blocks(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
+    collapse: bool = True,
 ) -> DualSolution:
     """:func:`solve_reps_dual` on S checked float64 problems: R (S, K, N), log_resp (S, K, N, O),
     eps (S, K), D (S, K, N, P), c (S, P), kappa (S, K). Each is solved alone (why:
     benchmarks/README.md, "One path"), side by side on idle cores; warnings ("problem s: " first
-    when S > 1) in order, ``stacklevel`` frames up."""
+    when S > 1) in order, then (``collapse``) where weights collapsed, ``stacklevel`` frames
+    up."""
     S = R.shape[0]
 
     def one(x: Tensor | None, s: int) -> Tensor | None:
@@ -145,7 +113,13 @@ def solve_blocks(
     for _, said in solved:
         for text, category in said:
             warnings.warn(text, category, stacklevel=stacklevel)
-    return stack_solutions([sol for sol, _ in solved])
+    sol = solved[0][0]
+    if S > 1:  # the problems' (S = 1) solutions as one population's
+        cat = {f.name: torch.cat([getattr(p, f.name) for p, _ in solved]) for f in TENSORS}
+        sol = replace(sol, numbers=None, **cat)
+    if collapse:
+        warn_if_collapsed(sol, eps, stacklevel)
+    return sol
 
 
 _Warning = tuple[str, type[Warning]]
@@ -168,7 +142,7 @@ def _solve_one(
     unbounded = kappa is None or not bool(torch.isfinite(kappa).any())
     if log_resp.shape[-1] > 1 and unbounded:
         return _factorised(R, log_resp, eps, D, c, settings, prefix)
-    if S == 1 and K == 1 and D is None and unbounded:  # one option column: plain REPS
+    if K == 1 and D is None and unbounded:  # one option column: plain REPS
         sol = solve_temperature(R.view(-1), eps.item(), settings)
         if sol is not None:
             return sol, []

@@ -30,10 +30,11 @@ from hireps_torch.dual.inputs import (
     centred,
     check_feature_vector,
     check_features,
+    check_settings,
     common_inputs,
 )
-from hireps_torch.dual.solutions import DualSolution, public, warn_if_collapsed
-from hireps_torch.dual.solver import LbfgsSettings, checked_settings, solve_blocks
+from hireps_torch.dual.solutions import DualSolution, public
+from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 
 __all__ = ["solve_time_indexed_dual", "time_indexed_solution"]
 
@@ -81,7 +82,7 @@ def solve_time_indexed_dual(
             K < 1, epsilon <= 0, a negative kappa or a bad max_iter; each message names the
             offending value.
     """
-    opts = checked_settings(max_iter)
+    opts = check_settings(max_iter)
     R, eps, lr, kap = common_inputs(
         rewards,
         epsilon,
@@ -119,9 +120,7 @@ def time_indexed_solution(
     (S, K F)): R (S, K, N), log_resp (S, K, N, O), eps (S, K), phi (S, K, N, F), phi1 (S, F) or
     None, kappa (S, K) or None; warnings ``stacklevel`` frames up."""
     D = _chained_map(phi, phi1)
-    sol = solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)
-    warn_if_collapsed(sol, eps, stacklevel)
-    return sol
+    return solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)
 
 
 def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 import torch
@@ -11,11 +10,11 @@ from torch import Tensor, nn
 from hireps_torch._linalg import log_softmax, softmax
 from hireps_torch._parallel import member_chunks, side_by_side
 from hireps_torch.checks import (
-    as_float,
     as_float_tensor,
     check_count,
     check_finite,
     check_float_dtype,
+    check_nonnegative_float,
     check_weights,
 )
 from hireps_torch.policies._module import PolicyModule
@@ -148,9 +147,7 @@ class SoftmaxGating(Gating):
         self, in_features: int, n_options: int, l2: float = 1e-4, dtype: torch.dtype = torch.float64
     ) -> None:
         super().__init__(in_features, n_options)
-        self.l2 = as_float("l2", l2)
-        if not (math.isfinite(self.l2) and self.l2 >= 0):
-            raise ValueError(f"l2 must be finite and >= 0, got {l2}")
+        self.l2 = check_nonnegative_float("l2", l2)
         check_float_dtype(dtype)
         n_options, in_features = self.n_options, self.in_features
         self.weight = nn.Parameter(torch.zeros(n_options, in_features, dtype=dtype), False)

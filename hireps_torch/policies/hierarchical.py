@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Sequence
 from typing import cast
 
@@ -12,11 +11,12 @@ from torch import Tensor, nn
 
 from hireps_torch._linalg import log_softmax, logsumexp
 from hireps_torch.checks import (
-    as_float,
     as_float_tensor,
     check_count,
     check_finite,
     check_generator,
+    check_nonnegative_float,
+    check_prune_threshold,
     check_weights,
 )
 from hireps_torch.features import FeatureMap, IdentityFeatures, check_feature_map
@@ -31,13 +31,7 @@ from hireps_torch.policies._population import (
     normal,
 )
 from hireps_torch.policies.gating import Gating, SoftmaxGating
-from hireps_torch.policies.linear_gaussian import (
-    LinearGaussian,
-    initial_std,
-    power_of_two_scaled,
-    pseudo_samples,
-    variance_floor,
-)
+from hireps_torch.policies.linear_gaussian import LinearGaussian, power_of_two_scaled
 
 __all__ = ["HierarchicalPolicy"]
 
@@ -118,8 +112,6 @@ class HierarchicalPolicy(PolicyModule):
         action_dim = check_count("action_dim", action_dim, 1)
         check_generator("generator", generator)
         gf = check_feature_map("gating_features", gating_features) or IdentityFeatures(context_dim)
-        if gating is not None:  # checked before the generator draws the option means
-            check_gating(gating, n_options, gf.out_features)
         pf = check_feature_map("policy_features", policy_features) or IdentityFeatures(context_dim)
         for name, fmap in (("gating_features", gf), ("policy_features", pf)):
             if fmap.in_features != context_dim:
@@ -128,37 +120,30 @@ class HierarchicalPolicy(PolicyModule):
                     f"{context_dim}"
                 )
         mean = initial_means(init_mean, n_options, action_dim)
-        std = initial_std(init_std, action_dim)
-        spread = as_float("spread", spread)
-        if not (math.isfinite(spread) and spread >= 0):
-            raise ValueError(f"spread must be finite and >= 0, got {spread}")
-        variance_floor(min_variance, action_dim)  # checked before the generator draws
-        pseudo_samples("covariance_prior", covariance_prior)
-        pseudo_samples("mean_prior", mean_prior)
-        opts = []
-        for o in range(n_options):
-            m = (
-                mean[o]
-                if mean.dim() == 2
-                else mean
-                if n_options == 1
-                else mean
-                + spread * std * torch.randn(action_dim, generator=generator, dtype=torch.float64)
+        spread = check_nonnegative_float("spread", spread)
+        rows = mean if mean.dim() == 2 else mean.expand(n_options, action_dim)
+        opts = [  # every argument is checked (by LinearGaussian, then cls) before the draws
+            LinearGaussian(
+                pf.out_features,
+                action_dim,
+                m,
+                init_std,
+                min_variance,
+                covariance_prior=covariance_prior,
+                mean_prior=mean_prior,
             )
-            opts.append(
-                LinearGaussian(
-                    pf.out_features,
-                    action_dim,
-                    m,
-                    std,
-                    min_variance,
-                    covariance_prior=covariance_prior,
-                    mean_prior=mean_prior,
-                )
-            )
+            for m in rows
+        ]
         if gating is None:
             gating = SoftmaxGating(gf.out_features, n_options)
-        return cls(gating, opts, gf, pf)
+        policy = cls(gating, opts, gf, pf)
+        if mean.dim() == 1 and n_options > 1:  # spread the one mean (chol's diagonal: init_std)
+            for opt in opts:
+                noise = torch.randn(action_dim, generator=generator, dtype=torch.float64)
+                opt.bias.add_(spread * opt.chol.diagonal() * noise)
+            means = torch.stack([opt.bias for opt in opts])
+            check_finite("init_mean + spread * init_std * randn", means, "lower spread or init_std")
+        return policy
 
     @classmethod
     def stack(cls, members: Sequence[HierarchicalPolicy]) -> HierarchicalPolicy:
@@ -401,9 +386,7 @@ class HierarchicalPolicy(PolicyModule):
         """Deactivate options whose mass ``mean_i pi(o | s_i)`` is below ``threshold`` (never the
         most probable; only where ``members`` ([S]) is True). Returns the pruned indices (per
         member for a population)."""
-        limit = as_float("threshold", threshold)
-        if not 0.0 <= limit < 1.0:
-            raise ValueError(f"threshold must be in [0, 1), got {threshold}")
+        limit = check_prune_threshold(threshold, "threshold")
         c = self._context(context)
         if c.shape[-2] == 0:
             raise ValueError("prune needs at least one context, got an empty (0, C) batch")

@@ -11,7 +11,6 @@ from torch import Tensor, nn
 from hireps_torch._linalg import min_norm_lstsq
 from hireps_torch.checks import (
     all_finite,
-    as_float,
     as_float_tensor,
     check_count,
     check_finite,
@@ -33,7 +32,6 @@ __all__ = [
     "LinearGaussian",
     "initial_std",
     "map_linear_regression",
-    "pseudo_samples",
     "power_of_two_scaled",
     "variance_floor",
     "weighted_least_squares",
@@ -118,14 +116,6 @@ def check_floor(floor: Tensor, action_dim: int, given: object) -> None:
             f"min_variance must be in [{low:g}, {high:g}] (a float or a ({action_dim},) "
             f"tensor), got {given}"
         )
-
-
-def pseudo_samples(name: str, value: float) -> float:
-    """A prior's pseudo-sample count (finite, >= 0) as a float."""
-    prior = as_float(name, value)
-    if not (math.isfinite(prior) and prior >= 0):
-        raise ValueError(f"{name} must be finite and >= 0, got {value}")
-    return prior
 
 
 def _matvec(A: Tensor, x: Tensor) -> Tensor:
@@ -238,8 +228,8 @@ class LinearGaussian(PolicyModule):
         in_features = check_count("in_features", in_features, 0)
         check_float_dtype(dtype)
         floor = variance_floor(min_variance, action_dim)
-        self.covariance_prior = pseudo_samples("covariance_prior", covariance_prior)
-        self.mean_prior = pseudo_samples("mean_prior", mean_prior)
+        self.covariance_prior = check_nonnegative_float("covariance_prior", covariance_prior)
+        self.mean_prior = check_nonnegative_float("mean_prior", mean_prior)
         std = initial_std(init_std, action_dim).to(dtype)
         mean = (
             torch.zeros(action_dim, dtype=dtype)
@@ -342,7 +332,7 @@ class LinearGaussian(PolicyModule):
         if bool(empty.any()):
             s = int(empty.nonzero()[0, 0])
             raise ValueError(f"weights[{s}] are all zero (member {s} of the population)")
-        r = check_nonnegative_float("ridge", ridge) or 0.0
+        r = check_nonnegative_float("ridge", ridge)
         return self.fit_checked(x, y, power_of_two_scaled(w, self.population is not None), r)
 
     def fit_checked(self, x: Tensor, y: Tensor, w: Tensor, r: float = 1e-6) -> dict[str, Tensor]:

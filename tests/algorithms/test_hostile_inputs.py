@@ -82,6 +82,9 @@ def test_counts_and_thresholds_are_checked():
     ]:
         with pytest.raises(error, match=match):
             EpisodicHiREPS(pol, **kwargs)
+    for fixed in ("n_options", "kappa_rel"):  # REPS: one option, no entropy bound
+        with pytest.raises(TypeError, match=f"unexpected keyword argument '{fixed}'"):
+            REPS.create(2, **{fixed: 1})
     with pytest.raises(TypeError, match="policy must be a HierarchicalPolicy"):
         EpisodicHiREPS(pol.options[0])
     with pytest.raises(ValueError, match=r"K \(the number of decision steps\) must be >= 1"):

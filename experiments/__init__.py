@@ -11,6 +11,7 @@ if __name__ != "hireps_torch.experiments":  # the folder experiments/ is install
         "copy of each class"
     )
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -29,12 +30,7 @@ EXPERIMENTS: dict[str, tuple[type, Callable[[Any], dict[str, Any]]]] = {
 }
 
 ALGORITHMS: dict[str, Callable[[Any], Algorithm]] = {
-    "bimodal": bimodal.algorithm,
-    "pendulum": pendulum.algorithm,
-    "ball-on-beam": ball_on_beam.algorithm,
-    "hockey-sequential": hockey.algorithm,
-    "hockey-episodic": hockey.algorithm,
-    "hockey-fixed-start": hockey.algorithm,
+    name: sys.modules[run.__module__].algorithm for name, (_, run) in EXPERIMENTS.items()
 }
 """Each experiment's config checked and its untrained algorithm built, as ``run`` does,
 writing nothing."""

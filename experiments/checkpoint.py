@@ -27,6 +27,7 @@ __all__ = [
     "RunState",
     "StopRequest",
     "changed_options",
+    "check_same_run",
     "load_checkpoint",
     "read_config",
     "run_config",
@@ -195,6 +196,26 @@ def changed_options(
         if key not in RUN_ONLY_OPTIONS
         and _meaning(key, saved.get(key, "<absent>")) != _meaning(key, now.get(key, "<absent>"))
     ]
+
+
+def check_same_run(run_dir: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any]) -> None:
+    """A ``ValueError`` unless the checkpoint in ``run_dir`` was written by the run that its
+    ``config.json`` (``saved``) describes: the same experiment and options."""
+    checkpoint, config = run_dir / "checkpoint.pt", run_dir / "config.json"
+    if ckpt.get("experiment") != saved.get("experiment"):
+        raise ValueError(
+            f"{checkpoint} is of a {ckpt.get('experiment')!r} run, but {config} of a "
+            f"{saved.get('experiment')!r} run"
+        )
+    theirs = ckpt.get("config")
+    if diff := changed_options(
+        theirs if isinstance(theirs, dict) else {}, saved, ("checkpoint.pt", "config.json")
+    ):
+        raise ValueError(
+            f"{checkpoint} was written by a run with other options than {config} holds: "
+            + "; ".join(diff)
+            + " (was one of them copied or edited?)"
+        )
 
 
 def _meaning(key: str, value: Any) -> Any:

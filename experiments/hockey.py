@@ -11,21 +11,9 @@ import torch
 
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
 from hireps_torch.experiments.checkpoint import RunState
-from hireps_torch.experiments.loop import (
-    Run,
-    check_budget,
-    collector_loop,
-    finish_run,
-    resume_point,
-)
+from hireps_torch.experiments.loop import Run, ask_tell_loop, check_budget, finish_run, resume_point
 from hireps_torch.experiments.options import RunOptions, check_options, option_error
-from hireps_torch.experiments.workers import (
-    Backend,
-    EpisodeCollector,
-    check_pool,
-    make_pool,
-    reproducible_mkl,
-)
+from hireps_torch.experiments.workers import Backend, check_pool, make_pool, reproducible_mkl
 
 __all__ = [
     "HockeyConfig",
@@ -289,11 +277,12 @@ def _update(
     zones: tuple[float, float, float, float],
     floor: Callable[[int], torch.Tensor] | None = None,
 ) -> Any:
-    """One iteration: whole K-shot episodes into one ``learn`` (per-shot diagnostics as columns
-    ``<name>_<shot>``), the options' variance floor ``floor(algo.iteration)`` set first."""
+    """One iteration: whole K-shot episodes into one ``learn``, returning the row's fields
+    (per-shot diagnostics as ``<name>_<shot>``), the variance floor ``floor(algo.iteration)``
+    set first."""
     from hireps_torch.rollout import episodes
 
-    def update(batch: Any) -> list[dict[str, Any]]:
+    def update(batch: Any) -> dict[str, Any]:
         s, a, r, final = episodes(batch, K)
         if floor is not None:
             low = floor(algo.iteration)
@@ -308,7 +297,7 @@ def _update(
             if isinstance(diag.get(key), (list, tuple))
             for k in range(len(diag[key]))
         }
-        return [{**_hockey_rows(r, final, zones), **scalars, **steps}]
+        return {**_hockey_rows(r, final, zones), **scalars, **steps}
 
     return update
 
@@ -387,7 +376,6 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     K = len(policies)  # decision steps per episode: 3 shots, or 1 vector of 42 numbers
     env_id = ENV_ID if sequential else EPISODIC_ENV_ID
     B = cfg.episodes_per_iteration
-    start = 0 if resume is None or resume.checkpoint is None else resume.checkpoint["iteration"]
     actor = time_indexed_module(policies) if sequential else policy_module(policies[0])
     floor = None
     if cfg.exploration_floor_end is not None:
@@ -395,34 +383,30 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
         floor = partial(variance_floor, cfg, std, updates=iterations)
     label = f"{experiment}/{cfg.n_options}opt"
     state = RunState(algo)  # episode e's randomness comes from (seed, e): no env state
-    # the pool (worker processes, Ray) last, right before the loop that shuts it down
-    collector = EpisodeCollector(
-        make_pool(
-            partial(_make_env, env_id, sequential, params),
-            cfg.workers,
-            cfg.backend,
-            cfg.ray_address,
-        ),
-        actor,
-        seed=cfg.seed,
-        steps=K,
-        episodes_per_iteration=B,
-        iterations=iterations,
-        start_iteration=int(start),
+    update = _update(algo, K, params.zones, floor)
+    # the pool (worker processes, Ray) last, right before the loop; closed however it ends
+    pool = make_pool(
+        partial(_make_env, env_id, sequential, params), cfg.workers, cfg.backend, cfg.ray_address
     )
-    session = collector_loop(
-        collector,
-        lambda: Run(experiment, cfg, state, resume),
-        _update(algo, K, params.zones, floor),
-        iterations=iterations,
-        episodes_per_iteration=B,
-        label=label,
-        postfix=lambda row: {
-            "reward": f"{row['average_reward']:.2f}",
-            "zone3": f"{row['zone3_share']:.2f}",
-        },
-        progress=cfg.progress,
-    )
+
+    def step(it: int) -> list[dict[str, Any]]:
+        batch = pool.play(actor, cfg.seed, range(it * B, (it + 1) * B), K)
+        return [{"iteration": it + 1, "episodes": (it + 1) * B, **update(batch)}]
+
+    try:
+        session = ask_tell_loop(
+            Run(experiment, cfg, state, resume),
+            step,
+            iterations=iterations,
+            label=label,
+            postfix=lambda row: {
+                "reward": f"{row['average_reward']:.2f}",
+                "zone3": f"{row['zone3_share']:.2f}",
+            },
+            progress=cfg.progress,
+        )
+    finally:
+        pool.close()
     last = session.rows[0][-1]
     shots = iterations * B * params.n_shots
     elapsed = session.root.elapsed()

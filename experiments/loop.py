@@ -8,7 +8,6 @@ import dataclasses
 import statistics
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from itertools import repeat
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ from hireps_torch.experiments.checkpoint import (
     RunInterrupted,
     RunState,
     changed_options,
+    check_same_run,
     load_checkpoint,
     read_config,
     stop_on_signals,
@@ -74,61 +74,48 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
     # between two writes); the run's own writer takes the lock again for the whole run
     lock = DirectoryLock(run_dir)
     try:
-        return _checked_resume(experiment, cfg, run_dir)
-    finally:
-        lock.release()
-
-
-def _checked_resume(experiment: str, cfg: RunOptions, run_dir: Path) -> Resume:
-    """The checks of :func:`resume_point` on ``run_dir``, whose lock the caller holds."""
-    if (run_dir / "summary.json").is_file():
-        raise RunFinished(f"{run_dir} already finished (summary.json is there); nothing to resume")
-    saved = read_config(run_dir)
-    if saved.get("experiment", experiment) != experiment:
-        raise ValueError(
-            f"cannot resume {run_dir}: it is a {saved.get('experiment')!r} run, not {experiment!r}"
-        )
-    if diff := changed_options(saved, config_dict(experiment, cfg)):
-        raise ValueError(
-            f"cannot resume {run_dir} with other options than it was started with: "
-            + "; ".join(diff)
-            + " (pass no options, or the same ones, with --resume)"
-        )
-    seeds = saved.get("seeds")
-    dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
-    logged = {d: logged_rows(d / "metrics.csv") for d in dirs}
-    ckpt = load_checkpoint(run_dir)
-    parent = run_dir.resolve().parent
-    if ckpt is None and seeds is None and (parent / "checkpoint.pt").is_file():
-        raise ValueError(
-            f"cannot resume {run_dir}: it is a member of the population in {parent}; resume "
-            f"that directory (--resume {parent}) (nothing was changed)"
-        )
-    if ckpt is None:
+        if (run_dir / "summary.json").is_file():
+            raise RunFinished(
+                f"{run_dir} already finished (summary.json is there); nothing to resume"
+            )
+        saved = read_config(run_dir)
+        if saved.get("experiment", experiment) != experiment:
+            raise ValueError(
+                f"cannot resume {run_dir}: it is a {saved.get('experiment')!r} run, not "
+                f"{experiment!r}"
+            )
+        if diff := changed_options(saved, config_dict(experiment, cfg)):
+            raise ValueError(
+                f"cannot resume {run_dir} with other options than it was started with: "
+                + "; ".join(diff)
+                + " (pass no options, or the same ones, with --resume)"
+            )
+        seeds = saved.get("seeds")
+        dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
+        logged = {d: logged_rows(d / "metrics.csv") for d in dirs}
+        ckpt = load_checkpoint(run_dir)
+        parent = run_dir.resolve().parent
+        if ckpt is None and seeds is None and (parent / "checkpoint.pt").is_file():
+            raise ValueError(
+                f"cannot resume {run_dir}: it is a member of the population in {parent}; "
+                f"resume that directory (--resume {parent}) (nothing was changed)"
+            )
+        if ckpt is not None:
+            try:
+                check_same_run(run_dir, ckpt, saved)
+            except ValueError as exc:
+                raise ValueError(f"cannot resume {run_dir}: {exc}; nothing was changed") from None
         for d, n in logged.items():
-            if n:
+            if ckpt is None and n:
                 raise ValueError(
                     f"cannot resume {run_dir}: {d / 'metrics.csv'} holds {n} row(s) but there "
                     f"is no {run_dir / 'checkpoint.pt'} to continue them from; restore the "
                     "checkpoint, or move the directory away and start a new run (nothing was "
                     "changed)"
                 )
-    else:
-        theirs = ckpt.get("config")
-        if not isinstance(theirs, dict) or ckpt.get("experiment") != experiment:
-            raise ValueError(
-                f"cannot resume {run_dir}: its checkpoint.pt is of a "
-                f"{ckpt.get('experiment')!r} run, not of this {experiment!r} run (nothing was "
-                "changed)"
-            )
-        if mismatch := changed_options(theirs, saved, ("checkpoint.pt", "config.json")):
-            raise ValueError(
-                f"cannot resume {run_dir}: its checkpoint.pt was written by a run with other "
-                "options than its config.json holds: "
-                + "; ".join(mismatch)
-                + " (was one of them copied or edited?); nothing was changed"
-            )
-    return Resume(run_dir, ckpt)
+        return Resume(run_dir, ckpt)
+    finally:
+        lock.release()
 
 
 def logged_rows(path: Path) -> int:
@@ -281,42 +268,6 @@ def keep_freed_memory(pad: int = 1 << 30) -> bool:
         return False
 
 
-def _iterate(
-    run: Run,
-    items: Iterable[Any],
-    step: Callable[[int, Any], list[dict[str, Any]]],
-    *,
-    iterations: int,
-    label: str,
-    postfix: Postfix,
-    progress: bool,
-) -> None:
-    """Iterations of ``step(it, item)`` (one row per member): log, checkpoint, stop on signals."""
-    S = len(run.writers)
-    if S > 1:
-        label = f"{label}/{S} seeds"
-    keep_freed_memory()
-    bar = tqdm(total=iterations, initial=run.start_iteration, desc=label, disable=not progress)
-    try:
-        with stop_on_signals() as stop:
-            for it, item in zip(range(run.start_iteration, iterations), items, strict=False):
-                rows = step(it, item)
-                run.log(rows)
-                bar.update(1)
-                bar.set_postfix(**postfix(_mean_row(rows)))
-                run.end_iteration(it + 1, force=stop.signame is not None)
-                if stop.signame is not None and it + 1 < iterations:
-                    raise RunInterrupted(run.root.dir, it + 1, stop.signame)
-    except BaseException:
-        try:
-            run.save_unsaved()
-        finally:
-            run.release()
-        raise
-    finally:
-        bar.close()
-
-
 def _mean_row(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The members' rows as one: the mean of each number (the row itself for one member)."""
     if len(rows) == 1:
@@ -349,22 +300,17 @@ def collector_loop(
 
     try:
         run = open_run()
+        batches = iter(collector)
 
-        def step(it: int, batch: Any) -> list[dict[str, Any]]:
-            members = update(batch)
+        def step(it: int) -> list[dict[str, Any]]:
+            members = update(next(batches))
             if sync_weights:
                 collector.update_policy_weights_()
             count = {"iteration": it + 1, "episodes": (it + 1) * episodes_per_iteration}
             return [count | fields for fields in members]
 
-        _iterate(
-            run,
-            collector,
-            step,
-            iterations=iterations,
-            label=label,
-            postfix=postfix,
-            progress=progress,
+        ask_tell_loop(
+            run, step, iterations=iterations, label=label, postfix=postfix, progress=progress
         )
     finally:
         shutdown_collector(collector)
@@ -380,16 +326,31 @@ def ask_tell_loop(
     postfix: Postfix,
     progress: bool = True,
 ) -> Run:
-    """Rounds of ``step(it)`` (ask, evaluate, tell: one row per member); returns the run."""
-    _iterate(
-        run,
-        repeat(None),
-        lambda it, _: step(it),
-        iterations=iterations,
-        label=label,
-        postfix=postfix,
-        progress=progress,
-    )
+    """Rounds of ``step(it)`` (ask, evaluate, tell: one row per member) from the run's start
+    iteration: log, checkpoint, stop on signals; returns the run."""
+    S = len(run.writers)
+    if S > 1:
+        label = f"{label}/{S} seeds"
+    keep_freed_memory()
+    bar = tqdm(total=iterations, initial=run.start_iteration, desc=label, disable=not progress)
+    try:
+        with stop_on_signals() as stop:
+            for it in range(run.start_iteration, iterations):
+                rows = step(it)
+                run.log(rows)
+                bar.update(1)
+                bar.set_postfix(**postfix(_mean_row(rows)))
+                run.end_iteration(it + 1, force=stop.signame is not None)
+                if stop.signame is not None and it + 1 < iterations:
+                    raise RunInterrupted(run.root.dir, it + 1, stop.signame)
+    except BaseException:
+        try:
+            run.save_unsaved()
+        finally:
+            run.release()
+        raise
+    finally:
+        bar.close()
     return run
 
 

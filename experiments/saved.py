@@ -17,6 +17,7 @@ from torch import Tensor
 from hireps_torch.algorithms import Algorithm
 from hireps_torch.experiments.checkpoint import (
     changed_options,
+    check_same_run,
     load_checkpoint,
     read_config,
     run_config,
@@ -111,7 +112,7 @@ def load_run(run_dir: str | Path) -> LoadedRun:
             "member's policy is in its population's checkpoint (load it inside the population's "
             "directory), or the checkpoint was moved away"
         )
-    _check_same_run(root, ckpt, saved if member is None else read_config(root))
+    check_same_run(root, ckpt, saved if member is None else read_config(root))
     state = ckpt["algorithm"]
     if member is not None:
         _check_member(run_dir, root, saved)
@@ -169,23 +170,6 @@ def _checkpoint_dir(run_dir: Path, seed: int) -> tuple[Path, tuple[int, int] | N
             f"its members: its config.json has seed {seed}, and member s lives in seed<s>"
         )
     return parent, (members.index(seed), len(members))
-
-
-def _check_same_run(root: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any]) -> None:
-    """The checkpoint in ``root`` was written by the run ``saved`` (its config.json) says."""
-    if ckpt.get("experiment") != saved.get("experiment"):
-        raise ValueError(
-            f"{root / 'checkpoint.pt'} is of a {ckpt.get('experiment')!r} run, but "
-            f"{root / 'config.json'} of a {saved.get('experiment')!r} run"
-        )
-    theirs = ckpt.get("config")
-    if diff := changed_options(
-        theirs if isinstance(theirs, dict) else {}, saved, ("checkpoint.pt", "config.json")
-    ):
-        raise ValueError(
-            f"{root / 'checkpoint.pt'} was written by a run with other options than "
-            f"{root / 'config.json'} holds: " + "; ".join(diff)
-        )
 
 
 def _check_member(run_dir: Path, root: Path, saved: Mapping[str, Any]) -> None:

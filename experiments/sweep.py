@@ -484,13 +484,13 @@ def run_sweep(
 ) -> dict[tuple[str, int], dict[str, Any]]:
     """Run every run of ``runs`` (finished ones reused, interrupted ones resumed), calling
     ``on_result(run, summary)`` as each ends; returns ``{(name, seed): summary}``. The
-    configurations are checked first unless ``checked``; failed runs do not stop the others
-    and raise :class:`SweepFailed` once all have ended."""
-    check_backend(backend, workers, ray_address)
+    backend and the configurations are checked first unless ``checked``; failed runs do not
+    stop the others and raise :class:`SweepFailed` once all have ended."""
     keys = [(r.name, r.seed) for r in runs]
     if len(set(keys)) != len(keys):
         raise ValueError("a sweep holds the same (configuration, seed) twice")
     if not checked:
+        check_backend(backend, workers, ray_address)
         check_configurations(runs)
     results: dict[tuple[str, int], dict[str, Any]] = {}
     failures: dict[tuple[str, int], str] = {}
@@ -547,19 +547,16 @@ def summarize(
     runs: Sequence[SweepRun],
     results: Mapping[tuple[str, int], Mapping[str, Any]],
     out: Path,
-    metric: str | None = None,
-    curve: str | None = None,
     stem: str = "sweep",
 ) -> str:
     """Write ``<stem>.md`` (table), ``.json`` (summaries) and ``.png`` (bands) to ``out``;
-    returns the table. ``metric`` / ``curve`` default to the experiment's :data:`METRICS`."""
+    returns the table. The metric and the curve column: the experiment's :data:`METRICS`."""
     from hireps_torch.experiments.rundir import atomic_write
 
     if not runs:
         raise ValueError("nothing to summarize: the sweep has no runs")
     experiment = runs[0].experiment
-    metric = metric or METRICS[experiment][0]
-    curve = curve or METRICS[experiment][1]
+    metric, curve = METRICS[experiment]
     names = list(dict.fromkeys(r.name for r in runs))
     lines = [
         f"| configuration | seeds | {metric} (mean ± std) | per seed | s/run |",

@@ -23,7 +23,7 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -31,8 +31,6 @@ from tensordict import TensorDictBase
 
 __all__ = [
     "Backend",
-    "EpisodeCollector",
-    "EpisodePool",
     "InProcessPool",
     "LocalProcessPool",
     "RayPool",
@@ -48,6 +46,8 @@ __all__ = [
 Backend = Literal["local", "ray"]
 _TAG = 0x686F636B  # separates these streams from any other use of the run's seed
 MKL_MODE = "COMPATIBLE"
+MAX_RETRIES = 3
+"""How often a local pool broken by a dead worker is rebuilt to play the same episodes."""
 
 
 def _mkl_mode() -> int | None:
@@ -187,18 +187,6 @@ def split_episodes(episodes: Sequence[int], parts: int) -> list[list[int]]:
 
 
 # ---- pools ------------------------------------------------------------------------------------
-class EpisodePool(Protocol):
-    """Plays episodes by index; ``close()`` releases its workers."""
-
-    workers: int
-
-    def play(
-        self, actor: Any, seed: int, episodes: Sequence[int], steps: int
-    ) -> TensorDictBase: ...
-
-    def close(self) -> None: ...
-
-
 class InProcessPool:
     """One worker: this process, with the environment built on the first call."""
 
@@ -222,19 +210,17 @@ class LocalProcessPool:
     """``workers`` spawned processes on this machine; each keeps its environment between
     iterations. A pool broken by a dead worker is rebuilt and the episodes played again."""
 
-    def __init__(self, make_env: Callable[[], Any], workers: int, max_retries: int = 3) -> None:
+    def __init__(self, make_env: Callable[[], Any], workers: int) -> None:
         self.make_env = make_env
         self.workers = workers
-        self.max_retries = max_retries
         self.key = uuid.uuid4().hex
         self._executor: ProcessPoolExecutor | None = None
-        self.restarts = 0
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
         from hireps_torch.rollout import workers_ignore_sigint
 
         chunks = split_episodes(episodes, self.workers)
-        for attempt in range(self.max_retries + 1):
+        for attempt in range(MAX_RETRIES + 1):
             if self._executor is None:
                 self._executor = ProcessPoolExecutor(
                     self.workers, mp_context=multiprocessing.get_context("spawn")
@@ -251,8 +237,7 @@ class LocalProcessPool:
                 return torch.cat([f.result() for f in futures])
             except BrokenProcessPool:
                 self.close()
-                self.restarts += 1
-                if attempt == self.max_retries:
+                if attempt == MAX_RETRIES:
                     raise RuntimeError(
                         f"worker processes died {attempt + 1} times while playing episodes "
                         f"{chunks[0][0]}..{chunks[-1][-1]}; giving up"
@@ -350,20 +335,13 @@ RAY_ENV = {"env_vars": {"MKL_CBWR": MKL_MODE, "OMP_NUM_THREADS": "1"}}
 
 def init_ray(ray: Any, workers: int, address: str | None, runtime_env: dict[str, Any]) -> None:
     """``ray.init``: a local instance with ``workers`` CPUs, or the cluster at ``address``."""
-    if address is None:
-        ray.init(
-            num_cpus=workers,
-            include_dashboard=False,
-            log_to_driver=False,
-            configure_logging=False,
-            runtime_env=runtime_env,
-        )
-        return
+    local = address is None
+    where = {"num_cpus": workers, "configure_logging": False} if local else {"address": address}
     try:
-        ray.init(
-            address=address, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env
-        )
+        ray.init(**where, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
     except (ConnectionError, RuntimeError) as exc:
+        if local:  # a local start's own error, as it is
+            raise
         raise ValueError(f"cannot join the Ray cluster at {address!r}: {exc}") from None
 
 
@@ -427,43 +405,10 @@ def make_pool(
     workers: int = 1,
     backend: Backend = "local",
     address: str | None = None,
-) -> EpisodePool:
+) -> InProcessPool | LocalProcessPool | RayPool:
     """The pool for ``backend`` (see the module docstring); ``address`` only with ``ray``."""
     check_pool(workers, backend, address)
     if backend == "ray":
         return RayPool(make_env, workers, address)
     return InProcessPool(make_env) if workers == 1 else LocalProcessPool(make_env, workers)
 
-
-class EpisodeCollector:
-    """Batches of whole episodes for :func:`~hireps_torch.experiments.loop.collector_loop`:
-    iteration ``i`` plays episodes ``i * B .. (i + 1) * B - 1`` with the actor as it is then
-    (no weight sync needed); ``shutdown()`` closes the pool."""
-
-    def __init__(
-        self,
-        pool: EpisodePool,
-        actor: Any,
-        *,
-        seed: int,
-        steps: int,
-        episodes_per_iteration: int,
-        iterations: int,
-        start_iteration: int = 0,
-    ) -> None:
-        _actor_net(actor)
-        self.pool = pool
-        self.actor = actor
-        self.seed = seed
-        self.steps = steps
-        self.B = episodes_per_iteration
-        self.iterations = iterations
-        self.start_iteration = start_iteration
-
-    def __iter__(self) -> Iterator[TensorDictBase]:
-        for it in range(self.start_iteration, self.iterations):
-            episodes = range(it * self.B, (it + 1) * self.B)
-            yield self.pool.play(self.actor, self.seed, episodes, self.steps)
-
-    def shutdown(self) -> None:
-        self.pool.close()

@@ -817,7 +817,7 @@ def test_a_numerically_failed_solve_keeps_the_old_distribution(monkeypatch):
         self.x = torch.full_like(self.x, math.nan)
         nan = torch.full_like(self.prob.lr, math.nan)
         end = block_solver._End(torch.tensor([False]), torch.tensor([math.nan], dtype=F64), nan)
-        return end, [None]
+        return end, None
 
     monkeypatch.setattr(block_solver.BlockSolver, "run", broken)
     gen = torch.Generator().manual_seed(27)

@@ -36,8 +36,6 @@ __all__ = [
     "HiREPSBase",
     "PolicyKwargs",
     "check_epsilons",
-    "check_experience",
-    "check_state_keys",
     "check_step",
     "check_saved_values",
     "checked_states",
@@ -276,75 +274,6 @@ def _check_shape(name: str, value: object, expected: tuple[int | str, ...]) -> T
     return value
 
 
-def check_experience(
-    experience: Experience,
-    n_steps: int,
-    state_dim: int,
-    action_dim: int,
-    *,
-    transitions: bool,
-    algorithm: str,
-    population: int | None = None,
-) -> int:
-    """Check ``experience``'s shapes for K = ``n_steps`` (``transitions``: next_states); N."""
-    if not isinstance(experience, Experience):
-        raise TypeError(f"learn takes an Experience, got {type(experience).__name__}")
-    lead: tuple[int | str, ...] = () if population is None else (population,)
-    rewards = _check_shape("rewards", experience.rewards, (*lead, "N", n_steps))
-    N = rewards.shape[len(lead)]
-    _check_shape("states", experience.states, (*lead, N, n_steps, state_dim))
-    _check_shape("actions", experience.actions, (*lead, N, n_steps, action_dim))
-    if not transitions:
-        for name in ("next_states", "terminated"):
-            if getattr(experience, name) is not None:
-                raise ValueError(
-                    f"experience.{name} is read by InfiniteHorizonHiREPS only; {algorithm} "
-                    f"learns from states, actions and rewards (leave {name} None)"
-                )
-        return N
-    if experience.next_states is None:
-        shape = ", ".join(map(str, (*lead, N, n_steps, state_dim)))
-        raise ValueError(f"{algorithm} needs experience.next_states ({shape})")
-    _check_shape("next_states", experience.next_states, (*lead, N, n_steps, state_dim))
-    if experience.terminated is not None:
-        term = _check_shape("terminated", experience.terminated, (*lead, N, n_steps))
-        if term.dtype != torch.bool:
-            raise ValueError(f"experience.terminated must be a bool tensor, got {term.dtype}")
-    return N
-
-
-def check_state_keys(state: object, required: set[str], algorithm: str) -> Mapping[str, Any]:
-    """``state`` as a mapping with exactly the ``required`` keys (and optionally ``generator``)."""
-    if not isinstance(state, Mapping):
-        raise TypeError(f"{algorithm}.load_state_dict takes a mapping, got {type(state).__name__}")
-    keys = set(state)
-    missing, unexpected = sorted(required - keys), sorted(keys - required - {"generator"})
-    if missing or unexpected:
-        writer = (
-            "TimeIndexedHiREPS"
-            if "policies" in keys
-            else "InfiniteHorizonHiREPS"
-            if "gamma" in keys
-            else "EpisodicHiREPS / REPS"
-            if "policy" in keys
-            else "an unknown writer"
-        )
-        raise ValueError(
-            f"{algorithm}.load_state_dict: this state does not fit (missing keys {missing}, "
-            f"unexpected keys {unexpected}); it looks like a checkpoint of {writer}"
-        )
-    return state
-
-
-@dataclass(frozen=True)
-class _Shared:
-    """The checked shared entries of a checkpoint."""
-
-    generator: Any
-    iteration: int
-    kappa_rel: float | None
-
-
 class HiREPSBase:
     """Shared bookkeeping: kappa_rel, prune_threshold, generator, iteration and their checkpoint."""
 
@@ -384,6 +313,37 @@ class HiREPSBase:
         policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
         return policies[check_step(step, len(policies))], self._states(states)
 
+    def _experience(self, experience: Experience, transitions: bool = False) -> Experience:
+        """``experience`` with its shapes checked against the K policies (``transitions``:
+        next_states, for the infinite-horizon variant)."""
+        if not isinstance(experience, Experience):
+            raise TypeError(f"learn takes an Experience, got {type(experience).__name__}")
+        policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
+        K, C, D = len(policies), policies[0].context_dim, policies[0].action_dim
+        lead: tuple[int | str, ...] = () if self.population is None else (self.population,)
+        rewards = _check_shape("rewards", experience.rewards, (*lead, "N", K))
+        N = rewards.shape[len(lead)]
+        _check_shape("states", experience.states, (*lead, N, K, C))
+        _check_shape("actions", experience.actions, (*lead, N, K, D))
+        algorithm = type(self).__name__
+        if not transitions:
+            for name in ("next_states", "terminated"):
+                if getattr(experience, name) is not None:
+                    raise ValueError(
+                        f"experience.{name} is read by InfiniteHorizonHiREPS only; {algorithm} "
+                        f"learns from states, actions and rewards (leave {name} None)"
+                    )
+            return experience
+        if experience.next_states is None:
+            shape = ", ".join(map(str, (*lead, N, K, C)))
+            raise ValueError(f"{algorithm} needs experience.next_states ({shape})")
+        _check_shape("next_states", experience.next_states, (*lead, N, K, C))
+        if experience.terminated is not None:
+            term = _check_shape("terminated", experience.terminated, (*lead, N, K))
+            if term.dtype != torch.bool:
+                raise ValueError(f"experience.terminated must be a bool tensor, got {term.dtype}")
+        return experience
+
     @torch.no_grad()
     def sample(self, states: Tensor | int | None, step: int = 0) -> Tensor:
         """Exploring actions ([S,] N, D) for states ([S,] N, C) at ``step`` (in [0, K)), from
@@ -421,8 +381,34 @@ class HiREPSBase:
             "kappa_rel": self.kappa_rel,
         }
 
-    def _check_shared(self, state: Mapping[str, Any]) -> _Shared:
-        """The shared entries of :meth:`_state`, checked (nothing is set)."""
+    def _keys_checked(self, state: object, *keys: str) -> Mapping[str, Any]:
+        """``state`` as a mapping with exactly the variant's ``keys``, ``iteration`` and
+        ``kappa_rel`` (and optionally ``generator``)."""
+        algorithm, required = type(self).__name__, {*keys, "iteration", "kappa_rel"}
+        if not isinstance(state, Mapping):
+            got = type(state).__name__
+            raise TypeError(f"{algorithm}.load_state_dict takes a mapping, got {got}")
+        given = set(state)
+        missing, unexpected = sorted(required - given), sorted(given - required - {"generator"})
+        if missing or unexpected:
+            writer = (
+                "TimeIndexedHiREPS"
+                if "policies" in given
+                else "InfiniteHorizonHiREPS"
+                if "gamma" in given
+                else "EpisodicHiREPS / REPS"
+                if "policy" in given
+                else "an unknown writer"
+            )
+            raise ValueError(
+                f"{algorithm}.load_state_dict: this state does not fit (missing keys {missing}, "
+                f"unexpected keys {unexpected}); it looks like a checkpoint of {writer}"
+            )
+        return state
+
+    def _load_shared(self, state: Mapping[str, Any]) -> None:
+        """Check the shared entries of :meth:`_state`, then set them (no generator: keep the
+        current one); the variants call it once their own entries are checked."""
         gen = state.get("generator")
         if gen is not None:
             ours = self.generator
@@ -443,18 +429,13 @@ class HiREPSBase:
         kappa_rel = state["kappa_rel"]
         if kappa_rel is not None:
             kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
-        return _Shared(gen, iteration, kappa_rel)
-
-    def _set_shared(self, shared: _Shared) -> None:
-        """Set what :meth:`_check_shared` returned (no generator: keep the current one)."""
-        if shared.generator is not None:
+        if gen is not None:
             if isinstance(self.generator, list):
-                for g, state in zip(self.generator, shared.generator, strict=True):
-                    g.set_state(state)
+                for g, saved in zip(self.generator, gen, strict=True):
+                    g.set_state(saved)
             else:
-                self.generator.set_state(shared.generator)
-        self.iteration = shared.iteration
-        self.kappa_rel = shared.kappa_rel
+                self.generator.set_state(gen)
+        self.iteration, self.kappa_rel = iteration, kappa_rel
 
 
 def check_epsilons(epsilon: object, K: int) -> list[float]:

@@ -23,8 +23,6 @@ from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
     PolicyKwargs,
-    check_experience,
-    check_state_keys,
     checked_states,
     member_policies,
 )
@@ -39,8 +37,6 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["REPS", "EpisodicHiREPS"]
-
-_SETTINGS = LbfgsSettings()  # the dual's LBFGS settings (solve_episodic_dual's defaults)
 
 
 class EpisodicHiREPS(HiREPSBase):
@@ -248,7 +244,7 @@ class EpisodicHiREPS(HiREPSBase):
             phi = self.context_features(c).to(R).reshape(*R1.shape, -1)
             check_finite("context features", phi)
         eps = R.new_full((R1.shape[0], 1), self.epsilon)
-        sol = episodic_solution(R1, lr, eps, phi, kappa, _SETTINGS)
+        sol = episodic_solution(R1, lr, eps, phi, kappa, LbfgsSettings())
         refit = plan_refit(self.policy, c, theta, sol, bound)
         report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1
@@ -268,11 +264,7 @@ class EpisodicHiREPS(HiREPSBase):
 
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from contexts (N, 1, C), parameters (N, 1, D) and returns (N, 1)."""
-        name, C, D = type(self).__name__, self.context_dim, self.policy.action_dim
-        check_experience(
-            experience, 1, C, D, transitions=False, algorithm=name, population=self.population
-        )
-        e = experience
+        e = self._experience(experience)
         return self.tell(e.states[..., 0, :], e.actions[..., 0, :], e.rewards[..., 0])
 
     # ---- checkpointing ----------------------------------------------------------------------
@@ -282,13 +274,11 @@ class EpisodicHiREPS(HiREPSBase):
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`state_dict`'s output; one that does not fit raises, changing nothing."""
-        name = type(self).__name__
-        state = check_state_keys(state, {"policy", "epsilon", "iteration", "kappa_rel"}, name)
+        state = self._keys_checked(state, "policy", "epsilon")
         self.policy.check_state_dict(state["policy"])
         epsilon = check_positive_float("epsilon", state["epsilon"])
-        shared = self._check_shared(state)
+        self._load_shared(state)
         self.policy.load_state_dict(state["policy"])
-        self._set_shared(shared)
         self.epsilon = epsilon
 
 

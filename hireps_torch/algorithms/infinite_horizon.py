@@ -12,7 +12,6 @@ pruning. One option and ``kappa_rel=None``: infinite-horizon REPS.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -24,21 +23,18 @@ from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
     PolicyKwargs,
-    check_experience,
     check_saved_values,
-    check_state_keys,
     checked_states,
     member_policies,
 )
 from hireps_torch.checks import (
     as_finite_f64,
-    as_float,
     as_float_tensor,
     check_count,
     check_finite,
     check_positive_float,
 )
-from hireps_torch.dual.infinite_horizon import infinite_horizon_solution
+from hireps_torch.dual.infinite_horizon import check_gamma, infinite_horizon_solution
 from hireps_torch.dual.inputs import warn_if_degenerate
 from hireps_torch.dual.solver import LbfgsSettings
 from hireps_torch.features import FeatureMap, check_feature_map
@@ -48,8 +44,6 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["InfiniteHorizonHiREPS"]
-
-_SETTINGS = LbfgsSettings()  # the dual's LBFGS settings (the wrapper's defaults)
 
 
 class InfiniteHorizonHiREPS(HiREPSBase):
@@ -82,7 +76,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         seed: int | Sequence[int] | None = None,
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
-        self.gamma = _check_gamma(gamma)
+        self.gamma = check_gamma(gamma)
         if not isinstance(policy, HierarchicalPolicy):
             raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
         super().__init__(
@@ -262,7 +256,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             self.initial_features.to(R).expand(*lead, -1).reshape(R1.shape[0], -1),
             self.gamma,
             kappa,
-            _SETTINGS,
+            LbfgsSettings(),  # the wrapper's defaults
         )
         refit = plan_refit(self.policy, s, a, sol, bound)
         self.value_weights = sol.v.reshape(*lead, -1).clone()
@@ -287,13 +281,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`update` from an :class:`Experience` with K = 1."""
-        C, A = self.value_features.in_features, self.policy.action_dim
-        name = type(self).__name__
-        check_experience(
-            experience, 1, C, A, transitions=True, algorithm=name, population=self.population
-        )
-        e = experience
-        assert e.next_states is not None  # checked above
+        e = self._experience(experience, transitions=True)
+        assert e.next_states is not None  # checked there
         term = None if e.terminated is None else e.terminated[..., 0]
         return self.update(
             e.states[..., 0, :],
@@ -315,23 +304,11 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`state_dict`'s output (no generator: keep it); a misfit changes nothing."""
-        keys = {"policy", "value_weights", "gamma", "epsilon", "iteration", "kappa_rel"}
-        state = check_state_keys(state, keys, type(self).__name__)
+        state = self._keys_checked(state, "policy", "value_weights", "gamma", "epsilon")
         self.policy.check_state_dict(state["policy"])
         v = check_saved_values(state["value_weights"], self.value_weights)
-        gamma = _check_gamma(state["gamma"])
+        gamma = check_gamma(state["gamma"])
         epsilon = check_positive_float("epsilon", state["epsilon"])
-        shared = self._check_shared(state)
+        self._load_shared(state)
         self.policy.load_state_dict(state["policy"])
-        self.value_weights = v
-        self._set_shared(shared)
-        self.gamma = gamma
-        self.epsilon = epsilon
-
-
-def _check_gamma(gamma: float) -> float:
-    """gamma in (0, 1) as a float."""
-    g = as_float("gamma", gamma)
-    if not (math.isfinite(g) and 0.0 < g < 1.0):
-        raise ValueError(f"gamma must be in (0, 1), got {gamma}")
-    return g
+        self.value_weights, self.gamma, self.epsilon = v, gamma, epsilon

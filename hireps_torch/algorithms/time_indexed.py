@@ -31,9 +31,7 @@ from hireps_torch.algorithms.base import (
     HiREPSBase,
     PolicyKwargs,
     check_epsilons,
-    check_experience,
     check_saved_values,
-    check_state_keys,
     check_step,
     checked_states,
     member_policies,
@@ -54,8 +52,6 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["TimeIndexedHiREPS"]
-
-_SETTINGS = LbfgsSettings()  # the dual's LBFGS settings (the wrapper's defaults)
 
 _PER_STEP = (  # diagnostics that tell() reports as one entry per step
     "eta xi kappa kl cross_entropy effective_sample_size option_entropy policy_entropy "
@@ -289,7 +285,7 @@ class TimeIndexedHiREPS(HiREPSBase):
             phi.reshape(S, N, K, -1).transpose(1, 2),
             None,
             kappa,
-            _SETTINGS,
+            LbfgsSettings(),  # the wrapper's defaults
         )
         refits = [  # every step's refit first: a failing step leaves all policies unchanged
             plan_refit(pol, s[..., k, :], theta[..., k, :], sol, bounds[k], block=k)
@@ -323,12 +319,8 @@ class TimeIndexedHiREPS(HiREPSBase):
     # ---- the shared interface (Algorithm) ---------------------------------------------------
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from states (N, K, C), parameters (N, K, D) and rewards (N, K)."""
-        C, D = self.value_features.in_features, self.policies[0].action_dim
-        K, name = self.n_steps, type(self).__name__
-        check_experience(
-            experience, K, C, D, transitions=False, algorithm=name, population=self.population
-        )
-        return self.tell(experience.states, experience.actions, experience.rewards)
+        e = self._experience(experience)
+        return self.tell(e.states, e.actions, e.rewards)
 
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -341,8 +333,7 @@ class TimeIndexedHiREPS(HiREPSBase):
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`state_dict`'s output; one that does not fit raises, changing nothing."""
-        keys = {"policies", "value_weights", "epsilon", "iteration", "kappa_rel"}
-        state = check_state_keys(state, keys, type(self).__name__)
+        state = self._keys_checked(state, "policies", "value_weights", "epsilon")
         saved = state["policies"]
         if not isinstance(saved, Sequence) or len(saved) != self.n_steps:
             n = len(saved) if isinstance(saved, Sequence) else type(saved).__name__
@@ -356,9 +347,7 @@ class TimeIndexedHiREPS(HiREPSBase):
                 raise ValueError(f"step {k}: {exc}") from None
         v = check_saved_values(state["value_weights"], self.value_weights)
         epsilon = check_epsilons(state["epsilon"], self.n_steps)
-        shared = self._check_shared(state)
+        self._load_shared(state)
         for pol, sd in zip(self.policies, saved, strict=True):
             pol.load_state_dict(sd)
-        self.value_weights = v
-        self._set_shared(shared)
-        self.epsilon = epsilon
+        self.value_weights, self.epsilon = v, epsilon

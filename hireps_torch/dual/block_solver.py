@@ -4,8 +4,9 @@ Each phase takes damped Newton steps with the exact curvature (:meth:`BlockSolve
 LBFGS in coordinates whitened by the curvature. The entropy bound is handled by KKT active sets
 (:meth:`BlockSolver.entropy_kkt`), infeasible feature constraints by a ridge
 (:meth:`BlockSolver.relax`), returns without information by a projection solve (eta held at 1,
-R = 0), and an inactive KL bound by an eta floor (:func:`eta_floor`). Tensors carry a leading S = 1
-(see :func:`~hireps_torch.dual.solver.solve_blocks`).
+R = 0), and an inactive KL bound by an eta floor (:func:`eta_floor`). One problem: tensors carry
+:class:`~hireps_torch.dual.problem.DualProblem`'s leading S = 1 (see
+:func:`~hireps_torch.dual.solver.solve_blocks`).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ _FLAT_FLOOR = 1e-9  # round-off allowed below the weak-duality bound (BlockSolve
 
 
 class _End(NamedTuple):
-    """Where the solves ended: converged (S,), dual values (S,), weights (S, K, N, O)."""
+    """Where the solve ended: converged (1,), dual value (1,), weights (1, K, N, O)."""
 
     converged: Tensor
     value: Tensor
@@ -69,7 +70,7 @@ class _End(NamedTuple):
 
 
 class _Whitened:
-    """LBFGS closure: the sum of the S duals in z, x = x0 + L^-T z."""
+    """LBFGS closure: the dual in z, x = x0 + L^-T z."""
 
     def __init__(self, prob: DualProblem, x0: Tensor, L: Tensor, floor: Tensor) -> None:
         self.prob, self.x0, self.L, self.floor = prob, x0, L, floor
@@ -92,8 +93,9 @@ class _Whitened:
 
 
 class BlockSolver:
-    """Newton steps and LBFGS on one standardised problem (S = 1); ``x`` (S, n) holds the
-    current point, ``iterations`` the LBFGS iterations and Newton steps of all phases so far."""
+    """Newton steps and LBFGS on one standardised problem (tensors with S = 1); ``x`` (1, n) holds
+    the current point, ``end`` where the solve ended, ``iterations`` the LBFGS iterations and
+    Newton steps of all phases so far."""
 
     def __init__(
         self,
@@ -104,42 +106,33 @@ class BlockSolver:
         settings: LbfgsSettings,
         log_eta_start: Tensor | None = None,
     ) -> None:
-        self.bounded = torch.isfinite(kappa)  # (S, K) blocks with an entropy bound
+        self.bounded = torch.isfinite(kappa)  # (1, K) blocks with an entropy bound
         kap = torch.where(self.bounded, kappa, 0.0)
         self.prob = DualProblem(st.returns, st.D, st.c, log_resp, eps, kap)
-        self.entropy_bound = self.bounded.any(-1) & self.prob.multi  # (S,)
+        self.entropy_bound = bool(self.bounded.any()) and self.prob.multi
         self.settings = settings
         self.prob.log_eta_min = eta_floor(st)
         self.x = self.prob.start()
-        if log_eta_start is not None:  # (S, K), standardised; NaN: the default start
+        if log_eta_start is not None:  # (1, K), standardised; NaN: the default start
             K, floor = self.prob.K, self.prob.log_eta_min + 1.0
             given = torch.maximum(log_eta_start, floor)
             self.x[:, :K] = torch.where(log_eta_start.isnan(), self.x[:, :K], given)
         self.iterations = 0
-        self.stalled = torch.zeros_like(st.informative)  # (S,) the last descend's, see there
-        self.informative = st.informative
-        flat = ~st.informative  # the projection solve: R = 0 and eta held at 1
-        self.prob.eta_on[flat] = False
-        self.x[:, : self.prob.K] = torch.where(flat[:, None], 0.0, self.x[:, : self.prob.K])
+        self.stalled = False  # the last descend's, see there
+        self.informative = bool(st.informative)
+        if not self.informative:  # the projection solve: R = 0 and eta held at 1
+            self.prob.eta_on[:] = False
+            self.x[:, : self.prob.K] = 0.0
         g, _, P = self.prob.evaluate(self.x)
-        self.end = _End(torch.zeros_like(flat), g, P)
+        self.end = _End(torch.zeros_like(st.informative), g, P)
         # weak duality: a feasible P makes the dual >= sum_k min_i R_ki; below that (less
         # round-off) the feature constraints cannot be met within the KL bound
         low = self.prob.R.amin(-1).sum(-1)
         self.floor = low - _FLAT_FLOOR * (1.0 + low.abs() + g.abs())
 
-    def _set(self, mask: Tensor, converged: Tensor, value: Tensor, weights: Tensor) -> None:
-        """Overwrite the ends of the problems in ``mask`` (S,)."""
-        e = self.end
-        self.end = _End(
-            torch.where(mask, converged, e.converged),
-            torch.where(mask, value, e.value),
-            torch.where(mask[:, None, None, None], weights, e.weights),
-        )
-
-    def old_distribution(self) -> Tensor:
-        """(S,) the problems whose old distribution q p~ meets the entropy and feature constraints
-        (their ends are set to it)."""
+    def old_distribution(self) -> bool:
+        """Whether the old distribution q p~ meets the entropy and feature constraints (then the
+        end is set to it)."""
         prob, K = self.prob, self.prob.K
         w = prob.lr.exp() / prob.N
         w = w / w.sum(dim=(-2, -1), keepdim=True)
@@ -148,260 +141,224 @@ class BlockSolver:
         g, grad, _ = prob.evaluate(self.x)  # x: v = 0, xi off
         if prob.P:
             ok &= grad[:, 2 * K :].abs().amax(-1) <= self.settings.converged_grad
-        self._set(ok, torch.ones_like(ok), g, w)
-        return ok
+        if bool(ok):
+            self.end = _End(ok, g, w)
+        return bool(ok)
 
-    def run(self) -> tuple[_End, list[str | None]]:
+    def run(self) -> tuple[_End, str | None]:
         """Solve; where the feature constraints cannot be met, relax them to a penalty (the second
-        item: each problem's warning text or None)."""
+        item: the warning text, or None)."""
         prob = self.prob
         x_start = self.x.clone()
-        texts: list[str | None] = [None] * prob.S
-        todo = ~self.informative
-        if bool(todo.any()):
-            todo = ~(todo & self.old_distribution())
-        else:
-            todo = torch.ones_like(todo)
-        if not bool(todo.any()):
-            return self.end, texts
+        if not self.informative and self.old_distribution():
+            return self.end, None
+        self.solve()
         if not prob.P:
-            self.solve(todo)
-            return self.end, texts
-        self.x = torch.where(todo[:, None], x_start, self.x)
-        self.solve(todo)
+            return self.end, None
         # an unconverged solve that broke the KL bound ran off too, only more slowly
-        ran_off = self.informative & ~self.end.converged & self.breaks_kl(self.end.weights)
+        short = not bool(self.end.converged)
+        ran_off = self.informative and short and self.breaks_kl(self.end.weights)
         # a converged solve met every constraint: no conflict
-        shows = prob.shows_conflict(self.x, self.end.value) | self._sunk()
-        conflict = todo & ~self.end.converged & shows
-        need = conflict | (todo & ran_off)
-        if not bool(need.any()):
-            return self.end, texts
-        kept = self.relax(x_start, need)
-        for s in need.nonzero().flatten().tolist():
-            why = (
-                "the feature constraints cannot be met within the KL bound"
-                if bool(conflict[s])
-                else "the solve broke the KL bound before converging"
-            )
-            how = (
-                "the KL bound is kept"
-                if bool(kept[s])
-                else "the KL bound, still broken (far too few samples for the features?), is "
-                "enforced by raising eta"
-            )
-            texts[s] = (
-                f"{why} epsilon = {prob.eps[s].tolist()} (too few samples for the {prob.P} "
-                f"features?): they are relaxed to a quadratic penalty (ridge "
-                f"{float(prob.ridge[s]):g} on the standardised value weights) and {how}; see "
-                "feature_error and kl"
-            )
-        self._set(need, torch.zeros_like(need), self.end.value, self.end.weights)
-        return self.end, texts
+        conflict = short and bool(prob.shows_conflict(self.x, self.end.value) | self._sunk())
+        if not (conflict or ran_off):
+            return self.end, None
+        why = (
+            "the feature constraints cannot be met within the KL bound"
+            if conflict
+            else "the solve broke the KL bound before converging"
+        )
+        how = (
+            "the KL bound is kept"
+            if self.relax(x_start)
+            else "the KL bound, still broken (far too few samples for the features?), is "
+            "enforced by raising eta"
+        )
+        self.end = self.end._replace(converged=torch.zeros_like(self.end.converged))
+        return self.end, (
+            f"{why} epsilon = {prob.eps[0].tolist()} (too few samples for the {prob.P} "
+            f"features?): they are relaxed to a quadratic penalty (ridge "
+            f"{float(prob.ridge[0]):g} on the standardised value weights) and {how}; see "
+            "feature_error and kl"
+        )
 
-    def relax(self, x_start: Tensor, need: Tensor) -> Tensor:
-        """Re-solve ``need`` (S,) from x_start with a ridge on v, stronger while the KL bound stays
-        broken; returns (S,) whether each kept the KL bound. The feature constraints become a
-        quadratic penalty; the KL bound still holds."""
-        kept = torch.zeros_like(need)
+    def relax(self, x_start: Tensor) -> bool:
+        """Re-solve from x_start with a ridge on v, stronger while the KL bound stays broken;
+        returns whether the KL bound was kept. The feature constraints become a quadratic
+        penalty; the KL bound still holds."""
         for factor in (1.0, 10.0, 100.0, 1e3, 1e4):
-            self.prob.ridge = torch.where(need, factor * _CONFLICT_RIDGE, self.prob.ridge)
-            self.x = torch.where(need[:, None], x_start, self.x)
-            self.solve(need)
-            kept = need & ~self.breaks_kl(self.end.weights)
-            if bool(kept[need].all()):
-                break
-        return kept
+            self.prob.ridge = torch.full_like(self.prob.ridge, factor * _CONFLICT_RIDGE)
+            self.x = x_start.clone()
+            self.solve()
+            if not self.breaks_kl(self.end.weights):
+                return True
+        return False
 
-    def breaks_kl(self, w: Tensor) -> Tensor:
-        """(S,) whether weights (S, K, N, O) exceed some block's KL bound (beyond round-off)."""
-        return (block_kl(w, self.prob.lr) > 1.01 * self.prob.eps + 1e-3).any(-1)
+    def breaks_kl(self, w: Tensor) -> bool:
+        """Whether weights (1, K, N, O) exceed some block's KL bound (beyond round-off)."""
+        return bool((block_kl(w, self.prob.lr) > 1.01 * self.prob.eps + 1e-3).any())
 
-    def solve(self, mask: Tensor) -> None:
-        """Solve the problems in ``mask`` (S,): KKT phases or one phase, up to two resumes, then
-        :meth:`polish` where still short."""
-        kkt = mask & self.entropy_bound
-        if bool(kkt.any()):
-            self.entropy_kkt(kkt)
-        if bool((mask & ~kkt).any()):
-            self.phase(mask & ~kkt)
+    def solve(self) -> None:
+        """KKT phases or one phase, up to two resumes, then :meth:`polish` where still short."""
+        if self.entropy_bound:
+            self.entropy_kkt()
+        else:
+            self.phase()
         for _ in range(2):
-            # a stalled LBFGS resumes with the curvature where it stopped
-            again = mask & ~self.end.converged & self._finite() & ~self._sunk()
-            if not bool(again.any()):
+            if not self._short():
                 break
-            self.phase(again)
-        if bool(kkt.any()):
+            self.phase()  # a stalled LBFGS resumes with the curvature where it stopped
+        if self.entropy_bound:
             # the log-space gradient hides a violated bound when xi ~0: check it directly
             ce = block_cross_entropy(self.end.weights, self.prob.lr)
             met = (~self.bounded | (ce <= self.prob.kappa + 1e-6)).all(-1)
-            e = self.end
-            self.end = e._replace(converged=torch.where(kkt, e.converged & met, e.converged))
-        short = mask & ~self.end.converged & self._finite() & ~self._sunk()
-        if bool(short.any()):
-            self.polish(short)
+            self.end = self.end._replace(converged=self.end.converged & met)
+        if self._short():
+            self.polish()
 
     def _sunk(self) -> Tensor:
-        """(S,) problems without a ridge whose dual fell below the weak-duality bound ``floor``."""
+        """(1,) whether the dual, without a ridge, fell below the weak-duality bound ``floor``."""
         return (self.prob.ridge == 0) & ~(self.end.value >= self.floor)
 
-    def _finite(self) -> Tensor:
-        """(S,) problems whose point and dual value are finite."""
-        return torch.isfinite(self.x).all(-1) & torch.isfinite(self.end.value)
+    def _short(self) -> bool:
+        """Whether the solve has not converged but can go on: point and dual value finite, not
+        :meth:`_sunk`."""
+        finite = torch.isfinite(self.x).all(-1) & torch.isfinite(self.end.value)
+        return bool(~self.end.converged & finite & ~self._sunk())
 
-    def polish(self, mask: Tensor) -> None:
-        """Newton steps on ``mask`` (S,) where LBFGS stopped short (merit: largest gradient entry or
-        entropy-bound excess); a violated bound first gets the xi that meets it. A problem that ends
-        no better is put back."""
+    def polish(self) -> None:
+        """Newton steps where LBFGS stopped short (merit: largest gradient entry or entropy-bound
+        excess); a violated bound first gets the xi that meets it. Ending no better puts the
+        point back."""
         prob, K = self.prob, self.prob.K
         x0, end0 = self.x.clone(), self.end
         merit0 = self._merit(prob.evaluate(self.x)[1], self.end.weights)
-        over = mask[:, None] & prob.xi_on & (self._excess(self.end.weights) > 0)
+        over = prob.xi_on & (self._excess(self.end.weights) > 0)
         if bool(over.any()):
             log_xi = prob.log_xi_meeting_bound(self.x)
             self.x[:, K : 2 * K] = torch.where(over, log_xi, self.x[:, K : 2 * K])
         # an eta still sinking just above its floor (KL below epsilon) belongs there: hold it
         _, grad, _ = prob.evaluate(self.x)
         low = self.x[:, :K] < prob.log_eta_min + 2.0
-        sinking = mask[:, None] & prob.eta_free(self.x) & (grad[:, :K] > 0) & low
+        sinking = prob.eta_free(self.x) & (grad[:, :K] > 0) & low
         self.x[:, :K] = torch.where(sinking, prob.log_eta_min, self.x[:, :K])
-        self.unstick(mask)
-        best = self.descend(mask, self.settings.converged_grad, _POLISH_STEPS, excess=True)
-        worse = mask & (best > merit0)  # no better than LBFGS left it
-        self.x = torch.where(worse[:, None], x0, self.x)
-        e = self.end
-        self._set(mask & ~worse, best <= self.settings.converged_grad, e.value, e.weights)
-        self._set(worse, end0.converged, end0.value, end0.weights)
+        self.unstick()
+        best = self.descend(self.settings.converged_grad, _POLISH_STEPS, excess=True)
+        if bool(best > merit0):  # no better than LBFGS left it
+            self.x, self.end = x0, end0
+        else:
+            self.end = self.end._replace(converged=best <= self.settings.converged_grad)
 
     def _excess(self, P: Tensor) -> Tensor:
-        """(S, K) how far each bounded block's cross-entropy exceeds kappa (<= 0: met)."""
+        """(1, K) how far each bounded block's cross-entropy exceeds kappa (<= 0: met)."""
         ce = block_cross_entropy(P, self.prob.lr)
         return torch.where(self.bounded, ce - self.prob.kappa, -1.0)
 
     def _merit(self, grad: Tensor, P: Tensor) -> Tensor:
-        """(S,) largest gradient entry, or entropy-bound excess where the bound is on."""
+        """(1,) largest gradient entry, or entropy-bound excess where the bound is on."""
         m = grad.abs().amax(-1)
-        if not self.prob.multi:
+        if not self.entropy_bound:
             return m
-        excess = self._excess(P).amax(-1)
-        return torch.where(self.entropy_bound, torch.maximum(m, excess), m)
+        return torch.maximum(m, self._excess(P).amax(-1))
 
-    def entropy_kkt(self, mask: Tensor) -> None:
-        """KKT for xi >= 0 on ``mask`` (S,) by active sets: xi on where a block's bound is violated
-        (from the xi that meets it), off where the weights without xi meet it; re-solve until no
-        block changes."""
+    def entropy_kkt(self) -> None:
+        """KKT for xi >= 0 by active sets: xi on where a block's bound is violated (from the xi
+        that meets it), off where the weights without xi meet it; re-solve until no block
+        changes."""
         prob, K = self.prob, self.prob.K
-        prob.xi_on = torch.where(mask[:, None], False, prob.xi_on)
-        self.unstick(mask)
-        self.descend(mask, _KKT_LOOSE)  # near enough to decide the active set
-        fresh = mask  # solved loosely: a phase finishes those whose active set stands
+        prob.xi_on = torch.zeros_like(prob.xi_on)
+        self.unstick()
+        self.descend(_KKT_LOOSE)  # near enough to decide the active set
+        fresh = True  # solved loosely: a phase finishes it where its active set stands
         for _ in range(2 * K + 3):
             ce = block_cross_entropy(self.end.weights, prob.lr)
-            violated = mask[:, None] & self.bounded & (ce > prob.kappa + 1e-6)
+            violated = self.bounded & (ce > prob.kappa + 1e-6)
             _, eta, _, v = prob.unpack(self.x)
             P0, _, _ = prob.weights_at(eta, torch.zeros_like(eta), v)
-            slack = mask[:, None] & prob.xi_on & (block_cross_entropy(P0, prob.lr) <= prob.kappa)
+            slack = prob.xi_on & (block_cross_entropy(P0, prob.lr) <= prob.kappa)
             restart = violated & ~slack
-            changed = (restart | slack).any(-1)
-            settled, fresh = fresh & ~changed, torch.zeros_like(mask)
-            if bool(settled.any()):
-                self.phase(settled)  # then checked again
-            elif not bool(changed.any()):
+            changed = bool((restart | slack).any())
+            if not (changed or fresh):
                 break
-            if bool(changed.any()):
+            if changed:
                 prob.xi_on = (prob.xi_on | restart) & ~slack
                 log_xi = prob.log_xi_meeting_bound(self.x)
                 self.x[:, K : 2 * K] = torch.where(restart, log_xi, self.x[:, K : 2 * K])
-                self.phase(changed)
+            fresh = False
+            self.phase()  # then checked again
 
-    def unstick(self, mask: Tensor) -> None:
-        """Lift each eta of ``mask`` held at its floor whose KL bound is broken there to where the
-        KL meets epsilon."""
+    def unstick(self) -> None:
+        """Lift each eta held at its floor whose KL bound is broken there to where the KL meets
+        epsilon."""
         prob, K = self.prob, self.prob.K
-        finite = torch.isfinite(self.x).all(-1)
-        low = (mask & finite)[:, None] & (self.x[:, :K] <= prob.log_eta_min) & prob.eta_on
+        finite = torch.isfinite(self.x).all(-1, keepdim=True)
+        low = finite & (self.x[:, :K] <= prob.log_eta_min) & prob.eta_on
         if not bool(low.any()):
             return
-        _, eta, xi, v = prob.unpack(torch.where(finite[:, None], self.x, 0.0))
+        _, eta, xi, v = prob.unpack(self.x)
         lifted, moved = enforce_kl(prob, eta, xi, v)
         self.x[:, :K] = torch.where(low & moved, lifted.log(), self.x[:, :K])
 
     def descend(
-        self,
-        mask: Tensor,
-        target: float | None = None,
-        steps: int = _NEWTON_STEPS,
-        excess: bool = False,
+        self, target: float | None = None, steps: int = _NEWTON_STEPS, excess: bool = False
     ) -> Tensor:
         """Damped Newton steps (exact Hessian, else its PSD part, plus Levenberg-Marquardt damping;
-        Armijo or, where flat, a smaller merit) on ``mask`` (S,) until ``target``
-        (``tolerance_grad``), no damping helps, or ``_STALLS`` round-off-only steps (``stalled``,
-        back at the best point). Returns the merit (S,); each step counts as an iteration."""
+        Armijo or, where flat, a smaller merit) until ``target`` (``tolerance_grad``), no damping
+        helps, or ``_STALLS`` round-off-only steps (``stalled``, back at the best point). Returns
+        the merit (1,); each step counts as an iteration."""
         prob = self.prob
         target = self.settings.tolerance_grad if target is None else target
         merits = self._merit if excess else lambda grad, _: grad.abs().amax(-1)
         g, grad, P = prob.evaluate(self.x)
         merit = merits(grad, P)
-        active = mask & torch.isfinite(self.x).all(-1) & torch.isfinite(g)
-        bounded = prob.ridge > 0  # a ridge bounds the dual: the weak-duality floor is off
+        finite = bool(torch.isfinite(self.x).all() & torch.isfinite(g).all())
+        bounded = bool(prob.ridge > 0)  # a ridge bounds the dual: the weak-duality floor is off
         lam = torch.zeros_like(g)
         M: Tensor | None = None  # the curvature, kept for one more step after a full one
         # the best point so far, and the round-off-only steps in a row (see _STALLS)
-        best, best_x, stalls = merit, self.x, torch.zeros_like(g)
-        for _ in range(steps):
-            active &= (merit > target) & (bounded | (g >= self.floor)) & (stalls < _STALLS)
-            if not bool(active.any()):
+        best, best_x, stalls = merit, self.x, 0
+        for _ in range(steps if finite else 0):
+            above = bounded or bool(g >= self.floor)
+            if not (bool(merit > target) and above and stalls < _STALLS):
                 break
             curvature = self._hessians(grad, P, M)
-            taken = torch.zeros_like(active)
+            taken = False
             t = torch.ones_like(g)
             base: Tensor | None = None  # the undamped-length step, recomputed when lam moves
             g_prev = g
             for _ in range(_DAMPINGS):
-                trying = active & ~taken
-                if not bool(trying.any()):
-                    break
                 if base is None:
                     base = self._damped_step(*curvature, grad, lam)
                 step = t[:, None] * base
                 slope = (grad * step).sum(-1)
-                x = torch.where(trying[:, None], self.x + step, self.x)
+                x = self.x + step
                 g_t, grad_t, P_t = prob.evaluate(x)
                 merit_t = merits(grad_t, P_t)
                 flat = g_t <= g + _FLAT * (1.0 + g.abs())
-                ok = trying & ((g_t <= g + _ARMIJO * slope) | (flat & (merit_t < merit)))
-                self.x = torch.where(ok[:, None], x, self.x)
-                g = torch.where(ok, g_t, g)
-                grad = torch.where(ok[:, None], grad_t, grad)
-                P = torch.where(ok[:, None, None, None], P_t, P)
-                merit = torch.where(ok, merit_t, merit)
-                taken |= ok
+                if bool((g_t <= g + _ARMIJO * slope) | (flat & (merit_t < merit))):
+                    self.x, g, grad, P, merit = x, g_t, grad_t, P_t, merit_t
+                    lam = torch.where(lam > _LAM_MIN, 0.1 * lam, 0.0)
+                    taken = True
+                    break
                 # a failed try first halves the step, then (from the fourth) damps it
-                halve = trying & ~ok & (t > 0.1)
-                damp = trying & ~ok & ~halve
-                t = torch.where(halve, 0.5 * t, t)
-                lam = torch.where(damp, (10.0 * lam).clamp_min(_LAM_MIN), lam)
-                lam = torch.where(ok, torch.where(lam > _LAM_MIN, 0.1 * lam, 0.0), lam)
-                if bool((damp | ok).any()):
+                if bool(t > 0.1):
+                    t = 0.5 * t
+                else:
+                    lam = (10.0 * lam).clamp_min(_LAM_MIN)
                     base = None
-            active &= taken
-            level = (g - g_prev).abs() <= _FLAT * (1.0 + g_prev.abs())
-            stalls = torch.where(taken, (level & (merit > 0.5 * best)) * (stalls + 1), stalls)
-            better = taken & (merit < best)
-            best = torch.where(better, merit, best)
-            best_x = torch.where(better[:, None], self.x, best_x)
             self.iterations += 1
-            full = bool(((t == 1.0) & (lam == 0.0) | ~active).all())
-            M = curvature[1] if full and M is None else None
-        self.stalled = mask & (stalls >= _STALLS)
-        back = self.stalled & (best < merit)  # back to the best point
-        if bool(back.any()):
-            self.x = torch.where(back[:, None], best_x, self.x)
-            g_b, grad_b, P_b = prob.evaluate(self.x)
-            g = torch.where(back, g_b, g)
-            P = torch.where(back[:, None, None, None], P_b, P)
-            merit = torch.where(back, merits(grad_b, P_b), merit)
-        self._set(mask, merit <= self.settings.converged_grad, g, P)
+            if not taken:
+                break
+            level = (g - g_prev).abs() <= _FLAT * (1.0 + g_prev.abs())
+            stalls = stalls + 1 if bool(level & (merit > 0.5 * best)) else 0
+            if bool(merit < best):
+                best, best_x = merit, self.x
+            M = curvature[1] if bool((t == 1.0) & (lam == 0.0)) and M is None else None
+        self.stalled = stalls >= _STALLS
+        if self.stalled and bool(best < merit):  # back to the best point
+            self.x = best_x
+            g, grad, P = prob.evaluate(self.x)
+            merit = merits(grad, P)
+        self.end = _End(merit <= self.settings.converged_grad, g, P)
         return merit
 
     def _hessians(
@@ -421,9 +378,8 @@ class BlockSolver:
         """(S, n) Newton steps with damping lam (S,) on the moving coordinates, within the log
         eta / log xi trust region."""
         step, ok = _newton_step(H, grad, moving, lam)
-        if not bool(ok.all()):
-            psd, _ = _newton_step(M, grad, moving, lam + 1e-8)
-            step = torch.where(ok[:, None], step, psd)
+        if not bool(ok):
+            step, _ = _newton_step(M, grad, moving, lam + 1e-8)
         # a block's temperature (and xi) changes by at most e^_MAX_LOG_STEP per step
         big = step[:, : 2 * self.prob.K].abs().amax(-1, keepdim=True)
         return step * (_MAX_LOG_STEP / big.clamp_min(_MAX_LOG_STEP))
@@ -440,27 +396,22 @@ class BlockSolver:
             -1,
         )
 
-    def phase(self, mask: Tensor) -> None:
-        """One phase over ``mask`` (S,): :meth:`descend`, then up to ``max_iter`` LBFGS iterations
-        in calls of ``_CHUNK``, each whitened where it starts; a call that stops on its own ends
-        it."""
-        self.unstick(mask)
-        self.descend(mask)
-        # LBFGS cannot take a gradient below its round-off floor either
-        todo = mask & ~self.end.converged & self._finite() & ~self._sunk() & ~self.stalled
-        if not bool(todo.any()):
+    def phase(self) -> None:
+        """One phase: :meth:`descend`, then up to ``max_iter`` LBFGS iterations in calls of
+        ``_CHUNK``, each whitened where it starts; a call that stops on its own ends it."""
+        self.unstick()
+        self.descend()
+        if self.stalled:  # LBFGS cannot take a gradient below its round-off floor either
             return
         left, evals = self.settings.max_iter, self.settings.max_iter * 5 // 4
-        while True:  # torch's budgets for one call: max_iter iterations, 1.25 x evaluations
-            used, spent, stalled = self._lbfgs(todo, min(left, _CHUNK), min(evals, _CHUNK * 5 // 4))
+        while self._short():  # torch's budgets for one call: max_iter iterations, 1.25 x evals
+            used, spent, stalled = self._lbfgs(min(left, _CHUNK), min(evals, _CHUNK * 5 // 4))
             left, evals = left - used, evals - spent
-            todo &= ~self.end.converged & self._finite() & ~self._sunk()
-            if left <= 0 or evals <= 0 or not bool(todo.any()) or stalled:
+            if left <= 0 or evals <= 0 or stalled:
                 return
 
-    def _lbfgs(self, mask: Tensor, max_iter: int, max_eval: int) -> tuple[int, int, bool]:
-        """One whitened LBFGS call over ``mask`` (S,); returns (iterations, evaluations, stopped on
-        its own)."""
+    def _lbfgs(self, max_iter: int, max_eval: int) -> tuple[int, int, bool]:
+        """One whitened LBFGS call; returns (iterations, evaluations, stopped on its own)."""
         prob, x0 = self.prob, self.x.clone()
         L, info = torch.linalg.cholesky_ex(prob.curvature(x0))
         eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
@@ -488,9 +439,8 @@ class BlockSolver:
         self.iterations += used
         x = objective.x()
         g, grad, P = prob.evaluate(x)
-        conv = grad.abs().amax(-1) <= self.settings.converged_grad
         self.x = x
-        self._set(mask, conv, g, P)
+        self.end = _End(grad.abs().amax(-1) <= self.settings.converged_grad, g, P)
         return used, spent, stalled
 
 

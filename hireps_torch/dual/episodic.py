@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from hireps_torch.dual.inputs import centred, check_features, check_settings, common_inputs
+from hireps_torch.dual.inputs import centred, common_inputs
 from hireps_torch.dual.solutions import DualSolution, public
 from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 
@@ -52,19 +52,11 @@ def solve_episodic_dual(
         ValueError, TypeError: on non-finite returns or features, shape mismatches, N < 2,
             epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
-    opts = check_settings(max_iter)
-    R, eps, lr, kap = common_inputs(
-        returns, epsilon, log_responsibilities, kappa, population=population
+    x = common_inputs(
+        returns, epsilon, log_responsibilities, kappa, max_iter, population=population
     )
-    S, _, N = R.shape
-    phi = None
-    if context_features is not None:
-        lead = (S, N) if population else (N,)
-        phi = check_features(
-            "context_features", context_features, *lead, population=population, device=R.device
-        )
-        phi = phi.reshape(S, N, -1)
-    sol = episodic_solution(R[:, 0], lr[:, 0], eps, phi, kap, opts, stacklevel=3)
+    phi = None if context_features is None else x.features("context_features", context_features)
+    sol = episodic_solution(x.R[:, 0], x.lr[:, 0], x.eps, phi, x.kappa, x.settings, stacklevel=3)
     return public(sol, population, blocks=False)
 
 

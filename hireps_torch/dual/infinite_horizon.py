@@ -8,16 +8,11 @@ import math
 from torch import Tensor
 
 from hireps_torch.checks import as_float
-from hireps_torch.dual.inputs import (
-    check_feature_vector,
-    check_features,
-    check_settings,
-    common_inputs,
-)
+from hireps_torch.dual.inputs import common_inputs
 from hireps_torch.dual.solutions import DualSolution, public
 from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 
-__all__ = ["infinite_horizon_solution", "solve_infinite_horizon_dual"]
+__all__ = ["check_gamma", "infinite_horizon_solution", "solve_infinite_horizon_dual"]
 
 
 def solve_infinite_horizon_dual(
@@ -70,40 +65,20 @@ def solve_infinite_horizon_dual(
         ValueError, TypeError: on non-finite or mis-shaped input, gamma outside (0, 1),
             epsilon <= 0, a negative kappa or a bad max_iter; each message names the value.
     """
-    opts = check_settings(max_iter)
-    R, eps, lr, kap = common_inputs(
-        rewards, epsilon, log_responsibilities, kappa, "rewards", population=population
+    x = common_inputs(
+        rewards, epsilon, log_responsibilities, kappa, max_iter, "rewards", population=population
     )
-    S, _, N = R.shape
-    g = as_float("gamma", gamma)
-    if not (math.isfinite(g) and 0.0 < g < 1.0):
-        raise ValueError(f"gamma must be in (0, 1), got {gamma}")
-    lead = (S, N) if population else (N,)
-    dev = R.device
-    phi = check_features("features", features, *lead, population=population, device=dev)
-    phi_next = check_features(
-        "next_features", next_features, *lead, population=population, device=dev
-    )
-    if phi_next.shape != phi.shape:
+    g = check_gamma(gamma)
+    phi = x.features("features", features)
+    phi_next = x.features("next_features", next_features)
+    if phi_next.shape != phi.shape:  # as given: (*lead, F)
         raise ValueError(
-            f"next_features must have the shape of features {tuple(phi.shape)}, got "
-            f"{tuple(phi_next.shape)}"
+            f"next_features must have the shape of features {(*x.lead, phi.shape[-1])}, got "
+            f"{(*x.lead, phi_next.shape[-1])}"
         )
-    F = phi.shape[-1]
-    phi0 = check_feature_vector(
-        "initial_features", initial_features, F, S if population else None, dev
-    )
+    phi0 = x.feature_vector("initial_features", initial_features, phi.shape[-1])
     sol = infinite_horizon_solution(
-        R[:, 0],
-        lr[:, 0],
-        eps,
-        phi.reshape(S, N, F),
-        phi_next.reshape(S, N, F),
-        phi0.reshape(S, F),
-        g,
-        kap,
-        opts,
-        stacklevel=3,
+        x.R[:, 0], x.lr[:, 0], x.eps, phi, phi_next, phi0, g, x.kappa, x.settings, stacklevel=3
     )
     return public(sol, population, blocks=False)
 
@@ -127,3 +102,11 @@ def infinite_horizon_solution(
     D = (gamma * phi_next - phi).reshape(S, 1, N, F)
     c = (1.0 - gamma) * phi0
     return solve_blocks(R[:, None], log_resp[:, None], eps, D, c, kappa, settings, stacklevel + 1)
+
+
+def check_gamma(gamma: float) -> float:
+    """gamma in (0, 1) as a float."""
+    g = as_float("gamma", gamma)
+    if not (math.isfinite(g) and 0.0 < g < 1.0):
+        raise ValueError(f"gamma must be in (0, 1), got {gamma}")
+    return g

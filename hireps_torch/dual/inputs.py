@@ -7,6 +7,7 @@ import math
 import numbers
 import operator
 import warnings
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -18,11 +19,11 @@ from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
 __all__ = [
     "LOG_RESP_FLOOR",
+    "Checked",
     "centred",
     "check_blocks",
     "check_bounds",
     "check_feature_vector",
-    "check_features",
     "check_log_resp",
     "check_settings",
     "common_inputs",
@@ -93,25 +94,56 @@ def _shape_text(lead: tuple[int, ...], last: str, population: bool = False) -> s
     return f"({', '.join(names)}) = ({', '.join([*map(str, lead), last])})"
 
 
+@dataclass(frozen=True)
+class Checked:
+    """A wrapper's checked inputs: R (S, K, N), eps (S, K), lr (S, K, N, O) (log 0 floored), kappa
+    (S, K) or None, the solver's ``settings``, and the returns' shape ``lead`` as given (S first
+    for a ``population``), against which :meth:`features` checks."""
+
+    R: Tensor
+    eps: Tensor
+    lr: Tensor
+    kappa: Tensor | None
+    settings: LbfgsSettings
+    lead: tuple[int, ...]
+    population: bool
+
+    def features(self, name: str, x: Tensor) -> Tensor:
+        """Features (*lead, F) checked, on R's device, as (S, N, [K,] F)."""
+        phi = as_f64(name, x, self.R.device)
+        if phi.dim() != len(self.lead) + 1 or tuple(phi.shape[:-1]) != self.lead:
+            shape = _shape_text(self.lead, "F", self.population)
+            raise ValueError(f"{name} must have shape {shape}, got {tuple(phi.shape)}")
+        check_finite(name, phi)
+        return phi.reshape(self.R.shape[0], *self.lead[self.population :], -1)
+
+    def feature_vector(self, name: str, x: Tensor, F: int) -> Tensor:
+        """A mean feature vector (F,) checked (for a population also (S, F)), as (S, F)."""
+        S = self.R.shape[0]
+        phi = check_feature_vector(name, x, F, S if self.population else None, self.R.device)
+        return phi.reshape(S, F)
+
+
 def common_inputs(
     returns: Tensor,
     epsilon: float | Tensor,
     log_responsibilities: Tensor | None,
     kappa: float | Tensor | None,
+    max_iter: object,
     name: str = "returns",
     *,
     per_step: bool = False,
     population: bool = False,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-    """Validate the inputs every wrapper shares; return R (S, K, N), epsilon (S, K), log p~
-    (S, K, N, O) (log 0 floored) and kappa (S, K) or None, with S = 1 unless ``population``. Warns
+) -> Checked:
+    """Validate the inputs every wrapper shares, S = 1 unless ``population``. Warns
     :class:`~hireps_torch.dual.DegenerateWeightsWarning` where epsilon >= log N.
 
     ``returns`` is (N,), or (N, K) ``per_step``, after S for a ``population``;
     ``log_responsibilities`` the same plus O (None: one option); epsilon a float or (K,); kappa
-    None, a float or (K,) (inf: no bound), for a population also (S, K) or (S,) with K = 1; ``name``
-    is what messages call ``returns``.
+    None, a float or (K,) (inf: no bound), for a population also (S, K) or (S,) with K = 1;
+    ``max_iter`` see :func:`check_settings`; ``name`` is what messages call ``returns``.
     """
+    settings = check_settings(max_iter)
     if not isinstance(population, bool):
         raise TypeError(f"population must be True or False, got {population!r}")
     R = as_f64(name, returns)
@@ -136,7 +168,8 @@ def common_inputs(
     K = R.shape[1]
     eps, kap = check_bounds(epsilon, kappa, K, N, 4, dev, S if population else 0)
     lr = _log_responsibilities(log_responsibilities, lead, S, K, population, dev)
-    return R, eps.expand(S, K), lr, None if kap is None else kap.expand(S, K)
+    kap = None if kap is None else kap.expand(S, K)
+    return Checked(R, eps.expand(S, K), lr, kap, settings, lead, population)
 
 
 def check_bounds(
@@ -199,24 +232,6 @@ def _log_responsibilities(
             f"{tuple(lr.shape)}"
         )
     return check_log_resp(lr).reshape(S, N, K, -1).transpose(1, 2).contiguous()
-
-
-def check_features(
-    name: str,
-    x: Tensor,
-    *lead: int,
-    population: bool = False,
-    device: torch.device | None = None,
-) -> Tensor:
-    """Check features (*lead, F): (N, F) or (N, K, F), after S for a population; on ``device`` if
-    given."""
-    phi = as_f64(name, x, device)
-    if phi.dim() != len(lead) + 1 or tuple(phi.shape[:-1]) != lead:
-        raise ValueError(
-            f"{name} must have shape {_shape_text(lead, 'F', population)}, got {tuple(phi.shape)}"
-        )
-    check_finite(name, phi)
-    return phi
 
 
 def check_feature_vector(

@@ -152,9 +152,9 @@ def judge(
     optimal: Tensor,
     fixed_residual: Tensor,
     converged_grad: float,
-) -> list[Verdict]:
-    """One :class:`Verdict` per problem for weights P (S, K, N, O): the KL bound, the entropy bound
-    (kappa (S, K), inf: none), the feature constraints and ``optimal`` (S,)
+) -> Verdict:
+    """The :class:`Verdict` of one problem's (S = 1) weights P (1, K, N, O): the KL bound, the
+    entropy bound (kappa (1, K), inf: none), the feature constraints and ``optimal`` (1,)
     (gradient tolerance met)."""
     kl = block_kl(P, prob.lr)
     over = kl > prob.eps * (1.0 + KL_RTOL)
@@ -170,39 +170,37 @@ def judge(
         worst = resid.abs().amax(dim=-1)
     bad_f = worst > converged_grad
     fixed_bad = fixed_residual > FIXED_RTOL
-    failing = over.any(-1) | bad_ce.any(-1) | bad_f | fixed_bad | ~optimal
-    verdicts = [Verdict(True, False, ())] * prob.S
-    for s in failing.nonzero().flatten().tolist():  # text only for the problems that failed
-        parts: list[str] = []
-        if bool(over[s].any()):
-            o = over[s]
-            parts.append(
-                f"the KL bound is broken: KL = {_fmt(kl[s][o])} > epsilon {_fmt(prob.eps[s][o])}"
-            )
-        if bool(bad_ce[s].any()):
-            b = bad_ce[s]
-            parts.append(
-                f"the entropy bound is violated: cross-entropy {_fmt(ce[s][b])} > kappa "
-                f"{_fmt(kappa[s][b])} (tolerance 1e-6 of max(kappa, 1))"
-            )
-        if bool(bad_f[s]):
-            parts.append(
-                f"the feature constraints are off by {float(worst[s]):.3g} feature spreads "
-                f"(tolerance {converged_grad:g}; see feature_error)"
-            )
-        if bool(fixed_bad[s]):
-            parts.append(
-                "the constraint along feature directions without spread in the samples (a "
-                f"constant feature) is off by {float(fixed_residual[s]):.3g} of its terms: no "
-                "reweighting can meet it (are the initial features consistent with the samples?)"
-            )
-        if not bool(optimal[s]) and not parts:
-            parts.append(
-                f"the solver stopped before the optimum (gradient above {converged_grad:g}); "
-                f"KL = {_fmt(kl[s])} against epsilon {_fmt(prob.eps[s])}"
-            )
-        verdicts[s] = Verdict(False, bool(fixed_bad[s]), tuple(parts))
-    return verdicts
+    if not bool(over.any(-1) | bad_ce.any(-1) | bad_f | fixed_bad | ~optimal):
+        return Verdict(True, False, ())
+    parts: list[str] = []  # text only where the problem failed
+    if bool(over.any()):
+        o = over[0]
+        parts.append(
+            f"the KL bound is broken: KL = {_fmt(kl[0][o])} > epsilon {_fmt(prob.eps[0][o])}"
+        )
+    if bool(bad_ce.any()):
+        b = bad_ce[0]
+        parts.append(
+            f"the entropy bound is violated: cross-entropy {_fmt(ce[0][b])} > kappa "
+            f"{_fmt(kappa[0][b])} (tolerance 1e-6 of max(kappa, 1))"
+        )
+    if bool(bad_f):
+        parts.append(
+            f"the feature constraints are off by {float(worst[0]):.3g} feature spreads "
+            f"(tolerance {converged_grad:g}; see feature_error)"
+        )
+    if bool(fixed_bad):
+        parts.append(
+            "the constraint along feature directions without spread in the samples (a "
+            f"constant feature) is off by {float(fixed_residual[0]):.3g} of its terms: no "
+            "reweighting can meet it (are the initial features consistent with the samples?)"
+        )
+    if not bool(optimal) and not parts:
+        parts.append(
+            f"the solver stopped before the optimum (gradient above {converged_grad:g}); "
+            f"KL = {_fmt(kl[0])} against epsilon {_fmt(prob.eps[0])}"
+        )
+    return Verdict(False, bool(fixed_bad), tuple(parts))
 
 
 def _fmt(x: Tensor) -> str:

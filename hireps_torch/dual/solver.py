@@ -167,33 +167,26 @@ def _solve_one(
     _, eta_s, xi_s, u = prob.unpack(solver.x)
     eta_s, moved = enforce_kl(prob, eta_s, xi_s, u)
     P, g = end.weights, end.value
-    rows = moved.any(-1)
-    if bool(rows.any()):
-        P = torch.where(rows[:, None, None, None], prob.weights_at(eta_s, xi_s, u)[0], P)
-        g = torch.where(rows, prob.value_at(eta_s, xi_s, u), g)
-    failed = ~(torch.isfinite(P).all(dim=(1, 2, 3)) & torch.isfinite(g))
-    if bool(failed.any()):  # never seen; should a solve fail numerically, keep the old one
-        old = log_resp.exp() / R.shape[-1]
-        old = old / old.sum(dim=(-2, -1), keepdim=True)
-        P = torch.where(failed[:, None, None, None], old, P)
-        st = replace(st, informative=st.informative & ~failed)
-    optimal = end.converged & ~failed
-    verdicts = judge(prob, P, kap, optimal, st.fixed_residual, settings.converged_grad)
-    said: list[_Warning] = []
-    for s, verdict in enumerate(verdicts):
-        notes = [] if relaxed[s] is None else [str(relaxed[s])]
-        if bool(failed[s]):
-            notes.append("the solve failed numerically: the old distribution is kept")
-        if bool(unreachable[s].any()):
-            notes.append(_unreachable_text(kap[s], kap_solve[s], best[s], unreachable[s], eps[s]))
-        if bool(moved[s].any()):
-            notes.append(
-                f"the KL bound was enforced after the solve on block(s) {_where(moved[s])}"
-            )
-        infeasible = bool(unreachable[s].any()) or relaxed[s] is not None
-        said += _warning(verdict, notes, infeasible, prefix)
+    if bool(moved.any()):
+        P, g = prob.weights_at(eta_s, xi_s, u)[0], prob.value_at(eta_s, xi_s, u)
+    failed = not bool(torch.isfinite(P).all() & torch.isfinite(g).all())
+    if failed:  # never seen; should a solve fail numerically, keep the old one
+        P = log_resp.exp() / R.shape[-1]
+        P = P / P.sum(dim=(-2, -1), keepdim=True)
+        st = replace(st, informative=torch.zeros_like(st.informative))
+    optimal = end.converged & (not failed)
+    verdict = judge(prob, P, kap, optimal, st.fixed_residual, settings.converged_grad)
+    notes = [] if relaxed is None else [relaxed]
+    if failed:
+        notes.append("the solve failed numerically: the old distribution is kept")
+    if bool(unreachable.any()):
+        notes.append(_unreachable_text(kap[0], kap_solve[0], best[0], unreachable[0], eps[0]))
+    if bool(moved.any()):
+        notes.append(f"the KL bound was enforced after the solve on block(s) {_where(moved[0])}")
+    infeasible = bool(unreachable.any()) or relaxed is not None
+    said = _warning(verdict, notes, infeasible, prefix)
     eta, xi, v, dual = _caller_units(st, eta_s, xi_s, u, g)
-    converged = torch.tensor([vd.converged for vd in verdicts], device=R.device)
+    converged = torch.tensor([verdict.converged], device=R.device)
     sol = finish(
         P,
         log_resp,
@@ -235,18 +228,10 @@ def _caller_units(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """(eta, xi, v, dual value) in the (power-of-2 scaled) caller's units; without return
     information eta = inf, xi = inf where the entropy bound tilted, v = v0, dual = mean return."""
-    flat = ~st.informative
-    eta = eta_s * st.scale[:, None]
-    xi = xi_s * st.scale[:, None]
-    v = st.value(u)
-    dual = st.dual_value(g)
-    if bool(flat.any()):
-        inf = torch.full_like(eta_s, math.inf)
-        eta = torch.where(flat[:, None], inf, eta)
-        xi = torch.where(flat[:, None], torch.where(xi_s > 0, inf, 0.0), xi)
-        v = torch.where(flat[:, None], st.v0, v)
-        dual = torch.where(flat, st.level, dual)
-    return eta, xi, v, dual
+    if bool(st.informative):
+        return eta_s * st.scale[:, None], xi_s * st.scale[:, None], st.value(u), st.dual_value(g)
+    inf = torch.full_like(eta_s, math.inf)
+    return inf, torch.where(xi_s > 0, inf, 0.0), st.v0, st.level
 
 
 def _pow2_scale(m: Tensor) -> Tensor:

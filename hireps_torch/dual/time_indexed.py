@@ -26,13 +26,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from hireps_torch.dual.inputs import (
-    centred,
-    check_feature_vector,
-    check_features,
-    check_settings,
-    common_inputs,
-)
+from hireps_torch.dual.inputs import centred, common_inputs
 from hireps_torch.dual.solutions import DualSolution, public
 from hireps_torch.dual.solver import LbfgsSettings, solve_blocks
 
@@ -82,27 +76,23 @@ def solve_time_indexed_dual(
             K < 1, epsilon <= 0, a negative kappa or a bad max_iter; each message names the
             offending value.
     """
-    opts = check_settings(max_iter)
-    R, eps, lr, kap = common_inputs(
+    x = common_inputs(
         rewards,
         epsilon,
         log_responsibilities,
         kappa,
+        max_iter,
         "rewards",
         per_step=True,
         population=population,
     )
-    S, K, N = R.shape
-    lead = (S, N, K) if population else (N, K)
-    phi = check_features("features", features, *lead, population=population, device=R.device)
-    phi = phi.reshape(S, N, K, -1).transpose(1, 2)  # (S, K, N, F)
+    S, K, N = x.R.shape
+    phi = x.features("features", features).transpose(1, 2)  # (S, K, N, F)
     F = phi.shape[-1]
     phi1 = None
     if initial_features is not None:
-        phi1 = check_feature_vector(
-            "initial_features", initial_features, F, S if population else None, R.device
-        ).reshape(S, F)
-    sol = time_indexed_solution(R, lr, eps, phi, phi1, kap, opts, stacklevel=3)
+        phi1 = x.feature_vector("initial_features", initial_features, F)
+    sol = time_indexed_solution(x.R, x.lr, x.eps, phi, phi1, x.kappa, x.settings, stacklevel=3)
     return public(replace(sol, v=sol.v.reshape(S, K, F)), population, blocks=True)
 
 

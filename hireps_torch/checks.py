@@ -12,10 +12,13 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "FIX_SAMPLES",
+    "as_checked",
     "as_f64",
     "as_finite_f64",
     "as_float",
     "as_float_tensor",
+    "as_weights",
     "check_count",
     "check_device",
     "check_present_device",
@@ -28,7 +31,6 @@ __all__ = [
     "check_seed",
     "check_nonnegative_float",
     "check_state_dict",
-    "check_weights",
 ]
 
 
@@ -48,9 +50,11 @@ def all_finite(x: Tensor) -> bool:
     return math.isfinite(float(x.sum())) or bool(torch.isfinite(x).all())
 
 
-def check_finite(
-    name: str, x: Tensor, advice: str = "remove or fix those samples before the update"
-) -> None:
+FIX_SAMPLES = "remove or fix those samples before the update"
+"""The advice of :func:`check_finite` for samples."""
+
+
+def check_finite(name: str, x: Tensor, advice: str = FIX_SAMPLES) -> None:
     """Raise naming ``name`` and the first non-finite entry (then ``advice``) unless all finite."""
     if all_finite(x):
         return
@@ -148,9 +152,30 @@ def as_float_tensor(
     return t.to(dtype)
 
 
-def check_weights(name: str, w: Tensor) -> None:
-    """Sample weights: finite, >= 0 and not all zero."""
-    check_finite(name, w, "")
+def as_checked(
+    name: str,
+    value: object,
+    shape: tuple[int | None, ...],
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | None = None,
+    advice: str = "",
+    names: str = "",
+) -> Tensor:
+    """:func:`as_float_tensor` of ``value`` checked for ``shape`` (None: any size; the message
+    shows it as N, after ``names``) and finiteness (:func:`check_finite` with ``advice``)."""
+    t = as_float_tensor(name, value, dtype, device)
+    sizes = zip(shape, t.shape, strict=False)
+    if t.dim() != len(shape) or any(n not in (None, m) for n, m in sizes):
+        want = str(shape).replace("None", "N")
+        raise ValueError(f"{name} must have shape {names}{want}, got {tuple(t.shape)}")
+    check_finite(name, t, advice)
+    return t
+
+
+def as_weights(name: str, value: object, shape: tuple[int, ...], members: bool = False) -> Tensor:
+    """Sample weights of ``shape`` (:func:`as_checked`): >= 0 and not all zero (with
+    ``members``: for no member along the first dimension)."""
+    w = as_checked(name, value, shape)
     negative = w < 0
     if bool(negative.any()):
         idx = tuple(int(i) for i in negative.nonzero()[0])
@@ -163,6 +188,12 @@ def check_weights(name: str, w: Tensor) -> None:
             f"{name} are all zero (shape {tuple(w.shape)}); they must be non-negative and not "
             "all zero"
         )
+    if members:
+        empty = ~(w > 0).flatten(1).any(1)
+        if bool(empty.any()):
+            s = int(empty.nonzero()[0, 0])
+            raise ValueError(f"{name}[{s}] are all zero (member {s} of the population)")
+    return w
 
 
 def check_float_dtype(dtype: object, name: str = "dtype") -> torch.dtype:

@@ -145,8 +145,7 @@ class FourierFeatures(FeatureMap):
                 f"low and high must both have shape (C,) (C: the state dimension), got "
                 f"{tuple(lo.shape)} and {tuple(hi.shape)}"
             )
-        finite = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all())
-        if not finite or not bool((hi > lo).all()):
+        if not bool((torch.isfinite(lo) & torch.isfinite(hi) & (hi > lo)).all()):
             raise ValueError(f"need finite high > low elementwise, got {lo}, {hi}")
         C = lo.shape[0]
         counts = _bases_per_dimension(n_bases, C)

@@ -51,8 +51,7 @@ class PolicyActor(nn.Module):
     @torch.no_grad()
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         lead, C = observation.shape[:-1], observation.shape[-1]
-        s = observation.to(torch.float64)
-        S = self.policy.batch_shape[0] if self.policy.batch_shape else None
+        s, policy, S = observation.to(torch.float64), self.policy, self.policy.population
         if S is not None:  # (..., S B, C) -> (S, ... B, C)
             if not lead or lead[-1] % S:
                 raise ValueError(
@@ -60,8 +59,7 @@ class PolicyActor(nn.Module):
                     f"one after another; got shape {tuple(observation.shape)}"
                 )
             s = s.reshape(*lead[:-1], S, lead[-1] // S, C).movedim(-3, 0)
-        s = s.reshape(*self.policy.batch_shape, -1, C)
-        policy = self.policy
+        s = s.reshape(*policy.batch_shape, -1, C)
         a, o = policy.mean_action(s) if self.deterministic else policy.sample(s, self.generator)
         if S is not None:  # back to (..., S B)
             a = a.reshape(S, *lead[:-1], -1, a.shape[-1]).movedim(0, -3)

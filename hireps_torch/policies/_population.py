@@ -12,7 +12,7 @@ from torch import Tensor
 
 from hireps_torch.checks import check_generator
 
-__all__ = ["Generators", "check_members", "check_population_generators", "normal", "batch_text"]
+__all__ = ["Generators", "categorical", "check_members", "check_population_generators", "normal"]
 
 Generators = torch.Generator | Sequence[torch.Generator] | None
 """None, one generator, or (for a population) one generator per member."""
@@ -96,8 +96,3 @@ def categorical(probs: Tensor, generator: torch.Generator | list[torch.Generator
         host = probs if generator is None else probs.to(generator.device)
         q = torch.empty_like(host).exponential_(1, generator=generator)
     return (host / q).argmax(-1).to(probs.device)
-
-
-def batch_text(population: int | None) -> str:
-    """'S, ' for a population of S (for shape messages), '' otherwise."""
-    return "" if population is None else f"{population}, "

@@ -10,15 +10,15 @@ from torch import Tensor, nn
 from hireps_torch._linalg import log_softmax, softmax
 from hireps_torch._parallel import member_chunks, side_by_side
 from hireps_torch.checks import (
+    as_checked,
     as_float_tensor,
+    as_weights,
     check_count,
     check_finite,
     check_float_dtype,
     check_nonnegative_float,
-    check_weights,
 )
 from hireps_torch.policies._module import PolicyModule
-from hireps_torch.policies._population import batch_text
 
 __all__ = ["ConstantGating", "Gating", "SoftmaxGating"]
 
@@ -27,7 +27,7 @@ class Gating(PolicyModule):
     """Base of the gatings: ``features (N, F) -> log pi(o | s) (N, O)`` over the active options.
 
     Pruned options are masked by the ``active`` bool buffer, never removed. Subclasses
-    implement :meth:`log_probs`, :meth:`fit_parameters` and :meth:`fit_checked`.
+    implement :meth:`log_probs` and :meth:`fit_checked`.
     """
 
     active: Tensor
@@ -41,50 +41,41 @@ class Gating(PolicyModule):
         self.register_buffer("active", torch.ones(self.n_options, dtype=torch.bool))
 
     def _features(self, features: Tensor) -> Tensor:
-        x = as_float_tensor("gating features", features, device=self.active.device)
-        lead = self.batch_shape
-        if x.dim() != 2 + len(lead) or x.shape[:-2] != lead or x.shape[-1] != self.in_features:
-            raise ValueError(
-                f"gating features must have shape ({batch_text(self.population)}N, "
-                f"{self.in_features}), got {tuple(x.shape)}"
-            )
-        check_finite("gating features", x, "")
-        return x
+        shape = (*self.batch_shape, None, self.in_features)
+        return as_checked("gating features", features, shape, device=self.active.device)
 
-    def _fit_inputs(
-        self, features: Tensor, targets: Tensor, sample_weights: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Checked features ([S,] N, F), targets ([S,] N, O), weights ([S,] N) summing to 1."""
+    def log_probs(self, features: Tensor) -> Tensor:
+        """features: ([S,] N, F) -> log pi(o | s): ([S,] N, O), -inf for pruned options."""
+        raise NotImplementedError
+
+    def probs(self, features: Tensor) -> Tensor:
+        """features: ([S,] N, F) -> pi(o | s): ([S,] N, O)."""
+        return self.log_probs(features).exp()
+
+    @torch.no_grad()
+    def fit_parameters(
+        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
+    ) -> dict[str, Tensor]:
+        """The new parameters (name -> tensor) of :meth:`weighted_fit`, not set
+        (:meth:`fit_checked` of the checked inputs).
+
+        Args:
+            features: ([S,] N, F).
+            targets: ([S,] N, O) distributions over the active options where sample_weights > 0.
+            sample_weights: ([S,] N) non-negative, not all zero (for each member).
+        """
         x = self._features(features)
-        N = x.shape[-2]
-        lead = self.batch_shape
-        t = as_float_tensor("targets", targets)
-        if t.shape != (*lead, N, self.n_options):
-            raise ValueError(
-                f"targets must have shape {(*lead, N, self.n_options)}, got {tuple(t.shape)}"
-            )
-        bad = ~torch.isfinite(t) | (t < 0)
-        if bool(bad.any()):
-            at = [int(j) for j in bad.nonzero()[0]]
+        lead = tuple(x.shape[:-1])
+        t = as_checked("targets", targets, (*lead, self.n_options))
+        negative = t < 0
+        if bool(negative.any()):
+            at = [int(j) for j in negative.nonzero()[0]]
             raise ValueError(
                 f"targets must be finite and non-negative, got {t[tuple(at)].item()} at {at}"
             )
-        w = as_float_tensor("sample_weights", sample_weights)
-        if w.shape != (*lead, N):
-            raise ValueError(f"sample_weights must have shape {(*lead, N)}, got {tuple(w.shape)}")
-        check_weights("sample_weights", w)
-        empty = ~(w > 0).any(-1)
-        if bool(empty.any()):
-            s = int(empty.nonzero()[0, 0])
-            raise ValueError(f"sample_weights[{s}] are all zero (member {s} of the population)")
-        self._check_target_rows(t, w)
-        return x, t, w / w.sum(-1, keepdim=True)
-
-    def _check_target_rows(self, t: Tensor, w: Tensor) -> None:
-        """Rows with a positive weight must sum to 1 (to 1e-6) over the active options."""
-        active = self.active.unsqueeze(-2)
-        sums = torch.where(active, t, 0.0).sum(-1)
-        off = (w > 0) & ((sums - 1.0).abs() > 1e-6)
+        w = as_weights("sample_weights", sample_weights, lead, self.population is not None)
+        sums = torch.where(self.active.unsqueeze(-2), t, 0.0).sum(-1)
+        off = (w > 0) & ((sums - 1.0).abs() > 1e-6)  # rows must sum to 1 on the active options
         if bool(off.any()):
             at = [int(j) for j in off.nonzero()[0]]
             row = at[-1] if self.population is None else tuple(at)
@@ -95,20 +86,8 @@ class Gating(PolicyModule):
                 f"where sample_weights > 0: row {row} sums to {sums[tuple(at)].item():.6g} on "
                 f"the active options" + (f" (pruned: {pruned})" if pruned else "")
             )
-
-    def log_probs(self, features: Tensor) -> Tensor:
-        """features: ([S,] N, F) -> log pi(o | s): ([S,] N, O), -inf for pruned options."""
-        raise NotImplementedError
-
-    def probs(self, features: Tensor) -> Tensor:
-        """features: ([S,] N, F) -> pi(o | s): ([S,] N, O)."""
-        return self.log_probs(features).exp()
-
-    def fit_parameters(
-        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
-    ) -> dict[str, Tensor]:
-        """The new parameters (name -> tensor) of :meth:`weighted_fit`, not set."""
-        raise NotImplementedError
+        w = w / w.sum(-1, keepdim=True)
+        return self.fit_checked(x.to(torch.float64), t, w, check_count("max_iter", max_iter, 1))
 
     def fit_checked(
         self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
@@ -166,31 +145,16 @@ class SoftmaxGating(Gating):
         logits = logits.masked_fill(~self.active.unsqueeze(-2), float("-inf"))
         return log_softmax(logits)
 
-    @torch.no_grad()
-    def fit_parameters(
-        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
-    ) -> dict[str, Tensor]:
-        """Weighted multinomial logistic regression onto soft targets (the gating unchanged).
-
-        Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 ||weight||^2``
-        over the active options by Newton steps (:func:`_newton_fit`); an option without target
-        mass gets :data:`DEAD_LOGIT`; F = 0: ``pi(o) = sum_i w_i t_io / sum_i w_i``.
-
-        Args:
-            features: (N, F).
-            targets: (N, O) distributions over the active options where sample_weights > 0.
-            sample_weights: (N,) non-negative, not all zero.
-
-        Returns:
-            ``{"weight": (O, F), "bias": (O,)}``, the new values (pruned options' rows kept).
-        """
-        x, t, w = self._fit_inputs(features, targets, sample_weights)
-        return self.fit_checked(x.to(torch.float64), t, w, check_count("max_iter", max_iter, 1))
-
     def fit_checked(
         self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
     ) -> dict[str, Tensor]:
-        """See :meth:`Gating.fit_checked`."""
+        """Weighted multinomial logistic regression onto soft targets (:meth:`Gating.fit_checked`).
+
+        Minimises ``sum_i w_i sum_o t_io (-log pi(o | s_i)) / sum_i w_i + l2/2 ||weight||^2``
+        over the active options by Newton steps (:func:`_newton_fit`); an option without target
+        mass gets :data:`DEAD_LOGIT`; F = 0: ``pi(o) = sum_i w_i t_io / sum_i w_i``. Returns
+        ``{"weight": ([S,] O, F), "bias": ([S,] O)}`` (pruned options' rows kept).
+        """
         act = self.active
         if self.in_features == 0:
             prior = torch.where(act, (w[..., None] * t).sum(-2).clamp_min(1e-300), 0.0)
@@ -384,17 +348,10 @@ class ConstantGating(Gating):
         out = x.new_full((*x.shape[:-1], self.n_options), float("-inf"))
         return out.scatter_(-1, nearest[..., None], 0.0)
 
-    def fit_parameters(
-        self, features: Tensor, targets: Tensor, sample_weights: Tensor, max_iter: int = 100
-    ) -> dict[str, Tensor]:
-        """Nothing to fit (the inputs are checked)."""
-        self._fit_inputs(features, targets, sample_weights)
-        return {}
-
     def fit_checked(
         self, x: Tensor, t: Tensor, w: Tensor, max_iter: int = 100
     ) -> dict[str, Tensor]:
-        """Nothing to fit."""
+        """Nothing to fit (:meth:`fit_parameters` checks the inputs)."""
         return {}
 
 

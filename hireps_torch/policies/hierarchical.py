@@ -11,20 +11,20 @@ from torch import Tensor, nn
 
 from hireps_torch._linalg import log_softmax, logsumexp
 from hireps_torch.checks import (
+    FIX_SAMPLES,
+    as_checked,
     as_float_tensor,
+    as_weights,
     check_count,
     check_finite,
     check_generator,
     check_nonnegative_float,
     check_prune_threshold,
-    check_weights,
 )
 from hireps_torch.features import FeatureMap, IdentityFeatures, check_feature_map
-from hireps_torch.policies._build import check_feature_maps, check_gating, initial_means
 from hireps_torch.policies._module import PolicyModule
 from hireps_torch.policies._population import (
     Generators,
-    batch_text,
     categorical,
     check_members,
     check_population_generators,
@@ -66,7 +66,14 @@ class HierarchicalPolicy(PolicyModule):
         for o, opt in enumerate(options):
             if not isinstance(opt, LinearGaussian):
                 raise TypeError(f"options[{o}] must be a LinearGaussian, got {type(opt).__name__}")
-        check_gating(gating, len(options))
+        if not isinstance(gating, Gating):
+            raise TypeError(
+                f"gating must be a Gating (e.g. SoftmaxGating), got {type(gating).__name__}"
+            )
+        if gating.n_options != len(options):
+            raise ValueError(
+                f"gating has {gating.n_options} options but {len(options)} sub-policies were given"
+            )
         dims = {o.action_dim for o in options}
         if len(dims) != 1:
             raise ValueError(f"all options must share action_dim, got {sorted(dims)}")
@@ -76,7 +83,21 @@ class HierarchicalPolicy(PolicyModule):
         pf = check_feature_map("policy_features", policy_features) or IdentityFeatures(
             options[0].in_features
         )
-        check_feature_maps(gating, options, gf, pf)
+        if gf.in_features != pf.in_features:
+            raise ValueError(
+                f"gating_features take contexts of dimension {gf.in_features} but policy_features "
+                f"of dimension {pf.in_features}"
+            )
+        if gf.out_features != gating.in_features:
+            raise ValueError(
+                f"gating_features give {gf.out_features} features but the gating takes "
+                f"{gating.in_features}"
+            )
+        widths = sorted({o.in_features for o in options})
+        if widths != [pf.out_features]:
+            raise ValueError(
+                f"policy_features give {pf.out_features} features but the options take {widths}"
+            )
         self.gating = gating
         self.options = nn.ModuleList(options)
         self.gating_features = gf
@@ -119,7 +140,16 @@ class HierarchicalPolicy(PolicyModule):
                     f"{name} take contexts of dimension {fmap.in_features}, not context_dim = "
                     f"{context_dim}"
                 )
-        mean = initial_means(init_mean, n_options, action_dim)
+        mean = (
+            torch.zeros(action_dim, dtype=torch.float64)
+            if init_mean is None
+            else as_float_tensor("init_mean", init_mean)  # its values: checked by LinearGaussian
+        )
+        if mean.shape not in ((action_dim,), (n_options, action_dim)):
+            raise ValueError(
+                f"init_mean must have shape (D,) = ({action_dim},) or (O, D) = "
+                f"({n_options}, {action_dim}), got {tuple(mean.shape)}"
+            )
         spread = check_nonnegative_float("spread", spread)
         rows = mean if mean.dim() == 2 else mean.expand(n_options, action_dim)
         opts = [  # every argument is checked (by LinearGaussian, then cls) before the draws
@@ -204,15 +234,10 @@ class HierarchicalPolicy(PolicyModule):
 
     def _context(self, context: Tensor) -> Tensor:
         """context checked, as float64 ([S,] N, C)."""
-        device = self.sub_policies[0].bias.device
-        c = as_float_tensor("context", context, device=device)
-        C, lead = self.context_dim, self.batch_shape
-        if c.dim() != 2 + len(lead) or c.shape[:-2] != lead or c.shape[-1] != C:
-            names, sizes = ("population, ", batch_text(self.population)) if lead else ("", "")
-            raise ValueError(
-                f"context must have shape ({names}N, C) = ({sizes}N, {C}), got {tuple(c.shape)}"
-            )
-        check_finite("context", c, "")
+        lead, device = self.batch_shape, self.sub_policies[0].bias.device
+        names = "(population, N, C) = " if lead else "(N, C) = "
+        shape = (*lead, None, self.context_dim)
+        c = as_checked("context", context, shape, device=device, names=names)
         if not bool(self.active.any(-1).all()):
             raise ValueError("every option of this policy is pruned (active is all False)")
         return c
@@ -306,23 +331,9 @@ class HierarchicalPolicy(PolicyModule):
             ValueError: for bad inputs or a failed refit, naming the input or the option.
         """
         gf, pf = self._features(context)
-        N, lead = pf.shape[-2], self.batch_shape
-        t = as_float_tensor("theta", theta)
-        if t.shape != (*lead, N, self.action_dim):
-            raise ValueError(
-                f"theta must have shape {(*lead, N, self.action_dim)}, got {tuple(t.shape)}"
-            )
-        check_finite("theta", t)
-        w = as_float_tensor("weights", weights)
-        if w.shape != (*lead, N, self.n_options):
-            raise ValueError(
-                f"weights must have shape {(*lead, N, self.n_options)}, got {tuple(w.shape)}"
-            )
-        check_weights("weights", w)
-        empty = ~(w > 0).flatten(-2).any(-1)
-        if bool(empty.any()):
-            who = "" if self.population is None else f"[{int(empty.nonzero()[0, 0])}]"
-            raise ValueError(f"weights{who} are all zero: nothing to fit")
+        lead, members = tuple(pf.shape[:-1]), self.population is not None
+        t = as_checked("theta", theta, (*lead, self.action_dim), advice=FIX_SAMPLES)
+        w = as_weights("weights", weights, (*lead, self.n_options), members)
         on_pruned = ((w > 0) & ~self.active.unsqueeze(-2)).any(-2)
         if bool(on_pruned.any()):
             pruned = [list(map(int, j)) for j in on_pruned.nonzero()]
@@ -331,7 +342,7 @@ class HierarchicalPolicy(PolicyModule):
                 f"weights put mass on pruned option(s) {where}; give them weight 0 (their "
                 "column of the weights must be zero)"
             )
-        return self.fit_checked(gf, pf, t, power_of_two_scaled(w, self.population is not None))
+        return self.fit_checked(gf, pf, t, power_of_two_scaled(w, members))
 
     def fit_checked(self, gf: Tensor | None, pf: Tensor, t: Tensor, w: Tensor) -> dict[str, Tensor]:
         """:meth:`fit_parameters` on checked features gf, pf ([S,] N, .) (gf None: one option),

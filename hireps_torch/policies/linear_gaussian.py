@@ -10,22 +10,18 @@ from torch import Tensor, nn
 
 from hireps_torch._linalg import min_norm_lstsq
 from hireps_torch.checks import (
+    FIX_SAMPLES,
     all_finite,
+    as_checked,
     as_float_tensor,
+    as_weights,
     check_count,
-    check_finite,
     check_float_dtype,
     check_nonnegative_float,
     check_positive,
-    check_weights,
 )
 from hireps_torch.policies._module import PolicyModule
-from hireps_torch.policies._population import (
-    Generators,
-    batch_text,
-    check_population_generators,
-    normal,
-)
+from hireps_torch.policies._population import Generators, check_population_generators, normal
 
 __all__ = [
     "FLOOR_RANGE",
@@ -78,17 +74,12 @@ def weighted_least_squares(
 def power_of_two_scaled(w: Tensor, population: bool = False) -> Tensor:
     """``w`` times an exact power of 2 bringing its peak near 1, unless the peak is within
     2^-200 .. 2^200; with ``population`` each member (leading dim) on its own."""
-    if population:
-        peak = w.flatten(1).amax(1).view(-1, *[1] * (w.dim() - 1))
-        far = (peak < 2.0**-200) | (peak > 2.0**200)
-        if not bool(far.any()):
-            return w
-        exponent = torch.frexp(peak).exponent.to(torch.int64)
-        return torch.where(far, torch.ldexp(w, -exponent), w)
-    top = float(w.max())
-    if 2.0**-200 <= top <= 2.0**200:
+    peak = w.flatten(1).amax(1).view(-1, *[1] * (w.dim() - 1)) if population else w.amax()
+    far = (peak < 2.0**-200) | (peak > 2.0**200)
+    if not bool(far.any()):
         return w
-    return torch.ldexp(w, torch.tensor(-math.frexp(top)[1], dtype=torch.int64, device=w.device))
+    exponent = torch.frexp(peak).exponent.to(torch.int64)
+    return torch.where(far, torch.ldexp(w, -exponent), w)
 
 
 def variance_floor(min_variance: float | Tensor, action_dim: int) -> Tensor:
@@ -234,11 +225,8 @@ class LinearGaussian(PolicyModule):
         mean = (
             torch.zeros(action_dim, dtype=dtype)
             if init_mean is None
-            else as_float_tensor("init_mean", init_mean, dtype).clone()
+            else as_checked("init_mean", init_mean, (action_dim,), dtype).clone()
         )
-        if mean.shape != (action_dim,):
-            raise ValueError(f"init_mean must have shape ({action_dim},), got {tuple(mean.shape)}")
-        check_finite("init_mean", mean, "")
         self.in_features = in_features
         self.action_dim = action_dim
         self.min_variance: Tensor
@@ -252,23 +240,8 @@ class LinearGaussian(PolicyModule):
 
     # ---- distribution ---------------------------------------------------------------------
     def _features(self, features: Tensor) -> Tensor:
-        x = as_float_tensor("features", features, self.bias.dtype, self.bias.device)
-        lead = self.batch_shape
-        if x.dim() != 2 + len(lead) or x.shape[:-2] != lead or x.shape[-1] != self.in_features:
-            raise ValueError(
-                f"features must have shape ({batch_text(self.population)}N, {self.in_features}),"
-                f" got {tuple(x.shape)}"
-            )
-        check_finite("features", x, "")
-        return x
-
-    def _theta(self, theta: Tensor, N: int) -> Tensor:
-        t = as_float_tensor("theta", theta, self.bias.dtype, self.bias.device)
-        shape = (*self.batch_shape, N, self.action_dim)
-        if t.shape != shape:
-            raise ValueError(f"theta must have shape {shape}, got {tuple(t.shape)}")
-        check_finite("theta", t, "")
-        return t
+        shape = (*self.batch_shape, None, self.in_features)
+        return as_checked("features", features, shape, self.bias.dtype, self.bias.device)
 
     def mean(self, features: Tensor) -> Tensor:
         """features: ([S,] N, F) -> mean ([S,] N, D)."""
@@ -290,7 +263,8 @@ class LinearGaussian(PolicyModule):
     def log_prob(self, features: Tensor, theta: Tensor) -> Tensor:
         """features: ([S,] N, F), theta: ([S,] N, D) -> log density ([S,] N)."""
         mu = self.mean(features)
-        diff = (self._theta(theta, mu.shape[-2]) - mu).mT  # ([S,] D, N)
+        t = as_checked("theta", theta, tuple(mu.shape), mu.dtype, mu.device)
+        diff = (t - mu).mT  # ([S,] D, N)
         z: Tensor = torch.linalg.solve_triangular(self.chol, diff, upper=False)
         half_logdet = torch.log(torch.diagonal(self.chol, dim1=-2, dim2=-1)).sum(-1)
         return (
@@ -316,24 +290,11 @@ class LinearGaussian(PolicyModule):
                 negative or all-zero weights, or a fit that overflows.
         """
         x = self._features(inputs).to(torch.float64)
-        N = x.shape[-2]
-        lead = self.batch_shape
-        y = as_float_tensor("targets", targets)
-        if y.shape != (*lead, N, self.action_dim):
-            raise ValueError(
-                f"targets must have shape {(*lead, N, self.action_dim)}, got {tuple(y.shape)}"
-            )
-        check_finite("targets", y)
-        w = as_float_tensor("weights", weights)
-        if w.shape != (*lead, N):
-            raise ValueError(f"weights must have shape {(*lead, N)}, got {tuple(w.shape)}")
-        check_weights("weights", w)
-        empty = ~(w > 0).any(-1)
-        if bool(empty.any()):
-            s = int(empty.nonzero()[0, 0])
-            raise ValueError(f"weights[{s}] are all zero (member {s} of the population)")
+        lead, members = tuple(x.shape[:-1]), self.population is not None
+        y = as_checked("targets", targets, (*lead, self.action_dim), advice=FIX_SAMPLES)
+        w = as_weights("weights", weights, lead, members)
         r = check_nonnegative_float("ridge", ridge)
-        return self.fit_checked(x, y, power_of_two_scaled(w, self.population is not None), r)
+        return self.fit_checked(x, y, power_of_two_scaled(w, members), r)
 
     def fit_checked(self, x: Tensor, y: Tensor, w: Tensor, r: float = 1e-6) -> dict[str, Tensor]:
         """:meth:`fit_parameters` on checked float64 x ([S,] N, F), y ([S,] N, D) and w ([S,] N)
@@ -431,13 +392,7 @@ class LinearGaussian(PolicyModule):
     @torch.no_grad()
     def set_covariance(self, cov: Tensor) -> None:
         """Set the covariance ([S,] D, D), symmetrised and floored at ``min_variance``."""
-        c = as_float_tensor("cov", cov)
-        D = self.action_dim
-        if c.shape != (*self.batch_shape, D, D):
-            raise ValueError(
-                f"cov must have shape {(*self.batch_shape, D, D)}, got {tuple(c.shape)}"
-            )
-        check_finite("cov", c, "")
+        c = as_checked("cov", cov, (*self.batch_shape, self.action_dim, self.action_dim))
         self.set_parameters({"chol": self._floored_cholesky(c)})
 
     OPTIONAL_STATE = ("min_variance",)

@@ -6,7 +6,7 @@
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
    (each unique configuration runs once per seed and is shared between figures). By default
    each configuration's seeds run as one population (``train.py pendulum --seeds 0-4``: one
-   process, one batched simulation; :class:`hireps_torch.experiments.loop.Members`),
+   process, one batched simulation; :class:`hireps_torch.experiments.loop.Run`),
    ``--workers`` populations at a time (2 by default, one process and one thread each, one
    per core of the 2-core reference machine; the slow configurations first). With
    ``--separate``, as one sweep of separate runs (:mod:`hireps_torch.experiments.sweep`):

@@ -275,7 +275,7 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
         title=label,
         summaries=[
             _summary(c, r, iterations, int(n))
-            for c, r, n in zip(session.members.configs, session.rows, active, strict=True)
+            for c, r, n in zip(session.configs, session.rows, active, strict=True)
         ],
     )
 

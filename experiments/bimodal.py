@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -156,14 +155,16 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
         )
         for m in range(S)
     ]
+    if isinstance(task, TwoGaussians):
+        for a, writer in zip(solo, session.writers, strict=True):
+            plot_bimodal_options(a, task, writer.dir / "options.png")
     return finish_run(
         session,
         curve=("episodes", ["mean_return", "eval_return"]),
         title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
-        extra_plots=[_plots(a, task) for a in solo],
         summaries=[
             _summary(c, a, task, r, iterations)
-            for c, a, r in zip(session.members.configs, solo, session.rows, strict=True)
+            for c, a, r in zip(session.configs, solo, session.rows, strict=True)
         ],
     )
 
@@ -172,14 +173,6 @@ def _task(cfg: BimodalConfig) -> TwoGaussians | ContextualTwoGaussians:
     if cfg.contextual:
         return ContextualTwoGaussians(width=cfg.bump_width)
     return TwoGaussians(width=cfg.bump_width)
-
-
-def _plots(
-    algo: EpisodicHiREPS, task: TwoGaussians | ContextualTwoGaussians
-) -> list[Callable[[Path], None]]:
-    if isinstance(task, TwoGaussians):
-        return [lambda d: plot_bimodal_options(algo, task, d / "options.png")]
-    return []
 
 
 def _summary(

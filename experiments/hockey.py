@@ -229,8 +229,8 @@ def _check(cfg: HockeyConfig) -> int:
         raise ValueError(f"episodes_per_iteration must be >= 2, got {B}")
     if not 0.0 <= cfg.exploration_floor < 1.0:
         raise ValueError(f"exploration_floor must be in [0, 1), got {cfg.exploration_floor}")
-    end = cfg.exploration_floor_end
-    if end is not None and not (isinstance(end, (int, float)) and 0.0 <= end < 1.0):
+    end = cfg.exploration_floor_end  # a number or None (check_options)
+    if end is not None and not 0.0 <= end < 1.0:
         raise ValueError(f"exploration_floor_end must be in [0, 1) or None, got {end!r}")
     if not 0.0 <= cfg.puck_restitution <= 1.0:
         raise ValueError(f"puck_restitution must be in [0, 1], got {cfg.puck_restitution}")
@@ -331,9 +331,7 @@ def evaluate_final_policy(
             _, _, r, final = episodes(play_episodes(env, actor, cfg.seed, indices, K), K)
             rows = _hockey_rows(r, final, params.zones)
             if deterministic:
-                out["eval_average_reward"] = rows["average_reward"]
-                out["eval_zone3_share"] = rows["zone3_share"]
-                out["eval_zone_reward"] = rows["zone_reward"]
+                out |= {f"eval_{k}": v for k, v in rows.items() if k != "final_distance"}
             else:
                 out["final_policy_average_reward"] = rows["average_reward"]
     finally:

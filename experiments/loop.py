@@ -6,7 +6,7 @@ import ctypes
 import ctypes.util
 import dataclasses
 import statistics
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,7 +35,6 @@ from hireps_torch.experiments.rundir import (
 )
 
 __all__ = [
-    "Members",
     "Postfix",
     "Resume",
     "Run",
@@ -127,44 +126,11 @@ def logged_rows(path: Path) -> int:
     return max(sum(1 for line in path.read_bytes().splitlines() if line.strip()) - 1, 0)
 
 
-@dataclass(frozen=True)
-class Members:
-    """The seeds a run learns and where each writes (member s of a population: ``seed<s>``).
-
-    Attributes:
-        seeds: the members' seeds.
-        root: the run directory.
-        configs: each member's config (its seed and run directory, no ``seeds``).
-        population: whether the run is a population (``--seeds``, even of one seed).
-    """
-
-    seeds: list[int]
-    root: Path
-    configs: list[Any]
-    population: bool
-
-    @classmethod
-    def of(cls, experiment: str, cfg: RunOptions, resume: Resume | None = None) -> Members:
-        """The members of ``cfg`` (written under ``resume.run_dir`` when resuming)."""
-        root = Path(
-            resume.run_dir
-            if resume is not None
-            else cfg.run_dir
-            if cfg.run_dir is not None
-            else default_run_dir(experiment)
-        )
-        if cfg.seeds is None:
-            return cls([cfg.seed], root, [dataclasses.replace(cfg, run_dir=root)], False)
-        seeds = member_seeds(cfg)
-        configs = [
-            dataclasses.replace(cfg, seed=s, seeds=None, resume=None, run_dir=root / f"seed{s}")
-            for s in seeds
-        ]
-        return cls(seeds, root, configs, True)
-
-
 class Run:
     """An open run (new, or reopened from a checkpoint): its members' writers and its state.
+    Every run is a population of S >= 1 seeds (``seeds``; ``population``: ``--seeds`` was
+    given, even of one seed); ``configs`` holds each member's config (its seed and run
+    directory, member s of a population in ``seed<s>``, no ``seeds``).
 
     Args:
         experiment: the experiment's name (``config.json``'s ``experiment``).
@@ -178,27 +144,40 @@ class Run:
     ) -> None:
         self.experiment = experiment
         self.config = config_dict(experiment, cfg)
-        self.members = members = Members.of(experiment, cfg, resume)
+        root = Path(
+            resume.run_dir
+            if resume is not None
+            else cfg.run_dir
+            if cfg.run_dir is not None
+            else default_run_dir(experiment)
+        )
+        self.seeds, self.population = member_seeds(cfg), cfg.seeds is not None
+        self.configs: list[Any] = [dataclasses.replace(cfg, run_dir=root)]
+        if self.population:
+            self.configs = [
+                dataclasses.replace(cfg, seed=s, seeds=None, resume=None, run_dir=root / f"seed{s}")
+                for s in self.seeds
+            ]
         self.state = state
         self.every = cfg.checkpoint_every
         ckpt = None if resume is None else resume.checkpoint
         self.start_iteration = 0
         if ckpt is not None:  # first: a checkpoint that does not fit changes no file
-            if len(ckpt["rows"]) != len(members.seeds):
+            if len(ckpt["rows"]) != len(self.seeds):
                 raise ValueError(
-                    f"{members.root / 'checkpoint.pt'} holds {len(ckpt['rows'])} member(s), "
-                    f"this run {len(members.seeds)}; nothing was changed"
+                    f"{root / 'checkpoint.pt'} holds {len(ckpt['rows'])} member(s), "
+                    f"this run {len(self.seeds)}; nothing was changed"
                 )
             state.load_state_dict(ckpt)
             self.start_iteration = int(ckpt["iteration"])
-        rows: list[Any] = [None] * len(members.seeds)  # None: a new run
+        rows: list[Any] = [None] * len(self.seeds)  # None: a new run
         if resume is not None:
-            rows = [[] for _ in members.seeds] if ckpt is None else ckpt["rows"]
+            rows = [[] for _ in self.seeds] if ckpt is None else ckpt["rows"]
         elapsed = 0.0 if ckpt is None else float(ckpt["elapsed"])
-        pop = members.population
+        pop = self.population
         first = rows[0] if not pop else None if resume is None else []
         self.root = RunWriter(
-            members.root, self.config, "csv" if pop else cfg.logger, rows=first, elapsed=elapsed
+            root, self.config, "csv" if pop else cfg.logger, rows=first, elapsed=elapsed
         )
         self.writers = [self.root]
         if pop:
@@ -207,7 +186,7 @@ class Run:
                     RunWriter(
                         c.run_dir, config_dict(experiment, c), c.logger, rows=r, elapsed=elapsed
                     )
-                    for c, r in zip(members.configs, rows, strict=True)
+                    for c, r in zip(self.configs, rows, strict=True)
                 ]
             except BaseException:
                 self.release()
@@ -385,28 +364,22 @@ def finish_run(
     title: str,
     summaries: Sequence[Mapping[str, Any]],
     ylabel: str = "return",
-    extra_plots: Sequence[Iterable[Callable[[Path], None]]] | None = None,
 ) -> dict[str, Any]:
     """The ending of every run: the final checkpoint; per member ``learning_curve.png``
-    (``curve[1]`` against ``curve[0]``), its ``extra_plots`` (called with its run directory)
-    and ``summary.json`` (plus ``wall_seconds``); for a population also the members' table,
-    band plot and summary. Returns the summary (of the member, or of the population)."""
+    (``curve[1]`` against ``curve[0]``) and ``summary.json`` (plus ``wall_seconds``); for a
+    population also the members' table, band plot and summary. Returns the summary (of the
+    member, or of the population)."""
     run.root.checkpoint(run.snapshot(len(run.writers[0].rows), finished=True))
-    plots = extra_plots or [[] for _ in run.writers]
     plot_learning_curves(run.writers, curve[0], list(curve[1]), title=title, ylabel=ylabel)
-    written = []
-    for writer, summary, mine in zip(run.writers, summaries, plots, strict=True):
-        for plot in mine:
-            plot(writer.dir)
-        written.append(writer.finish(summary))
-    return _population_summary(run, written) if run.members.population else written[0]
+    written = [writer.finish(s) for writer, s in zip(run.writers, summaries, strict=True)]
+    return _population_summary(run, written) if run.population else written[0]
 
 
 def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, Any]:
     """The members' ``population.*`` files (as a sweep writes them), then its summary."""
     from hireps_torch.experiments.sweep import METRICS, SweepRun, summarize
 
-    experiment, seeds, root = run.experiment.replace("_", "-"), run.members.seeds, run.root.dir
+    experiment, seeds, root = run.experiment.replace("_", "-"), run.seeds, run.root.dir
     runs = [SweepRun(experiment, experiment, s, {}, root / f"seed{s}") for s in seeds]
     results = {(experiment, s): summary for s, summary in zip(seeds, summaries, strict=True)}
     print(summarize(runs, results, root, stem="population"))

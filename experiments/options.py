@@ -11,8 +11,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.checks import check_device, check_present_device
 from hireps_torch.experiments.rundir import LoggerName, jsonable
@@ -68,7 +66,17 @@ class RunOptions:
                     f"--seed {self.seed} and --seeds {self.seeds} both name the seeds to run; "
                     "pass one (--seeds replaces --seed)"
                 )
-        check_run_device(self.device)
+        device = self.device
+        try:
+            dev = check_device(device)
+        except ValueError:
+            raise option_error("device", device, "a torch device such as cpu or cuda") from None
+        if dev.type == "meta":
+            raise option_error("device", device, "a device that holds values (meta holds none)")
+        try:
+            check_present_device(dev)
+        except ValueError as exc:
+            raise option_error("device", device, f"a device present here ({exc})") from None
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
         if self.resume is not None and self.run_dir is not None:
@@ -79,21 +87,6 @@ class RunOptions:
                 )
         if self.resume is None and self.run_dir is not None:
             check_new_run_dir(Path(self.run_dir))
-
-
-def check_run_device(device: str) -> torch.device:
-    """``--device`` as a ``torch.device`` present here (a ``ValueError`` naming it if not)."""
-    try:
-        dev = check_device(device)
-    except ValueError:
-        raise option_error("device", device, "a torch device such as cpu or cuda") from None
-    if dev.type == "meta":
-        raise option_error("device", device, "a device that holds values (meta holds none)")
-    try:
-        check_present_device(dev)
-    except ValueError as exc:
-        raise option_error("device", device, f"a device present here ({exc})") from None
-    return dev
 
 
 def member_seeds(cfg: RunOptions) -> list[int]:

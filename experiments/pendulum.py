@@ -321,9 +321,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         title=label,
         summaries=[
             _summary(c, r, ev, iterations, int(n))
-            for c, r, ev, n in zip(
-                session.members.configs, session.rows, final, active, strict=True
-            )
+            for c, r, ev, n in zip(session.configs, session.rows, final, active, strict=True)
         ],
     )
 

@@ -44,12 +44,6 @@ def default_run_dir(experiment: str, root: str | Path = "runs") -> Path:
     return path
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place; a
     failed write is an ``OSError`` naming ``path`` (the file there before is kept)."""
@@ -63,7 +57,9 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
             why = next(iter(str(exc).splitlines()), "")[:200] or type(exc).__name__
             kept = f"the previous {path.name} is kept" if path.exists() else "nothing was written"
             raise OSError(f"cannot write {path} ({why}; is the disk full?): {kept}") from exc
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would hide results from a group
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # mkstemp's 0600 would hide results from a group
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -224,20 +220,15 @@ class RunWriter:
         return written
 
     def release(self) -> None:
-        """Close the logger and drop the directory's lock: this writer writes no more."""
-        self.close()
-        self.lock.release()
-
-    def close(self) -> None:
-        """Flush and close the TorchRL logger (if any); ``metrics.csv`` is always flushed."""
-        if self.logger is None:
-            return
+        """Flush and close the TorchRL logger (if any; ``metrics.csv`` is always flushed) and
+        drop the directory's lock: this writer writes no more."""
         experiment = getattr(self.logger, "experiment", None)
         for name in ("flush", "close", "finish"):
             fn = getattr(experiment, name, None)
             if callable(fn):
                 fn()
         self.logger = None
+        self.lock.release()
 
 
 def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:

@@ -12,6 +12,7 @@ are reused and interrupted ones resumed. At the end: ``sweep.md`` (table), ``swe
 from __future__ import annotations
 
 import contextlib
+import csv
 import dataclasses
 import io
 import itertools
@@ -32,14 +33,7 @@ from tqdm.auto import tqdm
 
 from hireps_torch.experiments.options import parse_seeds
 from hireps_torch.experiments.rundir import DirectoryLock
-from hireps_torch.experiments.workers import (
-    RAY_ENV,
-    Backend,
-    check_pool,
-    check_ray_address,
-    import_ray,
-    init_ray,
-)
+from hireps_torch.experiments.workers import RAY_ENV, Backend, check_pool, start_ray
 
 __all__ = [
     "SweepConfig",
@@ -433,13 +427,10 @@ def _stop_workers(procs: Sequence[Any]) -> None:
 def _ray(
     runs: Sequence[SweepRun], workers: int, address: str | None, done: Done, failed: Failed
 ) -> None:
-    ray = import_ray()
-    owns = not ray.is_initialized()
     # hockey needs reproducible MKL in every process (experiments/workers.py); the rest one thread
     hockey = runs[0].experiment.startswith("hockey")
     env = RAY_ENV if hockey else {"env_vars": {"OMP_NUM_THREADS": "1"}}
-    if owns:
-        init_ray(ray, workers, address, env)
+    ray, owns = start_ray(workers, address, env)
     task = ray.remote(num_cpus=1, max_retries=2)(_one_thread)
     try:
         pending = {task.remote(r): r for r in runs}
@@ -462,16 +453,6 @@ def _ray(
             ray.shutdown()
 
 
-def check_backend(backend: str, workers: object, ray_address: str | None) -> None:
-    """A ``ValueError`` naming a bad ``--backend``, ``--workers`` or ``--ray-address`` (an
-    ``ImportError`` when Ray is asked for and missing)."""
-    check_pool(workers, backend, ray_address)
-    if ray_address is not None:
-        check_ray_address(ray_address)
-    if backend == "ray":
-        import_ray()  # the extra's name before anything runs
-
-
 def run_sweep(
     runs: Sequence[SweepRun],
     *,
@@ -490,7 +471,7 @@ def run_sweep(
     if len(set(keys)) != len(keys):
         raise ValueError("a sweep holds the same (configuration, seed) twice")
     if not checked:
-        check_backend(backend, workers, ray_address)
+        check_pool(workers, backend, ray_address, reach=True)
         check_configurations(runs)
     results: dict[tuple[str, int], dict[str, Any]] = {}
     failures: dict[tuple[str, int], str] = {}
@@ -529,14 +510,6 @@ def run_sweep(
     return results
 
 
-def _curve(run_dir: Path, column: str) -> tuple[list[float], list[float]]:
-    import csv
-
-    with (run_dir / "metrics.csv").open() as f:
-        rows = list(csv.DictReader(f))
-    return [float(r["episodes"]) for r in rows], [float(r[column]) for r in rows]
-
-
 def _mean_std(xs: Sequence[float]) -> str:
     if len(xs) == 1:
         return f"{xs[0]:.3g}"
@@ -549,49 +522,9 @@ def summarize(
     out: Path,
     stem: str = "sweep",
 ) -> str:
-    """Write ``<stem>.md`` (table), ``.json`` (summaries) and ``.png`` (bands) to ``out``;
-    returns the table. The metric and the curve column: the experiment's :data:`METRICS`."""
-    from hireps_torch.experiments.rundir import atomic_write
-
-    if not runs:
-        raise ValueError("nothing to summarize: the sweep has no runs")
-    experiment = runs[0].experiment
-    metric, curve = METRICS[experiment]
-    names = list(dict.fromkeys(r.name for r in runs))
-    lines = [
-        f"| configuration | seeds | {metric} (mean ± std) | per seed | s/run |",
-        "|---|--:|--:|---|--:|",
-    ]
-    curves: dict[str, list[tuple[list[float], list[float]]]] = {}
-    for name in names:
-        mine = [r for r in runs if r.name == name]
-        vals = [_number(results[(r.name, r.seed)][metric]) for r in mine]
-        walls = [float(results[(r.name, r.seed)].get("wall_seconds", float("nan"))) for r in mine]
-        per_seed = ", ".join(f"{r.seed}: {v:.3g}" for r, v in zip(mine, vals, strict=True))
-        lines.append(
-            f"| {name} | {len(mine)} | {_mean_std(vals)} | {per_seed} | "
-            f"{statistics.mean(walls):.1f} |"
-        )
-        curves[name] = [_curve(r.run_dir, curve) for r in mine]
-    table = "\n".join(lines)
-    out.mkdir(parents=True, exist_ok=True)
-    payload = {f"{n}/seed{s}": dict(v) for (n, s), v in results.items()}
-    as_json = json.dumps(payload, indent=1)
-    atomic_write(out / f"{stem}.json", lambda p: p.write_text(as_json))
-    atomic_write(out / f"{stem}.md", lambda p: p.write_text(table + "\n"))
-    _plot(curves, out / f"{stem}.png", f"{experiment}: {curve} (mean ± std over seeds)")
-    return table
-
-
-def _number(value: Any) -> float:
-    """A summary's number (None: NaN, as ``summary.json`` writes it)."""
-    return math.nan if value is None else float(value)
-
-
-Curves = Mapping[str, list[tuple[list[float], list[float]]]]
-
-
-def _plot(curves: Curves, path: Path, title: str) -> None:
+    """Write ``<stem>.md`` (table), ``.json`` (summaries) and ``.png`` (mean +- std bands) to
+    ``out``; returns the table. The metric and the curve column: the experiment's
+    :data:`METRICS`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -600,27 +533,56 @@ def _plot(curves: Curves, path: Path, title: str) -> None:
 
     from hireps_torch.experiments.rundir import atomic_write
 
+    if not runs:
+        raise ValueError("nothing to summarize: the sweep has no runs")
+    experiment = runs[0].experiment
+    metric, curve = METRICS[experiment]
+    lines = [
+        f"| configuration | seeds | {metric} (mean ± std) | per seed | s/run |",
+        "|---|--:|--:|---|--:|",
+    ]
     fig, ax = plt.subplots(figsize=(7, 4))
-    for name, runs in curves.items():
-        n = min(len(y) for _, y in runs)
-        ys = np.array([y[:n] for _, y in runs])
-        x = np.array(runs[0][0][:n])
-        m, s = ys.mean(0), ys.std(0)
-        ax.plot(x, m, label=name)
-        ax.fill_between(x, m - s, m + s, alpha=0.2)
-    ax.set_xlabel("episodes")
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=110))
-    plt.close(fig)
+    try:
+        for name in dict.fromkeys(r.name for r in runs):
+            mine = [r for r in runs if r.name == name]
+            ends = [results[(r.name, r.seed)] for r in mine]  # None in summary.json: NaN
+            vals = [math.nan if e[metric] is None else float(e[metric]) for e in ends]
+            walls = [float(e.get("wall_seconds", float("nan"))) for e in ends]
+            per_seed = ", ".join(f"{r.seed}: {v:.3g}" for r, v in zip(mine, vals, strict=True))
+            lines.append(
+                f"| {name} | {len(mine)} | {_mean_std(vals)} | {per_seed} | "
+                f"{statistics.mean(walls):.1f} |"
+            )
+            logs = []
+            for r in mine:
+                with (r.run_dir / "metrics.csv").open() as f:
+                    logs.append(list(csv.DictReader(f)))
+            k = min(map(len, logs))
+            x = np.array([float(w["episodes"]) for w in logs[0][:k]])
+            ys = np.array([[float(w[curve]) for w in log[:k]] for log in logs])
+            mean, std = ys.mean(0), ys.std(0)
+            ax.plot(x, mean, label=name)
+            ax.fill_between(x, mean - std, mean + std, alpha=0.2)
+        table = "\n".join(lines)
+        out.mkdir(parents=True, exist_ok=True)
+        as_json = json.dumps({f"{n}/seed{s}": dict(v) for (n, s), v in results.items()}, indent=1)
+        atomic_write(out / f"{stem}.json", lambda p: p.write_text(as_json))
+        atomic_write(out / f"{stem}.md", lambda p: p.write_text(table + "\n"))
+        ax.set_xlabel("episodes")
+        ax.set_title(f"{experiment}: {curve} (mean ± std over seeds)", fontsize=9)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        atomic_write(out / f"{stem}.png", lambda p: fig.savefig(p, format="png", dpi=110))
+    finally:
+        plt.close(fig)
+    return table
 
 
 def main(cfg: SweepConfig) -> dict[str, Any]:
     """``hireps-train sweep``: plan, run (reusing, resuming), summarize; returns what it wrote."""
     configurations = parse_grid(cfg.experiment, cfg.grid, cfg.set)
     runs = plan(cfg.experiment, configurations, parse_seeds(cfg.seeds), cfg.out)
-    check_backend(cfg.backend, cfg.workers, cfg.ray_address)  # before anything is written
+    check_pool(cfg.workers, cfg.backend, cfg.ray_address, reach=True)  # before anything is written
     check_configurations(runs)
     out = Path(cfg.out) / cfg.experiment
     out.mkdir(parents=True, exist_ok=True)

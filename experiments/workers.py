@@ -106,17 +106,6 @@ def episode_seeds(seed: int, episode: int) -> tuple[int, int]:
     return int(words[0]), (int(words[1]) << 31) ^ int(words[2])
 
 
-def _actor_net(actor: Any) -> Any:
-    """The module of a TensorDictModule actor that has a ``generator`` attribute."""
-    net = getattr(actor, "module", actor)
-    if not hasattr(net, "generator"):
-        raise TypeError(
-            f"the actor must be a policy_module / time_indexed_module (a module with a "
-            f"'generator'), got {type(net).__name__}"
-        )
-    return net
-
-
 def play_episodes(
     env: Any, actor: Any, seed: int, episodes: Sequence[int], steps: int
 ) -> TensorDictBase:
@@ -128,7 +117,12 @@ def play_episodes(
         the episodes one after another: a ``(len(episodes) * steps,)`` TensorDict with the
         collector's keys.
     """
-    net = _actor_net(actor)
+    net = getattr(actor, "module", actor)
+    if not hasattr(net, "generator"):
+        raise TypeError(
+            f"the actor must be a policy_module / time_indexed_module (a module with a "
+            f"'generator'), got {type(net).__name__}"
+        )
     if len(episodes) == 0:
         raise ValueError("play_episodes needs at least one episode index")
     gen = torch.Generator()
@@ -333,8 +327,12 @@ RAY_ENV = {"env_vars": {"MKL_CBWR": MKL_MODE, "OMP_NUM_THREADS": "1"}}
 """The environment of every Ray worker process (reproducible MKL, one thread per task)."""
 
 
-def init_ray(ray: Any, workers: int, address: str | None, runtime_env: dict[str, Any]) -> None:
-    """``ray.init``: a local instance with ``workers`` CPUs, or the cluster at ``address``."""
+def start_ray(workers: int, address: str | None, runtime_env: dict[str, Any]) -> tuple[Any, bool]:
+    """``ray``, started (a local instance with ``workers`` CPUs, or the cluster at ``address``)
+    unless it runs already in this process, and whether this call started it."""
+    ray = import_ray()
+    if ray.is_initialized():
+        return ray, False
     local = address is None
     where = {"num_cpus": workers, "configure_logging": False} if local else {"address": address}
     try:
@@ -343,28 +341,21 @@ def init_ray(ray: Any, workers: int, address: str | None, runtime_env: dict[str,
         if local:  # a local start's own error, as it is
             raise
         raise ValueError(f"cannot join the Ray cluster at {address!r}: {exc}") from None
+    return ray, True
 
 
 class RayPool:
     """One Ray task per worker and call, on a local Ray instance with ``workers`` CPUs or on
-    the cluster at ``address``; Ray re-runs a task whose worker died (``max_retries``). A pool
-    that started Ray shuts it down in :meth:`close`."""
+    the cluster at ``address``; Ray re-runs a task whose worker died (3 times). A pool that
+    started Ray shuts it down in :meth:`close`."""
 
     def __init__(
-        self,
-        make_env: Callable[[], Any],
-        workers: int,
-        address: str | None = None,
-        max_retries: int = 3,
+        self, make_env: Callable[[], Any], workers: int, address: str | None = None
     ) -> None:
-        ray = import_ray()
-        if address is not None:
-            check_ray_address(address)
         self.make_env = make_env
         self.workers = workers
         self.key = uuid.uuid4().hex
-        self._ray = ray
-        self.owns_ray = not ray.is_initialized()
+        self._ray, self.owns_ray = start_ray(workers, address, RAY_ENV)
         if not self.owns_ray:
             warnings.warn(
                 "Ray is already running in this process: its session is used as it is "
@@ -373,9 +364,7 @@ class RayPool:
                 RuntimeWarning,
                 stacklevel=2,
             )
-        if self.owns_ray:
-            init_ray(ray, workers, address, RAY_ENV)
-        self._task = ray.remote(num_cpus=1, max_retries=max_retries)(_play_chunk)
+        self._task = self._ray.remote(num_cpus=1, max_retries=3)(_play_chunk)
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
         actor_ref = self._ray.put(actor)
@@ -390,14 +379,20 @@ class RayPool:
             self._ray.shutdown()
 
 
-def check_pool(workers: object, backend: object, address: str | None) -> None:
-    """A ``ValueError`` naming a bad ``--workers``, ``--backend`` or ``--ray-address``."""
+def check_pool(workers: object, backend: object, address: str | None, reach: bool = False) -> None:
+    """A ``ValueError`` naming a bad ``--workers``, ``--backend`` or ``--ray-address``; with
+    ``reach`` also an address no Ray cluster answers at (an ``ImportError`` when Ray is asked
+    for and missing)."""
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     if address is not None and backend != "ray":
         raise ValueError(f"--ray-address {address!r} needs --backend ray (got {backend!r})")
+    if reach and address is not None:
+        check_ray_address(address)
+    if reach and backend == "ray":
+        import_ray()  # the extra's name before anything runs
 
 
 def make_pool(
@@ -407,8 +402,7 @@ def make_pool(
     address: str | None = None,
 ) -> InProcessPool | LocalProcessPool | RayPool:
     """The pool for ``backend`` (see the module docstring); ``address`` only with ``ray``."""
-    check_pool(workers, backend, address)
+    check_pool(workers, backend, address, reach=True)
     if backend == "ray":
         return RayPool(make_env, workers, address)
     return InProcessPool(make_env) if workers == 1 else LocalProcessPool(make_env, workers)
-

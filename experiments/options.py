@@ -232,12 +232,10 @@ def check_options(
 
 def check_variance_floor(cfg: Any) -> None:
     """``cfg.min_variance`` within :data:`~hireps_torch.policies.linear_gaussian.FLOOR_RANGE`."""
-    import math
-
     from hireps_torch.policies.linear_gaussian import FLOOR_RANGE
 
     value, (low, high) = cfg.min_variance, FLOOR_RANGE
-    if not (math.isfinite(float(value)) and low <= value <= high):
+    if not low <= value <= high:  # nan and +-inf fail it
         raise option_error("min_variance", value, f"in [{low:g}, {high:g}] (a variance)")
 
 

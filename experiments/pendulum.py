@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -189,41 +188,6 @@ def _make_algorithm(
     )
 
 
-def _make_collector(
-    cfg: PendulumConfig,
-    algo: InfiniteHorizonHiREPS,
-    params: PendulumParams,
-    iterations: int,
-    seeds: list[int],
-) -> Any:
-    """``episodes_per_iteration`` pendulums per member, ``episode_seconds`` each per batch."""
-    from hireps_torch.rollout import make_collector, policy_module
-
-    B, dev = cfg.episodes_per_iteration, torch.device(cfg.device)
-    decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
-    per_worker = B // cfg.workers
-
-    def make_env() -> ScalarActionBatchEnv:
-        tasks = [
-            PendulumTask(per_worker, params, seed=stream_seed(s, "env"), device=dev) for s in seeds
-        ]
-        return ScalarActionBatchEnv(MemberTasks(tasks))
-
-    actor = policy_module(algo.policy)
-    if cfg.workers == 1:  # each member explores with its own generator
-        actor.module.generator = algo.generator
-    frames = len(seeds) * B * decisions
-    return make_collector(
-        make_env,
-        actor,
-        frames_per_batch=frames,
-        total_frames=frames * iterations,
-        num_workers=cfg.workers,
-        reset_at_each_iter=cfg.reset_each_iteration,
-        seed=stream_seed(seeds[0], "env") if cfg.workers > 1 else None,
-    )
-
-
 def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
     """The task constants and the number of iterations of ``cfg`` (every option checked)."""
     check_options(
@@ -268,13 +232,35 @@ def algorithm(cfg: PendulumConfig) -> InfiniteHorizonHiREPS:
 
 def run(cfg: PendulumConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the swing-up, one seed or a population; returns the summary."""
+    from hireps_torch.rollout import make_collector, policy_module
+
     params, iterations = _checked(cfg)
     B = cfg.episodes_per_iteration
     resume = resume_point("pendulum", cfg)
     seeds = member_seeds(cfg)
     algo = _make_algorithm(cfg, params, seeds).to(cfg.device)
     policy, dev = algo.policy, algo.device
-    collector = _make_collector(cfg, algo, params, iterations, seeds)
+    decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
+    frames = len(seeds) * B * decisions
+    actor = policy_module(policy)
+    if cfg.workers == 1:  # each member explores with its own generator
+        actor.module.generator = algo.generator
+    collector = make_collector(
+        lambda: ScalarActionBatchEnv(
+            MemberTasks(
+                [
+                    PendulumTask(B // cfg.workers, params, seed=stream_seed(s, "env"), device=dev)
+                    for s in seeds
+                ]
+            )
+        ),
+        actor,
+        frames_per_batch=frames,
+        total_frames=frames * iterations,
+        num_workers=cfg.workers,
+        reset_at_each_iter=cfg.reset_each_iteration,
+        seed=stream_seed(seeds[0], "env") if cfg.workers > 1 else None,
+    )
     n_opt = cfg.n_options if cfg.gating != "flat" else 1
     label = f"pendulum/{cfg.gating}/{n_opt}opt/d{cfg.steps_per_decision}"
     state = RunState(algo, env=BatchedTaskState(collector, carry=not cfg.reset_each_iteration))
@@ -302,10 +288,15 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
         ]
 
     update = infinite_horizon_update(algo, rows, mirror_decisions if cfg.mirror_samples else None)
+
+    def scheduled(batch: Any) -> list[dict[str, Any]]:
+        algo.epsilon = epsilon_at(cfg, algo.iteration, iterations)  # the KL bound, then update
+        return update(batch)
+
     session = collector_loop(
         collector,
         lambda: Run("pendulum", cfg, state, resume),
-        _scheduled(cfg, algo, iterations, update),
+        scheduled,
         iterations=iterations,
         episodes_per_iteration=B,
         label=label,
@@ -324,18 +315,6 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
             for c, r, ev, n in zip(session.configs, session.rows, final, active, strict=True)
         ],
     )
-
-
-def _scheduled(
-    cfg: PendulumConfig, algo: InfiniteHorizonHiREPS, updates: int, step: Callable[[Any], Any]
-) -> Callable[[Any], Any]:
-    """``step`` with the KL bound :func:`epsilon_at` of ``algo.iteration`` set first."""
-
-    def scheduled(batch: Any) -> Any:
-        algo.epsilon = epsilon_at(cfg, algo.iteration, updates)
-        return step(batch)
-
-    return scheduled
 
 
 def _summary(

@@ -269,8 +269,7 @@ def check_same_options(run: SweepRun, cfg: Any) -> None:
 
     saved = read_config(Path(run.run_dir))
     now = config_dict(str(saved.get("experiment", run.experiment)), cfg)
-    diff = changed_options(saved, now)
-    if diff:
+    if diff := changed_options(saved, now):
         raise ValueError(
             f"{run.run_dir} holds a run with other options than this sweep asks for: "
             + "; ".join(diff)

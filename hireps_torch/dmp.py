@@ -39,10 +39,6 @@ _MIN_RK4_STEPS = 500  # default: at least this many RK4 steps per movement
 _CONSTRAINT_RK4_STEPS = 2000  # RK4 steps for the basis responses E_i(1), E_i'(1)
 
 
-# e, e', e'' and the (weights, centers, sigmas) they were computed with
-_CachedResponse = tuple[Tensor, Tensor, Tensor, tuple[Tensor, ...]]
-
-
 class DMPTrajectory(NamedTuple):
     """A batch of DMP rollouts.
 
@@ -293,9 +289,9 @@ class DMP(nn.Module):
         """e, e', e'' (each (n_steps + 1, J)) from rest, cached per grid, gains and weights."""
         key = (n_steps, substeps, float(self.alpha_z), float(self.beta_z), float(self.alpha_x))
         shape = (self.weights, self.centers, self.sigmas)
-        cache: dict[tuple[float, ...], _CachedResponse] = self.__dict__.setdefault(
-            "_response_cache", {}
-        )
+        # e, e', e'' and the (weights, centers, sigmas) they were computed with
+        cache: dict[tuple[float, ...], tuple[Tensor, Tensor, Tensor, tuple[Tensor, ...]]]
+        cache = self.__dict__.setdefault("_response_cache", {})
         stale = key not in cache or not all(
             torch.equal(a, b) for a, b in zip(cache[key][3], shape, strict=True)
         )

@@ -537,7 +537,7 @@ IH_PROBES = {
         lambda: IH.learn(
             Experience(_s[:, None], _a[:, None], _r[:, None], _s[:, None], torch.zeros(20, 1))
         ),
-        "experience.terminated must be a bool tensor",
+        r"terminated must be a bool tensor of shape \(20,\), got torch.float32",
     ),
     "value of meta states": (
         lambda: IH.value(torch.zeros(3, 1, device="meta")),

@@ -615,10 +615,7 @@ def test_old_pendulum_run_directories_resume_with_a_constant_kl_bound(tmp_path):
 def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
     """epsilon_at: epsilon at the first update, epsilon_end at the last, linear in between,
     held past the end, constant with None; a run realises the scheduled bound at every update
-    (the kl column); the bound is set from algo.iteration, so a resumed run continues the
-    schedule from its checkpoint."""
-    import types
-
+    (the kl column; that a resumed run continues the schedule: tests/test_resume.py)."""
     from hireps_torch.experiments import pendulum
 
     PendulumConfig, epsilon_at = pendulum.PendulumConfig, pendulum.epsilon_at
@@ -634,11 +631,6 @@ def test_pendulum_kl_bound_moves_linearly_from_epsilon_to_epsilon_end(tmp_path):
     )
     kl = [float(r["kl"]) for r in csv.DictReader(text.splitlines())]
     assert kl == pytest.approx([0.6, 0.4, 0.2], rel=1e-4)
-    algo = types.SimpleNamespace(iteration=3, epsilon=None)
-    seen = []
-    step = pendulum._scheduled(cfg, algo, 5, lambda batch: seen.append(algo.epsilon))
-    step(None)
-    assert seen == [pytest.approx(0.3)]
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ before it, the refit after it (planned, then applied only when every policy's su
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,14 +26,6 @@ class OptionBound:
     log_responsibilities: Tensor | None
     option_entropy: Tensor
     kappa: Tensor | None
-
-    def dual_inputs(self, R: Tensor) -> tuple[Tensor, Tensor | None]:
-        """(S, N, O) floored log responsibilities ((S, N, 1) zeros: none), (S, 1) bounds or None."""
-        lr = self.log_responsibilities
-        kappa = None if self.kappa is None else self.kappa.reshape(-1, 1)
-        if lr is None:
-            return R.new_zeros(*R.shape, 1), kappa
-        return lr.reshape(*R.shape, lr.shape[-1]).clamp_min(LOG_RESP_FLOOR), kappa
 
 
 def option_bound(
@@ -160,17 +153,11 @@ def apply_refit(
         eta_, xi_, kl_, ce_, ess_, error_, _ = sol.numbers
         head = [[eta_, xi_, kl_, ce_, ess_, float(sol.converged.tolist()[0]), error_]]
         rows = [h + p for h, p in zip(head, policy_numbers.tolist(), strict=True)]
-    else:
-        dual_numbers = torch.cat(
-            [
-                torch.stack(
-                    [sol.eta, sol.xi, sol.kl, sol.cross_entropy, sol.effective_sample_size], -1
-                )[:, k],
-                torch.stack([sol.converged.to(sol.feature_error), sol.feature_error], -1),
-            ],
-            -1,
-        )  # (S, 7)
-        rows = torch.cat([dual_numbers, policy_numbers], -1).tolist()  # S rows of 12
+    else:  # S rows of 12: block k's 5 numbers, the problem's 2, the policy's 5
+        block = [sol.eta, sol.xi, sol.kl, sol.cross_entropy, sol.effective_sample_size]
+        whole = [sol.converged.to(sol.feature_error), sol.feature_error]
+        parts = [torch.stack(block, -1)[:, k], torch.stack(whole, -1), policy_numbers]
+        rows = torch.cat(parts, -1).tolist()
     (eta, xi, kl, ce, ess, converged, error, kap, opt_ent, pol_ent, n_active, informed) = (
         [list(column) for column in zip(*rows, strict=True)] if lead else rows[0]
     )
@@ -187,15 +174,9 @@ def apply_refit(
         "pruned": pruned,
         "refitted": each(informed, bool),
         "dual_converged": each(converged, bool),
-        "dual_iterations": dual_iterations(sol, lead),
+        "dual_iterations": sol.iterations.reshape(lead).tolist(),
         "feature_error": error,
     }
-
-
-def dual_iterations(sol: DualSolution, lead: tuple[int, ...]) -> Any:
-    """Each member's dual iterations (one number for one run)."""
-    counts = sol.iterations.tolist()
-    return counts if lead else counts[0]
 
 
 def each(values: Any, fn: Any) -> Any:
@@ -208,16 +189,21 @@ def per_member(value: Any, lead: tuple[int, ...]) -> Any:
     return [value] * lead[0] if lead else value
 
 
-def stack_bounds(
-    bounds: list[OptionBound], policies: list[HierarchicalPolicy], N: int, like: Tensor
-) -> tuple[Tensor, Tensor | None]:
-    """The time-indexed dual's (S, N, K, O) floored log responsibilities ((S, N, K, 1) zeros
+def option_bounds(
+    policies: Sequence[HierarchicalPolicy], states: Tensor, theta: Tensor, kappa_rel: float | None
+) -> tuple[list[OptionBound], Tensor, Tensor | None]:
+    """Each step's :func:`option_bound` for states ([S,] N, K, C) and theta ([S,] N, K, D) of K
+    steps' policies, and the dual's (S, N, K, O) floored log responsibilities ((S, N, K, 1) zeros
     when no step has an option term) and (S, K) entropy bounds (inf: none), or None."""
-    K, S = len(bounds), math.prod(policies[0].batch_shape)
+    bounds = [
+        option_bound(pol, states[..., k, :], theta[..., k, :], kappa_rel)
+        for k, pol in enumerate(policies)
+    ]
+    K, S, N = len(bounds), math.prod(policies[0].batch_shape), theta.shape[-3]
     if all(b.log_responsibilities is None for b in bounds):
-        return like.new_zeros(S, N, K, 1), None
+        return bounds, theta.new_zeros(S, N, K, 1), None
     O = max(p.n_options for p in policies)
-    log_resp = like.new_full((S, N, K, O), -math.inf)
+    log_resp = theta.new_full((S, N, K, O), -math.inf)
     for k, (b, pol) in enumerate(zip(bounds, policies, strict=True)):
         lr = b.log_responsibilities
         if lr is None:  # one active option in each member: log 1 on it
@@ -226,9 +212,9 @@ def stack_bounds(
             )
         log_resp[:, :, k, : lr.shape[-1]] = lr.reshape(S, N, -1)
     if all(b.kappa is None for b in bounds):
-        return log_resp.clamp_min(LOG_RESP_FLOOR), None
+        return bounds, log_resp.clamp_min(LOG_RESP_FLOOR), None
     kappa = torch.stack(
-        [like.new_full((S,), math.inf) if b.kappa is None else b.kappa.reshape(S) for b in bounds],
+        [theta.new_full((S,), math.inf) if b.kappa is None else b.kappa.reshape(S) for b in bounds],
         -1,
     )
-    return log_resp.clamp_min(LOG_RESP_FLOOR), kappa.to(torch.float64)
+    return bounds, log_resp.clamp_min(LOG_RESP_FLOOR), kappa.to(torch.float64)

@@ -41,7 +41,6 @@ __all__ = [
     "checked_states",
     "member_policies",
     "population_seeds",
-    "seeded_generator",
     "stream_seed",
 ]
 
@@ -123,13 +122,6 @@ class PolicyKwargs(TypedDict, total=False):
     min_variance: float | Tensor
     covariance_prior: float
     mean_prior: float
-
-
-def seeded_generator(seed: int | None) -> torch.Generator:
-    """A CPU generator seeded with ``seed`` (0 when None)."""
-    gen = torch.Generator()
-    gen.manual_seed(0 if seed is None else check_seed("seed", seed))
-    return gen
 
 
 def population_seeds(seed: object, population: int | None) -> list[int] | None:
@@ -277,6 +269,8 @@ def _check_shape(name: str, value: object, expected: tuple[int | str, ...]) -> T
 class HiREPSBase:
     """Shared bookkeeping: kappa_rel, prune_threshold, generator, iteration and their checkpoint."""
 
+    policies: Sequence[HierarchicalPolicy]
+
     def __init__(
         self,
         *,
@@ -292,17 +286,16 @@ class HiREPSBase:
         seeds = population_seeds(seed, population)
         self.population = population
         self.generator: torch.Generator | list[torch.Generator] = (
-            seeded_generator(seed)  # type: ignore[arg-type]
+            torch.Generator().manual_seed(0 if seed is None else check_seed("seed", seed))
             if seeds is None
-            else [seeded_generator(s) for s in seeds]
+            else [torch.Generator().manual_seed(s) for s in seeds]
         )
         self.iteration = 0
 
     @property
     def device(self) -> torch.device:
         """Where the policies, the update's samples and its dual live."""
-        policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
-        return policies[0].sub_policies[0].bias.device
+        return self.policies[0].sub_policies[0].bias.device
 
     def _states(self, states: Any) -> Tensor:
         """``states`` ([S,] N, C) checked, as float64: each variant's own check."""
@@ -310,16 +303,14 @@ class HiREPSBase:
 
     def _at(self, states: Any, step: int) -> tuple[HierarchicalPolicy, Tensor]:
         """Step ``step``'s policy (the step checked first) and the checked ``states``."""
-        policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
-        return policies[check_step(step, len(policies))], self._states(states)
+        return self.policies[check_step(step, len(self.policies))], self._states(states)
 
     def _experience(self, experience: Experience, transitions: bool = False) -> Experience:
         """``experience`` with its shapes checked against the K policies (``transitions``:
         next_states, for the infinite-horizon variant)."""
         if not isinstance(experience, Experience):
             raise TypeError(f"learn takes an Experience, got {type(experience).__name__}")
-        policies: Sequence[HierarchicalPolicy] = getattr(self, "policies")  # noqa: B009
-        K, C, D = len(policies), policies[0].context_dim, policies[0].action_dim
+        K, C, D = len(self.policies), self.policies[0].context_dim, self.policies[0].action_dim
         lead: tuple[int | str, ...] = () if self.population is None else (self.population,)
         rewards = _check_shape("rewards", experience.rewards, (*lead, "N", K))
         N = rewards.shape[len(lead)]
@@ -338,10 +329,8 @@ class HiREPSBase:
             shape = ", ".join(map(str, (*lead, N, K, C)))
             raise ValueError(f"{algorithm} needs experience.next_states ({shape})")
         _check_shape("next_states", experience.next_states, (*lead, N, K, C))
-        if experience.terminated is not None:
-            term = _check_shape("terminated", experience.terminated, (*lead, N, K))
-            if term.dtype != torch.bool:
-                raise ValueError(f"experience.terminated must be a bool tensor, got {term.dtype}")
+        if experience.terminated is not None:  # its dtype: checked by update
+            _check_shape("terminated", experience.terminated, (*lead, N, K))
         return experience
 
     @torch.no_grad()

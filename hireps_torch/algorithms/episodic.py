@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Self
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import apply_refit, option_bound, per_member, plan_refit
+from hireps_torch.algorithms._options import apply_refit, option_bounds, per_member, plan_refit
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
@@ -96,6 +96,7 @@ class EpisodicHiREPS(HiREPSBase):
                 f"not context_dim = {context_dim}"
             )
         self.policy = policy
+        self.policies = (policy,)
         self.context_dim = context_dim
         self.context_features = context_features or (
             QuadraticFeatures(context_dim) if context_dim > 0 else None
@@ -234,17 +235,18 @@ class EpisodicHiREPS(HiREPSBase):
             bound is off.
         """
         c, theta, R = self._samples(contexts, params, returns)
-        bound = option_bound(self.policy, c, theta, self.kappa_rel)
+        (bound,), lr, kappa = option_bounds(
+            self.policies, c[..., None, :], theta[..., None, :], self.kappa_rel
+        )
         lead, N = R.shape[:-1], R.shape[-1]
         warn_if_degenerate([self.epsilon], N, 3)
         R1 = R.reshape(-1, N)  # the dual's S problems (1 for one run)
-        lr, kappa = bound.dual_inputs(R1)
         phi = None
         if self.context_features is not None:
             phi = self.context_features(c).to(R).reshape(*R1.shape, -1)
             check_finite("context features", phi)
         eps = R.new_full((R1.shape[0], 1), self.epsilon)
-        sol = episodic_solution(R1, lr, eps, phi, kappa, LbfgsSettings())
+        sol = episodic_solution(R1, lr[:, :, 0], eps, phi, kappa, LbfgsSettings())
         refit = plan_refit(self.policy, c, theta, sol, bound)
         report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1
@@ -257,11 +259,6 @@ class EpisodicHiREPS(HiREPSBase):
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------
-    @property
-    def policies(self) -> tuple[HierarchicalPolicy]:
-        """``(policy,)``."""
-        return (self.policy,)
-
     def learn(self, experience: Experience) -> dict[str, Any]:
         """:meth:`tell` from contexts (N, 1, C), parameters (N, 1, D) and returns (N, 1)."""
         e = self._experience(experience)

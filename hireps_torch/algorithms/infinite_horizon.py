@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from hireps_torch.algorithms._options import apply_refit, option_bound, per_member, plan_refit
+from hireps_torch.algorithms._options import apply_refit, option_bounds, per_member, plan_refit
 from hireps_torch.algorithms.base import (
     Experience,
     HiREPSBase,
@@ -94,6 +94,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 f"{policy.context_dim}"
             )
         self.policy = policy
+        self.policies = (policy,)
         self.value_features = value_features.to(self.device)  # where the policy is
         per_member = policy.population is not None and getattr(initial_states, "dim", int)() == 3
         s0 = self._states(initial_states, "initial_states", population=per_member)
@@ -238,18 +239,19 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         if term is not None:
             phi0 = self.initial_features.unsqueeze(-2)  # ([S,] 1, F)
             next_features = torch.where(term[..., None], phi0, next_features)
-        bound = option_bound(self.policy, s, a, self.kappa_rel)
+        (bound,), lr, kappa = option_bounds(
+            self.policies, s[..., None, :], a[..., None, :], self.kappa_rel
+        )
         lead, N = R.shape[:-1], R.shape[-1]
         warn_if_degenerate([self.epsilon], N, 3)
         R1 = R.reshape(-1, N)  # the dual's S problems (1 for one run)
-        lr, kappa = bound.dual_inputs(R1)
         phi = self.value_features(s).to(R).reshape(*R1.shape, -1)
         next_features = next_features.to(R).reshape(phi.shape)
         check_finite("value features", phi)
         check_finite("value features of next_states", next_features)
         sol = infinite_horizon_solution(
             R1,
-            lr,
+            lr[:, :, 0],
             R.new_full((R1.shape[0], 1), self.epsilon),
             phi,
             next_features,
@@ -269,11 +271,6 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------
-    @property
-    def policies(self) -> tuple[HierarchicalPolicy]:
-        """``(policy,)``."""
-        return (self.policy,)
-
     def _states(self, states: Tensor, name: str = "states", *, population: bool = True) -> Tensor:
         """Checked float64 states ([S,] N, C) (no S when ``population`` is False)."""
         lead = self.policy.batch_shape if population else ()

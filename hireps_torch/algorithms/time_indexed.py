@@ -19,12 +19,10 @@ from torch import Tensor
 
 from hireps_torch.algorithms._options import (
     apply_refit,
-    dual_iterations,
     each,
-    option_bound,
+    option_bounds,
     per_member,
     plan_refit,
-    stack_bounds,
 )
 from hireps_torch.algorithms.base import (
     Experience,
@@ -269,12 +267,8 @@ class TimeIndexedHiREPS(HiREPSBase):
         """
         s, theta, R = self._episodes(states, params, rewards)
         lead, (N, K) = R.shape[:-2], R.shape[-2:]
-        bounds = [
-            option_bound(pol, s[..., k, :], theta[..., k, :], self.kappa_rel)
-            for k, pol in enumerate(self.policies)
-        ]
+        bounds, lr, kappa = option_bounds(self.policies, s, theta, self.kappa_rel)
         warn_if_degenerate(self.epsilon, N, 3)
-        lr, kappa = stack_bounds(bounds, self.policies, N, R)
         phi = self.value_features(s).to(R)  # ([S,] N, K, F)
         check_finite("value features", phi)
         S = lr.shape[0]  # the dual's problems (1 for one run)
@@ -310,7 +304,7 @@ class TimeIndexedHiREPS(HiREPSBase):
             **per_step,
             "feature_error": sol.feature_error.reshape(lead).tolist(),
             "dual_converged": each(sol.converged.reshape(lead).tolist(), bool),
-            "dual_iterations": dual_iterations(sol, lead),
+            "dual_iterations": sol.iterations.reshape(lead).tolist(),
             "mean_rewards": means,
             "mean_return": mean_return,
             "max_return": max_return,

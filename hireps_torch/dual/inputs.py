@@ -166,7 +166,7 @@ def common_inputs(
     lead = tuple(int(d) for d in R.shape)
     R = R.reshape(S, N, -1).transpose(1, 2).contiguous()
     K = R.shape[1]
-    eps, kap = check_bounds(epsilon, kappa, K, N, 4, dev, S if population else 0)
+    eps, kap = check_bounds(epsilon, kappa, K, N, dev, S if population else 0)
     lr = _log_responsibilities(log_responsibilities, lead, S, K, population, dev)
     kap = None if kap is None else kap.expand(S, K)
     return Checked(R, eps.expand(S, K), lr, kap, settings, lead, population)
@@ -177,16 +177,15 @@ def check_bounds(
     kappa: float | Tensor | None,
     K: int,
     N: int,
-    stacklevel: int,
-    device: torch.device | None = None,
+    device: torch.device,
     S: int = 0,
 ) -> tuple[Tensor, Tensor | None]:
-    """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, on ``device``; warns
-    (``stacklevel`` frames up) where epsilon >= log N. ``S`` > 0: a population's kappa may also
-    be (S, K) or, with K = 1, (S,) (returned as (S, K))."""
+    """epsilon (K,), > 0, and kappa (K,), >= 0 (inf: no bound) or None, on ``device``; warns (at
+    the solver's caller, 4 frames up) where epsilon >= log N. ``S`` > 0: a population's kappa may
+    also be (S, K) or, with K = 1, (S,) (returned as (S, K))."""
     eps = per_block("epsilon", epsilon, K, device)
     check_positive("epsilon", eps)
-    warn_if_degenerate(eps.tolist(), N, stacklevel)
+    warn_if_degenerate(eps.tolist(), N, 4)
     kap = None
     if kappa is not None:
         kap = per_block("kappa", kappa, K, device, S or None)
@@ -298,7 +297,7 @@ def check_blocks(
             f"log_resp must have shape (K, N, O) = ({K}, {N}, O), got {tuple(lr.shape)}"
         )
     lr = check_log_resp(lr, "log_resp")
-    eps, kap = check_bounds(epsilon, kappa, K, N, 4, dev)
+    eps, kap = check_bounds(epsilon, kappa, K, N, dev)
     Dt = ct = None
     if D is not None:
         Dt = as_f64("D", D, dev)

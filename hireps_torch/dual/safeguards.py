@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from hireps_torch.dual.problem import DualProblem
-from hireps_torch.dual.solutions import block_cross_entropy, block_kl
+from hireps_torch.dual.solutions import block_cross_entropy, block_kl, feature_error
 
 __all__ = [
     "ENTROPY_RTOL",
@@ -161,13 +161,7 @@ def judge(
     ce = block_cross_entropy(P, prob.lr)
     # the cross-entropy may exceed kappa by 1e-6 of max(kappa, 1 nat)
     bad_ce = torch.isfinite(kappa) & (ce > kappa + ENTROPY_RTOL * kappa.clamp_min(1.0)) & prob.multi
-    worst = torch.zeros(prob.S, dtype=P.dtype, device=P.device)
-    if prob.P:
-        assert prob.D is not None
-        resid = torch.einsum("skn,sknp->sp", P.sum(-1), prob.D)
-        if prob.c is not None:
-            resid = resid + prob.c
-        worst = resid.abs().amax(dim=-1)
+    worst = feature_error(P, prob.D, prob.c)
     bad_f = worst > converged_grad
     fixed_bad = fixed_residual > FIXED_RTOL
     if not bool(over.any(-1) | bad_ce.any(-1) | bad_f | fixed_bad | ~optimal):

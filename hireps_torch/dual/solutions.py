@@ -27,6 +27,7 @@ __all__ = [
     "InfeasibleConstraintsWarning",
     "block_cross_entropy",
     "block_kl",
+    "feature_error",
     "finish",
     "public",
     "warn_if_collapsed",
@@ -144,6 +145,15 @@ def block_cross_entropy(w: Tensor, log_resp: Tensor) -> Tensor:
     return -(w * log_resp).sum(dim=(-2, -1))
 
 
+def feature_error(w: Tensor, D: Tensor | None, c: Tensor | None) -> Tensor:
+    """(S,) largest |c + sum_k w_k^T D_k| (the feature constraints' violation) of weights w (S, K,
+    N, O), features D (S, K, N, P) or None (0) and c (S, P) or None."""
+    if D is None:
+        return w.new_zeros(w.shape[0])
+    resid = torch.einsum("skn,sknp->sp", w.sum(-1), D)
+    return (resid if c is None else resid + c).abs().amax(-1)
+
+
 def finish(
     w: Tensor,
     log_resp: Tensor,
@@ -159,12 +169,6 @@ def finish(
     """The (S, K) :class:`DualSolution` of weights w (S, K, N, O) with its diagnostics; float64
     inputs with a leading S (D (S, K, N, P), c (S, P))."""
     ws = w.sum(-1)  # (S, K, N)
-    feat_err = w.new_zeros(w.shape[0])
-    if D is not None:
-        grad_v = torch.einsum("skn,sknp->sp", ws, D)
-        if c is not None:
-            grad_v = grad_v + c
-        feat_err = grad_v.abs().amax(-1)
     return DualSolution(
         eta=eta,
         xi=xi,
@@ -173,7 +177,7 @@ def finish(
         kl=block_kl(w, log_resp),
         cross_entropy=block_cross_entropy(w, log_resp),
         effective_sample_size=1.0 / (ws**2).sum(dim=-1),
-        feature_error=feat_err,
+        feature_error=feature_error(w, D, c),
         dual_value=dual_value,
         converged=converged,
         iterations=(

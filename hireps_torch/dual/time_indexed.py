@@ -108,15 +108,8 @@ def time_indexed_solution(
 ) -> DualSolution:
     """:func:`solve_time_indexed_dual` of S checked float64 problems (an (S, K) solution, v
     (S, K F)): R (S, K, N), log_resp (S, K, N, O), eps (S, K), phi (S, K, N, F), phi1 (S, F) or
-    None, kappa (S, K) or None; warnings ``stacklevel`` frames up."""
-    D = _chained_map(phi, phi1)
-    return solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)
-
-
-def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:
-    """D (S, K, N, K F) of features phi (S, K, N, F): block k holds -phi(s_k,i) in slot k and
-    phi(s_{k+1},i) in slot k + 1; block 1 also phi_hat_1 (S, F) (the sample mean when ``phi1`` is
-    None) in slot 1."""
+    None (the sample mean), kappa (S, K) or None; warnings ``stacklevel`` frames up. The map D
+    (S, K, N, K F) chains the steps: block k holds -phi(s_k,i) in slot k, phi(s_k+1,i) in k + 1."""
     S, K, N, F = phi.shape
     D = torch.zeros(S, K, N, K, F, dtype=torch.float64, device=phi.device)
     steps = torch.arange(K, device=phi.device)
@@ -126,4 +119,5 @@ def _chained_map(phi: Tensor, phi1: Tensor | None) -> Tensor:
         D[:, 0, :, 0] = -centred(phi[:, 0])  # = phi_hat_1 - phi(s_1)
     else:
         D[:, 0, :, 0] += phi1[:, None, :]
-    return D.reshape(S, K, N, K * F)
+    D = D.reshape(S, K, N, K * F)
+    return solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)

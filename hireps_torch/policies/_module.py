@@ -39,36 +39,43 @@ class PolicyModule(nn.Module):
     @classmethod
     def stack(cls: type[M], members: Sequence[M]) -> M:
         """A population of S modules of one kind (copies) stacked along a leading S of every
-        input and output; the members must share :attr:`_shared`, dtype and unstacked buffers."""
+        input and output; the members and their submodules must pass :meth:`_check_alike`."""
         items: list[M] = check_members("members", members, cls)
-        first = items[0]
-        for s, m in enumerate(items[1:], 1):
-            if type(m) is not type(first):
-                raise TypeError(
-                    f"members[{s}] is a {type(m).__name__} but members[0] a "
-                    f"{type(first).__name__}: a population holds one kind"
-                )
-            for what in first._shared:
-                if getattr(m, what) != getattr(first, what):
-                    raise ValueError(
-                        f"members[{s}].{what} = {getattr(m, what)} but members[0].{what} = "
-                        f"{getattr(first, what)}: a population shares it"
-                    )
-            for name, value in first.named_buffers(recurse=False):
-                if name not in first._stacked and not torch.equal(getattr(m, name), value):
-                    raise ValueError(f"members[{s}].{name} differs from members[0]'s")
-            a, b = getattr(m, first._stacked[-1]), getattr(first, first._stacked[-1])
-            if a.dtype != b.dtype:
-                raise ValueError(f"members[{s}] is {a.dtype} but members[0] is {b.dtype}")
-        out = copy.deepcopy(first)
-        out.population = len(items)
-        with torch.no_grad():
-            for name in first._stacked:
-                _replace(out, name, torch.stack([getattr(m, name) for m in items]))
+        out = copy.deepcopy(items[0])
+        for path, module in out.named_modules():
+            if isinstance(module, PolicyModule):
+                alike = [m.get_submodule(path) for m in items]
+                for s, m in enumerate(alike[1:], 1):
+                    module._check_alike(s, m)
+                module.population = len(items)
+                with torch.no_grad():
+                    for name in module._stacked:
+                        _replace(module, name, torch.stack([getattr(m, name) for m in alike]))
         return out
 
+    def _check_alike(self, s: int, m: nn.Module) -> None:
+        """Raise unless member ``s``'s ``m`` may be stacked with this (member 0's) module: one
+        kind, the same :attr:`_shared`, dtype and unstacked buffers."""
+        if type(m) is not type(self):
+            raise TypeError(
+                f"members[{s}] is a {type(m).__name__} but members[0] a "
+                f"{type(self).__name__}: a population holds one kind"
+            )
+        for what in self._shared:
+            if getattr(m, what) != getattr(self, what):
+                raise ValueError(
+                    f"members[{s}].{what} = {getattr(m, what)} but members[0].{what} = "
+                    f"{getattr(self, what)}: a population shares it"
+                )
+        for name, value in self.named_buffers(recurse=False):
+            if name not in self._stacked and not torch.equal(getattr(m, name), value):
+                raise ValueError(f"members[{s}].{name} differs from members[0]'s")
+        a, b = getattr(m, self._stacked[-1]), getattr(self, self._stacked[-1])
+        if a.dtype != b.dtype:
+            raise ValueError(f"members[{s}] is {a.dtype} but members[0] is {b.dtype}")
+
     def member(self: M, s: int) -> M:
-        """Member ``s`` of a population as an ordinary module (a copy)."""
+        """Member ``s`` of a population as an ordinary module (a copy), submodules included."""
         if self.population is None:
             raise ValueError(
                 "member() takes a member of a population; this module holds one policy"
@@ -77,10 +84,12 @@ class PolicyModule(nn.Module):
         if index >= self.population:
             raise ValueError(f"member s must be in [0, {self.population}), got {index}")
         out = copy.deepcopy(self)
-        out.population = None
         with torch.no_grad():
-            for name in self._stacked:
-                _replace(out, name, getattr(self, name)[index].clone())
+            for module in out.modules():
+                if isinstance(module, PolicyModule):
+                    module.population = None
+                    for name in module._stacked:
+                        _replace(module, name, getattr(module, name)[index].clone())
         return out
 
     def _completed(self, state_dict: Mapping[str, Any]) -> Mapping[str, Any]:

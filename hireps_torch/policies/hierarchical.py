@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
-from typing import cast
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
@@ -26,7 +25,6 @@ from hireps_torch.policies._module import PolicyModule
 from hireps_torch.policies._population import (
     Generators,
     categorical,
-    check_members,
     check_population_generators,
     normal,
 )
@@ -175,42 +173,19 @@ class HierarchicalPolicy(PolicyModule):
             check_finite("init_mean + spread * init_std * randn", means, "lower spread or init_std")
         return policy
 
-    @classmethod
-    def stack(cls, members: Sequence[HierarchicalPolicy]) -> HierarchicalPolicy:
-        """A population of S policies (copies) stacked along a leading S of every input and
-        output; the members must share the option count, action_dim and feature maps."""
-        items: list[HierarchicalPolicy] = check_members("members", members, cls)
-        first = items[0]
-        for s, m in enumerate(items[1:], 1):
-            if m.n_options != first.n_options:
+    def _check_alike(self, s: int, m: Any) -> None:
+        """:meth:`stack` needs one option count and the same feature maps in every member (the
+        gatings and options are checked on their own: one kind, action_dim, ...)."""
+        if m.n_options != self.n_options:
+            raise ValueError(
+                f"members[{s}] has {m.n_options} options but members[0] {self.n_options}"
+            )
+        for name in ("gating_features", "policy_features"):
+            if not _same_map(getattr(m, name), getattr(self, name)):
                 raise ValueError(
-                    f"members[{s}] has {m.n_options} options but members[0] {first.n_options}"
+                    f"members[{s}].{name} differ from members[0]'s: a population shares "
+                    "its feature maps"
                 )
-            for name in ("gating_features", "policy_features"):
-                if not _same_map(getattr(m, name), getattr(first, name)):
-                    raise ValueError(
-                        f"members[{s}].{name} differ from members[0]'s: a population shares "
-                        "its feature maps"
-                    )
-        gating = type(first.gating).stack([m.gating for m in items])
-        options = [
-            LinearGaussian.stack([m.sub_policies[o] for m in items]) for o in range(first.n_options)
-        ]
-        return cls(
-            gating,
-            options,
-            copy.deepcopy(first.gating_features),
-            copy.deepcopy(first.policy_features),
-        )
-
-    def member(self, s: int) -> HierarchicalPolicy:
-        """Member ``s`` of a population as an ordinary policy (a copy)."""
-        return type(self)(
-            self.gating.member(s),
-            [o.member(s) for o in self.sub_policies],
-            copy.deepcopy(self.gating_features),
-            copy.deepcopy(self.policy_features),
-        )
 
     # ---- helpers ----------------------------------------------------------------------------
     @property
@@ -293,9 +268,6 @@ class HierarchicalPolicy(PolicyModule):
         probs = self.gating.probs(gf)
         lead, N = pf.shape[:-2], pf.shape[-2]
         dtype = self.sub_policies[0].bias.dtype
-        if N == 0:
-            empty = torch.zeros((*lead, 0), dtype=torch.long, device=pf.device)
-            return pf.new_empty((*lead, 0, self.action_dim), dtype=dtype), empty
         option = categorical(probs, gen)  # each member with its own generator, where given
         subs, D = self.sub_policies, self.action_dim
         # one standard normal per sample, whichever option is chosen (theta = mean_o + L_o noise)
@@ -406,8 +378,7 @@ class HierarchicalPolicy(PolicyModule):
         drop.scatter_(-1, prior.argmax(-1, keepdim=True), False)
         if members is not None:
             drop &= members[..., None]
-        if bool(drop.any()):
-            self.gating.active &= ~drop
+        self.gating.active &= ~drop
         if self.population is None:
             return [int(i) for i in drop.nonzero().flatten()]
         return [[int(i) for i in row.nonzero().flatten()] for row in drop]

@@ -366,8 +366,7 @@ class LinearGaussian(PolicyModule):
         return chol if not bool(factor.info.any()) and all_finite(chol) else None
 
     def _floored_cholesky(self, cov: Tensor) -> Tensor:
-        """Cholesky factor (parameter dtype) of cov ([S,] D, D) symmetrised and floored."""
-        cov = cov.to(torch.float64)
+        """Cholesky factor (parameter dtype) of float64 cov ([S,] D, D) symmetrised and floored."""
         cov = 0.5 * (cov + cov.mT)
         root = self.min_variance.to(cov.device).sqrt()
         scale = torch.outer(root, root)  # sqrt(m_i m_j) of the floor m
@@ -396,7 +395,6 @@ class LinearGaussian(PolicyModule):
         self.set_parameters({"chol": self._floored_cholesky(c)})
 
     OPTIONAL_STATE = ("min_variance",)
-    """Entries a checkpoint may lack (they keep the module's value)."""
 
     def check_state(self, state: Mapping[str, Tensor]) -> None:
         """A loaded ``chol`` lower triangular, positive diagonal; ``min_variance`` in range."""

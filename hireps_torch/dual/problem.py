@@ -39,6 +39,7 @@ class DualProblem:
         kappa: Tensor,
     ) -> None:
         self.R, self.D, self.c, self.lr, self.eps, self.kappa = R, D, c, log_resp, eps, kappa
+        self.DT = None if D is None else D.mT.contiguous()  # (S, K, P, N): D's columns as rows
         self.S, self.K, self.N, self.O = log_resp.shape
         self.P = 0 if D is None else D.shape[-1]
         self.multi = self.O > 1
@@ -69,9 +70,9 @@ class DualProblem:
 
     def advantage(self, v: Tensor) -> Tensor:
         """(S, K, N) delta = R + D v at v (S, P)."""
-        if self.D is None:
+        if self.DT is None:
             return self.R
-        return self.R + torch.einsum("sknp,sp->skn", self.D, v)
+        return self.R + (v[:, None, None, :] @ self.DT)[:, :, 0]
 
     def weights_at(self, eta: Tensor, xi: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(P (S, K, N, O), lse (S, K), delta (S, K, N)) at eta, xi (S, K), v (S, P), unclamped."""
@@ -129,12 +130,12 @@ class DualProblem:
             aa = pa.flatten(2) @ a.flatten(2).mT  # (S, c, c)
             M[:, idx[:, None], idx[None, :]] += aa / eta[:, k, None, None]
             if self.P:
-                # D centred under P, from D centred once under uniform weights
+                # D^T (S, P, N) centred under P, from D^T centred once under uniform weights
                 Dm = self._centred_features()[:, k]
                 w = pk.sum(-1)  # (S, N)
-                Dc = Dm - (w[:, None, :] @ Dm)
-                ad = pa.sum(3) @ Dc  # (S, c, P)
-                dd = (w[..., None] * Dc).transpose(1, 2) @ Dc  # (S, P, P)
+                Dc = Dm - Dm @ w[..., None]
+                ad = pa.sum(3) @ Dc.mT  # (S, c, P)
+                dd = (Dc * w[:, None, :]) @ Dc.mT  # (S, P, P)
                 vi = torch.arange(2 * K, n, device=x.device)
                 M[:, idx[:, None], vi[None, :]] += ad / eta[:, k, None, None]
                 M[:, vi[:, None], idx[None, :]] += ad.transpose(1, 2) / eta[:, k, None, None]
@@ -149,10 +150,10 @@ class DualProblem:
         return M
 
     def _centred_features(self) -> Tensor:
-        """(S, K, N, P) D centred per block under uniform weights (computed once)."""
+        """(S, K, P, N) D^T centred per block under uniform weights (computed once)."""
         if self._Dm is None:
-            assert self.D is not None
-            self._Dm = self.D - self.D.mean(dim=2, keepdim=True)
+            assert self.DT is not None
+            self._Dm = self.DT - self.DT.mean(dim=-1, keepdim=True)
         return self._Dm
 
     def eta_free(self, x: Tensor) -> Tensor:
@@ -179,8 +180,8 @@ class DualProblem:
             d_eta = self.eps + lse - pd / eta
         grad[:, :K] = torch.where(self.eta_free(x), eta * d_eta, 0.0)
         if self.P:
-            assert self.D is not None
-            gv = torch.einsum("skn,sknp->sp", w, self.D)
+            assert self.DT is not None
+            gv = (self.DT @ w[..., None]).sum(1)[..., 0]
             if self.c is not None:
                 g = g + (self.c * v).sum(-1)
                 gv = gv + self.c

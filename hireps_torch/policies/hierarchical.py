@@ -72,6 +72,16 @@ class HierarchicalPolicy(PolicyModule):
             raise ValueError(
                 f"gating has {gating.n_options} options but {len(options)} sub-policies were given"
             )
+        for o, opt in enumerate(options):
+            if opt.population != gating.population:
+                held = [
+                    "one policy" if S is None else f"a population of {S}"
+                    for S in (opt.population, gating.population)
+                ]
+                raise ValueError(
+                    f"options[{o}] holds {held[0]} but the gating {held[1]}: build the "
+                    "members' policies, then HierarchicalPolicy.stack them"
+                )
         dims = {o.action_dim for o in options}
         if len(dims) != 1:
             raise ValueError(f"all options must share action_dim, got {sorted(dims)}")
@@ -378,7 +388,8 @@ class HierarchicalPolicy(PolicyModule):
         drop.scatter_(-1, prior.argmax(-1, keepdim=True), False)
         if members is not None:
             drop &= members[..., None]
-        self.gating.active &= ~drop
+        if bool(drop.any()):  # writes nothing otherwise (e.g. a buffer made in inference mode)
+            self.gating.active &= ~drop
         if self.population is None:
             return [int(i) for i in drop.nonzero().flatten()]
         return [[int(i) for i in row.nonzero().flatten()] for row in drop]

@@ -239,3 +239,20 @@ def test_bad_population_inputs_name_the_value():
         HierarchicalPolicy.stack([pols[0], members()[1].to("meta")])
     with pytest.raises(ValueError, match=r"members\[1\].action_dim = 2"):
         LinearGaussian.stack([LinearGaussian(1, 3), LinearGaussian(1, 2)])
+
+
+def test_a_policy_of_stacked_options_under_an_ordinary_gating_is_refused():
+    stacked = [LinearGaussian.stack([LinearGaussian(C, D), LinearGaussian(C, D)]) for _ in range(O)]
+    with pytest.raises(ValueError, match=r"options\[0\] holds a population of 2 but the gat"):
+        HierarchicalPolicy(SoftmaxGating(C, O), stacked)
+    gating = SoftmaxGating.stack([SoftmaxGating(C, O), SoftmaxGating(C, O)])
+    with pytest.raises(ValueError, match=r"options\[0\] holds one policy but the gating a popul"):
+        HierarchicalPolicy(gating, [LinearGaussian(C, D) for _ in range(O)])
+    assert HierarchicalPolicy(gating, stacked).population == 2
+
+
+def test_prune_that_drops_nothing_writes_nothing():
+    with torch.inference_mode():  # buffers made here cannot be written outside inference mode
+        pol = HierarchicalPolicy.create(O, C, D)
+    assert pol.prune(torch.zeros(5, C)) == []
+    assert bool(pol.active.all())

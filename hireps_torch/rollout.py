@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase
 
-from hireps_torch.checks import check_count, check_seed
+from hireps_torch.checks import as_float_tensor, check_count, check_seed
 from hireps_torch.policies import HierarchicalPolicy
 
 __all__ = [
@@ -51,7 +51,8 @@ class PolicyActor(nn.Module):
     @torch.no_grad()
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         lead, C = observation.shape[:-1], observation.shape[-1]
-        s, policy, S = observation.to(torch.float64), self.policy, self.policy.population
+        s, policy = as_float_tensor("observation", observation), self.policy
+        S = policy.population
         if S is not None:  # (..., S B, C) -> (S, ... B, C)
             if not lead or lead[-1] % S:
                 raise ValueError(
@@ -117,7 +118,7 @@ class TimeIndexedActor(nn.Module):
     @torch.no_grad()
     def forward(self, observation: Tensor, step_count: Tensor) -> tuple[Tensor, Tensor]:
         lead = observation.shape[:-1]
-        s = observation.reshape(-1, observation.shape[-1]).to(torch.float64)
+        s = as_float_tensor("observation", observation).reshape(-1, observation.shape[-1])
         if step_count.is_floating_point() or step_count.is_complex():
             raise ValueError(f"step_count must be an integer tensor, got {step_count.dtype}")
         if step_count.shape not in (lead, (*lead, 1)):

@@ -184,3 +184,17 @@ def test_the_time_indexed_actor_names_a_population_and_a_bad_step_count():
     )
     with pytest.raises(ValueError, match=r"step_count must have shape \(4,\) or \(4, 1\)"):
         actor(td)
+
+
+def test_actors_refuse_complex_observations():
+    pol = HierarchicalPolicy.create(2, 1, 3, generator=torch.Generator().manual_seed(0))
+    for module in (policy_module(pol), time_indexed_module([pol, pol])):
+        td = TensorDict(
+            {
+                "observation": torch.ones(4, 1, dtype=torch.complex64),
+                "step_count": torch.zeros(4, 1, dtype=torch.long),
+            },
+            batch_size=[4],
+        )
+        with pytest.raises(TypeError, match="observation must hold real numbers, got dtype"):
+            module(td)

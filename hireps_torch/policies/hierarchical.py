@@ -381,6 +381,25 @@ class HierarchicalPolicy(PolicyModule):
         member for a population)."""
         limit = check_prune_threshold(threshold, "threshold")
         c = self._context(context)
+        if members is not None and (
+            self.population is None
+            or not isinstance(members, Tensor)
+            or members.dtype != torch.bool
+            or members.shape != (self.population,)
+            or members.device != self.active.device
+        ):
+            got = (
+                f"a {members.dtype} tensor of shape {tuple(members.shape)} on {members.device}"
+                if isinstance(members, Tensor)
+                else repr(members)
+            )
+            want = (
+                "None for one policy"
+                if self.population is None
+                else f"None or a bool tensor of shape (S,) = ({self.population},) on "
+                f"{self.active.device}"
+            )
+            raise ValueError(f"members must be {want}; got {got}")
         if c.shape[-2] == 0:
             raise ValueError("prune needs at least one context, got an empty (0, C) batch")
         prior = self.gating.probs(self.gating_features(c)).mean(-2)

@@ -256,3 +256,19 @@ def test_prune_that_drops_nothing_writes_nothing():
         pol = HierarchicalPolicy.create(O, C, D)
     assert pol.prune(torch.zeros(5, C)) == []
     assert bool(pol.active.all())
+
+
+@pytest.mark.parametrize(
+    "mask",
+    [torch.tensor([True]), torch.ones(S), torch.ones(S, dtype=torch.bool, device="meta"), [True]],
+)
+def test_prune_names_a_bad_members_mask_and_prunes_nothing(mask):
+    pols = members()
+    pop = HierarchicalPolicy.stack(pols)
+    before = pop.active.clone()
+    want = rf"must be None or a bool tensor of shape \(S,\) = \({S},\)"
+    with pytest.raises(ValueError, match=want):
+        pop.prune(data()[0], 0.5, members=mask)
+    assert torch.equal(pop.active, before)
+    with pytest.raises(ValueError, match="members must be None for one policy"):
+        pols[0].prune(data()[0][0], 0.5, members=torch.tensor([True]))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import dataclasses
+import os
 import statistics
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -91,6 +92,8 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
             )
         seeds = saved.get("seeds")
         dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
+        if seeds is not None:
+            _check_members(experiment, cfg, run_dir)
         logged = {d: logged_rows(d / "metrics.csv") for d in dirs}
         ckpt = load_checkpoint(run_dir)
         parent = run_dir.resolve().parent
@@ -115,6 +118,37 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         return Resume(run_dir, ckpt)
     finally:
         lock.release()
+
+
+def member_configs(cfg: RunOptions, root: Path) -> list[Any]:
+    """The config of each member of a population: its seed, its directory ``root/seed<s>``."""
+    return [
+        dataclasses.replace(cfg, seed=s, seeds=None, resume=None, run_dir=root / f"seed{s}")
+        for s in member_seeds(cfg)
+    ]
+
+
+def _check_members(experiment: str, cfg: RunOptions, run_dir: Path) -> None:
+    """The member directories of a population to resume are its own directories, and their
+    ``config.json`` (where present; a missing one is written again) are the population's
+    with their seeds: a ``ValueError`` naming the first that is not."""
+    for member in member_configs(cfg, run_dir):
+        d = Path(member.run_dir)
+        if d.is_symlink() or (d.exists() and not d.is_dir()):
+            what = f"a link to {os.readlink(d)}" if d.is_symlink() else "not a directory"
+            raise ValueError(
+                f"cannot resume {run_dir}: its member directory {d} is {what}; a member's files "
+                "are written there, so move it away (it is rebuilt from the checkpoint); "
+                "nothing was changed"
+            )
+        if (d / "config.json").is_file():
+            mine = config_dict(experiment, member)
+            if diff := changed_options(read_config(d), mine, ("config.json", "population")):
+                raise ValueError(
+                    f"cannot resume {run_dir}: {d / 'config.json'} is not its member's config: "
+                    + "; ".join(diff)
+                    + " (restore it, or delete it to have it written again); nothing was changed"
+                )
 
 
 def logged_rows(path: Path) -> int:
@@ -154,10 +188,7 @@ class Run:
         self.seeds, self.population = member_seeds(cfg), cfg.seeds is not None
         self.configs: list[Any] = [dataclasses.replace(cfg, run_dir=root)]
         if self.population:
-            self.configs = [
-                dataclasses.replace(cfg, seed=s, seeds=None, resume=None, run_dir=root / f"seed{s}")
-                for s in self.seeds
-            ]
+            self.configs = member_configs(cfg, root)
         self.state = state
         self.every = cfg.checkpoint_every
         ckpt = None if resume is None else resume.checkpoint

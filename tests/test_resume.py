@@ -697,3 +697,26 @@ def test_a_sweep_worker_stops_at_its_boundary_when_the_sweep_stops(tmp_path, mon
     assert kind == "interrupted"
     assert re.match(r"the sweep's stop: stopped after iteration \d+;", message), message
     assert (tmp_path / "seed0" / "checkpoint.pt").is_file()
+
+
+def test_a_population_with_an_edited_or_linked_member_directory_is_refused_and_kept(tmp_path):
+    """--resume of a population refuses a member whose config.json is no longer its own
+    (which load_run would refuse after) and a member directory that is a link (its files would
+    be written into the directory it points to); neither directory changes."""
+    run, other = tmp_path / "pop", tmp_path / "other"
+    for d, seeds in ((run, "0-1"), (other, "3-4")):
+        in_process("bimodal", d, seeds=seeds, episodes=600)
+        for summary in d.rglob("summary.json"):
+            summary.unlink()  # as if stopped before its end
+    config = run / "seed1" / "config.json"
+    config.write_text(config.read_text().replace('"n_options": 10', '"n_options": 4'))
+    before = _files(run / "seed1")
+    with pytest.raises(ValueError, match=r"seed1/config.json is not its member's config: n_opt"):
+        resume_in_process("bimodal", run)
+    assert _files(run / "seed1") == before
+    shutil.rmtree(run / "seed1")
+    (run / "seed1").symlink_to(other / "seed3")
+    before = _files(other / "seed3")
+    with pytest.raises(ValueError, match=r"member directory .*seed1 is a link to .*seed3"):
+        resume_in_process("bimodal", run)
+    assert _files(other / "seed3") == before

@@ -377,15 +377,14 @@ class HierarchicalPolicy(PolicyModule):
         self, context: Tensor, threshold: float = 1e-4, members: Tensor | None = None
     ) -> list[int] | list[list[int]]:
         """Deactivate options whose mass ``mean_i pi(o | s_i)`` is below ``threshold`` (never the
-        most probable; only where ``members`` ([S]) is True). Returns the pruned indices (per
+        most probable; only where ``members`` ([S], bool) is True). Returns the pruned indices (per
         member for a population)."""
         limit = check_prune_threshold(threshold, "threshold")
         c = self._context(context)
         if members is not None and (
-            self.population is None
-            or not isinstance(members, Tensor)
+            not isinstance(members, Tensor)
             or members.dtype != torch.bool
-            or members.shape != (self.population,)
+            or members.shape != self.batch_shape
             or members.device != self.active.device
         ):
             got = (
@@ -393,13 +392,10 @@ class HierarchicalPolicy(PolicyModule):
                 if isinstance(members, Tensor)
                 else repr(members)
             )
-            want = (
-                "None for one policy"
-                if self.population is None
-                else f"None or a bool tensor of shape (S,) = ({self.population},) on "
-                f"{self.active.device}"
+            raise ValueError(
+                f"members must be None or a bool tensor of shape {tuple(self.batch_shape)} "
+                f"([S] for a population of S) on {self.active.device}; got {got}"
             )
-            raise ValueError(f"members must be {want}; got {got}")
         if c.shape[-2] == 0:
             raise ValueError("prune needs at least one context, got an empty (0, C) batch")
         prior = self.gating.probs(self.gating_features(c)).mean(-2)

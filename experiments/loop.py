@@ -141,14 +141,22 @@ def _check_members(experiment: str, cfg: RunOptions, run_dir: Path) -> None:
                 "are written there, so move it away (it is rebuilt from the checkpoint); "
                 "nothing was changed"
             )
-        if (d / "config.json").is_file():
-            mine = config_dict(experiment, member)
-            if diff := changed_options(read_config(d), mine, ("config.json", "population")):
-                raise ValueError(
-                    f"cannot resume {run_dir}: {d / 'config.json'} is not its member's config: "
-                    + "; ".join(diff)
-                    + " (restore it, or delete it to have it written again); nothing was changed"
-                )
+        config = d / "config.json"
+        if not config.exists():
+            continue
+        try:
+            if not config.is_file():
+                raise ValueError(f"{config} is not a file")
+            diff = changed_options(
+                read_config(d), config_dict(experiment, member), ("config.json", "population")
+            )
+            if diff:
+                raise ValueError(f"{config} is not its member's config: " + "; ".join(diff))
+        except ValueError as exc:
+            raise ValueError(
+                f"cannot resume {run_dir}: {exc} (restore it, or delete it to have it written "
+                "again); nothing was changed"
+            ) from None
 
 
 def logged_rows(path: Path) -> int:

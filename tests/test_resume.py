@@ -714,6 +714,11 @@ def test_a_population_with_an_edited_or_linked_member_directory_is_refused_and_k
     with pytest.raises(ValueError, match=r"seed1/config.json is not its member's config: n_opt"):
         resume_in_process("bimodal", run)
     assert _files(run / "seed1") == before
+    config.write_text("{")
+    before = _files(run / "seed1")
+    with pytest.raises(ValueError, match=r"cannot be read as JSON .* delete it to have it written"):
+        resume_in_process("bimodal", run)
+    assert _files(run / "seed1") == before
     shutil.rmtree(run / "seed1")
     (run / "seed1").symlink_to(other / "seed3")
     before = _files(other / "seed3")

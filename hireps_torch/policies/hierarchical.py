@@ -403,7 +403,7 @@ class HierarchicalPolicy(PolicyModule):
         drop.scatter_(-1, prior.argmax(-1, keepdim=True), False)
         if members is not None:
             drop &= members[..., None]
-        if bool(drop.any()):  # writes nothing otherwise (e.g. a buffer made in inference mode)
+        if bool(drop.any()):  # nothing dropped, nothing written (e.g. an inference-mode buffer)
             self.gating.active &= ~drop
         if self.population is None:
             return [int(i) for i in drop.nonzero().flatten()]

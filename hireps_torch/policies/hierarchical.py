@@ -21,7 +21,7 @@ from hireps_torch.checks import (
     check_prune_threshold,
 )
 from hireps_torch.features import FeatureMap, IdentityFeatures, check_feature_map
-from hireps_torch.policies._module import PolicyModule
+from hireps_torch.policies._module import PolicyModule, _replace
 from hireps_torch.policies._population import (
     Generators,
     categorical,
@@ -403,8 +403,11 @@ class HierarchicalPolicy(PolicyModule):
         drop.scatter_(-1, prior.argmax(-1, keepdim=True), False)
         if members is not None:
             drop &= members[..., None]
-        if bool(drop.any()):  # nothing dropped, nothing written (e.g. an inference-mode buffer)
-            self.gating.active &= ~drop
+        if bool(drop.any()):
+            if self.gating.active.is_inference():  # made under torch.inference_mode: no writes
+                _replace(self.gating, "active", self.gating.active & ~drop)
+            else:
+                self.gating.active &= ~drop
         if self.population is None:
             return [int(i) for i in drop.nonzero().flatten()]
         return [[int(i) for i in row.nonzero().flatten()] for row in drop]

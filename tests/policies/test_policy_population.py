@@ -251,11 +251,19 @@ def test_a_policy_of_stacked_options_under_an_ordinary_gating_is_refused():
     assert HierarchicalPolicy(gating, stacked).population == 2
 
 
-def test_prune_that_drops_nothing_writes_nothing():
-    with torch.inference_mode():  # buffers made here cannot be written outside inference mode
+def test_a_policy_made_in_inference_mode_prunes_outside_it():
+    with torch.inference_mode():  # buffers made here cannot be written in place outside it
         pol = HierarchicalPolicy.create(O, C, D)
+        pop = HierarchicalPolicy.stack(members())
     assert pol.prune(torch.zeros(5, C)) == []
     assert bool(pol.active.all())
+    with torch.inference_mode():
+        pol.gating.bias.copy_(torch.tensor([5.0, 0.0, -20.0, -20.0]))
+        pop.gating.bias.copy_(torch.tensor([[5.0, 0.0, -20.0, -20.0]] * S))
+    assert pol.prune(torch.zeros(5, C)) == [2, 3]
+    assert pol.active.tolist() == [True, True, False, False]
+    assert pop.prune(torch.zeros(S, 5, C), members=torch.tensor([False, True, False]))[1] == [2, 3]
+    assert pop.active.tolist() == [[True] * O, [True, True, False, False], [True] * O]
 
 
 @pytest.mark.parametrize(

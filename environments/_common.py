@@ -313,7 +313,9 @@ class ScalarActionBatchEnv(EnvBase):
     Keys: ``observation`` (B, C) float32, ``state`` (B, C) float64 (exact), ``action`` (B, 1)
     float32 in ±``action_limit``, ``reward`` (B, 1) float32, ``done`` / ``terminated`` /
     ``truncated`` (B, 1) bool. Partial resets (``_reset`` mask) restart only the masked systems;
-    ``step`` before the first ``reset`` raises :class:`ResetNeeded`.
+    as TorchRL does, ``reset(td)`` returns ``td``'s entries for the other rows (zeros for keys
+    ``td`` lacks: pass the whole tensordict, e.g. ``step_mdp``'s). ``step`` before the first
+    ``reset`` raises :class:`ResetNeeded`.
     """
 
     def __init__(self, task: BatchedTask) -> None:

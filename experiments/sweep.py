@@ -241,7 +241,8 @@ def run_one(run: SweepRun) -> dict[str, Any]:
 
 
 class DamagedSummary(ValueError):
-    """A finished run's ``summary.json`` that cannot be read back."""
+    """A finished run's ``summary.json`` that cannot be read back, or its missing
+    ``metrics.csv``."""
 
 
 def _finished_summary(run: SweepRun) -> dict[str, Any]:
@@ -258,6 +259,11 @@ def _finished_summary(run: SweepRun) -> dict[str, Any]:
             raise ValueError(f"it has no {metric!r}")
     except (OSError, UnicodeDecodeError, ValueError, TypeError) as exc:
         raise DamagedSummary(f"{path} is damaged ({exc}); move it away to run it again") from None
+    if not (path.parent / "metrics.csv").is_file():  # the sweep's curves read it
+        raise DamagedSummary(
+            f"{path.parent} finished but its metrics.csv is missing; restore it, or move the run "
+            "directory away to run it again"
+        )
     return summary
 
 
@@ -584,7 +590,10 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
     check_pool(cfg.workers, cfg.backend, cfg.ray_address, reach=True)  # before anything is written
     check_configurations(runs)
     out = Path(cfg.out) / cfg.experiment
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"--out {cfg.out}: cannot create {out} ({exc.strerror})") from None
     lock = DirectoryLock(out)  # one sweep per directory (each run also locks its own)
     try:
         reused = sum((r.run_dir / "summary.json").is_file() for r in runs)

@@ -220,8 +220,9 @@ def check_present_device(device: object) -> torch.device:
     try:
         torch.empty(0, device=dev)
     except Exception as exc:  # RuntimeError, AssertionError, a missing backend module, ...
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"device {device!r} is not available here ({first})") from None
+        said = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        first = said.split(". ")[0].rstrip(".")[:160]  # torch's text runs on for lines
+        raise ValueError(f"device {str(dev)!r} is not available here ({first})") from None
     return dev
 
 

@@ -39,6 +39,12 @@ class FeatureMap(nn.Module):
                 f"{type(self).__name__} takes states of shape (..., {self.in_features}), got "
                 f"{tuple(t.shape)}"
             )
+        held = next(self.buffers(), None)
+        if held is not None and t.device != held.device:
+            raise ValueError(
+                f"the states given to {type(self).__name__} are on {t.device} but the map on "
+                f"{held.device}: move one to the other's device"
+            )
         if not t.is_meta:
             check_finite(f"the states given to {type(self).__name__}", t, "")
         return t
@@ -88,6 +94,11 @@ class QuadraticFeatures(FeatureMap):
         super().__init__()
         self.in_features = in_features = check_count("in_features", in_features, 0)
         self.out_features = in_features + in_features * (in_features + 1) // 2
+        if self.out_features > MAX_FOURIER_TERMS:
+            raise ValueError(
+                f"in_features = {in_features} gives {self.out_features:.3g} quadratic features, "
+                f"more than {MAX_FOURIER_TERMS:.0e}: use fewer state dimensions"
+            )
         iu = torch.triu_indices(in_features, in_features)
         self.register_buffer("_rows", iu[0], persistent=False)
         self.register_buffer("_cols", iu[1], persistent=False)
@@ -185,7 +196,8 @@ class FourierFeatures(FeatureMap):
 
 
 MAX_FOURIER_TERMS = 10**6
-"""The most frequency vectors :class:`FourierFeatures` enumerates."""
+"""The most frequency vectors :class:`FourierFeatures` enumerates, and the most features
+:class:`QuadraticFeatures` builds."""
 
 
 def _bases_per_dimension(n_bases: object, C: int) -> list[int]:

@@ -103,6 +103,15 @@ def test_feature_maps_check_widths_dtypes_and_arguments():
         FourierFeatures([0.0, 0.0], [1.0, 1.0], coupling=1.5)
     with pytest.raises(TypeError, match="in_features must be an integer"):
         QuadraticFeatures(2.0)
+    with pytest.raises(ValueError, match=r"in_features = 100000 gives 5e\+09 quadratic features"):
+        QuadraticFeatures(10**5)  # before: an 80 GB allocation failing deep in torch
+
+
+def test_states_on_another_device_than_the_map_are_named():
+    quad, four = QuadraticFeatures(2), FourierFeatures([0.0, 0.0], [1.0, 2.0], n_bases=3)
+    for fmap in (quad, four, ConcatFeatures(quad, four)):
+        with pytest.raises(ValueError, match=f"{type(fmap).__name__} are on meta but the map on"):
+            fmap(torch.ones(5, 2, device="meta"))
 
 
 def test_fourier_bases_per_dimension_leave_out_a_dimension_with_one_basis():

@@ -435,6 +435,16 @@ def test_a_refused_sweep_writes_nothing(tmp_path, extra):
     assert not out.exists()
 
 
+def test_an_out_that_cannot_be_a_directory_is_named(tmp_path):
+    import train
+
+    (tmp_path / "file").write_text("mine")
+    args = ["sweep", "--no-progress", "--experiment", "bimodal", "--seeds", "0"]
+    with pytest.raises(OSError, match=r"--out .*file: cannot create .*file/bimodal \(Not a dir"):
+        train.main([*args, "--out", str(tmp_path / "file")])
+    assert (tmp_path / "file").read_text() == "mine"
+
+
 @pytest.mark.parametrize("damage", ["{bad", "[1]", "{}", '{"final_return": "x"}', ""])
 def test_a_damaged_summary_of_a_finished_run_is_named(tmp_path, damage):
     from hireps_torch.experiments.sweep import DamagedSummary, _finished_summary
@@ -444,6 +454,22 @@ def test_a_damaged_summary_of_a_finished_run_is_named(tmp_path, damage):
     (run.run_dir / "summary.json").write_text(damage)
     with pytest.raises(DamagedSummary, match=f"{run.run_dir / 'summary.json'} is damaged"):
         _finished_summary(run)
+
+
+def test_a_finished_run_without_its_metrics_is_named(tmp_path):
+    """The sweep's curves read metrics.csv (before: a bare FileNotFoundError ended the sweep
+    after every run, with no table)."""
+    from hireps_torch.experiments.sweep import DamagedSummary, _finished_summary
+
+    run = plan("bimodal", {"default": {}}, [0], tmp_path)[0]
+    run.run_dir.mkdir(parents=True)
+    (run.run_dir / "summary.json").write_text('{"final_return": 1.0}')
+    (run.run_dir / "metrics.csv").mkdir()
+    with pytest.raises(DamagedSummary, match=f"{run.run_dir} finished but its metrics.csv is"):
+        _finished_summary(run)
+    (run.run_dir / "metrics.csv").rmdir()
+    (run.run_dir / "metrics.csv").write_text("episodes,eval_return\n")
+    assert _finished_summary(run) == {"final_return": 1.0}
 
 
 def test_a_finished_run_with_a_damaged_summary_fails_alone(tmp_path):

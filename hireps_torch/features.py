@@ -39,7 +39,7 @@ class FeatureMap(nn.Module):
                 f"{type(self).__name__} takes states of shape (..., {self.in_features}), got "
                 f"{tuple(t.shape)}"
             )
-        held = next(self.buffers(), None)
+        held = next(iter(self._buffers.values()), None)  # a ConcatFeatures: its maps check
         if held is not None and t.device != held.device:
             raise ValueError(
                 f"the states given to {type(self).__name__} are on {t.device} but the map on "

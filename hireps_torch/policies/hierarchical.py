@@ -33,6 +33,9 @@ from hireps_torch.policies.linear_gaussian import LinearGaussian, power_of_two_s
 
 __all__ = ["HierarchicalPolicy"]
 
+MAX_OPTIONS = 10_000
+"""The most options :meth:`HierarchicalPolicy.create` builds (each one a module of its own)."""
+
 
 class HierarchicalPolicy(PolicyModule):
     """Mixture policy ``pi(theta | s) = sum_o pi(o | s) pi(theta | s, o)``.
@@ -137,6 +140,11 @@ class HierarchicalPolicy(PolicyModule):
         gating: ``gating``, else a uniform :class:`SoftmaxGating`. The priors go to every option.
         """
         n_options = check_count("n_options", n_options, 1)
+        if n_options > MAX_OPTIONS:
+            raise ValueError(
+                f"n_options must be at most {MAX_OPTIONS:,} (each option is a module of its own), "
+                f"got {n_options:,}"
+            )
         context_dim = check_count("context_dim", context_dim, 0)
         action_dim = check_count("action_dim", action_dim, 1)
         check_generator("generator", generator)

@@ -89,6 +89,14 @@ def test_bad_input_raises(gen):
         pol.weighted_fit(torch.zeros(2, 1), torch.zeros(2, 2), torch.ones(2, 2))
 
 
+def test_create_refuses_more_options_than_it_can_build_quickly():
+    # before: 2e9 options were built one module at a time, for hours, without a word
+    with pytest.raises(ValueError, match="n_options must be at most 10,000 .* got 2,000,000,000"):
+        HierarchicalPolicy.create(2 * 10**9, 1, 1)
+    with pytest.raises(ValueError, match="at most 10,000"):
+        HierarchicalPolicy.create(10**4 + 1, 1, 1)
+
+
 def test_per_option_initial_means_are_used_exactly(gen):
     means = torch.tensor([[-1.0, 0.5], [2.0, 3.0], [0.0, -4.0]], dtype=torch.float64)
     pol = HierarchicalPolicy.create(3, 1, 2, init_mean=means, init_std=0.3, generator=gen)

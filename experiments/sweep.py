@@ -6,7 +6,8 @@
 
 Each (configuration, seed) runs in ``OUT/<experiment>/<configuration>/seed<S>``; finished runs
 are reused and interrupted ones resumed. At the end: ``sweep.md`` (table), ``sweep.json``
-(summaries) and ``sweep.png`` (mean +- std curves).
+(summaries) and ``sweep.png`` (mean +- std curves) of this command's runs (a later sweep into
+the same ``OUT`` rewrites them and keeps every run directory).
 """
 
 from __future__ import annotations

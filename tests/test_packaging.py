@@ -1,6 +1,7 @@
 """The wheel as a user installs it: one top-level name, ``hireps_torch``, and the command
 ``hireps-train``; the tasks and experiments import from it alone."""
 
+import ast
 import os
 import shutil
 import subprocess
@@ -68,6 +69,35 @@ def test_the_wheel_installs_one_top_level_package_and_the_command(wheel):
     for module in ["envs/pendulum.py", "envs/hockey/env.py", "experiments/loop.py", "cli.py"]:
         assert f"hireps_torch/{module}" in names
     assert "hireps-train = hireps_torch.cli:entry" in scripts
+
+
+# names of ``typing`` newer than Python 3.9, with the version that added them
+TYPING_SINCE = {
+    **dict.fromkeys(
+        ["ParamSpec", "TypeAlias", "TypeGuard", "Concatenate", "is_typeddict"], (3, 10)
+    ),
+    **dict.fromkeys(["Self", "Unpack", "Never", "LiteralString", "assert_never"], (3, 11)),
+    **dict.fromkeys(["NotRequired", "Required", "TypeVarTuple", "reveal_type"], (3, 11)),
+    **dict.fromkeys(["override", "TypeAliasType"], (3, 12)),
+    **dict.fromkeys(["TypeIs", "ReadOnly", "NoDefault"], (3, 13)),
+}
+
+
+def test_the_wheel_requires_the_python_its_typing_imports_need(wheel):
+    with zipfile.ZipFile(wheel) as z:
+        (meta,) = [n for n in z.namelist() if n.endswith(".dist-info/METADATA")]
+        (line,) = [x for x in z.read(meta).decode().splitlines() if x.startswith("Requires-Python")]
+        sources = {n: z.read(n).decode() for n in z.namelist() if n.endswith(".py")}
+    least = tuple(int(x) for x in line.split(">=")[1].split("."))
+    needed = {}
+    for name, text in sources.items():
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom) and node.module == "typing":
+                for alias in node.names:
+                    needed[f"{name}: typing.{alias.name}"] = TYPING_SINCE.get(alias.name, (3, 9))
+    assert needed, "found no typing import to check"
+    too_new = {k: v for k, v in needed.items() if v > least}
+    assert not too_new, f"{line} but the wheel imports {too_new}"
 
 
 def test_the_installed_wheel_imports_the_tasks_and_runs_the_command(wheel, tmp_path):

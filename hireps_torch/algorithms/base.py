@@ -7,7 +7,7 @@ import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING, Any, Protocol, Self, TypedDict, runtime_checkable
+from typing import Any, Protocol, Self, TypedDict, Unpack, runtime_checkable
 
 import numpy as np
 import torch
@@ -26,9 +26,6 @@ from hireps_torch.checks import (
 )
 from hireps_torch.features import FeatureMap, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
-
-if TYPE_CHECKING:
-    from typing_extensions import Unpack
 
 __all__ = [
     "Algorithm",

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Self
+from typing import Any, Self, Unpack
 
 import torch
 from torch import Tensor
@@ -32,9 +32,6 @@ from hireps_torch.dual.inputs import warn_if_degenerate
 from hireps_torch.dual.solver import LbfgsSettings
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
-
-if TYPE_CHECKING:
-    from typing_extensions import Unpack
 
 __all__ = ["REPS", "EpisodicHiREPS"]
 

@@ -13,7 +13,7 @@ pruning. One option and ``kappa_rel=None``: infinite-horizon REPS.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any, Unpack
 
 import torch
 from torch import Tensor
@@ -39,9 +39,6 @@ from hireps_torch.dual.inputs import warn_if_degenerate
 from hireps_torch.dual.solver import LbfgsSettings
 from hireps_torch.features import FeatureMap, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
-
-if TYPE_CHECKING:
-    from typing_extensions import Unpack
 
 __all__ = ["InfiniteHorizonHiREPS"]
 

@@ -12,7 +12,7 @@ chained through the value features phi; each step's policy is then refitted and 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any, Unpack
 
 import torch
 from torch import Tensor
@@ -45,9 +45,6 @@ from hireps_torch.dual.solver import LbfgsSettings
 from hireps_torch.dual.time_indexed import time_indexed_solution
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
-
-if TYPE_CHECKING:
-    from typing_extensions import Unpack
 
 __all__ = ["TimeIndexedHiREPS"]
 

@@ -13,12 +13,11 @@ from typing import Any
 
 from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.checks import check_device, check_present_device
-from hireps_torch.experiments.rundir import LoggerName, jsonable
+from hireps_torch.experiments.rundir import LoggerName, check_new_run_dir, jsonable
 
 __all__ = [
     "RunOptions",
     "check_fourier_bases",
-    "check_new_run_dir",
     "check_options",
     "check_types",
     "config_dict",
@@ -92,24 +91,6 @@ class RunOptions:
 def member_seeds(cfg: RunOptions) -> list[int]:
     """The seeds a run learns: ``--seeds`` (a population), else ``[--seed]``."""
     return [cfg.seed] if cfg.seeds is None else parse_seeds(cfg.seeds)
-
-
-def check_new_run_dir(run_dir: Path) -> None:
-    """Refuse a new run's directory that is a file or non-empty (``FileExistsError``) or that
-    cannot be created (``ValueError``); creates nothing."""
-    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
-        what = "is not empty" if run_dir.is_dir() else "is a file"
-        raise FileExistsError(
-            f"run directory {run_dir} already exists and {what}; pass a new --run-dir, or "
-            "--resume a run (nothing was overwritten)"
-        )
-    parent = run_dir.absolute()
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ValueError(f"--run-dir {run_dir}: {parent} is a file, not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"--run-dir {run_dir}: no permission to write in {parent}")
 
 
 def option_error(

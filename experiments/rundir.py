@@ -24,6 +24,7 @@ __all__ = [
     "LoggerName",
     "RunWriter",
     "atomic_write",
+    "check_new_run_dir",
     "default_run_dir",
     "jsonable",
     "make_logger",
@@ -107,6 +108,24 @@ def jsonable(x: Any) -> Any:
     return x
 
 
+def check_new_run_dir(run_dir: Path) -> None:
+    """Refuse a new run's directory that is a file or non-empty (``FileExistsError``) or that
+    cannot be created (``ValueError``); creates nothing."""
+    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+        what = "is not empty" if run_dir.is_dir() else "is a file"
+        raise FileExistsError(
+            f"run directory {run_dir} already exists and {what}; pass a new --run-dir, or "
+            "--resume a run (nothing was overwritten)"
+        )
+    parent = run_dir.absolute()
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"--run-dir {run_dir}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"--run-dir {run_dir}: no permission to write in {parent}")
+
+
 class RunWriter:
     """Writes one run directory.
 
@@ -131,15 +150,8 @@ class RunWriter:
     ) -> None:
         self.dir = Path(run_dir)
         resuming = rows is not None
-        if (
-            not resuming
-            and self.dir.exists()
-            and (not self.dir.is_dir() or any(self.dir.iterdir()))
-        ):
-            raise FileExistsError(
-                f"run directory {self.dir} already exists and is not empty; pass a new "
-                "--run-dir, or --resume it (nothing was overwritten)"
-            )
+        if not resuming:
+            check_new_run_dir(self.dir)
         if self.dir.is_symlink() and not self.dir.exists():
             raise FileExistsError(
                 f"run directory {self.dir} is a link to {os.readlink(self.dir)}, which does not "

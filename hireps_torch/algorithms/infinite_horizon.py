@@ -28,7 +28,7 @@ from hireps_torch.algorithms.base import (
     member_policies,
 )
 from hireps_torch.checks import (
-    as_finite_f64,
+    as_checked,
     as_float_tensor,
     check_count,
     check_finite,
@@ -170,10 +170,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         lead = self.policy.batch_shape
         if N < 2:
             raise ValueError(f"the update needs at least 2 decisions, got states {tuple(s.shape)}")
-        a = as_float_tensor("actions", actions, device=self.device)
-        if a.shape != (*lead, N, A):
-            raise ValueError(f"actions must have shape {(*lead, N, A)}, got {tuple(a.shape)}")
-        as_finite_f64("actions", a)
+        a = as_checked("actions", actions, (*lead, N, A), device=self.device)
         R = as_float_tensor("rewards", rewards, device=self.device)
         if R.shape != (*lead, N):
             raise ValueError(

@@ -35,7 +35,8 @@ from hireps_torch.algorithms.base import (
     member_policies,
 )
 from hireps_torch.checks import (
-    as_finite_f64,
+    FIX_SAMPLES,
+    as_checked,
     as_float_tensor,
     check_count,
     check_finite,
@@ -206,21 +207,15 @@ class TimeIndexedHiREPS(HiREPSBase):
         """Checked float64 states ([S,] N, K, C), params ([S,] N, K, D), rewards ([S,] N, K)."""
         K = self.n_steps
         lead = self.policies[0].batch_shape
-        R = as_float_tensor("rewards", rewards, device=self.device)
-        if R.dim() != 2 + len(lead) or R.shape[:-2] != lead or R.shape[-1] != K:
-            names = "population, N, K" if lead else "N, K"
-            want = ", ".join(map(str, (*lead, "N", K)))
-            raise ValueError(f"rewards must have shape ({names}) = ({want}), got {tuple(R.shape)}")
-        check_finite("rewards", R)
+        names = "(population, N, K) = " if lead else "(N, K) = "
+        shape, dev = (*lead, None, K), self.device
+        R = as_checked("rewards", rewards, shape, device=dev, advice=FIX_SAMPLES, names=names)
         N = R.shape[-2]
         if N < 2:
             raise ValueError(f"the dual needs at least 2 samples, got N = {N}")
         C, D = self.value_features.in_features, self.policies[0].action_dim
-        dev = self.device
-        states_t = as_float_tensor("states", states, device=dev)
-        s = as_finite_f64("states", states_t, (*lead, N, K, C))
-        params_t = as_float_tensor("params", params, device=dev)
-        theta = as_finite_f64("params", params_t, (*lead, N, K, D))
+        s = as_checked("states", states, (*lead, N, K, C), device=dev)
+        theta = as_checked("params", params, (*lead, N, K, D), device=dev)
         return s, theta, R
 
     # ---- ask / tell -------------------------------------------------------------------------

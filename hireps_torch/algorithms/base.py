@@ -121,19 +121,20 @@ class PolicyKwargs(TypedDict, total=False):
     mean_prior: float
 
 
-def population_seeds(seed: object, population: int | None) -> list[int] | None:
-    """The members' distinct seeds (default 0 .. S-1), or None without a population."""
+def population_seeds(seed: object, population: int | None) -> tuple[list[int], bool]:
+    """The members' distinct seeds (default 0 .. S-1) and True, or without a population
+    ``[seed]`` (default 0) and False."""
     if population is not None:
         population = check_count("population", population, 1)
     if not isinstance(seed, Sequence) or isinstance(seed, str | bytes):
         if population is None:
-            return None  # one seed (checked where it is used)
+            return [0 if seed is None else check_seed("seed", seed)], False
         if seed is not None:
             raise ValueError(
                 f"a population of {population} takes one seed per member (e.g. seed="
                 f"{list(range(population))}), got the single seed {seed!r}"
             )
-        return list(range(population))
+        return list(range(population)), True
     seeds = [check_seed(f"seed[{s}]", x) for s, x in enumerate(seed)]
     if not seeds:
         raise ValueError("a population needs at least one seed, got an empty sequence")
@@ -153,7 +154,7 @@ def population_seeds(seed: object, population: int | None) -> list[int] | None:
             raise ValueError(
                 f"seed {x} is repeated in {seeds}: members with one seed would be copies"
             )
-    return seeds
+    return seeds, True
 
 
 STREAMS = ("policy", "sampling", "env", "eval", "contexts")
@@ -191,10 +192,7 @@ def member_policies(
         action_dim: D.
         **policy_kwargs: see :class:`PolicyKwargs`.
     """
-    seeds = population_seeds(seed, population)
-    one = seeds is None
-    if seeds is None:
-        seeds = [0 if seed is None else check_seed("seed", seed)]
+    seeds, many = population_seeds(seed, population)
     kwargs = policy_kwargs.copy()
     if kwargs.get("gating_features") is None and state_dim > 0:
         kwargs["gating_features"] = QuadraticFeatures(state_dim)
@@ -202,7 +200,7 @@ def member_policies(
     gens = [torch.Generator().manual_seed(s) for s in seeds]
     members = [[create(init_mean=m, generator=g) for m in means] for g in gens]
     sampling = [stream_seed(s, "sampling") for s in seeds]
-    if one:
+    if not many:
         return members[0], sampling[0]
     stacked = [HierarchicalPolicy.stack([m[k] for m in members]) for k in range(len(means))]
     return stacked, sampling
@@ -280,13 +278,10 @@ class HiREPSBase:
             kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
         self.kappa_rel = kappa_rel
         self.prune_threshold = check_prune_threshold(prune_threshold)
-        seeds = population_seeds(seed, population)
+        seeds, many = population_seeds(seed, population)
         self.population = population
-        self.generator: torch.Generator | list[torch.Generator] = (
-            torch.Generator().manual_seed(0 if seed is None else check_seed("seed", seed))
-            if seeds is None
-            else [torch.Generator().manual_seed(s) for s in seeds]
-        )
+        gens = [torch.Generator().manual_seed(s) for s in seeds]
+        self.generator: torch.Generator | list[torch.Generator] = gens if many else gens[0]
         self.iteration = 0
 
     @property

@@ -287,17 +287,14 @@ class TimeIndexedHiREPS(HiREPSBase):
         per_step = {key: [r[key] for r in reports] for key in _PER_STEP}
         if lead:  # member s's entries: one per step
             per_step = {key: [list(x) for x in zip(*v, strict=True)] for key, v in per_step.items()}
-        means, mean_return, max_return = (
-            R.mean(-2).tolist(),
-            *torch.stack([returns.mean(-1), returns.amax(-1)]).tolist(),
-        )
+        mean_return, max_return = torch.stack([returns.mean(-1), returns.amax(-1)]).tolist()
         return {
             "iteration": per_member(self.iteration, lead),
             **per_step,
             "feature_error": sol.feature_error.reshape(lead).tolist(),
             "dual_converged": each(sol.converged.reshape(lead).tolist(), bool),
             "dual_iterations": sol.iterations.reshape(lead).tolist(),
-            "mean_rewards": means,
+            "mean_rewards": R.mean(-2).tolist(),
             "mean_return": mean_return,
             "max_return": max_return,
         }

@@ -4,8 +4,6 @@ checked once, here; the solver trusts them)."""
 from __future__ import annotations
 
 import math
-import numbers
-import operator
 import warnings
 from dataclasses import dataclass
 
@@ -13,7 +11,14 @@ import torch
 from torch import Tensor
 
 from hireps_torch._linalg import logsumexp
-from hireps_torch.checks import as_f64, as_float, as_float_tensor, check_finite, check_positive
+from hireps_torch.checks import (
+    as_f64,
+    as_float,
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_positive,
+)
 from hireps_torch.dual.block_solver import LbfgsSettings
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
 
@@ -253,14 +258,10 @@ def check_settings(
     max_iter: object, tolerance_grad: object = 1e-7, converged_grad: object = 1e-6
 ) -> LbfgsSettings:
     """The solver options checked: ``max_iter`` an integer >= 1, the tolerances finite and > 0."""
-    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral | Tensor):
-        raise TypeError(f"max_iter must be an integer >= 1, got {max_iter!r}")
     try:
-        n = operator.index(max_iter)
-    except TypeError as exc:
-        raise TypeError(f"max_iter must be an integer >= 1, got {max_iter!r}") from exc
-    if n < 1:
-        raise ValueError(f"max_iter must be an integer >= 1, got {n}")
+        n = check_count("max_iter", max_iter, 1)
+    except (TypeError, ValueError) as exc:
+        raise type(exc)(f"max_iter must be an integer >= 1, got {max_iter!r}") from None
     tols = []
     for name, value in (("tolerance_grad", tolerance_grad), ("converged_grad", converged_grad)):
         try:

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from hireps_torch.algorithms import Algorithm
+from hireps_torch.checks import as_float_tensor, check_count
 from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
@@ -61,15 +62,10 @@ class LoadedRun:
 
     def _one(self, act: Callable[[Tensor, int], Tensor], states: Tensor | int, step: int) -> Tensor:
         C = self.algorithm.policies[0].context_dim
-        if isinstance(states, int) and not isinstance(states, bool) and C == 0 and states > 0:
-            x = torch.zeros(states, 0, dtype=torch.float64)
+        if C == 0 and getattr(states, "ndim", 0) == 0 and not isinstance(states, list | tuple):
+            x = torch.zeros(check_count("N", states, 1), 0, dtype=torch.float64)  # a count
         else:
-            try:
-                x = torch.as_tensor(states, dtype=torch.float64)
-            except (TypeError, ValueError, RuntimeError):
-                raise ValueError(
-                    f"states must be a (N, {C}) tensor, got {type(states).__name__}"
-                ) from None
+            x = as_float_tensor("states", states)
             if x.dim() != 2 or x.shape[-1] != C or x.shape[0] == 0:
                 raise ValueError(
                     f"states must have shape (N, {C}) with N >= 1, got {tuple(x.shape)}"
@@ -108,9 +104,10 @@ def load_run(run_dir: str | Path) -> LoadedRun:
             f"{root} holds no checkpoint.pt: the run had not finished its first iteration, "
             "so nothing was learned yet"
             if not rows
-            else f"{root} holds no checkpoint.pt but {rows} metrics row(s): a population "
-            "member's policy is in its population's checkpoint (load it inside the population's "
-            "directory), or the checkpoint was moved away"
+            else f"{root} holds no checkpoint.pt but {rows} metrics row(s): the run is writing "
+            "its first checkpoint (load it again in a moment), a population member's policy is "
+            "in its population's checkpoint (load it inside the population's directory), or the "
+            "checkpoint was moved away"
         )
     check_same_run(root, ckpt, saved if member is None else read_config(root))
     state = ckpt["algorithm"]

@@ -243,6 +243,9 @@ def check_count(name: str, value: object, minimum: int = 1) -> int:
     """An integer (Python, numpy or 0-d tensor; not bool or float) >= ``minimum`` as an int."""
     if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
         raise TypeError(f"{name} must be an integer, got the bool {value!r}")
+    if isinstance(value, Tensor) and (value.dim() or value.is_meta):
+        what = "a meta tensor" if value.is_meta else f"a tensor of shape {tuple(value.shape)}"
+        raise TypeError(f"{name} must be an integer (a 0-d tensor at most), got {what}")
     try:
         n = operator.index(value)  # type: ignore[arg-type]
     except TypeError:

@@ -60,11 +60,11 @@ class PolicyActor(nn.Module):
                     f"one after another; got shape {tuple(observation.shape)}"
                 )
             s = s.reshape(*lead[:-1], S, lead[-1] // S, C).movedim(-3, 0)
-        s = s.reshape(*policy.batch_shape, -1, C)
+        s = s.reshape(*policy.batch_shape, lead.numel() // (S or 1), C)
         a, o = policy.mean_action(s) if self.deterministic else policy.sample(s, self.generator)
         if S is not None:  # back to (..., S B)
-            a = a.reshape(S, *lead[:-1], -1, a.shape[-1]).movedim(0, -3)
-            o = o.reshape(S, *lead[:-1], -1).movedim(0, -2)
+            a = a.reshape(S, *lead[:-1], lead[-1] // S, a.shape[-1]).movedim(0, -3)
+            o = o.reshape(S, *lead[:-1], lead[-1] // S).movedim(0, -2)
         dtype = observation.dtype if observation.is_floating_point() else torch.float64
         return a.to(dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
 
@@ -247,19 +247,35 @@ def episodes(
         states (N, K, C), actions (N, K, A), rewards (N, K) and final states (N, C), float64.
     """
     K = check_count("K", K, 1)
-    flat = batch.reshape(-1)
-    T = flat.shape[0]
+    s, s_next, a, r, done = _entries(batch, state_key, ("next", "done"))
+    T = s.shape[0]
     if T % K:
         raise ValueError(f"the batch holds {T} steps, not a whole number of {K}-step episodes")
-    done = flat.get(("next", "done")).reshape(-1, K)
+    done = done.reshape(-1, K)
     if not bool(done[:, -1].all()) or bool(done[:, :-1].any()):
         raise ValueError(f"the batch is not made of whole {K}-step episodes (done flags)")
     N = T // K
-    states = flat.get(state_key).to(torch.float64).reshape(N, K, -1)
-    actions = flat.get("action").to(torch.float64).reshape(N, K, -1)
-    rewards = flat.get(("next", "reward")).to(torch.float64).reshape(N, K)
-    final = flat.get(("next", state_key)).to(torch.float64).reshape(N, K, -1)[:, -1]
-    return states, actions, rewards, final
+    states = s.to(torch.float64).reshape(N, K, -1)
+    rewards = r.to(torch.float64).reshape(N, K)
+    final = s_next.to(torch.float64).reshape(N, K, -1)[:, -1]
+    return states, a.to(torch.float64).reshape(N, K, -1), rewards, final
+
+
+def _entries(batch: TensorDictBase, state_key: str, extra: Any) -> list[Tensor]:
+    """The flattened state, next state, action, reward and ``extra`` entries of a collected
+    batch; a ``ValueError`` for an empty batch or one without those entries."""
+    if not isinstance(batch, TensorDictBase):
+        raise TypeError(f"batch must be a TensorDict of collected steps, got {type(batch)}")
+    if batch.batch_size.numel() == 0:
+        raise ValueError(f"the batch holds no steps (batch size {tuple(batch.batch_size)})")
+    keys = [state_key, ("next", state_key), "action", ("next", "reward"), extra]
+    if missing := [k for k in keys if batch.get(k, None) is None]:
+        raise ValueError(
+            f"the batch holds no {missing[0]!r} entry (state_key = {state_key!r}); its keys: "
+            f"{sorted(map(str, batch.keys(include_nested=True, leaves_only=True)))}"
+        )
+    flat = batch.reshape(-1)
+    return [flat.get(k) for k in keys]
 
 
 def transitions(
@@ -271,10 +287,6 @@ def transitions(
         states (N, C), actions (N, A), rewards (N,), next_states (N, C) (float64; the state
         reached by the decision, before a reset) and options (N,) int64.
     """
-    flat = batch.reshape(-1)
-    s = flat.get(state_key).to(torch.float64)
-    s_next = flat.get(("next", state_key)).to(torch.float64)
-    a = flat.get("action").to(torch.float64)
-    r = flat.get(("next", "reward")).to(torch.float64).reshape(-1)
-    o = flat.get("option").reshape(-1)
-    return s, a.reshape(s.shape[0], -1), r, s_next, o
+    s, s_next, a, r, o = _entries(batch, state_key, "option")
+    s, s_next, a, r = (x.to(torch.float64) for x in (s, s_next, a, r))
+    return s, a.reshape(s.shape[0], -1), r.reshape(-1), s_next, o.reshape(-1)

@@ -490,6 +490,8 @@ BAD_MAX_ITER = [
     (True, TypeError),
     ("10", TypeError),
     (None, TypeError),
+    (torch.tensor([5]), TypeError),  # a count is a 0-d tensor at most
+    (torch.tensor(5, device="meta"), TypeError),
 ]
 
 

@@ -7,6 +7,7 @@ import os
 import signal
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -138,6 +139,10 @@ def test_directories_that_are_not_loadable_runs_get_a_clear_error(tmp_path):
         hireps_torch.load_run(early)
     before = sorted(p.name for p in early.iterdir())
     assert before == ["config.json"]  # loading wrote nothing
+    train("bimodal", tmp_path / "moved")
+    (tmp_path / "moved" / "checkpoint.pt").unlink()  # or not yet written in its first iteration
+    with pytest.raises(ValueError, match=r"no checkpoint.pt but \d+ metrics row\(s\): the run "):
+        hireps_torch.load_run(tmp_path / "moved")
 
 
 def test_a_checkpoint_of_another_experiment_is_refused(tmp_path):
@@ -202,8 +207,14 @@ def test_acting_takes_the_ordinary_shapes_and_names_a_bad_one(tmp_path):
         run.mean_action(torch.zeros(3, 3))
     with pytest.raises(ValueError, match=r"N >= 1, got \(0, 2\)"):
         run.mean_action(torch.zeros(0, 2))
-    with pytest.raises(ValueError, match=r"states must be a \(N, 2\) tensor, got NoneType"):
+    with pytest.raises(TypeError, match=r"states must be a tensor of numbers, got NoneType"):
         run.sample(None)
+    with pytest.raises(TypeError, match=r"states must hold real numbers, got dtype torch.compl"):
+        run.mean_action(torch.tensor([[3.14 + 5j, 9j]]))  # not its real part in silence
+    assert toy.mean_action(np.int64(2)).shape == toy.sample(torch.tensor(2)).shape == (2, 2)
+    for bad, error in [(0, ValueError), (-1, ValueError), (2.0, TypeError), (True, TypeError)]:
+        with pytest.raises(error, match=f"N must be .*got .*{bad}"):
+            toy.mean_action(bad)
 
 
 def test_the_library_lists_load_run():

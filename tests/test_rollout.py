@@ -170,6 +170,28 @@ def test_a_population_actor_pairs_the_last_batch_dimension_with_its_members():
         actor(TensorDict({"observation": torch.zeros(10, 2)}, [10]))
     ints = actor(TensorDict({"observation": torch.zeros(6, 2, dtype=torch.long)}, [6]))
     assert ints["action"].dtype == torch.float64  # not truncated to the observation's integers
+    for shape in [(0, 6), (0,)]:  # no time steps: empty actions, as for one policy
+        out = actor(TensorDict({"observation": torch.zeros(*shape, 2)}, list(shape)))
+        assert out["action"].shape == (*shape, 1) and out["option"].shape == shape
+
+
+def test_cutting_a_batch_names_a_missing_entry_and_an_empty_batch():
+    pol = HierarchicalPolicy.create(2, 2, 1, generator=torch.Generator().manual_seed(0))
+    collector = make_collector(
+        lambda: PendulumSwingUpBatchEnv(2, seed=0), policy_module(pol), frames_per_batch=4
+    )
+    try:
+        batch = next(iter(collector))
+    finally:
+        shutdown_collector(collector)
+    assert transitions(batch)[0].shape == (4, 2)
+    for cut in (lambda b, key: transitions(b, key), lambda b, key: episodes(b, 2, key)):
+        with pytest.raises(ValueError, match=r"the batch holds no 'stat' entry \(state_key"):
+            cut(batch, "stat")
+        with pytest.raises(ValueError, match=r"the batch holds no steps \(batch size \(2, 0\)\)"):
+            cut(batch[:, :0], "observation")
+    with pytest.raises(ValueError, match=r"no \('next', 'reward'\) entry"):
+        transitions(batch.exclude(("next", "reward")))
 
 
 def test_the_time_indexed_actor_names_a_population_and_a_bad_step_count():

@@ -126,6 +126,11 @@ def population_seeds(seed: object, population: int | None) -> tuple[list[int], b
     ``[seed]`` (default 0) and False."""
     if population is not None:
         population = check_count("population", population, 1)
+    if shape := tuple(getattr(seed, "shape", ())):  # an array or tensor of seeds
+        raise TypeError(
+            f"seed must be an integer or a list of integers (one per member), got a "
+            f"{type(seed).__name__} of shape {shape}: pass seed.tolist()"
+        )
     if not isinstance(seed, Sequence) or isinstance(seed, str | bytes):
         if population is None:
             return [0 if seed is None else check_seed("seed", seed)], False
@@ -328,9 +333,30 @@ class HiREPSBase:
     @torch.no_grad()
     def sample(self, states: Tensor | int | None, step: int = 0) -> Tensor:
         """Exploring actions ([S,] N, D) for states ([S,] N, C) at ``step`` (in [0, K)), from
-        the seeded generator(s); the episodic variant without context also takes a count N."""
+        the seeded generator(s); the episodic variant without context also takes a count N.
+
+        Raises:
+            MemoryError: the N x options samples do not fit in memory (the generators are left
+                as they were, as for any failed call).
+        """
         policy, s = self._at(states, step)
-        return policy.sample(s, self.generator)[0]
+        gens = self.generator if isinstance(self.generator, list) else [self.generator]
+        saved = [g.get_state() for g in gens]
+        try:
+            return policy.sample(s, self.generator)[0]
+        except BaseException as exc:
+            for g, state in zip(gens, saved, strict=True):
+                g.set_state(state)
+            if isinstance(exc, torch.OutOfMemoryError) or any(
+                why in str(exc) for why in ("can't allocate", "size calculation overflowed")
+            ):
+                N, O, D, lead = s.shape[-2], policy.n_options, policy.action_dim, s.shape[:-2]
+                raise MemoryError(
+                    f"sampling N = {N:,} needs {'S x ' if lead else ''}N x {O} options x {D} "
+                    f"float64 values ({lead.numel() * N * O * D * 8 / 1e9:.3g} GB) several "
+                    "times at once, more than this machine could allocate: ask for fewer"
+                ) from exc
+            raise
 
     @torch.no_grad()
     def mean_action(self, states: Tensor | int | None, step: int = 0) -> Tensor:

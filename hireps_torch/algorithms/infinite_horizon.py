@@ -189,7 +189,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 term = torch.as_tensor(terminated)
             except (TypeError, ValueError, RuntimeError, NotImplementedError):
                 raise TypeError(
-                    f"terminated must be a bool tensor of shape ({N},), got "
+                    f"terminated must be a bool tensor of shape {(*lead, N)}, got "
                     f"{type(terminated).__name__} {terminated!r:.60}"
                 ) from None
             if term.device != self.device:

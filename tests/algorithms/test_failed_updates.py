@@ -264,3 +264,35 @@ def test_bad_sampling_calls_do_not_advance_the_generator():
         with pytest.raises(ValueError, match=match):
             call()
         assert_same(before, (snapshot(algo), snapshot(ti)))
+
+
+@pytest.mark.parametrize("seed", [0, [0, 1]], ids=["one seed", "population"])
+@pytest.mark.parametrize("failure", ["memory", "other"])
+def test_a_sample_that_fails_after_drawing_leaves_the_generators_and_names_memory(
+    monkeypatch, seed, failure
+):
+    algo = EpisodicHiREPS.create(param_dim=2, n_options=3, seed=seed)
+    fresh = EpisodicHiREPS.create(param_dim=2, n_options=3, seed=seed)
+    einsum = torch.einsum
+    calls = []
+
+    def failing_einsum(*args):  # the second einsum runs after the option and noise draws
+        calls.append(args[0])
+        if len(calls) == 2:
+            if failure == "memory":
+                raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried ...")
+            raise ValueError("something else")
+        return einsum(*args)
+
+    monkeypatch.setattr(torch, "einsum", failing_einsum)
+    before = snapshot(algo)
+    if failure == "memory":
+        with pytest.raises(MemoryError, match=r"sampling N = 40 needs .*N x 3 options x 2"):
+            algo.ask(40)
+    else:
+        with pytest.raises(ValueError, match="something else"):
+            algo.ask(40)
+    assert len(calls) == 2
+    assert_same(before, snapshot(algo))
+    monkeypatch.setattr(torch, "einsum", einsum)
+    assert torch.equal(algo.ask(5), fresh.ask(5))

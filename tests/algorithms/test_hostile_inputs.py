@@ -4,6 +4,7 @@ silent NaN; and what is harmless (0-d tensors, integer tensors, telling twice) j
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -43,6 +44,11 @@ CREATE = {
         (dict(kappa_rel=torch.tensor([0.5, 0.5])), ValueError, "kappa_rel must be one number"),
         (dict(kappa_rel=-0.1), ValueError, "kappa_rel must be finite and >= 0"),
         (dict(seed=1.5), TypeError, "seed must be an integer, got float"),
+        (dict(seed=np.arange(3)), TypeError, r"or a list of .* ndarray of shape \(3,\): pass"),
+        (dict(seed=torch.tensor([3])), TypeError, r"list of integers .* Tensor of shape \(1,\)"),
+        (dict(seed=[torch.tensor([3])]), TypeError, r"seed\[0\] must be an integer \(a 0-d"),
+        (dict(n_options=torch.tensor([3])), TypeError, r"n_options .* tensor of shape \(1,\)"),
+        (dict(seed=torch.tensor(3, device="meta")), TypeError, "got a meta tensor"),
         (dict(init_mean=torch.tensor([NAN])), ValueError, "init_mean contains"),
         (dict(init_std=INF), ValueError, "init_std must be finite and > 0"),
         (dict(spread=NAN), ValueError, "spread must be finite"),
@@ -177,3 +183,12 @@ def test_update_needs_at_least_two_samples_and_exact_shapes():
     s = torch.zeros(6, 1, dtype=f64)
     with pytest.raises(ValueError, match=r"rewards must have shape \(6,\).*got \(1, 6\)"):
         ih.update(s, s, torch.zeros(1, 6), s)
+
+
+def test_a_population_names_its_own_shape_for_a_bad_terminated():
+    algo = make_ih(seed=[0, 1])
+    s = torch.zeros(2, 30, 1, dtype=f64)
+    a, r = torch.zeros(2, 30, 1, dtype=f64), torch.zeros(2, 30, dtype=f64)
+    for bad, error in [("yes", TypeError), (torch.zeros(2, 30), ValueError)]:
+        with pytest.raises(error, match=r"terminated must be a bool tensor of shape \(2, 30\)"):
+            algo.update(s, a, r, s, bad)

@@ -69,9 +69,11 @@ def check_finite(name: str, x: Tensor, advice: str = FIX_SAMPLES) -> None:
 def as_finite_f64(name: str, value: Tensor | float, shape: tuple[int, ...] | None = None) -> Tensor:
     """``value`` as a float64 tensor, checked for ``shape`` (if given) and finiteness."""
     if isinstance(value, Tensor):
-        t = value.to(torch.float64)  # on its device
+        if value.is_complex():  # .to would drop the imaginary part
+            raise TypeError(f"{name} must hold real numbers, got dtype {value.dtype}")
+        t = value.to(torch.float64)  # on its device (gradients flow through)
     else:
-        t = torch.as_tensor(value, dtype=torch.float64, device="cpu")
+        t = as_float_tensor(name, value)  # on the CPU
     if shape is not None and tuple(t.shape) != shape:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
     if not all_finite(t):

@@ -122,6 +122,11 @@ def test_bad_aim_inputs_are_named(demo):
         aim_angle(torch.tensor([1.1, 0.0]), "x")
     with pytest.raises(ValueError, match="phi must be finite, got nan"):
         rotation_z(float("nan"))
+    for target in (torch.tensor([1.1 + 0.5j, 0.0]), [1.1 + 0.5j, 0.0]):  # not its real part
+        with pytest.raises(TypeError, match="target must hold real numbers, got dtype .*complex"):
+            aim_angle(target)
+    with pytest.raises(TypeError, match=r"q must hold real numbers"):
+        blade_twist(demo[:7].to(torch.complex128), demo[7:])
 
 
 @pytest.mark.parametrize("variant", ["sequential", "episodic"])

@@ -127,6 +127,9 @@ def as_float_tensor(
     theirs. A ``TypeError`` for bools, complex values or non-numbers, a ``ValueError`` for a
     meta tensor or one on another ``device`` (when given)."""
     if isinstance(value, Tensor):
+        if value.layout != torch.strided or value.is_nested:
+            what = "nested" if value.is_nested else str(value.layout).removeprefix("torch.")
+            raise TypeError(f"{name} must be a dense tensor, got a {what} one: pass .to_dense()")
         t = value.detach()
     else:
         try:

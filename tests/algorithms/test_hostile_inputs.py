@@ -2,6 +2,7 @@
 bad value or shape, at construction or at the call, never an error from deep inside torch or a
 silent NaN; and what is harmless (0-d tensors, integer tensors, telling twice) just works."""
 
+import copy
 import math
 
 import numpy as np
@@ -192,3 +193,29 @@ def test_a_population_names_its_own_shape_for_a_bad_terminated():
     for bad, error in [("yes", TypeError), (torch.zeros(2, 30), ValueError)]:
         with pytest.raises(error, match=r"terminated must be a bool tensor of shape \(2, 30\)"):
             algo.update(s, a, r, s, bad)
+
+
+def test_sparse_inputs_are_named_and_change_nothing():
+    algo = EpisodicHiREPS.create(2, context_dim=1, n_options=2, seed=0)
+    c = torch.randn(20, 1, generator=torch.Generator().manual_seed(0), dtype=f64)
+    theta, R = algo.ask(c), torch.linspace(0, 1, 20, dtype=f64)
+    before = copy.deepcopy(algo.state_dict())
+    for args, name in [
+        ((c.to_sparse(), theta, R), "contexts"),
+        ((c, theta, R.to_sparse()), "returns"),
+    ]:
+        with pytest.raises(TypeError, match=f"{name} must be a dense tensor, got a sparse_coo one"):
+            algo.tell(*args)
+    with pytest.raises(TypeError, match="contexts must be a dense tensor"):
+        algo.ask(c.to_sparse_csr())
+    assert same_tree(algo.state_dict(), before)
+
+
+def same_tree(a, b):
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and torch.equal(a, b)
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(same_tree(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple):
+        return len(a) == len(b) and all(map(same_tree, a, b))
+    return a == b

@@ -147,18 +147,17 @@ def population_seeds(seed: object, population: int | None) -> tuple[list[int], b
         raise ValueError(
             f"population = {population} does not match the {len(seeds)} seeds given ({seeds})"
         )
-    first: dict[int, int] = {}  # torch seeds modulo 2**64
+    seen: dict[int, int] = {}  # torch seeds modulo 2**64 -> the seed given
     for x in seeds:
-        y = first.setdefault(x % 2**64, x)
-        if y != x:
-            raise ValueError(
-                f"seeds {y} and {x} in {seeds} are one seed to torch (equal modulo 2**64): "
-                "members with one seed would be copies"
+        y = seen.get(x % 2**64)
+        if y is not None:  # the same seed again, or one equal to torch
+            same = (
+                f"seed {x} is repeated in {seeds}"
+                if y == x
+                else f"seeds {y} and {x} in {seeds} are one seed to torch (equal modulo 2**64)"
             )
-        if seeds.count(x) > 1:
-            raise ValueError(
-                f"seed {x} is repeated in {seeds}: members with one seed would be copies"
-            )
+            raise ValueError(f"{same}: members with one seed would be copies")
+        seen[x % 2**64] = x
     return seeds, True
 
 

@@ -24,7 +24,9 @@ __all__ = [
     "run",
 ]
 
-PER_STEP = "eta xi kl cross_entropy effective_sample_size policy_entropy n_active_options".split()
+PER_STEP = tuple(
+    "eta xi kl cross_entropy effective_sample_size policy_entropy n_active_options".split()
+)
 """Diagnostics the sequential variant reports per shot (columns ``eta_1``, ``eta_2``, ...)."""
 
 

@@ -124,8 +124,8 @@ def as_float_tensor(
 ) -> Tensor:
     """``value`` (a tensor or numbers; bools as 0 / 1 only with ``allow_bool``) as a detached
     ``dtype`` tensor, values unchecked; numbers go on ``device`` (CPU when None), tensors keep
-    theirs. A ``TypeError`` for bools, complex values or non-numbers, a ``ValueError`` for a
-    meta tensor or one on another ``device`` (when given)."""
+    theirs. A ``TypeError`` for bools, complex values, non-numbers or sparse and nested
+    tensors, a ``ValueError`` for a meta tensor or one on another ``device`` (when given)."""
     if isinstance(value, Tensor):
         if value.layout != torch.strided or value.is_nested:
             what = "nested" if value.is_nested else str(value.layout).removeprefix("torch.")
@@ -134,7 +134,10 @@ def as_float_tensor(
     else:
         try:
             where = device if device is not None else torch.device("cpu")
-            t = torch.as_tensor(value, device=where)
+            try:
+                t = torch.as_tensor(value, device=where)
+            except (TypeError, ValueError, OverflowError):  # integers past int64: as float64
+                t = torch.as_tensor(value, dtype=torch.float64, device=where)
             if t.is_floating_point():  # Python floats keep their float64 precision
                 t = torch.as_tensor(value, dtype=torch.float64, device=where)
         except Exception as exc:

@@ -153,13 +153,12 @@ class DMP(nn.Module):
         """
         dt = check_positive_float("dt", dt)
         ridge = check_nonnegative_float("ridge", ridge)
-        pos = torch.as_tensor(positions, dtype=torch.float64)
+        pos = as_finite_f64("positions", positions)
         if pos.dim() != 2 or pos.shape[1] != self.n_joints or pos.shape[0] < 4:
             raise ValueError(
                 f"positions must have shape (T, {self.n_joints}) with T >= 4, "
                 f"got {tuple(pos.shape)}"
             )
-        pos = as_finite_f64("positions", pos)
         T = pos.shape[0]
         tau = (T - 1) * dt
         vel, acc = finite_differences(pos, dt)
@@ -206,12 +205,12 @@ class DMP(nn.Module):
         J = self.n_joints
         if value is None:
             return default.expand(B, J).clone()
-        v = torch.as_tensor(value, dtype=torch.float64)
+        v = as_finite_f64(name, value)
         if v.shape == (J,):
             v = v.expand(B, J)
         if tuple(v.shape) != (B, J):
             raise ValueError(f"{name} must have shape ({J},) or ({B}, {J}), got {tuple(v.shape)}")
-        return as_finite_f64(name, v).clone()
+        return v.clone()
 
     def _grid(
         self, tau: float, n_steps: int | None, dt: float | None, substeps: int | None
@@ -262,11 +261,10 @@ class DMP(nn.Module):
             :class:`DMPTrajectory` (float64).
         """
         J = self.n_joints
-        g = torch.as_tensor(goal_positions, dtype=torch.float64)
+        g = as_finite_f64("goal_positions", goal_positions)
         if g.dim() != 2 or g.shape[1] != J:
             raise ValueError(f"goal_positions must have shape (B, {J}), got {tuple(g.shape)}")
         B = g.shape[0]
-        g = as_finite_f64("goal_positions", g)
         gd = as_finite_f64("goal_velocities", goal_velocities, (B, J))
         y0 = self._state("start", start, self.start, B)
         yd0 = self._state("start_velocities", start_velocities, self.start_velocity, B)

@@ -269,7 +269,8 @@ def _entries(batch: TensorDictBase, state_key: str, extra: Any) -> list[Tensor]:
     if batch.batch_size.numel() == 0:
         raise ValueError(f"the batch holds no steps (batch size {tuple(batch.batch_size)})")
     keys = [state_key, ("next", state_key), "action", ("next", "reward"), extra]
-    if missing := [k for k in keys if batch.get(k, None) is None]:
+    present = batch.keys(include_nested=True)
+    if missing := [k for k in keys if k not in present]:
         raise ValueError(
             f"the batch holds no {missing[0]!r} entry (state_key = {state_key!r}); its keys: "
             f"{sorted(map(str, batch.keys(include_nested=True, leaves_only=True)))}"

@@ -165,6 +165,15 @@ def test_bad_inputs_raise_clear_errors(dmp):
         dmp.rollout(g[0], gv)
     with pytest.raises(ValueError, match=r"goal_velocities must have shape \(4, 7\), got \(3, 7\)"):
         dmp.rollout(g, gv[:3])
+    for name, args in [
+        ("goal_positions", (g.to(torch.complex128), gv)),
+        ("goal_velocities", (g, gv.to(torch.complex128))),
+        ("start", (g, gv, g.to(torch.complex128))),
+    ]:  # not their real parts in silence
+        with pytest.raises(TypeError, match=f"{name} must hold real numbers"):
+            dmp.rollout(*args)
+    with pytest.raises(TypeError, match="positions must hold real numbers"):
+        DMP(J).imitate(g.to(torch.complex128), 0.01)
     bad = gv.clone()
     bad[2, 5] = float("nan")
     with pytest.raises(ValueError, match=r"goal_velocities contains non-finite .*\[2, 5\]: nan"):

@@ -702,6 +702,15 @@ def test_physics_take_numpy_and_integer_states():
     assert torch.equal(pendulum_step(STATE.long(), a.numpy(), PendulumParams())[0], ref)
 
 
+@pytest.mark.parametrize("big", [2**63, [2**70, 1], np.uint64(2**63 + 5)])
+def test_integers_past_int64_are_numbers(big):
+    from hireps_torch.checks import as_finite_f64, as_float_tensor
+
+    want = torch.as_tensor(big, dtype=torch.float64)
+    assert torch.equal(as_float_tensor("x", big), want)
+    assert torch.equal(as_finite_f64("x", big), want)
+
+
 GYM_ENVS = {"pendulum": PendulumSwingUpEnv, "beam": BallOnBeamEnv}
 
 

@@ -339,7 +339,8 @@ class HiREPSBase:
                 as they were, as for any failed call).
         """
         policy, s = self._at(states, step)
-        gens = self.generator if isinstance(self.generator, list) else [self.generator]
+        gen = self.generator
+        gens = [g for g in (gen if isinstance(gen, list | tuple) else [gen]) if g is not None]
         saved = [g.get_state() for g in gens]
         try:
             return policy.sample(s, self.generator)[0]

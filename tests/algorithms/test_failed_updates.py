@@ -296,3 +296,11 @@ def test_a_sample_that_fails_after_drawing_leaves_the_generators_and_names_memor
     assert_same(before, snapshot(algo))
     monkeypatch.setattr(torch, "einsum", einsum)
     assert torch.equal(algo.ask(5), fresh.ask(5))
+
+
+def test_sampling_from_the_global_rng_or_a_tuple_of_generators_still_works():
+    algo = EpisodicHiREPS.create(param_dim=2, n_options=3, seed=[0, 1])
+    algo.generator = tuple(algo.generator)
+    assert algo.ask(4).shape == (2, 4, 2)
+    algo.generator = None  # the global RNG
+    assert algo.ask(4).shape == (2, 4, 2)

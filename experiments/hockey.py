@@ -12,7 +12,12 @@ import torch
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
 from hireps_torch.experiments.checkpoint import RunState
 from hireps_torch.experiments.loop import Run, ask_tell_loop, check_budget, finish_run, resume_point
-from hireps_torch.experiments.options import RunOptions, check_options, option_error
+from hireps_torch.experiments.options import (
+    RunOptions,
+    check_options,
+    member_seeds,
+    option_error,
+)
 from hireps_torch.experiments.workers import Backend, check_pool, make_pool, reproducible_mkl
 
 __all__ = [
@@ -137,7 +142,8 @@ def _exploration_std(cfg: HockeyConfig, repeats: int, demo: torch.Tensor) -> tor
 
 
 def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params: Any) -> Algorithm:
-    """Time-indexed (14 per shot) or episodic (3 x 14) HiREPS, starting at the demo shot."""
+    """Time-indexed (14 per shot) or episodic (3 x 14) HiREPS, starting at the demo shot; with
+    ``--seeds``, a population whose member s is the algorithm of ``--seed s``."""
     sequential = isinstance(cfg, HockeySequentialConfig)
     std = _exploration_std(cfg, 1 if sequential else n_shots, demo)
     common: dict[str, Any] = dict(
@@ -148,7 +154,7 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params:
         min_variance=variance_floor(cfg, std, 0, 1),
         covariance_prior=cfg.covariance_prior,
         mean_prior=cfg.mean_prior,
-        seed=cfg.seed,
+        seed=cfg.seed if cfg.seeds is None else member_seeds(cfg),
     )
     if cfg.option_features == "aim":
         from hireps_torch.envs.hockey.aim import AimFeatures
@@ -193,13 +199,6 @@ def _check(cfg: HockeyConfig) -> int:
         raise ValueError(
             f"run_hockey needs a HockeySequentialConfig or HockeyEpisodicConfig, got "
             f"{type(cfg).__name__}"
-        )
-    if cfg.seeds is not None:
-        raise option_error(
-            "seeds",
-            cfg.seeds,
-            f"left out: hockey runs one seed per process (hireps-train sweep --experiment ... "
-            f"--seeds {cfg.seeds} runs them side by side)",
         )
     if torch.device(cfg.device).type != "cpu":
         raise option_error("device", cfg.device, "cpu: hockey (pybullet) runs on the CPU")
@@ -271,27 +270,38 @@ def _update(
     zones: tuple[float, float, float, float],
     floor: Callable[[int], torch.Tensor] | None = None,
 ) -> Any:
-    """One iteration: whole K-shot episodes into one ``learn``, returning the row's fields
-    (per-shot diagnostics as ``<name>_<shot>``), the variance floor ``floor(algo.iteration)``
-    set first."""
+    """One iteration: each member's whole K-shot episodes (one batch per member) into one
+    ``learn``, returning each member's row fields (per-shot diagnostics as ``<name>_<shot>``),
+    the variance floor ``floor(algo.iteration)`` set first."""
     from hireps_torch.rollout import episodes
 
-    def update(batch: Any) -> dict[str, Any]:
-        s, a, r, final = episodes(batch, K)
+    def update(batches: list[Any]) -> list[dict[str, Any]]:
+        parts = [episodes(batch, K) for batch in batches]
         if floor is not None:
             low = floor(algo.iteration)
             for policy in algo.policies:
                 for option in policy.sub_policies:
                     option.min_variance = low.to(option.min_variance)
+        s, a, r, _ = (
+            x[0] if algo.population is None else torch.stack(x) for x in zip(*parts, strict=True)
+        )
         diag = algo.learn(Experience(states=s, actions=a, rewards=r))
-        scalars = {k: v for k, v in diag.items() if not isinstance(v, (list, tuple))}
-        steps = {
-            f"{key}_{k + 1}": diag[key][k]
-            for key in PER_STEP
-            if isinstance(diag.get(key), (list, tuple))
-            for k in range(len(diag[key]))
-        }
-        return {**_hockey_rows(r, final, zones), **scalars, **steps}
+        mine = (
+            [diag]
+            if algo.population is None
+            else [{key: value[m] for key, value in diag.items()} for m in range(len(parts))]
+        )
+        rows = []
+        for (_, _, rewards, final), d in zip(parts, mine, strict=True):
+            scalars = {k: v for k, v in d.items() if not isinstance(v, (list, tuple))}
+            steps = {
+                f"{key}_{k + 1}": d[key][k]
+                for key in PER_STEP
+                if isinstance(d.get(key), (list, tuple))
+                for k in range(len(d[key]))
+            }
+            rows.append({**_hockey_rows(rewards, final, zones), **scalars, **steps})
+        return rows
 
     return update
 
@@ -301,9 +311,10 @@ EVAL_FIRST_EPISODE = 10**9
 
 
 def evaluate_final_policy(
-    cfg: HockeyConfig, policies: list[Any], params: Any, n_episodes: int
+    cfg: HockeyConfig, policies: list[Any], params: Any, n_episodes: int, seed: int
 ) -> dict[str, float]:
-    """The final ``policies`` on ``n_episodes`` (>= 1) fresh episodes in this process:
+    """The final ``policies`` (one run's) of the run with ``seed`` on ``n_episodes`` (>= 1)
+    fresh episodes in this process:
     ``eval_average_reward``, ``eval_zone3_share``, ``eval_zone_reward`` (noise-free) and
     ``final_policy_average_reward`` (exploring, on the same starts)."""
     from hireps_torch.envs.hockey import ENV_ID, EPISODIC_ENV_ID
@@ -322,7 +333,7 @@ def evaluate_final_policy(
                 if sequential
                 else policy_module(policies[0], deterministic)
             )
-            _, _, r, final = episodes(play_episodes(env, actor, cfg.seed, indices, K), K)
+            _, _, r, final = episodes(play_episodes(env, actor, seed, indices, K), K)
             rows = _hockey_rows(r, final, params.zones)
             if deterministic:
                 out |= {f"eval_{k}": v for k, v in rows.items() if k != "final_distance"}
@@ -344,7 +355,8 @@ def algorithm(cfg: HockeyConfig) -> Algorithm:
 
 
 def run(cfg: HockeyConfig) -> dict[str, Any]:
-    """Sequential or episodic HiREPS on the simulated robot hockey task; returns the summary."""
+    """Sequential or episodic HiREPS on the simulated robot hockey task, one seed or a
+    population; returns the summary."""
     from hireps_torch.envs.hockey import ENV_ID, EPISODIC_ENV_ID, demo_action
     from hireps_torch.rollout import policy_module, time_indexed_module
 
@@ -362,13 +374,22 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     resume = resume_point(experiment, cfg)
     params = hockey_params(cfg)
     demo = torch.as_tensor(demo_action(params), dtype=torch.float64)  # the initial mean
-    torch.manual_seed(cfg.seed)
+    seeds = member_seeds(cfg)
+    torch.manual_seed(seeds[0])
     algo = _make_algorithm(cfg, params.n_shots, demo, params)
-    policies = list(algo.policies)
-    K = len(policies)  # decision steps per episode: 3 shots, or 1 vector of 42 numbers
+    K = len(algo.policies)  # decision steps per episode: 3 shots, or 1 vector of 42 numbers
     env_id = ENV_ID if sequential else EPISODIC_ENV_ID
     B = cfg.episodes_per_iteration
-    actor = time_indexed_module(policies) if sequential else policy_module(policies[0])
+
+    def members() -> list[list[Any]]:
+        """Each member's policies (copies in a population)."""
+        if algo.population is None:
+            return [list(algo.policies)]
+        return [[p.member(m) for p in algo.policies] for m in range(len(seeds))]
+
+    def actor(policies: list[Any]) -> Any:
+        return time_indexed_module(policies) if sequential else policy_module(policies[0])
+
     floor = None
     if cfg.exploration_floor_end is not None:
         std = _exploration_std(cfg, 1 if sequential else params.n_shots, demo)
@@ -382,8 +403,11 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     )
 
     def step(it: int) -> list[dict[str, Any]]:
-        batch = pool.play(actor, cfg.seed, range(it * B, (it + 1) * B), K)
-        return [{"iteration": it + 1, "episodes": (it + 1) * B, **update(batch)}]
+        episodes = range(it * B, (it + 1) * B)  # member s plays those of the run of seed s
+        batches = [
+            pool.play(actor(p), s, episodes, K) for p, s in zip(members(), seeds, strict=True)
+        ]
+        return [{"iteration": it + 1, "episodes": (it + 1) * B, **row} for row in update(batches)]
 
     try:
         session = ask_tell_loop(
@@ -399,21 +423,17 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
         )
     finally:
         pool.close()
-    last = session.rows[0][-1]
-    shots = iterations * B * params.n_shots
+    shots = iterations * B * params.n_shots * len(seeds)
     elapsed = session.root.elapsed()
     n_eval = B if cfg.final_eval_episodes is None else cfg.final_eval_episodes
-    evaluation = evaluate_final_policy(cfg, policies, params, n_eval) if n_eval > 0 else {}
-    return finish_run(
-        session,
-        curve=("episodes", ["average_reward"]),
-        title=label,
-        ylabel="average reward per episode",
-        summaries=[
+    summaries = []
+    for seed, policies, rows in zip(seeds, members(), session.rows, strict=True):
+        last = rows[-1]
+        summaries.append(
             {
                 "experiment": experiment,
                 "n_options": cfg.n_options,
-                "seed": cfg.seed,
+                "seed": seed,
                 "episodes": iterations * B,
                 "iterations": iterations,
                 "final_average_reward": last["average_reward"],
@@ -422,7 +442,13 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
                 "final_zone_reward": last["zone_reward"],
                 "n_active_options": [int(p.active.sum()) for p in policies],
                 "seconds_per_shot": elapsed / shots,
-                **evaluation,
+                **(evaluate_final_policy(cfg, policies, params, n_eval, seed) if n_eval else {}),
             }
-        ],
+        )
+    return finish_run(
+        session,
+        curve=("episodes", ["average_reward"]),
+        title=label,
+        ylabel="average reward per episode",
+        summaries=summaries,
     )

@@ -35,9 +35,10 @@ class RunOptions:
     seed: int = 0
     """Seed of every random generator of the run (same seed, same run)."""
     seeds: str | None = None
-    """Run these seeds as one population in one process (0-19, 0,3,7 or 0-2,9; bimodal,
-    pendulum and ball-on-beam; replaces --seed): member s writes what --seed s writes, in
-    <run-dir>/seed<s>; <run-dir> gets the population's summary, table and band plot."""
+    """Run these seeds as one population in one process (0-19, 0,3,7 or 0-2,9; replaces
+    --seed): member s writes what --seed s writes, in <run-dir>/seed<s>; <run-dir> gets the
+    population's summary, table and band plot (hockey plays the members' episodes one member
+    after the other)."""
     run_dir: Path | None = None
     """Where to write the run (default runs/<experiment>/<timestamp>); new or empty."""
     resume: Path | None = None

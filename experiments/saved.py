@@ -182,11 +182,17 @@ def _check_member(run_dir: Path, root: Path, saved: Mapping[str, Any]) -> None:
 
 
 def _member_state(population: Any, member: Any, s: int, S: int) -> Any:
-    """Member s's part of a population's state, shaped like ``member`` (a population of one's)."""
+    """Member s's part of a population's state, shaped like ``member`` (a population of one's,
+    or an ordinary algorithm's for hockey)."""
     if isinstance(population, Mapping):
         return {k: _member_state(v, member[k], s, S) for k, v in population.items()}
     if isinstance(population, Tensor) and population.shape != member.shape:
-        return population[s : s + 1].clone()
+        return population[s : s + 1].clone() if population.dim() == member.dim() else population[s]
+    if isinstance(population, list) and isinstance(member, Tensor):  # S generators, one
+        return population[s]
+    if isinstance(population, list) and len(population) == len(member) and member:
+        if isinstance(member[0], Mapping):  # hockey's policies, one per shot
+            return [_member_state(p, m, s, S) for p, m in zip(population, member, strict=True)]
     if isinstance(population, list) and len(population) == S and len(member) == 1:
         return [population[s]]
     return population

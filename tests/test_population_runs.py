@@ -116,7 +116,7 @@ def test_pendulum_population_members_follow_the_kl_schedule(tmp_path):
     [
         (["bimodal", "--seeds", "0,1,0"], ValueError, r"names seed\(s\) \[0\] more than once"),
         (["bimodal", "--seeds", "2-1"], ValueError, "--seeds must look like 0-4"),
-        (["hockey-episodic", "--seeds", "0-1"], ValueError, "hockey runs one seed per process"),
+        (["hockey-episodic", "--seeds", "0-1,1"], ValueError, r"names seed\(s\) \[1\] more"),
         (["pendulum", "--seeds", "0-1", "--workers", "2"], ValueError, r"workers \(--workers\)"),
         (["bimodal", "--seeds", "0-1", "--seed", "5"], ValueError, "--seed 5 and --seeds 0-1"),
     ],
@@ -212,3 +212,36 @@ def test_a_pendulum_member_does_not_depend_on_its_companions(tmp_path):
                 assert abs(x - y) <= ITERATION_SLACK["pendulum"], (key, x, y)
                 continue
             assert y == pytest.approx(x, rel=1e-6, abs=1e-9, nan_ok=True), key
+
+
+HOCKEY = ["--episodes", "4", "--episodes-per-iteration", "2", "--final-eval-episodes", "2"]
+
+
+@pytest.mark.parametrize(
+    "name", ["hockey-sequential", pytest.param("hockey-episodic", marks=pytest.mark.slow)]
+)
+def test_a_hockey_population_member_equals_its_ordinary_run(tmp_path, name):
+    """Each member of a hockey population (its episodes played one member after the other)
+    writes the metrics and summary of its own ``--seed`` run, ends with its policies, and
+    loads as that run does."""
+    pytest.importorskip("pybullet")
+    from hireps_torch import load_run
+
+    summary = run(name, *HOCKEY, "--seeds", "3,5", "--run-dir", str(tmp_path / "pop"))
+    assert summary["seeds"] == [3, 5] and (tmp_path / "pop" / "population.md").is_file()
+    states = torch.tensor([[0.1, 0.2], [0.3, -0.1]], dtype=torch.float64)
+    for seed in (3, 5):
+        alone, member = tmp_path / f"alone{seed}", tmp_path / "pop" / f"seed{seed}"
+        run(name, *HOCKEY, "--seed", str(seed), "--run-dir", str(alone))
+        assert (member / "metrics.csv").read_bytes() == (alone / "metrics.csv").read_bytes()
+        mine, theirs = (json.loads((d / "summary.json").read_text()) for d in (member, alone))
+        for key in ("wall_seconds", "seconds_per_shot"):
+            mine.pop(key), theirs.pop(key)
+        assert mine == theirs and mine["seed"] == seed
+        a, b = load_run(member), load_run(alone)
+        assert a.iteration == b.iteration == 2
+        for step in range(len(a.algorithm.policies)):
+            assert torch.equal(a.mean_action(states, step), b.mean_action(states, step))
+        for p, q in zip(a.algorithm.policies, b.algorithm.policies, strict=True):
+            for (key, x), y in zip(p.state_dict().items(), q.state_dict().values(), strict=True):
+                torch.testing.assert_close(x, y, rtol=1e-8, atol=1e-12, msg=key)

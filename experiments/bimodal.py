@@ -170,9 +170,7 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
 
 
 def _task(cfg: BimodalConfig) -> TwoGaussians | ContextualTwoGaussians:
-    if cfg.contextual:
-        return ContextualTwoGaussians(width=cfg.bump_width)
-    return TwoGaussians(width=cfg.bump_width)
+    return (ContextualTwoGaussians if cfg.contextual else TwoGaussians)(width=cfg.bump_width)
 
 
 def _summary(
@@ -202,11 +200,11 @@ def option_summary(
 ) -> list[dict[str, Any]]:
     """Active options: prior mass (over the task's contexts) and mean at context 0."""
     pol = algo.policy
-    ctx = torch.zeros(1, task.context_dim, dtype=torch.float64)
+    zero = torch.zeros(1, task.context_dim, dtype=torch.float64)
+    ctx = zero
     if isinstance(task, ContextualTwoGaussians):
         ctx = torch.linspace(-1, 1, 21, dtype=torch.float64)[:, None]
     prior = pol.gating.probs(pol.gating_features(ctx)).mean(0)
-    zero = torch.zeros(1, task.context_dim, dtype=torch.float64)
     return [
         {
             "option": o,

@@ -82,11 +82,7 @@ class BatchedTaskState:
                 setattr(member, name, value.clone())
             member.gen.set_state(saved["gen"])
         if self.carry:
-            carrier = getattr(self.collector, "_carrier", None)
-            if carrier is None:  # pragma: no cover - a torchrl version without it
-                raise RuntimeError(
-                    "exact resume needs torchrl's Collector._carrier (torchrl==0.14.1)"
-                )
+            carrier = self.collector._carrier  # torchrl==0.14.1's collector state
             carrier.set("state", task.state.clone())
             carrier.set("observation", task.state.to(carrier.get("observation").dtype))
             for key in ("done", "terminated", "truncated"):

@@ -148,7 +148,7 @@ def as_float_tensor(
         raise TypeError(
             f"{name} must be a number or a tensor of numbers, got bools: {_short(value)}"
         )
-    if t.is_complex() or not (t.is_floating_point() or t.dtype == torch.bool or _is_int(t)):
+    if t.is_complex():
         raise TypeError(f"{name} must hold real numbers, got dtype {t.dtype}")
     if device is not None and t.device != torch.device(device):
         raise ValueError(
@@ -243,10 +243,6 @@ def check_generator(name: str, value: object) -> torch.Generator | None:
     return value
 
 
-def _is_int(t: Tensor) -> bool:
-    return not t.is_floating_point() and not t.is_complex() and t.dtype != torch.bool
-
-
 def check_count(name: str, value: object, minimum: int = 1) -> int:
     """An integer (Python, numpy or 0-d tensor; not bool or float) >= ``minimum`` as an int."""
     if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
@@ -277,7 +273,7 @@ def check_seed(name: str, value: object) -> int:
     return seed
 
 
-def check_positive_float(name: str, value: float) -> float:
+def check_positive_float(name: str, value: object) -> float:
     """A finite scalar > 0 (:func:`as_float`), as a float."""
     v = as_float(name, value)
     if not (math.isfinite(v) and v > 0):
@@ -285,7 +281,7 @@ def check_positive_float(name: str, value: float) -> float:
     return v
 
 
-def check_nonnegative_float(name: str, value: float) -> float:
+def check_nonnegative_float(name: str, value: object) -> float:
     """A finite scalar >= 0 (:func:`as_float`), as a float."""
     v = as_float(name, value)
     if not (math.isfinite(v) and v >= 0):
@@ -337,7 +333,7 @@ def check_state_dict(
         if ref.dtype == torch.bool and saved.dtype != torch.bool:
             raise ValueError(f"{what}: state entry {key!r} must be bool, got {saved.dtype}")
         if ref.is_floating_point():
-            if saved.is_complex() or not (saved.is_floating_point() or _is_int(saved)):
+            if saved.is_complex() or saved.dtype == torch.bool:
                 raise ValueError(f"{what}: state entry {key!r} must be real, got {saved.dtype}")
             if not all_finite(saved):
                 raise ValueError(f"{what}: state entry {key!r} holds non-finite values")

@@ -398,15 +398,7 @@ class HiREPSBase:
         given = set(state)
         missing, unexpected = sorted(required - given), sorted(given - required - {"generator"})
         if missing or unexpected:
-            writer = (
-                "TimeIndexedHiREPS"
-                if "policies" in given
-                else "InfiniteHorizonHiREPS"
-                if "gamma" in given
-                else "EpisodicHiREPS / REPS"
-                if "policy" in given
-                else "an unknown writer"
-            )
+            writer = next((w for k, w in _WRITERS.items() if k in given), "an unknown writer")
             raise ValueError(
                 f"{algorithm}.load_state_dict: this state does not fit (missing keys {missing}, "
                 f"unexpected keys {unexpected}); it looks like a checkpoint of {writer}"
@@ -445,6 +437,14 @@ class HiREPSBase:
         self.iteration, self.kappa_rel = iteration, kappa_rel
 
 
+_WRITERS = {
+    "policies": "TimeIndexedHiREPS",
+    "gamma": "InfiniteHorizonHiREPS",
+    "policy": "EpisodicHiREPS / REPS",
+}
+"""A checkpoint's telling key -> the algorithm that writes it (the first that fits)."""
+
+
 def check_epsilons(epsilon: object, K: int) -> list[float]:
     """epsilon (one number or K, e.g. a (K,) tensor) as K floats > 0."""
     shape = getattr(epsilon, "shape", None)
@@ -453,7 +453,7 @@ def check_epsilons(epsilon: object, K: int) -> list[float]:
             f"epsilon must be a float or {K} floats, got {type(epsilon).__name__} {epsilon!r}"
         )
     if isinstance(epsilon, numbers.Real | bool) or (shape is not None and len(shape) == 0):
-        return [check_positive_float("epsilon", epsilon)] * K  # type: ignore[arg-type]
+        return [check_positive_float("epsilon", epsilon)] * K
     try:
         items = list(epsilon)  # type: ignore[call-overload]
     except TypeError:

@@ -13,11 +13,11 @@ from torch import Tensor
 from hireps_torch._linalg import logsumexp
 from hireps_torch.checks import (
     as_f64,
-    as_float,
     as_float_tensor,
     check_count,
     check_finite,
     check_positive,
+    check_positive_float,
 )
 from hireps_torch.dual.block_solver import LbfgsSettings
 from hireps_torch.dual.solutions import DegenerateWeightsWarning
@@ -93,10 +93,17 @@ def per_block(
     )
 
 
-def _shape_text(lead: tuple[int, ...], last: str, population: bool = False) -> str:
-    """'(N, K, F) = (60, 3, F)' for lead (60, 3) and last 'F' (S first for a population)."""
-    names = (["S"] if population else []) + ["N", "K"][: len(lead) - population] + [last]
-    return f"({', '.join(names)}) = ({', '.join([*map(str, lead), last])})"
+def _led(
+    name: str, x: Tensor, lead: tuple[int, ...], last: str, population: bool, device: torch.device
+) -> Tensor:
+    """``x`` as float64 on ``device``, of shape (*lead, ``last``), else a ValueError naming the
+    shape, e.g. '(N, K, F) = (60, 3, F)' for lead (60, 3) (S first for a population)."""
+    t = as_f64(name, x, device)
+    if t.dim() != len(lead) + 1 or tuple(t.shape[:-1]) != lead:
+        names = (["S"] if population else []) + ["N", "K"][: len(lead) - population] + [last]
+        shape = f"({', '.join(names)}) = ({', '.join([*map(str, lead), last])})"
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+    return t
 
 
 @dataclass(frozen=True)
@@ -115,10 +122,7 @@ class Checked:
 
     def features(self, name: str, x: Tensor) -> Tensor:
         """Features (*lead, F) checked, on R's device, as (S, N, [K,] F)."""
-        phi = as_f64(name, x, self.R.device)
-        if phi.dim() != len(self.lead) + 1 or tuple(phi.shape[:-1]) != self.lead:
-            shape = _shape_text(self.lead, "F", self.population)
-            raise ValueError(f"{name} must have shape {shape}, got {tuple(phi.shape)}")
+        phi = _led(name, x, self.lead, "F", self.population, self.R.device)
         check_finite(name, phi)
         return phi.reshape(self.R.shape[0], *self.lead[self.population :], -1)
 
@@ -229,12 +233,7 @@ def _log_responsibilities(
     N = lead[int(population)]
     if x is None:
         return torch.zeros(S, K, N, 1, dtype=torch.float64, device=device)
-    lr = as_f64("log_responsibilities", x, device)
-    if lr.dim() != len(lead) + 1 or tuple(lr.shape[:-1]) != lead:
-        raise ValueError(
-            f"log_responsibilities must have shape {_shape_text(lead, 'O', population)}, got "
-            f"{tuple(lr.shape)}"
-        )
+    lr = _led("log_responsibilities", x, lead, "O", population, device)
     return check_log_resp(lr).reshape(S, N, K, -1).transpose(1, 2).contiguous()
 
 
@@ -265,12 +264,9 @@ def check_settings(
     tols = []
     for name, value in (("tolerance_grad", tolerance_grad), ("converged_grad", converged_grad)):
         try:
-            t = as_float(name, value)
+            tols.append(check_positive_float(name, value))
         except (TypeError, ValueError) as exc:
             raise type(exc)(f"{name} must be a finite number > 0, got {value!r}") from None
-        if not (math.isfinite(t) and t > 0):
-            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        tols.append(t)
     return LbfgsSettings(n, tols[0], tols[1])
 
 

@@ -164,7 +164,7 @@ def finish(
     c: Tensor | None,
     dual_value: Tensor,
     converged: Tensor,
-    iterations: int | Tensor,
+    iterations: Tensor,
 ) -> DualSolution:
     """The (S, K) :class:`DualSolution` of weights w (S, K, N, O) with its diagnostics; float64
     inputs with a leading S (D (S, K, N, P), c (S, P))."""
@@ -180,11 +180,7 @@ def finish(
         feature_error=feature_error(w, D, c),
         dual_value=dual_value,
         converged=converged,
-        iterations=(
-            iterations
-            if isinstance(iterations, Tensor)
-            else torch.full_like(converged, iterations, dtype=torch.int64)
-        ),
+        iterations=iterations,
     )
 
 

@@ -197,7 +197,7 @@ def _solve_one(
         c,
         dual / r_scale,
         converged,
-        solver.iterations,
+        torch.tensor([solver.iterations], device=R.device),
     )
     return sol, said
 

@@ -35,8 +35,6 @@ from hireps_torch.checks import (
 __all__ = ["DMP", "DMPTrajectory"]
 
 _DEFAULT_OUTPUT_DT = 0.01  # s, output sample interval when neither n_steps nor dt is given
-_DERIV = torch.diag(torch.arange(1, 6, dtype=torch.float64), diagonal=-1)
-"""(6, 6): quintic coefficients m -> those of the derivative, m @ _DERIV = m'."""
 _MIN_RK4_STEPS = 500  # default: at least this many RK4 steps per movement
 _CONSTRAINT_RK4_STEPS = 2000  # RK4 steps for the basis responses E_i(1), E_i'(1)
 
@@ -127,8 +125,9 @@ class DMP(nn.Module):
 
     def _drive_matrix(self) -> Tensor:
         """(6, 6): coefficients of g_m -> those of alpha_z beta_z g_m + alpha_z g_m' + g_m''."""
+        deriv = torch.diag(torch.arange(1, 6, dtype=torch.float64), diagonal=-1)  # m @ deriv = m'
         eye = torch.eye(6, dtype=torch.float64)
-        return self.alpha_z * self.beta_z * eye + self.alpha_z * _DERIV + _DERIV @ _DERIV
+        return self.alpha_z * self.beta_z * eye + self.alpha_z * deriv + deriv @ deriv
 
     def _end_constraint(self) -> Tensor:
         """(2, n_basis): e(1), e'(1) of each normalised basis function as the forcing."""
@@ -276,10 +275,11 @@ class DMP(nn.Module):
         m = quintic_coefficients(y0, tau * yd0, g, tau * gd)  # (B, J, 6)
         s = torch.arange(n_steps + 1, dtype=torch.float64) / n_steps
         powers = s[:, None] ** torch.arange(6, dtype=torch.float64)  # (T, 6)
+        deriv = torch.diag(torch.arange(1, 6, dtype=torch.float64), diagonal=-1)
         e, ez, ezdot = self._shape_response(n_steps, substeps)  # (T, J) each
         y = torch.einsum("tk,bjk->btj", powers, m) + e
-        z = torch.einsum("tk,bjk->btj", powers, m @ _DERIV) + ez
-        zdot = torch.einsum("tk,bjk->btj", powers, m @ _DERIV @ _DERIV) + ezdot
+        z = torch.einsum("tk,bjk->btj", powers, m @ deriv) + ez
+        zdot = torch.einsum("tk,bjk->btj", powers, m @ deriv @ deriv) + ezdot
         times = s * tau
         return DMPTrajectory(y, z / tau, zdot / tau**2, times)
 

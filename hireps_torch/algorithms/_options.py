@@ -88,7 +88,8 @@ def plan_refit(
     block: int = 0,
 ) -> Refit:
     """The refit of ``policy`` to block ``block`` of ``sol.weights`` (S, K, N, O), without
-    changing it; context ([S,] N, C), theta ([S,] N, D). ValueError: a failing refit."""
+    changing it; context ([S,] N, C), theta ([S,] N, D). ValueError: non-finite weights or a
+    failing refit."""
     lead, O = policy.batch_shape, policy.n_options
     w = sol.weights[:, block, :, :O]
     N = w.shape[-2]
@@ -101,6 +102,13 @@ def plan_refit(
     informed = informed_members(w, eta, bound, active, kl)
     flags = informed.reshape(-1).tolist()
     any_informed, every = any(flags), all(flags)
+    if not math.isfinite(float(w.sum())):  # each member's weights sum to 1 where finite
+        bad = (~torch.isfinite(w).flatten(-2).all(-1)).reshape(-1).nonzero()[0, 0]
+        who = f"member {int(bad)}: " if lead else ""
+        raise ValueError(
+            f"{who}the dual returned non-finite weights (eta = {float(sol.eta[bad, block])}, "
+            f"converged = {bool(sol.converged[bad])}); the policy is left unchanged"
+        )
     if not any_informed:
         return Refit(None, informed, sol, bound, block)
     if not every:  # the others' fits are discarded

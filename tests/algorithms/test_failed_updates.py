@@ -184,6 +184,37 @@ def test_a_late_failure_changes_nothing(make, data, call, dual, monkeypatch):
     assert algo.iteration == 2
 
 
+@pytest.mark.parametrize(
+    "make, data, call, dual",
+    [
+        (make_episodic, episodic_data, "tell", "episodic.episodic_solution"),
+        (make_ti, ti_data, "tell", "time_indexed.time_indexed_solution"),
+        (make_ih, ih_data, "update", "infinite_horizon.infinite_horizon_solution"),
+    ],
+)
+def test_non_finite_weights_from_the_dual_are_refused_and_change_nothing(
+    make, data, call, dual, monkeypatch
+):
+    import dataclasses
+    import importlib
+
+    algo = make()
+    args = data(algo, seed=3)
+    module, name = dual.split(".")
+    solve = getattr(importlib.import_module(f"hireps_torch.algorithms.{module}"), name)
+
+    def nan_weights(*a, **k):  # a dual that regressed: one weight NaN
+        sol = solve(*a, **k)
+        w = sol.weights.clone()
+        w[0, -1, 0, 0] = math.nan
+        return dataclasses.replace(sol, weights=w)
+
+    monkeypatch.setattr(f"hireps_torch.algorithms.{dual}", nan_weights)
+    expect_unchanged(
+        algo, lambda: getattr(algo, call)(*args), "the dual returned non-finite weights"
+    )
+
+
 def test_parameters_that_overflow_the_refit_are_refused_and_change_nothing():
     algo = REPS.create(2, init_std=1.0, seed=0)
     th = algo.ask(20)

@@ -8,6 +8,7 @@ import numbers
 import operator
 from collections.abc import Mapping
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -93,11 +94,17 @@ def check_positive(name: str, value: Tensor) -> None:
 
 def as_float(name: str, value: object) -> float:
     """A real scalar (number or 0-d tensor) as a float; NaN and inf pass. A ``TypeError`` for a
-    bool or non-number, a ``ValueError`` for a tensor or array with dimensions."""
-    if isinstance(value, bool) or (isinstance(value, Tensor) and value.dtype == torch.bool):
+    bool, a complex or non-number, a ``ValueError`` for a tensor or array with dimensions, a
+    meta tensor or an integer past float64's range."""
+    if isinstance(value, bool | np.bool_) or (
+        isinstance(value, Tensor) and value.dtype == torch.bool
+    ):
         raise TypeError(f"{name} must be a number, got the bool {value!r}")
     if isinstance(value, numbers.Real):
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # an integer past float64's range
+            raise ValueError(f"{name} is beyond float64's range, got {value!r:.60}") from None
     shape = getattr(value, "shape", None)
     if shape is not None:
         if len(shape) != 0:
@@ -105,8 +112,13 @@ def as_float(name: str, value: object) -> float:
                 f"{name} must be one number (a float or a 0-d tensor), got a "
                 f"{type(value).__name__} of shape {tuple(shape)}"
             )
-        if isinstance(value, Tensor) and (value.is_complex() or value.dtype == torch.bool):
-            raise TypeError(f"{name} must be a real number, got a {value.dtype} tensor")
+        if isinstance(value, Tensor):
+            if value.is_complex():
+                raise TypeError(f"{name} must be a real number, got a {value.dtype} tensor")
+            if value.is_meta:
+                raise ValueError(f"{name} is a meta tensor (no values); pass a number")
+        elif isinstance(value, np.ndarray | np.generic) and np.iscomplexobj(value):
+            raise TypeError(f"{name} must be a real number, got a complex {type(value).__name__}")
         try:
             return float(value)  # type: ignore[arg-type]
         except (TypeError, ValueError):

@@ -467,6 +467,34 @@ def make_ih(**kw):
     return InfiniteHorizonHiREPS.create(1, 1, **(args | kw))
 
 
+@pytest.mark.parametrize(
+    "value, error, match",
+    [
+        (10**400, ValueError, "epsilon is beyond float64's range, got 1000"),
+        (-(10**400), ValueError, "epsilon is beyond float64's range, got -1000"),
+        (np.bool_(True), TypeError, "epsilon must be a number, got the bool"),
+        (np.complex128(1), TypeError, "epsilon must be a real number, got a complex"),
+        (np.array(1 + 0j), TypeError, "epsilon must be a real number, got a complex ndarray"),
+        (torch.tensor(0.5, device="meta"), ValueError, "epsilon is a meta tensor"),
+    ],
+    ids=[
+        "int past float64",
+        "-int past float64",
+        "numpy bool",
+        "numpy complex",
+        "complex array",
+        "meta tensor",
+    ],
+)
+def test_odd_scalars_are_named_where_a_number_enters(value, error, match):
+    """They were: an OverflowError without the option's name, numpy's bool and complex taken as
+    1.0 (with a ComplexWarning), and an error from torch for the meta tensor."""
+    with pytest.raises(error, match=match):
+        EpisodicHiREPS.create(2, epsilon=value)
+    with pytest.raises(error, match=match.replace("epsilon", "gamma")):
+        make_ih(gamma=value)
+
+
 ALGO_CREATE_PROBES = {
     "seed beyond torch's range": (
         lambda: EpisodicHiREPS.create(2, seed=2**70),

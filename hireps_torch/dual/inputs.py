@@ -266,7 +266,7 @@ def check_settings(
         try:
             tols.append(check_positive_float(name, value))
         except (TypeError, ValueError) as exc:
-            raise type(exc)(f"{name} must be a finite number > 0, got {value!r}") from None
+            raise type(exc)(f"{name} must be a finite number > 0, got {value!r:.60}") from None
     return LbfgsSettings(n, tols[0], tols[1])
 
 

@@ -12,7 +12,13 @@ import torch
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
 from hireps_torch.experiments.checkpoint import RunState
-from hireps_torch.experiments.loop import Run, ask_tell_loop, finish_run, resume_point
+from hireps_torch.experiments.loop import (
+    MAX_COUNT,
+    Run,
+    ask_tell_loop,
+    finish_run,
+    resume_point,
+)
 from hireps_torch.experiments.options import (
     RunOptions,
     check_options,
@@ -60,8 +66,9 @@ class BimodalConfig(RunOptions):
 def _validate(cfg: BimodalConfig) -> None:
     check_options(cfg, counts=("n_options",), positive=("bump_width", "init_std"))
     check_variance_floor(cfg)
-    if cfg.samples_per_iteration < 2:
-        raise ValueError(f"samples_per_iteration must be >= 2, got {cfg.samples_per_iteration}")
+    for name, low in (("samples_per_iteration", 2), ("episodes", 1)):
+        if not low <= getattr(cfg, name) <= MAX_COUNT:
+            raise ValueError(f"{name} must be in {low}..{MAX_COUNT}, got {getattr(cfg, name)}")
     if cfg.episodes < cfg.samples_per_iteration:
         raise ValueError(
             f"episodes ({cfg.episodes}) must be at least samples_per_iteration "

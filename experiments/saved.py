@@ -6,6 +6,7 @@ actions = run.mean_action(states)          # (N, C) -> (N, D), the final policy'
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,6 +81,8 @@ def load_run(run_dir: str | Path) -> LoadedRun:
     ``hireps-train``, changing nothing on disk; a ``ValueError`` says what is wrong."""
     from hireps_torch.experiments import EXPERIMENTS
 
+    if not isinstance(run_dir, str | os.PathLike):
+        raise TypeError(f"run_dir must be a path (str or Path), got {type(run_dir).__name__}")
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
         raise ValueError(f"{run_dir} holds no config.json: it is not a run directory")

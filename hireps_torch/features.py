@@ -102,14 +102,14 @@ class QuadraticFeatures(FeatureMap):
         iu = torch.triu_indices(in_features, in_features)
         self.register_buffer("_rows", iu[0], persistent=False)
         self.register_buffer("_cols", iu[1], persistent=False)
-        s = (
-            torch.ones(in_features)
-            if scale is None
-            else as_float_tensor("scale", scale, torch.float32)
-        )
-        if s.shape != (in_features,) or not bool((torch.isfinite(s) & (s > 0)).all()):
-            raise ValueError(f"scale must be positive with shape ({in_features},), got {s}")
-        self.register_buffer("scale", s.clone())
+        s = torch.ones(in_features) if scale is None else as_float_tensor("scale", scale)
+        s32 = s.to(torch.float32)  # checked as given, kept as float32
+        if s.shape != (in_features,) or not bool((torch.isfinite(s32) & (s32 > 0)).all()):
+            raise ValueError(
+                f"scale must be positive with shape ({in_features},) and in float32's range, "
+                f"got {s}"
+            )
+        self.register_buffer("scale", s32.clone())
 
     def forward(self, x: Tensor) -> Tensor:
         """x: (..., C) -> (..., C + C(C+1)/2)."""
@@ -156,8 +156,12 @@ class FourierFeatures(FeatureMap):
                 f"low and high must both have shape (C,) (C: the state dimension), got "
                 f"{tuple(lo.shape)} and {tuple(hi.shape)}"
             )
-        if not bool((torch.isfinite(lo) & torch.isfinite(hi) & (hi > lo)).all()):
-            raise ValueError(f"need finite high > low elementwise, got {lo}, {hi}")
+        width = hi - lo  # finite and not subnormal, or the features are 1 or NaN
+        if not bool((torch.isfinite(width) & (width >= torch.finfo(width.dtype).tiny)).all()):
+            raise ValueError(
+                f"need finite high > low elementwise, with high - low finite and at least "
+                f"{torch.finfo(width.dtype).tiny:.3g}, got {lo}, {hi}"
+            )
         C = lo.shape[0]
         counts = _bases_per_dimension(n_bases, C)
         per = _periodic_flags(periodic, C)
@@ -183,7 +187,7 @@ class FourierFeatures(FeatureMap):
         self.with_sin = any(per)
         self.out_features = (coeffs.shape[0] - 1) * (2 if self.with_sin else 1)
         self.register_buffer("low", lo)
-        self.register_buffer("width", hi - lo)
+        self.register_buffer("width", width)
         self.register_buffer("coefficients", coeffs[1:])
 
     def forward(self, x: Tensor) -> Tensor:

@@ -194,6 +194,21 @@ def test_generic_solver_keeps_the_kl_bound_when_the_constraints_conflict():
     assert any(issubclass(r.category, InfeasibleConstraintsWarning) for r in record)
 
 
+@pytest.mark.parametrize("size", [1e-310, 1e-320])
+def test_subnormal_returns_give_the_scaled_solution(size):
+    """Returns in float64's subnormal range: eta scales with them and the bound holds (the
+    entropy-bounded solve's power-of-2 prescale overflowed to inf: eta NaN, 'converged')."""
+    gen = torch.Generator().manual_seed(0)
+    R = randn(gen, 100)
+    lr = torch.log_softmax(randn(gen, 100, 3), -1)
+    unit = solve_episodic_dual(R, epsilon=0.5, log_responsibilities=lr, kappa=0.9)
+    tiny = solve_episodic_dual(R * size, epsilon=0.5, log_responsibilities=lr, kappa=0.9)
+    assert bool(tiny.converged.all())
+    assert float(tiny.kl.max()) <= 0.5 * KL_TOL
+    rel = float(tiny.eta.reshape(-1)[0]) / (size * float(unit.eta.reshape(-1)[0]))
+    assert abs(rel - 1) < 1e-2
+
+
 # ---- converged means every constraint holds ---------------------------------------------
 @pytest.mark.parametrize("seed", range(3))
 def test_converged_means_kl_entropy_and_features_hold(seed):

@@ -57,6 +57,17 @@ def test_feature_maps_reject_bad_arguments():
         FourierFeatures([0.0], [1.0])(torch.zeros(3, 2))
 
 
+@pytest.mark.parametrize(
+    "low, high",
+    [([-1e308, -1e308], [1e308, 1e308]), ([0.0, 0.0], [5e-324, 5e-324])],
+    ids=["width past float64", "subnormal width"],
+)
+def test_a_fourier_box_whose_width_is_not_a_normal_number_is_refused(low, high):
+    """Its features were all 1 (an infinite width) or all NaN (a subnormal one)."""
+    with pytest.raises(ValueError, match="high - low finite and at least 2.23e-308"):
+        FourierFeatures(low, high, n_bases=3)
+
+
 def test_quadratic_features_match_their_formula():
     # [z, z_i z_j for i <= j] with z = x / scale, batch dimensions kept
     quad = QuadraticFeatures(2, scale=torch.tensor([2.0, 1.0]))
@@ -97,6 +108,9 @@ def test_feature_maps_check_widths_dtypes_and_arguments():
         assert fmap(ints).dtype == torch.float64
     with pytest.raises(ValueError, match="scale must be positive"):
         QuadraticFeatures(2, scale=torch.tensor([math.nan, 1.0]))
+    for big_or_tiny in (1e200, 1e-200):  # named as given (they were named inf / 0 in float32)
+        with pytest.raises(ValueError, match=r"in float32's range, got .*e[+-]200"):
+            QuadraticFeatures(2, scale=[big_or_tiny, 1.0])
     with pytest.raises(ValueError, match="finite high > low"):
         FourierFeatures([0.0], [math.inf])
     with pytest.raises(TypeError, match="coupling must be an integer"):

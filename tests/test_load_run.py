@@ -125,6 +125,9 @@ def test_an_interrupted_run_loads_at_its_last_checkpoint(tmp_path, monkeypatch):
 
 
 def test_directories_that_are_not_loadable_runs_get_a_clear_error(tmp_path):
+    for bad in (None, 123, b"runs"):  # pathlib's own TypeError, not naming run_dir, before
+        with pytest.raises(TypeError, match="run_dir must be a path"):
+            hireps_torch.load_run(bad)
     with pytest.raises(ValueError, match="holds no config.json"):
         hireps_torch.load_run(tmp_path / "nowhere")
     other = tmp_path / "other"

@@ -88,9 +88,16 @@ def test_existing_run_directory_is_never_overwritten(tmp_path):
 @pytest.mark.parametrize(
     "options,message",
     [
-        ({"samples_per_iteration": 1}, "samples_per_iteration must be >= 2"),
+        ({"samples_per_iteration": 1}, "samples_per_iteration must be in 2..1000000000, got 1"),
         ({"episodes": 50}, "episodes (50) must be at least samples_per_iteration"),
+        # they were a torch overflow (10**23 samples) and ~5e20 iterations (10**23 episodes)
+        (
+            {"samples_per_iteration": 10**23, "episodes": 10**23},
+            f"samples_per_iteration must be in 2..1000000000, got {10**23}",
+        ),
+        ({"episodes": 10**23}, f"episodes must be in 1..1000000000, got {10**23}"),
     ],
+    ids=["samples 1", "episodes < samples", "samples 1e23", "episodes 1e23"],
 )
 def test_bad_config_gives_a_clear_error(tmp_path, options, message):
     with pytest.raises(ValueError, match=re.escape(message)):

@@ -347,22 +347,24 @@ class HiREPSBase:
         except BaseException as exc:
             for g, state in zip(gens, saved, strict=True):
                 g.set_state(state)
-            if isinstance(exc, torch.OutOfMemoryError) or any(
-                why in str(exc) for why in ("can't allocate", "size calculation overflowed")
-            ):
-                N, O, D, lead = s.shape[-2], policy.n_options, policy.action_dim, s.shape[:-2]
-                raise MemoryError(
-                    f"sampling N = {N:,} needs {'S x ' if lead else ''}N x {O} options x {D} "
-                    f"float64 values ({lead.numel() * N * O * D * 8 / 1e9:.3g} GB) several "
-                    "times at once, more than this machine could allocate: ask for fewer"
-                ) from exc
+            if (too_many := _out_of_memory(exc, "sampling", s, policy)) is not None:
+                raise too_many from exc
             raise
 
     @torch.no_grad()
     def mean_action(self, states: Tensor | int | None, step: int = 0) -> Tensor:
-        """Noise-free actions ([S,] N, D) at ``step``: the mean of the most probable option."""
+        """Noise-free actions ([S,] N, D) at ``step``: the mean of the most probable option.
+
+        Raises:
+            MemoryError: the N x options values do not fit in memory.
+        """
         policy, s = self._at(states, step)
-        return policy.mean_action(s)[0]
+        try:
+            return policy.mean_action(s)[0]
+        except BaseException as exc:
+            if (too_many := _out_of_memory(exc, "the mean action of", s, policy)) is not None:
+                raise too_many from exc
+            raise
 
     def to(self, device: torch.device | str) -> Self:
         """Move policies, feature maps and learned values to ``device``; return ``self``. The
@@ -435,6 +437,23 @@ class HiREPSBase:
             else:
                 self.generator.set_state(gen)
         self.iteration, self.kappa_rel = iteration, kappa_rel
+
+
+def _out_of_memory(
+    exc: BaseException, doing: str, s: Tensor, policy: HierarchicalPolicy
+) -> MemoryError | None:
+    """A MemoryError naming N when ``exc`` is torch's failure to allocate for states s
+    ([S,] N, C), else None."""
+    if not isinstance(exc, torch.OutOfMemoryError) and not any(
+        why in str(exc) for why in ("can't allocate", "size calculation overflowed")
+    ):
+        return None
+    N, O, D, lead = s.shape[-2], policy.n_options, policy.action_dim, s.shape[:-2]
+    return MemoryError(
+        f"{doing} N = {N:,} needs {'S x ' if lead else ''}N x {O} options x {D} float64 values "
+        f"({lead.numel() * N * O * D * 8 / 1e9:.3g} GB) several times at once, more than this "
+        "machine could allocate: ask for fewer"
+    )
 
 
 _WRITERS = {

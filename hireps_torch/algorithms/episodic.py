@@ -156,6 +156,8 @@ class EpisodicHiREPS(HiREPSBase):
             count = n if contexts is None else check_count("the number of samples", contexts, 1)
             if count is None or count < 1:
                 raise ValueError(f"the number of samples must be >= 1, got {count}")
+            if count >= 2**63:  # torch's sizes are int64
+                raise ValueError(f"the number of samples must be below 2**63, got {count}")
             shape = (*self.policy.batch_shape, count, 0)
             return torch.zeros(shape, dtype=torch.float64, device=self.device)
         lead, C = self.policy.batch_shape, self.context_dim

@@ -236,9 +236,9 @@ def _caller_units(
 
 def _pow2_scale(m: Tensor) -> Tensor:
     """2^-e for m = f 2^e, f in [0.5, 1) (1 where m = 0), applied as two factors so it cannot
-    overflow."""
+    overflow; at most 2^1022 (subnormal m: the scaled values stay below 0.5)."""
     _, e = torch.frexp(m.to(torch.float64))
-    e = torch.where(m > 0, e, torch.zeros_like(e)).to(torch.float64)
+    e = torch.where(m > 0, e, torch.zeros_like(e)).clamp_min(-1022).to(torch.float64)
     half = torch.floor(-e / 2)
     return torch.pow(2.0, half) * torch.pow(2.0, -e - half)
 

@@ -329,6 +329,23 @@ def test_a_sample_that_fails_after_drawing_leaves_the_generators_and_names_memor
     assert torch.equal(algo.ask(5), fresh.ask(5))
 
 
+def test_a_mean_action_past_memory_and_counts_past_int64_are_named(monkeypatch):
+    """They were torch's allocator error and 'Overflow when unpacking long long'."""
+    algo = EpisodicHiREPS.create(param_dim=2, n_options=3, seed=0)
+    for call in (algo.ask, algo.act, algo.mean_action):
+        with pytest.raises(
+            ValueError, match=r"number of samples must be below 2\*\*63, got 9223372036854775808"
+        ):
+            call(2**63)
+
+    def no_memory(*args):
+        raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried ...")
+
+    monkeypatch.setattr(algo.policy, "mean_action", no_memory)
+    with pytest.raises(MemoryError, match=r"the mean action of N = 40 needs N x 3 options x 2"):
+        algo.act(40)
+
+
 def test_sampling_from_the_global_rng_or_a_tuple_of_generators_still_works():
     algo = EpisodicHiREPS.create(param_dim=2, n_options=3, seed=[0, 1])
     algo.generator = tuple(algo.generator)

@@ -103,7 +103,8 @@ class QuadraticFeatures(FeatureMap):
         self.register_buffer("_rows", iu[0], persistent=False)
         self.register_buffer("_cols", iu[1], persistent=False)
         s = torch.ones(in_features) if scale is None else as_float_tensor("scale", scale)
-        s32 = s.to(torch.float32)  # checked as given, kept as float32
+        # named as given, kept as float32 (rounded once, as integers past 2^53 need)
+        s32 = s if scale is None else as_float_tensor("scale", scale, torch.float32)
         if s.shape != (in_features,) or not bool((torch.isfinite(s32) & (s32 > 0)).all()):
             raise ValueError(
                 f"scale must be positive with shape ({in_features},) and in float32's range, "

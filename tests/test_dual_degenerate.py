@@ -195,6 +195,22 @@ def test_generic_solver_keeps_the_kl_bound_when_the_constraints_conflict():
 
 
 @pytest.mark.parametrize("size", [1e-310, 1e-320])
+def test_subnormal_features_give_the_scaled_values(size):
+    """Features in float64's subnormal range: v scales as 1 / size (the SVD of non-finite
+    values failed; then v came back inf, its scale multiplied before it was divided)."""
+    gen = torch.Generator().manual_seed(0)
+    phi = randn(gen, 200, 2)
+    R = (randn(gen, 200) + phi @ torch.tensor([1.0, -0.5], dtype=F64)) * 1e-300
+    lr = torch.log_softmax(randn(gen, 200, 3), -1)
+    solve = lambda f: solve_episodic_dual(  # noqa: E731
+        R, epsilon=0.5, log_responsibilities=lr, kappa=0.9, context_features=phi * f
+    )
+    unit, tiny = solve(1e-305), solve(size)
+    assert bool(tiny.converged.all()) and float(tiny.kl.max()) <= 0.5 * KL_TOL
+    assert torch.allclose(tiny.v * (size / 1e-305), unit.v, rtol=1e-2)
+
+
+@pytest.mark.parametrize("size", [1e-310, 1e-320])
 def test_subnormal_returns_give_the_scaled_solution(size):
     """Returns in float64's subnormal range: eta scales with them and the bound holds (the
     entropy-bounded solve's power-of-2 prescale overflowed to inf: eta NaN, 'converged')."""

@@ -111,6 +111,8 @@ def test_feature_maps_check_widths_dtypes_and_arguments():
     for big_or_tiny in (1e200, 1e-200):  # named as given (they were named inf / 0 in float32)
         with pytest.raises(ValueError, match=r"in float32's range, got .*e[+-]200"):
             QuadraticFeatures(2, scale=[big_or_tiny, 1.0])
+    big = 2**54 + 2**30 + 1  # kept as float32 rounded once (not via float64)
+    assert QuadraticFeatures(2, scale=[big, 1]).scale[0] == torch.tensor(big).to(torch.float32)
     with pytest.raises(ValueError, match="finite high > low"):
         FourierFeatures([0.0], [math.inf])
     with pytest.raises(TypeError, match="coupling must be an integer"):

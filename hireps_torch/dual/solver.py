@@ -192,7 +192,7 @@ def _solve_one(
         log_resp,
         eta / r_scale[:, None],
         xi / r_scale[:, None],
-        v * f_scale / r_scale[:, None],
+        _times_pow2(v, f_scale, r_scale[:, None]),
         D,
         c,
         dual / r_scale,
@@ -241,6 +241,14 @@ def _pow2_scale(m: Tensor) -> Tensor:
     e = torch.where(m > 0, e, torch.zeros_like(e)).clamp_min(-1022).to(torch.float64)
     half = torch.floor(-e / 2)
     return torch.pow(2.0, half) * torch.pow(2.0, -e - half)
+
+
+def _times_pow2(x: Tensor, num: Tensor, den: Tensor) -> Tensor:
+    """x num / den for powers of 2 num and den, in two exact factors: no overflow on the way
+    (num up to 2^1022 for subnormal features)."""
+    k = torch.log2(num) - torch.log2(den)
+    half = torch.floor(k / 2)
+    return x * torch.pow(2.0, half) * torch.pow(2.0, k - half)
 
 
 def _warning(verdict: Verdict, notes: list[str], infeasible: bool, prefix: str) -> list[_Warning]:

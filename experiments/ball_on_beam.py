@@ -179,7 +179,7 @@ def _make_algorithm(
     gens = [torch.Generator().manual_seed(stream_seed(s, "policy")) for s in seeds]
     policy = HierarchicalPolicy.stack([build_ball_on_beam_policy(cfg, g) for g in gens])
     sides = torch.where(torch.arange(1000) % 2 == 0, 1.0, -1.0)
-    return InfiniteHorizonHiREPS(
+    algo = InfiniteHorizonHiREPS(
         policy,
         value_features(cfg),
         torch.stack([sample_start(sides, params, g) for g in gens]),
@@ -188,6 +188,8 @@ def _make_algorithm(
         kappa_rel=cfg.kappa_rel,
         seed=[stream_seed(s, "sampling") for s in seeds],
     )
+    algo.seeds = seeds  # names the members in warnings
+    return algo
 
 
 def _checked(cfg: BallOnBeamConfig) -> int:

@@ -88,10 +88,13 @@ def _make_algorithm(
         seed=[stream_seed(s, "policy") for s in seeds],
     )
     if cfg.algorithm == "reps":
-        return REPS.create(task.param_dim, **common)
-    return EpisodicHiREPS.create(
-        task.param_dim, n_options=cfg.n_options, kappa_rel=cfg.kappa_rel, **common
-    )
+        algo: EpisodicHiREPS = REPS.create(task.param_dim, **common)
+    else:
+        algo = EpisodicHiREPS.create(
+            task.param_dim, n_options=cfg.n_options, kappa_rel=cfg.kappa_rel, **common
+        )
+    algo.seeds = seeds  # names the members in warnings
+    return algo
 
 
 def algorithm(cfg: BimodalConfig) -> EpisodicHiREPS:

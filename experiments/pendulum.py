@@ -176,7 +176,7 @@ def _make_algorithm(
     """The members' algorithm, member s's from the streams of ``seeds[s]``."""
     gens = [torch.Generator().manual_seed(stream_seed(s, "policy")) for s in seeds]
     policy = HierarchicalPolicy.stack([build_pendulum_policy(cfg, g) for g in gens])
-    return InfiniteHorizonHiREPS(
+    algo = InfiniteHorizonHiREPS(
         policy,
         pendulum_value_features(cfg),
         torch.stack([sample_start(1000, params, g) for g in gens]),
@@ -186,6 +186,8 @@ def _make_algorithm(
         prune_threshold=1e-4 if cfg.gating == "learned" else 0.0,
         seed=[stream_seed(s, "sampling") for s in seeds],
     )
+    algo.seeds = seeds  # names the members in warnings
+    return algo
 
 
 def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:

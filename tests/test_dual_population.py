@@ -140,7 +140,7 @@ def test_a_fallback_in_one_problem_leaves_the_others_alone():
         warnings.simplefilter("always")
         pop = solve_infinite_horizon_dual(R, phi, phi_next, phi0, population=True, **kw)
     texts = [str(r.message) for r in record if issubclass(r.category, RuntimeWarning)]
-    assert texts and all(t.startswith("problem 1: ") for t in texts), texts
+    assert texts and all(t.startswith("member 1: ") for t in texts), texts
     assert "cannot be met within the KL bound" in texts[0]
     assert pop.converged.tolist() == [True, False, True]
     assert bool((pop.kl <= 0.3 * (1 + 1e-6)).all())
@@ -228,7 +228,7 @@ def test_an_entropy_bound_out_of_reach_is_relaxed_in_its_own_problem_only():
     gen = torch.Generator().manual_seed(7)
     R, lr = randn(gen, 3, 30), soft(gen, 3, 30, 3)
     lr[2] = torch.log_softmax(0.01 * randn(gen, 30, 3), -1)  # nearly uniform: CE ~ log 3
-    with pytest.warns(InfeasibleConstraintsWarning, match=r"^problem 2: .*entropy bound"):
+    with pytest.warns(InfeasibleConstraintsWarning, match=r"^member 2: .*entropy bound"):
         pop = solve_episodic_dual(
             R, epsilon=0.05, log_responsibilities=lr, kappa=0.3, population=True
         )
@@ -303,8 +303,8 @@ def test_problems_solved_side_by_side_equal_one_after_the_other(monkeypatch):
         with warnings.catch_warnings(record=True) as record:
             warnings.simplefilter("always")
             results[workers] = solve_infinite_horizon_dual(*args, population=True, **kw)
-        texts = [str(r.message)[:10] for r in record if issubclass(r.category, RuntimeWarning)]
-        assert texts == ["problem 1:", "problem 3:"], (workers, texts)
+        texts = [str(r.message)[:9] for r in record if issubclass(r.category, RuntimeWarning)]
+        assert texts == ["member 1:", "member 3:"], (workers, texts)
         assert all(r.filename == __file__ for r in record), [r.filename for r in record]
     for field in ("weights", "eta", "xi", "v", "kl", "dual_value", "converged"):
         assert torch.equal(getattr(results[1], field), getattr(results[3], field)), field

@@ -261,3 +261,22 @@ def test_a_hockey_population_member_learns_its_ordinary_runs_update(tmp_path, na
         for p, q in zip(a.algorithm.policies, b.algorithm.policies, strict=True):
             for (key, x), y in zip(p.state_dict().items(), q.state_dict().values(), strict=True):
                 torch.testing.assert_close(x, y, rtol=1e-6, atol=1e-9, msg=key)
+
+
+def test_a_populations_warnings_name_each_member_by_its_seed(tmp_path):
+    import warnings
+
+    from hireps_torch.experiments import EXPERIMENTS, ball_on_beam, bimodal, hockey, pendulum
+
+    modules = {"bimodal": bimodal, "pendulum": pendulum, "ball-on-beam": ball_on_beam}
+    for name, module in (modules | {"hockey-sequential": hockey}).items():
+        config_cls, _ = EXPERIMENTS[name]
+        algo = module.algorithm(config_cls(seeds="7,2", run_dir=tmp_path / name))
+        assert algo.seeds == [7, 2], name
+    # epsilon 5 > log 200: the weights collapse; the warnings say member 1 is seed 6
+    argv = ["bimodal", "--episodes", "400", "--epsilon", "5", "--seeds", "5,6"]
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        run(*argv, "--run-dir", str(tmp_path / "b"))
+    texts = " ".join(str(r.message) for r in record)
+    assert "member 0 (seed 5)" in texts and "member 1 (seed 6)" in texts, texts

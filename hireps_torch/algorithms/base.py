@@ -181,9 +181,9 @@ def member_policies(
     state_dim: int,
     action_dim: int,
     **policy_kwargs: Unpack[PolicyKwargs],
-) -> tuple[list[HierarchicalPolicy], int | list[int] | None]:
+) -> tuple[list[HierarchicalPolicy], int | list[int] | None, list[int] | None]:
     """One fresh softmax-gated mixture of linear-Gaussian options per entry of ``means``
-    (stacked over a population's members) and the sampling seed(s).
+    (stacked over a population's members), the sampling seed(s) and a population's seeds.
 
     Args:
         seed: one seed (None: 0) or S (see :func:`population_seeds`): a member's seed seeds one
@@ -205,9 +205,9 @@ def member_policies(
     members = [[create(init_mean=m, generator=g) for m in means] for g in gens]
     sampling = [stream_seed(s, "sampling") for s in seeds]
     if not many:
-        return members[0], sampling[0]
+        return members[0], sampling[0], None
     stacked = [HierarchicalPolicy.stack([m[k] for m in members]) for k in range(len(means))]
-    return stacked, sampling
+    return stacked, sampling, seeds
 
 
 def check_step(step: int, n_steps: int) -> int:
@@ -284,6 +284,7 @@ class HiREPSBase:
         self.prune_threshold = check_prune_threshold(prune_threshold)
         seeds, many = population_seeds(seed, population)
         self.population = population
+        self.seeds: list[int] | None = None  # a population's seeds given to create (warnings)
         gens = [torch.Generator().manual_seed(s) for s in seeds]
         self.generator: torch.Generator | list[torch.Generator] = gens if many else gens[0]
         self.iteration = 0

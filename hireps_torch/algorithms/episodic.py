@@ -132,10 +132,10 @@ class EpisodicHiREPS(HiREPSBase):
                 s draws and learns what it would alone (to round-off).
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
-        policy, sampling = member_policies(
+        policy, sampling, seeds = member_policies(
             seed, population, [init_mean], n_options, context_dim, param_dim, **policy_kwargs
         )
-        return cls(
+        algo = cls(
             policy[0],
             epsilon=epsilon,
             kappa_rel=kappa_rel,
@@ -143,6 +143,8 @@ class EpisodicHiREPS(HiREPSBase):
             context_dim=context_dim,
             seed=sampling,
         )
+        algo.seeds = seeds
+        return algo
 
     # ---- input handling ---------------------------------------------------------------------
     def _states(self, contexts: Tensor | int | None, n: int | None = None) -> Tensor:
@@ -245,7 +247,7 @@ class EpisodicHiREPS(HiREPSBase):
             phi = self.context_features(c).to(R).reshape(*R1.shape, -1)
             check_finite("context features", phi)
         eps = R.new_full((R1.shape[0], 1), self.epsilon)
-        sol = episodic_solution(R1, lr[:, :, 0], eps, phi, kappa, LbfgsSettings())
+        sol = episodic_solution(R1, lr[:, :, 0], eps, phi, kappa, LbfgsSettings(), seeds=self.seeds)
         refit = plan_refit(self.policy, c, theta, sol, bound)
         report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1

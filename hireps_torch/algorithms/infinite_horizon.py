@@ -137,10 +137,10 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
         state_dim = check_count("state_dim", state_dim, 1)
-        policy, sampling = member_policies(
+        policy, sampling, seeds = member_policies(
             seed, population, [init_mean], n_options, state_dim, action_dim, **policy_kwargs
         )
-        return cls(
+        algo = cls(
             policy[0],
             value_features,
             initial_states,
@@ -150,6 +150,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             prune_threshold=prune_threshold,
             seed=sampling,
         )
+        algo.seeds = seeds
+        return algo
 
     def value(self, states: Tensor) -> Tensor:
         """v^T phi(s) from the last update: ([S,] N, C) -> ([S,] N)."""
@@ -253,6 +255,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             self.gamma,
             kappa,
             LbfgsSettings(),  # the wrapper's defaults
+            seeds=self.seeds,
         )
         refit = plan_refit(self.policy, s, a, sol, bound)
         self.value_weights = sol.v.reshape(*lead, -1).clone()

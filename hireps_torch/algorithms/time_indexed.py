@@ -178,10 +178,10 @@ class TimeIndexedHiREPS(HiREPSBase):
                     f"({K}, {param_dim}), got {tuple(m.shape)}"
                 )
             mean = mean + m
-        policies, sampling = member_policies(
+        policies, sampling, seeds = member_policies(
             seed, population, list(mean), n_options, context_dim, param_dim, **policy_kwargs
         )
-        return cls(
+        algo = cls(
             policies,
             QuadraticFeatures(context_dim) if value_features is None else value_features,
             epsilon=epsilon,
@@ -189,6 +189,8 @@ class TimeIndexedHiREPS(HiREPSBase):
             prune_threshold=prune_threshold,
             seed=sampling,
         )
+        algo.seeds = seeds
+        return algo
 
     @property
     def n_steps(self) -> int:
@@ -272,6 +274,7 @@ class TimeIndexedHiREPS(HiREPSBase):
             None,
             kappa,
             LbfgsSettings(),  # the wrapper's defaults
+            seeds=self.seeds,
         )
         refits = [  # every step's refit first: a failing step leaves all policies unchanged
             plan_refit(pol, s[..., k, :], theta[..., k, :], sol, bounds[k], block=k)

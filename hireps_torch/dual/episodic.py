@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from torch import Tensor
 
 from hireps_torch.dual.inputs import centred, common_inputs
@@ -68,14 +70,15 @@ def episodic_solution(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
+    seeds: Sequence[int] | None = None,
 ) -> DualSolution:
     """:func:`solve_episodic_dual` of S checked float64 problems (an (S, 1) solution): R (S, N),
     log_resp (S, N, O), eps (S, 1), phi (S, N, F) or None, kappa (S, 1) or None; warnings
-    ``stacklevel`` frames up."""
+    ``stacklevel`` frames up (members named with their ``seeds``)."""
     S, N = R.shape
     D = None
     if phi is not None:
         # Centred features: v^T phi_hat - v^T phi_i = -v^T (phi_i - phi_hat); c = 0.
         D = -centred(phi).reshape(S, 1, N, -1)
     one_block = R[:, None], log_resp[:, None], eps
-    return solve_blocks(*one_block, D, None, kappa, settings, stacklevel + 1)
+    return solve_blocks(*one_block, D, None, kappa, settings, stacklevel + 1, seeds=seeds)

@@ -4,6 +4,7 @@ restart probability 1 - gamma."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 from torch import Tensor
 
@@ -94,14 +95,17 @@ def infinite_horizon_solution(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
+    seeds: Sequence[int] | None = None,
 ) -> DualSolution:
     """:func:`solve_infinite_horizon_dual` of S checked float64 problems (an (S, 1) solution): R
     (S, N), log_resp (S, N, O), eps (S, 1), phi and phi_next (S, N, F), phi0 (S, F), kappa (S, 1) or
-    None; warnings ``stacklevel`` frames up."""
+    None; warnings ``stacklevel`` frames up (members named with their ``seeds``)."""
     S, N, F = phi.shape
     D = (gamma * phi_next - phi).reshape(S, 1, N, F)
     c = (1.0 - gamma) * phi0
-    return solve_blocks(R[:, None], log_resp[:, None], eps, D, c, kappa, settings, stacklevel + 1)
+    return solve_blocks(
+        R[:, None], log_resp[:, None], eps, D, c, kappa, settings, stacklevel + 1, seeds=seeds
+    )
 
 
 def check_gamma(gamma: float) -> float:

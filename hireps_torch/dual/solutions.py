@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 
 import torch
@@ -29,6 +30,7 @@ __all__ = [
     "block_kl",
     "feature_error",
     "finish",
+    "member_name",
     "public",
     "warn_if_collapsed",
 ]
@@ -184,9 +186,16 @@ def finish(
     )
 
 
-def warn_if_collapsed(sol: DualSolution, epsilon: Tensor, stacklevel: int = 2) -> None:
+def member_name(s: int, seeds: Sequence[int] | None) -> str:
+    """How warnings name problem s of a population: "member s", with its seed when given."""
+    return f"member {s}" if seeds is None else f"member {s} (seed {seeds[s]})"
+
+
+def warn_if_collapsed(
+    sol: DualSolution, epsilon: Tensor, stacklevel: int = 2, seeds: Sequence[int] | None = None
+) -> None:
     """Warn (``stacklevel`` frames above the caller) where a block's weights sit on ~one sample
-    (epsilon (S, K))."""
+    (epsilon (S, K); problems named by :func:`member_name`)."""
     S, K, N, _ = sol.weights.shape
     ess = sol.effective_sample_size
     if sol.numbers is not None:  # one block, its numbers at hand
@@ -195,7 +204,7 @@ def warn_if_collapsed(sol: DualSolution, epsilon: Tensor, stacklevel: int = 2) -
         bad = ((ess < 1.5) & (sol.eta < math.inf)).nonzero().tolist()
     if bad:
         which = ", ".join(
-            ("" if S == 1 else f"problem {s}, ")
+            ("" if S == 1 else f"{member_name(s, seeds)}, ")
             + ("" if K == 1 else f"step {k}: ")
             + f"~{float(ess[s, k]):.2f} effective samples (epsilon = {float(epsilon[s, k]):.4g})"
             for s, k in bad

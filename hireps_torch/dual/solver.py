@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import replace
 
 import torch
@@ -28,6 +29,7 @@ from hireps_torch.dual.solutions import (
     DualSolution,
     InfeasibleConstraintsWarning,
     finish,
+    member_name,
     warn_if_collapsed,
 )
 from hireps_torch.dual.temperature import log_temperatures, solve_temperature
@@ -92,19 +94,20 @@ def solve_blocks(
     settings: LbfgsSettings,
     stacklevel: int = 2,
     collapse: bool = True,
+    seeds: Sequence[int] | None = None,
 ) -> DualSolution:
     """:func:`solve_reps_dual` on S checked float64 problems: R (S, K, N), log_resp (S, K, N, O),
     eps (S, K), D (S, K, N, P), c (S, P), kappa (S, K). Each is solved alone (why:
-    benchmarks/README.md, "One path"), side by side on idle cores; warnings ("problem s: " first
-    when S > 1) in order, then (``collapse``) where weights collapsed, ``stacklevel`` frames
-    up."""
+    benchmarks/README.md, "One path"), side by side on idle cores; warnings (first
+    :func:`member_name` of ``seeds``, the members' seeds, when S > 1) in order, then
+    (``collapse``) where weights collapsed, ``stacklevel`` frames up."""
     S = R.shape[0]
 
     def one(x: Tensor | None, s: int) -> Tensor | None:
         return None if x is None else x[s : s + 1]
 
     def alone(s: int) -> tuple[DualSolution, list[_Warning]]:
-        prefix = f"problem {s}: " if S > 1 else ""
+        prefix = f"{member_name(s, seeds)}: " if S > 1 else ""
         Rs, lr, es = R[s : s + 1], log_resp[s : s + 1], eps[s : s + 1]
         return _solve_one(Rs, lr, es, one(D, s), one(c, s), one(kappa, s), settings, prefix)
 
@@ -118,7 +121,7 @@ def solve_blocks(
         cat = {f.name: torch.cat([getattr(p, f.name) for p, _ in solved]) for f in TENSORS}
         sol = replace(sol, numbers=None, **cat)
     if collapse:
-        warn_if_collapsed(sol, eps, stacklevel)
+        warn_if_collapsed(sol, eps, stacklevel, seeds)
     return sol
 
 

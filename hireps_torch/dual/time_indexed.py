@@ -21,6 +21,7 @@ phi_hat_1 folded into step 1 (D_1 = -(phi(s_1) - phi_hat_1) in slot 1, c = 0).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import torch
@@ -105,11 +106,13 @@ def time_indexed_solution(
     kappa: Tensor | None,
     settings: LbfgsSettings,
     stacklevel: int = 2,
+    seeds: Sequence[int] | None = None,
 ) -> DualSolution:
     """:func:`solve_time_indexed_dual` of S checked float64 problems (an (S, K) solution, v
     (S, K F)): R (S, K, N), log_resp (S, K, N, O), eps (S, K), phi (S, K, N, F), phi1 (S, F) or
-    None (the sample mean), kappa (S, K) or None; warnings ``stacklevel`` frames up. The map D
-    (S, K, N, K F) chains the steps: block k holds -phi(s_k,i) in slot k, phi(s_k+1,i) in k + 1."""
+    None (the sample mean), kappa (S, K) or None; warnings ``stacklevel`` frames up (members
+    named with their ``seeds``). The map D (S, K, N, K F) chains the steps: block k holds
+    -phi(s_k,i) in slot k, phi(s_k+1,i) in k + 1."""
     S, K, N, F = phi.shape
     D = torch.zeros(S, K, N, K, F, dtype=torch.float64, device=phi.device)
     steps = torch.arange(K, device=phi.device)
@@ -120,4 +123,4 @@ def time_indexed_solution(
     else:
         D[:, 0, :, 0] += phi1[:, None, :]
     D = D.reshape(S, K, N, K * F)
-    return solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1)
+    return solve_blocks(R, log_resp, eps, D, None, kappa, settings, stacklevel + 1, seeds=seeds)

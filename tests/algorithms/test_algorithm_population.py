@@ -256,3 +256,29 @@ def test_time_indexed_population_equals_separate_runs(kappa_rel):
                             state[key][s].double(), value.double(), rtol=0, atol=1e-8
                         )
     assert pop.value(1, states[:, :, 1]).shape == (3, 40)
+
+
+def test_the_duals_warnings_name_a_member_and_its_seed():
+    # epsilon 10 >> log 20: every member's weights collapse onto ~one sample; the warning says
+    # which member, with the seed a user passed (member 0 is seed 7, not seed 0)
+    from hireps_torch.dual import DegenerateWeightsWarning
+    from hireps_torch.dual.episodic import episodic_solution
+    from hireps_torch.dual.solver import LbfgsSettings
+
+    pop = EpisodicHiREPS.create(2, n_options=1, init_std=1.0, epsilon=10.0, seed=[7, 2])
+    theta = pop.ask(20)
+    with pytest.warns(DegenerateWeightsWarning) as record:
+        pop.tell(None, theta, -(theta**2).sum(-1))
+    text = " ".join(str(r.message) for r in record)
+    assert "member 0 (seed 7), " in text and "member 1 (seed 2), " in text, text
+    # a dual that cannot meet its entropy bound says so under the member's name and seed
+    gen = torch.Generator().manual_seed(7)
+    R = torch.randn(2, 30, generator=gen, dtype=torch.float64)
+    lr = torch.log_softmax(8 * torch.randn(2, 30, 3, generator=gen, dtype=torch.float64), -1)
+    lr[1] = torch.log_softmax(0.01 * torch.randn(30, 3, generator=gen, dtype=torch.float64), -1)
+    eps, kappa = torch.full((2, 1), 0.05, dtype=torch.float64), torch.full((2, 1), 0.3)
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        episodic_solution(R, lr, eps, None, kappa.double(), LbfgsSettings(), seeds=[7, 2])
+    texts = [str(r.message) for r in record]
+    assert texts and all(t.startswith("member 1 (seed 2): ") for t in texts), texts

@@ -40,6 +40,8 @@ CHECKPOINT_KEYS = ("algorithm", "rng", "env", "rows", "iteration", "elapsed")
 """The entries of a checkpoint that a resume reads (besides ``format``)."""
 RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every", "backend", "ray_address")
 """Options that may differ between a run and its resumption (they do not change results)."""
+HOCKEY_RUN_ONLY_OPTIONS = ("workers",)
+"""Those of hockey's too (its episodes are played by index, by any number of workers)."""
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -188,13 +190,21 @@ def changed_options(
     saved: Mapping[str, Any], now: Mapping[str, Any], labels: tuple[str, str] = ("run", "now")
 ) -> list[str]:
     """Differing options as ``name (run: saved, now: current)`` (``labels`` name the two
-    sides), ignoring :data:`RUN_ONLY_OPTIONS`."""
+    sides), ignoring :data:`RUN_ONLY_OPTIONS` (and hockey's :data:`HOCKEY_RUN_ONLY_OPTIONS`)."""
+    from hireps_torch.experiments.options import ABSENT_MEANS
+
     a, b = labels
+    ignored: tuple[str, ...] = RUN_ONLY_OPTIONS
+    if str(saved.get("experiment", "")).startswith("hockey"):
+        ignored += HOCKEY_RUN_ONLY_OPTIONS
+
+    def meaning(options: Mapping[str, Any], key: str) -> Any:
+        return _meaning(key, options.get(key, ABSENT_MEANS.get(key, "<absent>")))
+
     return [
         f"{key} ({a}: {saved.get(key, '<absent>')!r}, {b}: {now.get(key, '<absent>')!r})"
         for key in sorted(set(saved) | set(now))
-        if key not in RUN_ONLY_OPTIONS
-        and _meaning(key, saved.get(key, "<absent>")) != _meaning(key, now.get(key, "<absent>"))
+        if key not in ignored and meaning(saved, key) != meaning(now, key)
     ]
 
 
@@ -220,7 +230,8 @@ def check_same_run(run_dir: Path, ckpt: Mapping[str, Any], saved: Mapping[str, A
 
 def _meaning(key: str, value: Any) -> Any:
     """What an option's value means when two are compared: ``seeds`` as the seeds it names
-    (``0-2`` and ``0,1,2`` are the same population), anything else as it is."""
+    (``0-2`` and ``0,1,2`` are the same population), a CPU ``device`` as ``cpu`` (``cpu:0`` is
+    the same device), anything else as it is."""
     from hireps_torch.experiments.options import parse_seeds
 
     if key == "seeds" and isinstance(value, str):
@@ -228,6 +239,8 @@ def _meaning(key: str, value: Any) -> Any:
             return parse_seeds(value)
         except ValueError:
             return value
+    if key == "device" and isinstance(value, str) and value.partition(":")[0].strip() == "cpu":
+        return "cpu"
     return value
 
 

@@ -97,7 +97,7 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         logged = {d: logged_rows(d / "metrics.csv") for d in dirs}
         ckpt = load_checkpoint(run_dir)
         parent = run_dir.resolve().parent
-        if ckpt is None and seeds is None and (parent / "checkpoint.pt").is_file():
+        if ckpt is None and seeds is None and _holds_member(parent, run_dir, saved):
             raise ValueError(
                 f"cannot resume {run_dir}: it is a member of the population in {parent}; "
                 f"resume that directory (--resume {parent}) (nothing was changed)"
@@ -118,6 +118,19 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         return Resume(run_dir, ckpt)
     finally:
         lock.release()
+
+
+def _holds_member(parent: Path, run_dir: Path, saved: Mapping[str, Any]) -> bool:
+    """Whether ``parent`` is a population whose member ``run_dir`` (config ``saved``) is: it
+    has a checkpoint, or (before its first one) a config with seeds and ``run_dir`` is the
+    directory of the member's seed."""
+    if (parent / "checkpoint.pt").is_file():
+        return True
+    try:
+        seeds = read_config(parent).get("seeds") if (parent / "config.json").is_file() else None
+    except ValueError:
+        return False
+    return seeds is not None and run_dir.resolve().name == f"seed{saved.get('seed')}"
 
 
 def member_configs(cfg: RunOptions, root: Path) -> list[Any]:

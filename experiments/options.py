@@ -13,7 +13,12 @@ from typing import Any
 
 from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.checks import check_device, check_present_device
-from hireps_torch.experiments.rundir import LoggerName, check_new_run_dir, jsonable
+from hireps_torch.experiments.rundir import (
+    LoggerName,
+    check_logger,
+    check_new_run_dir,
+    jsonable,
+)
 
 __all__ = [
     "RunOptions",
@@ -79,6 +84,7 @@ class RunOptions:
             raise option_error("device", device, f"a device present here ({exc})") from None
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
+        check_logger(self.logger)
         if self.resume is not None and self.run_dir is not None:
             if Path(self.run_dir).resolve() != Path(self.resume).resolve():
                 raise ValueError(

@@ -157,7 +157,9 @@ class RunWriter:
                 f"run directory {self.dir} is a link to {os.readlink(self.dir)}, which does not "
                 "exist; pass another --run-dir or create its target (nothing was written)"
             )
-        created = not self.dir.exists()
+        created, top = not self.dir.exists(), self.dir.absolute()
+        while not top.parent.exists():
+            top = top.parent  # the outermost directory this writer creates
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -166,8 +168,10 @@ class RunWriter:
             self.lock = DirectoryLock(self.dir)
             self.logger = make_logger(logger, self.dir, config.get("experiment", "run"))
         except BaseException:
-            if created and not any(self.dir.iterdir()):
-                self.dir.rmdir()  # a refused run leaves nothing behind
+            made = self.dir.absolute()
+            while created and not any(made.iterdir()):  # a refused run leaves nothing behind
+                made.rmdir()
+                created, made = made != top, made.parent
             raise
         self.start = time.perf_counter() - elapsed
         self._fields: list[str] | None = None
@@ -243,20 +247,26 @@ class RunWriter:
         self.lock.release()
 
 
-def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
-    """The TorchRL logger that mirrors ``metrics.csv`` (None for ``csv``); a ``ValueError``
-    for an unknown kind, an ``ImportError`` naming a missing package."""
+def check_logger(kind: str) -> None:
+    """A ``ValueError`` for an unknown logger kind, an ``ImportError`` naming a missing
+    package."""
     if kind not in LOGGERS:
         raise ValueError(f"logger must be one of {', '.join(LOGGERS)}, got {kind!r}")
-    if kind == "csv":
-        return None
     import importlib.util
 
-    if importlib.util.find_spec(kind) is None:  # the package is named as the logger
+    if kind != "csv" and importlib.util.find_spec(kind) is None:  # named as the logger
         raise ImportError(
             f"--logger {kind} needs the {kind} package: pip install '{kind}' "
             f"(or the project's '{kind}' extra: pip install -e '.[{kind}]')"
         )
+
+
+def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
+    """The TorchRL logger that mirrors ``metrics.csv`` (None for ``csv``); errors as
+    :func:`check_logger`."""
+    check_logger(kind)
+    if kind == "csv":
+        return None
     from torchrl.record.loggers import get_logger
 
     if kind == "wandb":
@@ -266,7 +276,8 @@ def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
             "wandb",
             str(run_dir),
             experiment,
-            wandb_kwargs={"project": "hireps-torch", "dir": str(run_dir)},
+            # one W&B run per run directory, also for a population's members in one process
+            wandb_kwargs={"project": "hireps-torch", "dir": str(run_dir), "reinit": "create_new"},
         )
     return get_logger(kind, str(run_dir), kind)
 

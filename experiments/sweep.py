@@ -302,7 +302,7 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
                 cfg = config_cls(**run.options, seed=run.seed, progress=False)
                 cfg.check_run_options()
                 ALGORITHMS[run.experiment](cfg)
-        except (ValueError, TypeError) as exc:
+        except (ValueError, TypeError, ImportError) as exc:
             errors.append(f"configuration {run.name} (seed {run.seed}): {exc}")
     if errors:
         raise ValueError(

@@ -79,6 +79,8 @@ def entry() -> None:
         except RunFinished as done:
             print(done, file=sys.stderr)
     except KeyboardInterrupt as stop:  # RunInterrupted: the checkpoint is written
+        while not str(stop) and isinstance(stop.__context__, KeyboardInterrupt):  # a Ctrl-C in
+            stop = stop.__context__  # the clean-up after the first: tell what the first did
         print(f"\ninterrupted: {stop}" if str(stop) else "\ninterrupted", file=sys.stderr)
         raise SystemExit(143 if getattr(stop, "signame", None) == "SIGTERM" else 130) from None
     except (ValueError, TypeError, OSError, ImportError) as exc:  # OSError: FileExistsError,

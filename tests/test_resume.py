@@ -534,6 +534,21 @@ def test_resuming_a_member_of_a_population_points_to_the_population(tmp_path):
     with pytest.raises(ValueError, match=rf"member of the population in .*{run.name}; resume"):
         resume_in_process("bimodal", run / "seed1")
     assert (_files(run), _files(run / "seed1")) == before
+    # stopped before the population's first checkpoint (its config.json names the seeds): the
+    # member is refused all the same (it ran on as a run of its own, and the population was lost)
+    from hireps_torch.experiments import EXPERIMENTS
+    from hireps_torch.experiments.checkpoint import saved_config
+    from hireps_torch.experiments.loop import resume_point
+
+    def resume(d):
+        return resume_point("bimodal", saved_config(EXPERIMENTS["bimodal"][0], "bimodal", d))
+
+    for name in ("checkpoint.pt", "seed0/metrics.csv", "seed1/metrics.csv"):
+        (run / name).unlink()
+    with pytest.raises(ValueError, match=rf"member of the population in .*{run.name}; resume"):
+        resume(run / "seed1")
+    point = resume(run)
+    assert point is not None and point.checkpoint is None  # the population starts over
 
 
 def test_a_resume_rewrites_a_deleted_member_directory_and_a_copied_member_is_named(tmp_path):
@@ -737,3 +752,28 @@ def test_a_population_with_an_edited_or_linked_member_directory_is_refused_and_k
     with pytest.raises(ValueError, match=r"member directory .*seed1 is a link to .*seed3"):
         resume_in_process("bimodal", run)
     assert _files(other / "seed3") == before
+
+
+def test_options_that_do_not_change_a_run_may_differ_on_resume(tmp_path):
+    # hockey's episodes are played by index (any number of workers gives the same run), a CPU
+    # is a CPU whatever its index; the pendulum's collector workers draw differently: refused
+    import json
+
+    from hireps_torch.experiments import EXPERIMENTS
+    from hireps_torch.experiments.loop import resume_point
+    from hireps_torch.experiments.options import config_dict
+
+    def started(name, **options):
+        cfg = EXPERIMENTS[name][0](run_dir=tmp_path / name, progress=False, **options)
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.json").write_text(json.dumps(config_dict(name, cfg)))
+        return lambda **now: resume_point(
+            name, EXPERIMENTS[name][0](resume=tmp_path / name, progress=False, **now)
+        )
+
+    hockey = started("hockey-sequential", workers=1)
+    assert hockey(workers=2).checkpoint is None
+    pendulum = started("pendulum", workers=1)
+    assert pendulum(device="cpu:0").checkpoint is None
+    with pytest.raises(ValueError, match=r"workers \(run: 1, now: 2\)"):
+        pendulum(workers=2)

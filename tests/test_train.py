@@ -393,8 +393,14 @@ def test_unknown_or_missing_logger_is_refused_before_anything_is_written(tmp_pat
         importlib.util, "find_spec", lambda name, *a: None if name == "wandb" else real(name, *a)
     )
     with pytest.raises(ImportError, match=r"wandb package.*\.\[wandb\]"):
-        RunWriter(tmp_path / "r", {"experiment": "x"}, logger="wandb")
-    assert not (tmp_path / "r").exists()
+        RunWriter(tmp_path / "q" / "r", {"experiment": "x"}, logger="wandb")
+    assert not (tmp_path / "q").exists()  # nor the parent it made
+    # a population (its root's config.json was written before) and a new nested directory
+    # (its parents were left) are refused with nothing written either
+    for name, options in (("pop", {"seeds": "0-1"}), ("a/b", {})):
+        with pytest.raises(ImportError, match="wandb package"):
+            in_process("bimodal", tmp_path, name, episodes=400, logger="wandb", **options)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_tensorboard_logger_writes_event_files_that_read_back(tmp_path):
@@ -417,17 +423,21 @@ def test_tensorboard_logger_writes_event_files_that_read_back(tmp_path):
 
 
 def test_wandb_logger_runs_offline_without_an_account(tmp_path, monkeypatch):
+    # a population's members log to a W&B run each (not all into member 0's)
     pytest.importorskip("wandb")
     monkeypatch.delenv("WANDB_MODE", raising=False)
     monkeypatch.setenv("WANDB_API_KEY", "")
     run = tmp_path / "run"
-    p = train(
-        "bimodal", "--episodes", "400", "--logger", "wandb", "--run-dir", str(run), "--no-progress"
-    )
+    argv = ["bimodal", "--episodes", "400", "--logger", "wandb", "--seeds", "0-1"]
+    p = train(*argv, "--run-dir", str(run), "--no-progress")
     assert p.returncode == 0, p.stderr
-    offline = list((run / "wandb").glob("offline-run-*/run-*.wandb"))
-    assert len(offline) == 1 and offline[0].stat().st_size > 0
-    assert (run / "summary.json").is_file()
+    names = set()
+    for member in ("seed0", "seed1"):
+        offline = list((run / member / "wandb").glob("offline-run-*/run-*.wandb"))
+        assert len(offline) == 1 and offline[0].stat().st_size > 0, member
+        names.add(offline[0].name)
+        assert (run / member / "summary.json").is_file()
+    assert len(names) == 2, names
 
 
 @pytest.mark.parametrize(
@@ -757,3 +767,23 @@ def test_learning_curves_of_members_share_a_figure_but_not_its_limits(tmp_path, 
     assert wide_x[0] <= 0 and wide_x[1] >= 2000 and wide_y[0] <= -1e5 < -98000 <= wide_y[1]
     assert div_x == pytest.approx((-0.055, 0.055)) and div_y == pytest.approx((-0.055, 0.055))
     assert small_x[0] <= 1 < 2 <= small_x[1] < 3 and small_y[0] <= 0.25 < 1.0 <= small_y[1] < 2
+
+
+def test_a_second_ctrl_c_in_the_clean_up_keeps_the_resume_instructions(monkeypatch, capsys):
+    # the first signal stopped the run at an iteration boundary (checkpoint written); a second
+    # one while the collector shuts down must not hide where to resume from
+    import hireps_torch.cli as cli
+    from hireps_torch.experiments.checkpoint import RunInterrupted
+
+    def stopped_twice() -> None:
+        try:
+            raise RunInterrupted(Path("runs/x"), 9, "SIGTERM")
+        finally:
+            raise KeyboardInterrupt  # noqa: B012 (what a Ctrl-C in the finally raises)
+
+    monkeypatch.setattr(cli, "main", stopped_twice)
+    with pytest.raises(SystemExit) as stop:
+        cli.entry()
+    err = capsys.readouterr().err
+    assert stop.value.code == 143
+    assert "stopped after iteration 9" in err and "Continue with: --resume runs" in err, err

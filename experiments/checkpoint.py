@@ -28,6 +28,7 @@ __all__ = [
     "StopRequest",
     "changed_options",
     "check_same_run",
+    "checkpoint_dir",
     "load_checkpoint",
     "read_config",
     "run_config",
@@ -206,6 +207,33 @@ def changed_options(
         for key in sorted(set(saved) | set(now))
         if key not in ignored and meaning(saved, key) != meaning(now, key)
     ]
+
+
+def checkpoint_dir(run_dir: Path, seed: int) -> tuple[Path, tuple[int, int] | None]:
+    """Where the checkpoint of the run in ``run_dir`` (its config's ``seed``) is, and for a
+    population's member (its index, S); a ``ValueError`` for a directory inside a population
+    that is not one of its members."""
+    if (run_dir / "checkpoint.pt").exists():
+        return run_dir, None
+    real = run_dir.resolve()
+    parent = real.parent
+    if not (parent / "config.json").is_file():
+        return run_dir, None
+    seeds = read_config(parent).get("seeds")
+    if seeds is None:
+        return run_dir, None
+    from hireps_torch.experiments.options import parse_seeds
+
+    try:
+        members = parse_seeds(seeds)
+    except ValueError as exc:
+        raise ValueError(f"{parent / 'config.json'}: its seeds {seeds!r}: {exc}") from None
+    if real.name != f"seed{seed}" or seed not in members:
+        raise ValueError(
+            f"{run_dir} is inside the population {parent} (seeds {seeds}) but is not one of "
+            f"its members: its config.json has seed {seed}, and member s lives in seed<s>"
+        )
+    return parent, (members.index(seed), len(members))
 
 
 def check_same_run(run_dir: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any]) -> None:

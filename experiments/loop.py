@@ -23,6 +23,7 @@ from hireps_torch.experiments.checkpoint import (
     RunState,
     changed_options,
     check_same_run,
+    checkpoint_dir,
     load_checkpoint,
     read_config,
     stop_on_signals,
@@ -96,12 +97,16 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
             _check_members(experiment, cfg, run_dir)
         logged = {d: logged_rows(d / "metrics.csv") for d in dirs}
         ckpt = load_checkpoint(run_dir)
-        parent = run_dir.resolve().parent
-        if ckpt is None and seeds is None and _holds_member(parent, run_dir, saved):
-            raise ValueError(
-                f"cannot resume {run_dir}: it is a member of the population in {parent}; "
-                f"resume that directory (--resume {parent}) (nothing was changed)"
-            )
+        if ckpt is None and seeds is None:
+            try:
+                parent, member = checkpoint_dir(run_dir, saved.get("seed", 0))
+            except ValueError as exc:
+                raise ValueError(f"cannot resume {run_dir}: {exc} (nothing was changed)") from None
+            if member is not None:
+                raise ValueError(
+                    f"cannot resume {run_dir}: it is a member of the population in {parent}; "
+                    f"resume that directory (--resume {parent}) (nothing was changed)"
+                )
         if ckpt is not None:
             try:
                 check_same_run(run_dir, ckpt, saved)
@@ -118,19 +123,6 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         return Resume(run_dir, ckpt)
     finally:
         lock.release()
-
-
-def _holds_member(parent: Path, run_dir: Path, saved: Mapping[str, Any]) -> bool:
-    """Whether ``parent`` is a population whose member ``run_dir`` (config ``saved``) is: it
-    has a checkpoint, or (before its first one) a config with seeds and ``run_dir`` is the
-    directory of the member's seed."""
-    if (parent / "checkpoint.pt").is_file():
-        return True
-    try:
-        seeds = read_config(parent).get("seeds") if (parent / "config.json").is_file() else None
-    except ValueError:
-        return False
-    return seeds is not None and run_dir.resolve().name == f"seed{saved.get('seed')}"
 
 
 def member_configs(cfg: RunOptions, root: Path) -> list[Any]:

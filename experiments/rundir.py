@@ -5,10 +5,12 @@ an unfinished run). Files are written atomically; a non-empty directory is never
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
 import os
+import re
 import tempfile
 import time
 import weakref
@@ -157,21 +159,24 @@ class RunWriter:
                 f"run directory {self.dir} is a link to {os.readlink(self.dir)}, which does not "
                 "exist; pass another --run-dir or create its target (nothing was written)"
             )
-        created, top = not self.dir.exists(), self.dir.absolute()
-        while not top.parent.exists():
-            top = top.parent  # the outermost directory this writer creates
+        made: list[Path] = []  # the directories this writer creates, outermost first
         try:
-            self.dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OSError(f"cannot create the run directory {self.dir}: {exc}") from None
-        try:
+            try:
+                for d in [*reversed(self.dir.parents), self.dir]:
+                    if not d.exists():
+                        with contextlib.suppress(FileExistsError):  # made meanwhile elsewhere
+                            d.mkdir()
+                            made.append(d)
+            except OSError as exc:
+                raise OSError(f"cannot create the run directory {self.dir}: {exc}") from None
             self.lock = DirectoryLock(self.dir)
-            self.logger = make_logger(logger, self.dir, config.get("experiment", "run"))
+            name = f"{config.get('experiment', 'run')} seed {config.get('seed', 0)}"
+            self.logger = make_logger(logger, self.dir, name)
         except BaseException:
-            made = self.dir.absolute()
-            while created and not any(made.iterdir()):  # a refused run leaves nothing behind
-                made.rmdir()
-                created, made = made != top, made.parent
+            for d in reversed(made):  # a refused run leaves nothing behind
+                if any(d.iterdir()):
+                    break
+                d.rmdir()
             raise
         self.start = time.perf_counter() - elapsed
         self._fields: list[str] | None = None
@@ -259,11 +264,19 @@ def check_logger(kind: str) -> None:
             f"--logger {kind} needs the {kind} package: pip install '{kind}' "
             f"(or the project's '{kind}' extra: pip install -e '.[{kind}]')"
         )
+    if kind == "wandb":  # a W&B run per population member: wandb.init(reinit="create_new")
+        from importlib.metadata import version
+
+        have = version("wandb")
+        if tuple(int(x) for x in re.findall(r"\d+", have)[:3]) < (0, 19, 10):
+            raise ImportError(
+                f"--logger wandb needs wandb >= 0.19.10, got {have}: pip install -U wandb"
+            )
 
 
-def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
-    """The TorchRL logger that mirrors ``metrics.csv`` (None for ``csv``); errors as
-    :func:`check_logger`."""
+def make_logger(kind: str, run_dir: Path, name: str) -> Any:
+    """The TorchRL logger that mirrors ``metrics.csv`` (None for ``csv``), ``name`` naming its
+    run; errors as :func:`check_logger`."""
     check_logger(kind)
     if kind == "csv":
         return None
@@ -275,7 +288,7 @@ def make_logger(kind: str, run_dir: Path, experiment: str) -> Any:
         return get_logger(
             "wandb",
             str(run_dir),
-            experiment,
+            name,
             # one W&B run per run directory, also for a population's members in one process
             wandb_kwargs={"project": "hireps-torch", "dir": str(run_dir), "reinit": "create_new"},
         )

@@ -20,6 +20,7 @@ from hireps_torch.checks import as_float_tensor, check_count
 from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
+    checkpoint_dir,
     load_checkpoint,
     read_config,
     run_config,
@@ -99,7 +100,7 @@ def load_run(run_dir: str | Path) -> LoadedRun:
             f"load_run({str(run_dir / 'seed<s>')!r})"
         )
     config, algorithm = _build(name, run_dir)
-    root, member = _checkpoint_dir(run_dir, config.seed)
+    root, member = checkpoint_dir(run_dir, config.seed)
     ckpt = load_checkpoint(root, map_location="cpu")
     if ckpt is None:
         rows = logged_rows(run_dir / "metrics.csv")
@@ -145,31 +146,6 @@ def _build(name: str, run_dir: Path) -> tuple[Any, Algorithm]:
         raise ValueError(
             f"{run_dir / 'config.json'} does not hold the options of a {name} run: {exc}"
         ) from None
-
-
-def _checkpoint_dir(run_dir: Path, seed: int) -> tuple[Path, tuple[int, int] | None]:
-    """Where the run's checkpoint is, and for a population member (its index, S)."""
-    if (run_dir / "checkpoint.pt").exists():
-        return run_dir, None
-    real = run_dir.resolve()
-    parent = real.parent
-    if not (parent / "config.json").is_file():
-        return run_dir, None
-    seeds = read_config(parent).get("seeds")
-    if seeds is None:
-        return run_dir, None
-    from hireps_torch.experiments.options import parse_seeds
-
-    try:
-        members = parse_seeds(seeds)
-    except ValueError as exc:
-        raise ValueError(f"{parent / 'config.json'}: its seeds {seeds!r}: {exc}") from None
-    if real.name != f"seed{seed}" or seed not in members:
-        raise ValueError(
-            f"{run_dir} is inside the population {parent} (seeds {seeds}) but is not one of "
-            f"its members: its config.json has seed {seed}, and member s lives in seed<s>"
-        )
-    return parent, (members.index(seed), len(members))
 
 
 def _check_member(run_dir: Path, root: Path, saved: Mapping[str, Any]) -> None:

@@ -549,6 +549,12 @@ def test_resuming_a_member_of_a_population_points_to_the_population(tmp_path):
         resume(run / "seed1")
     point = resume(run)
     assert point is not None and point.checkpoint is None  # the population starts over
+    # a run of seed 7 moved into the population's directory is no member of it: named as such
+    shutil.copytree(run / "seed1", run / "seed7")
+    config = json.loads((run / "seed7" / "config.json").read_text())
+    (run / "seed7" / "config.json").write_text(json.dumps(config | {"seed": 7}))
+    with pytest.raises(ValueError, match=r"seed7 is inside the population .* not one of its"):
+        resume(run / "seed7")
 
 
 def test_a_resume_rewrites_a_deleted_member_directory_and_a_copied_member_is_named(tmp_path):

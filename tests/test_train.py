@@ -395,12 +395,21 @@ def test_unknown_or_missing_logger_is_refused_before_anything_is_written(tmp_pat
     with pytest.raises(ImportError, match=r"wandb package.*\.\[wandb\]"):
         RunWriter(tmp_path / "q" / "r", {"experiment": "x"}, logger="wandb")
     assert not (tmp_path / "q").exists()  # nor the parent it made
+    (tmp_path / "keep").mkdir()  # the user's: through "new/..", only "new" and "run" are made
+    with pytest.raises(ImportError, match="wandb package"):
+        RunWriter(tmp_path / "new" / ".." / "keep" / "run", {"experiment": "x"}, logger="wandb")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"]
+    (tmp_path / "keep").rmdir()
     # a population (its root's config.json was written before) and a new nested directory
     # (its parents were left) are refused with nothing written either
     for name, options in (("pop", {"seeds": "0-1"}), ("a/b", {})):
         with pytest.raises(ImportError, match="wandb package"):
             in_process("bimodal", tmp_path, name, episodes=400, logger="wandb", **options)
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+    monkeypatch.setattr(importlib.util, "find_spec", real)
+    monkeypatch.setattr("importlib.metadata.version", lambda name: "0.18.3")
+    with pytest.raises(ImportError, match=r"needs wandb >= 0.19.10, got 0.18.3"):
+        make_logger("wandb", tmp_path / "r", "x")
 
 
 def test_tensorboard_logger_writes_event_files_that_read_back(tmp_path):

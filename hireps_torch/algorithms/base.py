@@ -284,10 +284,31 @@ class HiREPSBase:
         self.prune_threshold = check_prune_threshold(prune_threshold)
         seeds, many = population_seeds(seed, population)
         self.population = population
-        self.seeds: list[int] | None = None  # a population's seeds given to create (warnings)
+        self.seeds = seeds if many else None
         gens = [torch.Generator().manual_seed(s) for s in seeds]
         self.generator: torch.Generator | list[torch.Generator] = gens if many else gens[0]
         self.iteration = 0
+
+    @property
+    def seeds(self) -> list[int] | None:
+        """A population's S seeds, which name its members in the dual's warnings ("member 1
+        (seed 4)"): those given to ``create``, or to the constructor (None for one run)."""
+        return self._seeds
+
+    @seeds.setter
+    def seeds(self, seeds: Sequence[int] | None) -> None:
+        S = self.population
+        if seeds is not None:
+            if (
+                S is None
+                or not isinstance(seeds, Sequence)
+                or isinstance(seeds, str | bytes)
+                or len(seeds) != S
+            ):
+                want = "None for one run" if S is None else f"{S} integers, one per member,"
+                raise ValueError(f"seeds must be {want} got {seeds!r}")
+            seeds = [check_seed(f"seeds[{s}]", x) for s, x in enumerate(seeds)]
+        self._seeds = None if seeds is None else list(seeds)
 
     @property
     def device(self) -> torch.device:

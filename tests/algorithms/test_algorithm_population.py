@@ -282,3 +282,44 @@ def test_the_duals_warnings_name_a_member_and_its_seed():
         episodic_solution(R, lr, eps, None, kappa.double(), LbfgsSettings(), seeds=[7, 2])
     texts = [str(r.message) for r in record]
     assert texts and all(t.startswith("member 1 (seed 2): ") for t in texts), texts
+
+
+def test_every_variant_hands_its_members_seeds_to_the_dual(monkeypatch):
+    import hireps_torch.dual.episodic as episodic_dual
+    import hireps_torch.dual.infinite_horizon as infinite_dual
+    import hireps_torch.dual.time_indexed as time_dual
+
+    seen = []
+    for module in (episodic_dual, infinite_dual, time_dual):
+
+        def spy(*args, _real=module.solve_blocks, **kwargs):
+            seen.append(kwargs.get("seeds"))
+            return _real(*args, **kwargs)
+
+        monkeypatch.setattr(module, "solve_blocks", spy)
+    g = torch.Generator().manual_seed(0)
+    episodic = EpisodicHiREPS.create(2, seed=SEEDS)
+    theta = episodic.ask(20)
+    vf = FourierFeatures([-1.0, -1.0], [1.0, 1.0], 2)
+    s0 = torch.rand(3, 30, 2, generator=g, dtype=torch.float64)
+    infinite = InfiniteHorizonHiREPS.create(
+        2, 1, value_features=vf, initial_states=s0[0], gamma=0.9, seed=SEEDS
+    )
+    actions = infinite.sample(s0)
+    timed = TimeIndexedHiREPS.create(2, 2, 1, seed=SEEDS)
+    states = torch.randn(3, 20, 2, 1, generator=g, dtype=torch.float64)
+    params = torch.stack([timed.ask(k, states[:, :, k]) for k in range(2)], 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        episodic.tell(None, theta, -(theta**2).sum(-1))
+        infinite.update(s0, actions, -(s0**2).sum(-1), s0.flip(-1))
+        timed.tell(states, params, -(params**2).sum(-1))
+    assert seen == [SEEDS, SEEDS, SEEDS]
+    # the names are checked where they are set: one integer per member
+    with pytest.raises(ValueError, match=r"seeds must be 3 integers, one per member, got \[7\]"):
+        episodic.seeds = [7]
+    with pytest.raises(TypeError, match=r"seeds\[1\] must be an integer"):
+        episodic.seeds = [7, 1.5, 2]
+    assert episodic.seeds == SEEDS  # a refused value changes nothing
+    with pytest.raises(ValueError, match="seeds must be None for one run"):
+        EpisodicHiREPS.create(2, seed=3).seeds = [3]

@@ -284,7 +284,7 @@ class HiREPSBase:
         self.prune_threshold = check_prune_threshold(prune_threshold)
         seeds, many = population_seeds(seed, population)
         self.population = population
-        self.seeds = seeds if many else None
+        self._seeds = seeds if many and population is not None else None  # checked above
         gens = [torch.Generator().manual_seed(s) for s in seeds]
         self.generator: torch.Generator | list[torch.Generator] = gens if many else gens[0]
         self.iteration = 0

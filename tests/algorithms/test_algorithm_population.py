@@ -323,3 +323,5 @@ def test_every_variant_hands_its_members_seeds_to_the_dual(monkeypatch):
     assert episodic.seeds == SEEDS  # a refused value changes nothing
     with pytest.raises(ValueError, match="seeds must be None for one run"):
         EpisodicHiREPS.create(2, seed=3).seeds = [3]
+    # a one-run policy built with a list of one seed, as before: no names, no error
+    assert EpisodicHiREPS(EpisodicHiREPS.create(2).policy, seed=[3]).seeds is None

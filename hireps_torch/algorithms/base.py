@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import numbers
 import operator
 from collections.abc import Mapping, Sequence
@@ -91,7 +92,8 @@ class Algorithm(Protocol):
         ...
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue the run bit-for-bit."""
+        """Everything needed to continue the run bit-for-bit, as a copy (later updates leave it
+        as it is)."""
         ...
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -403,10 +405,11 @@ class HiREPSBase:
         return self
 
     def _state(self, **learned: Any) -> dict[str, Any]:
-        """A checkpoint: ``learned`` (the variant's entries) and the shared entries."""
+        """A checkpoint: copies of ``learned`` (the variant's entries) and the shared entries,
+        which later updates leave as they are."""
         gen = self.generator
         return {
-            **learned,
+            **copy.deepcopy(learned),
             "generator": [g.get_state() for g in gen] if isinstance(gen, list) else gen.get_state(),
             "iteration": self.iteration,
             "kappa_rel": self.kappa_rel,

@@ -288,10 +288,11 @@ class InfiniteHorizonHiREPS(HiREPSBase):
 
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue the run bit-for-bit."""
+        """Everything needed to continue the run bit-for-bit, as a copy (later updates leave it
+        as it is)."""
         return self._state(
             policy=self.policy.state_dict(),
-            value_weights=self.value_weights.clone(),
+            value_weights=self.value_weights,
             gamma=self.gamma,
             epsilon=self.epsilon,
         )

@@ -310,10 +310,11 @@ class TimeIndexedHiREPS(HiREPSBase):
 
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue the run bit-for-bit."""
+        """Everything needed to continue the run bit-for-bit, as a copy (later updates leave it
+        as it is)."""
         return self._state(
             policies=[pol.state_dict() for pol in self.policies],
-            value_weights=self.value_weights.clone(),
+            value_weights=self.value_weights,
             epsilon=list(self.epsilon),
         )
 

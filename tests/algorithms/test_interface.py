@@ -149,6 +149,24 @@ def assert_same_state(a, b):
         assert a == b
 
 
+@pytest.mark.parametrize("name", list(CASES))
+def test_a_state_dict_is_a_snapshot_that_later_updates_leave_alone(name):
+    """state_dict() taken before two updates still holds the state of that moment (no tensor
+    shared with the policy): loaded back, the algorithm acts and draws as a fresh one does."""
+    make, rollout = CASES[name]
+    algo, fresh = make(), make()
+    start = algo.state_dict()
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(2):
+        algo.learn(rollout(algo.sample, gen))
+    assert_same_state(start, fresh.state_dict())
+    algo.load_state_dict(start)
+    probe = rollout(fresh.mean_action, torch.Generator().manual_seed(5)).states
+    for k in range(len(algo.policies)):
+        assert torch.equal(algo.mean_action(probe[:, k], k), fresh.mean_action(probe[:, k], k))
+        assert torch.equal(algo.sample(probe[:, k], k), fresh.sample(probe[:, k], k))
+
+
 def test_learn_is_tell_and_update():
     """learn delegates: the same samples give the same state (policies, value weights) and the
     same diagnostics as the variant's own update."""

@@ -77,9 +77,10 @@ class BallOnBeamConfig(RunOptions):
     value_beam_angle: bool = False
     """Include the beam angle in the value features (off: a function of (x, x') only)."""
     value_goal_bowl: bool = True
-    """Add :class:`GoalBowlFeatures` to the value features."""
+    """Add GoalBowlFeatures (a bowl around the closer goal) to the value features."""
     option_goal_offset: bool = True
-    """Options linear in :class:`GoalOffsetFeatures` (--no-option-goal-offset: in the state)."""
+    """Options linear in GoalOffsetFeatures, the state seen from the closer goal
+    (--no-option-goal-offset: in the state)."""
     max_velocity: float = 1.0
     """Ball speed (m/s) the value and gating features are scaled to."""
     eval_episodes: int = 10
@@ -225,8 +226,7 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
     algo = _make_algorithm(cfg, params, seeds).to(cfg.device)
     policy, dev = algo.policy, algo.device
     frames = len(seeds) * B * params.decisions_per_episode
-    actor = policy_module(policy)
-    actor.module.generator = algo.generator  # each member explores with its own generator
+    actor = policy_module(policy, generator=algo.generator)  # each member's own generator
     collector = make_collector(
         lambda: ScalarActionBatchEnv(
             MemberTasks(

@@ -18,6 +18,7 @@ from hireps_torch.experiments.loop import (
     ask_tell_loop,
     finish_run,
     resume_point,
+    whole_iterations,
 )
 from hireps_torch.experiments.options import (
     RunOptions,
@@ -74,6 +75,7 @@ def _validate(cfg: BimodalConfig) -> None:
             f"episodes ({cfg.episodes}) must be at least samples_per_iteration "
             f"({cfg.samples_per_iteration})"
         )
+    whole_iterations(cfg.episodes, cfg.samples_per_iteration, "samples_per_iteration")
 
 
 def _make_algorithm(

@@ -199,13 +199,13 @@ def changed_options(
     if str(saved.get("experiment", "")).startswith("hockey"):
         ignored += HOCKEY_RUN_ONLY_OPTIONS
 
-    def meaning(options: Mapping[str, Any], key: str) -> Any:
-        return _meaning(key, options.get(key, ABSENT_MEANS.get(key, "<absent>")))
+    def given(options: Mapping[str, Any], key: str) -> Any:  # left out: the value it meant
+        return options.get(key, ABSENT_MEANS.get(key, "<absent>"))
 
     return [
-        f"{key} ({a}: {saved.get(key, '<absent>')!r}, {b}: {now.get(key, '<absent>')!r})"
+        f"{key} ({a}: {given(saved, key)!r}, {b}: {given(now, key)!r})"
         for key in sorted(set(saved) | set(now))
-        if key not in ignored and meaning(saved, key) != meaning(now, key)
+        if key not in ignored and _meaning(key, given(saved, key)) != _meaning(key, given(now, key))
     ]
 
 

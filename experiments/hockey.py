@@ -78,21 +78,21 @@ class HockeyConfig(RunOptions):
     start_std: float = 0.1
     """Std (m) of the target puck's start in x and y (0: a fixed start, as in Fig 15b)."""
     puck_restitution: float = 0.3
-    """Restitution of the pucks and the blade (why 0.3: :mod:`hireps_torch.envs.hockey.env`)."""
+    """Restitution of the pucks and the blade (why 0.3: see hireps_torch.envs.hockey.env)."""
     floor_friction: float = 0.025
     """Puck-floor Coulomb friction (ice-like)."""
     flat_pucks: bool = True
     """Pucks that cannot tip or roll on their edge (--no-flat-pucks: solid cylinders)."""
     option_features: Literal["position", "aim"] = "aim"
     """What the options are linear in: aim, the target's angle and distance from the control
-    puck's spot (:class:`~hireps_torch.envs.hockey.aim.AimFeatures`); position, its (x, y)."""
+    puck's spot (hireps_torch.envs.hockey.aim.AimFeatures); position, its (x, y)."""
     final_eval_episodes: int | None = None
     """Final-policy evaluation episodes (None: episodes_per_iteration; 0: none), noise-free
     (eval_average_reward) and exploring (final_policy_average_reward, the paper's "average
     reward"), from starts no training episode used."""
     aim_slopes: bool = True
     """Start every option's mean with the slopes of the kinematic aim mapping
-    (:mod:`hireps_torch.envs.hockey.aim`) at the start mean; --no-aim-slopes: zero slopes."""
+    (hireps_torch.envs.hockey.aim) at the start mean; --no-aim-slopes: zero slopes."""
 
 
 @dataclass(frozen=True)
@@ -106,8 +106,11 @@ class HockeyFixedStartConfig(HockeySequentialConfig):
     always at the same spot, 10 episodes per update, 300 episodes."""
 
     start_std: float = 0.0
+    """Std (m) of the target puck's start in x and y (0: the one spot of Fig 15b)."""
     episodes_per_iteration: int = 10
+    """Episodes (samples) per policy update (paper, real robot: 10)."""
     episodes: int = 300
+    """Total episodes (paper, real robot: 300)."""
 
 
 @dataclass(frozen=True)

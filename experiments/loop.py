@@ -7,6 +7,7 @@ import ctypes.util
 import dataclasses
 import os
 import statistics
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +49,7 @@ __all__ = [
     "infinite_horizon_update",
     "logged_rows",
     "resume_point",
+    "whole_iterations",
 ]
 
 Postfix = Callable[[dict[str, Any]], dict[str, Any]]
@@ -75,10 +77,6 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
     # between two writes); the run's own writer takes the lock again for the whole run
     lock = DirectoryLock(run_dir)
     try:
-        if (run_dir / "summary.json").is_file():
-            raise RunFinished(
-                f"{run_dir} already finished (summary.json is there); nothing to resume"
-            )
         saved = read_config(run_dir)
         if saved.get("experiment", experiment) != experiment:
             raise ValueError(
@@ -90,6 +88,10 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
                 f"cannot resume {run_dir} with other options than it was started with: "
                 + "; ".join(diff)
                 + " (pass no options, or the same ones, with --resume)"
+            )
+        if (run_dir / "summary.json").is_file():
+            raise RunFinished(
+                f"{run_dir} already finished (summary.json is there); nothing to resume"
             )
         seeds = saved.get("seeds")
         dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
@@ -462,7 +464,22 @@ def check_budget(episodes: int, episodes_per_iteration: int, **positive: int) ->
             f"episodes ({episodes}) must be at least episodes_per_iteration "
             f"({episodes_per_iteration})"
         )
-    return episodes // episodes_per_iteration
+    return whole_iterations(episodes, episodes_per_iteration)
+
+
+def whole_iterations(
+    episodes: int, per_iteration: int, name: str = "episodes_per_iteration"
+) -> int:
+    """The iterations ``episodes`` hold, with a warning where they leave episodes over."""
+    iterations = episodes // per_iteration
+    if episodes % per_iteration:
+        warnings.warn(
+            f"episodes ({episodes}) is not a multiple of {name} ({per_iteration}): the run "
+            f"plays {iterations} iteration(s), {iterations * per_iteration} episodes",
+            UserWarning,
+            stacklevel=2,
+        )
+    return iterations
 
 
 def infinite_horizon_postfix(row: dict[str, Any]) -> dict[str, Any]:

@@ -64,7 +64,7 @@ class PendulumConfig(RunOptions):
     steps_per_decision: int = 5
     """d: control steps (at 100 Hz) per decision; restart probability 0.02 / d."""
     episodes: int = 1000
-    """Total episodes (``episode_seconds`` of experience per parallel pendulum each)."""
+    """Total episodes (episode_seconds of experience per parallel pendulum each)."""
     episodes_per_iteration: int = 20
     """Episodes per policy update = parallel pendulums."""
     episode_seconds: float = 10.0
@@ -105,8 +105,9 @@ class PendulumConfig(RunOptions):
     """Noise-free evaluation rollouts (5 s each), at the end and every eval_every iterations."""
     eval_every: int = 5
     """Evaluate the noise-free policy every this many iterations (columns eval_success_rate
-    and eval_return, nan in the other rows; 0: only at the end); the summary's
-    episodes_to_success is the first evaluation (the final included) with success >= 0.9."""
+    and eval_return, nan in the other rows; 0: never during training). The final policy is
+    evaluated too, into summary.json, whose episodes_to_success is the first evaluation (the
+    final included) with success >= 0.9."""
 
 
 def epsilon_at(cfg: PendulumConfig, update: int, updates: int) -> float:
@@ -244,9 +245,8 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
     policy, dev = algo.policy, algo.device
     decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
     frames = len(seeds) * B * decisions
-    actor = policy_module(policy)
-    if cfg.workers == 1:  # each member explores with its own generator
-        actor.module.generator = algo.generator
+    # each member explores with its own generator (worker processes: their own global RNGs)
+    actor = policy_module(policy, generator=algo.generator if cfg.workers == 1 else None)
     collector = make_collector(
         lambda: ScalarActionBatchEnv(
             MemberTasks(

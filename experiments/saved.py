@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from hireps_torch.algorithms import Algorithm
-from hireps_torch.checks import as_float_tensor, check_count
+from hireps_torch.checks import as_finite_f64, as_float_tensor, check_count
 from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
@@ -72,6 +72,7 @@ class LoadedRun:
                 raise ValueError(
                     f"states must have shape (N, {C}) with N >= 1, got {tuple(x.shape)}"
                 )
+            as_finite_f64("states", x)  # named at the user's (N, C), before a leading 1
         if self.algorithm.population is None:  # hockey: one ordinary algorithm
             return act(x, step)
         return act(x[None], step)[0]

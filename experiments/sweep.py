@@ -127,7 +127,8 @@ def _typed(config_cls: type, assignments: Mapping[str, str]) -> dict[str, Any]:
             raise ValueError(f"a sweep sets {key!r} itself; it cannot be in --grid or --set")
         if key not in fields:
             raise ValueError(
-                f"{config_cls.__name__} has no option {key!r}; options: {', '.join(sorted(fields))}"
+                f"{config_cls.__name__} has no option {key!r}; options: "
+                + ", ".join(sorted(fields - RUN_OPTIONS))
             )
     hints = typing.get_type_hints(config_cls)
     args = []

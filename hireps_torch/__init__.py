@@ -25,6 +25,7 @@ _HOME = {
         "DegenerateWeightsWarning",
         "DualSolution",
         "solve_episodic_dual",
+        "solve_infinite_horizon_dual",
         "solve_time_indexed_dual",
     ),
     "hireps_torch.policies": ("HierarchicalPolicy", "LinearGaussian", "SoftmaxGating"),
@@ -46,6 +47,7 @@ if TYPE_CHECKING:
         DegenerateWeightsWarning,
         DualSolution,
         solve_episodic_dual,
+        solve_infinite_horizon_dual,
         solve_time_indexed_dual,
     )
     from hireps_torch.experiments.saved import load_run
@@ -82,5 +84,6 @@ __all__ = [
     "TimeIndexedHiREPS",
     "load_run",
     "solve_episodic_dual",
+    "solve_infinite_horizon_dual",
     "solve_time_indexed_dual",
 ]

@@ -87,9 +87,14 @@ def as_finite_f64(name: str, value: Tensor | float, shape: tuple[int, ...] | Non
 
 
 def check_positive(name: str, value: Tensor) -> None:
-    """Every entry of ``value`` finite and > 0."""
+    """Every entry of ``value`` finite and > 0 (a ValueError shows one number for a value
+    broadcast from one)."""
     if not all_finite(value) or bool((value <= 0).any()):
-        raise ValueError(f"{name} must be finite and > 0, got {value.tolist()}")
+        flat = value.reshape(-1)
+        one = bool((flat == flat[0]).all())  # non-empty: an empty value passes
+        raise ValueError(
+            f"{name} must be finite and > 0, got {flat[0].item() if one else value.tolist()}"
+        )
 
 
 def as_float(name: str, value: object) -> float:

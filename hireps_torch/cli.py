@@ -1,16 +1,15 @@
-"""Run the paper's experiments: ``hireps-train <experiment> [--options]`` (or ``python train.py
-<experiment> [--options]`` in the repository).
+"""Run the paper's experiments: hireps-train <experiment> [--options].
 
-The experiments live in :mod:`hireps_torch.experiments` (one module each); this module is
-the command line only. ``hireps-train <experiment> --help`` lists an experiment's options.
-Every run writes a run directory (default ``runs/<experiment>/<timestamp>``, ``--run-dir``
-overrides) with ``config.json``, ``metrics.csv`` (one row per iteration), ``checkpoint.pt``
-(after every iteration and on Ctrl-C), ``learning_curve.png`` and, when it finished,
-``summary.json``.
-``hireps-train <experiment> --resume RUN_DIR`` continues an interrupted run exactly.
-``hireps-train sweep --experiment E --seeds 0-4 --grid OPTION=V1,V2 [--backend ray]`` runs
-a grid of configurations x seeds (see :mod:`hireps_torch.experiments.sweep`); run it again
-to finish an interrupted sweep.
+- In the repository: python train.py <experiment> [--options].
+- hireps-train <experiment> --help lists an experiment's options.
+- A run writes config.json, metrics.csv (a row per iteration), checkpoint.pt (after every
+  iteration and on Ctrl-C), learning_curve.png and, once finished, summary.json.
+- Its directory: --run-dir, by default runs/<experiment>/<timestamp>.
+- hireps-train <experiment> --resume RUN_DIR continues an interrupted run exactly.
+- hireps-train sweep --experiment E --seeds 0-4 --grid OPTION=V1,V2 runs a grid of
+  configurations x seeds; run it again to finish an interrupted sweep.
+
+The experiments live in hireps_torch.experiments; this module is the command line only.
 """
 
 from __future__ import annotations

@@ -35,23 +35,34 @@ __all__ = [
 class PolicyActor(nn.Module):
     """``observation (B, C) -> action (B, A), option (B,)`` for a :class:`HierarchicalPolicy`.
 
-    Samples (from ``self.generator``, else the global RNG) or, with ``deterministic``, takes
+    Samples (from ``generator``, kept as ``self.generator``: one, or a population's list of S;
+    None: the global RNG) or, with ``deterministic``, takes
     :meth:`~HierarchicalPolicy.mean_action`; the action has the observation's dtype (float64
     for integer observations). A population of S takes observations (..., S B, C): the last
     batch dimension holds its members' rows, member after member.
     """
 
-    def __init__(self, policy: HierarchicalPolicy, deterministic: bool = False) -> None:
+    def __init__(
+        self,
+        policy: HierarchicalPolicy,
+        deterministic: bool = False,
+        generator: torch.Generator | list[torch.Generator] | None = None,
+    ) -> None:
         super().__init__()
         _check_policies([policy])
         self.policy = policy
         self.deterministic = deterministic
-        self.generator: torch.Generator | list[torch.Generator] | None = None
+        self.generator = generator
 
     @torch.no_grad()
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         lead, C = observation.shape[:-1], observation.shape[-1]
         s, policy = as_float_tensor("observation", observation), self.policy
+        if C != policy.context_dim:
+            raise ValueError(
+                f"observation must have shape (..., {policy.context_dim}) (the policy's state "
+                f"dimension), got {tuple(observation.shape)}"
+            )
         S = policy.population
         if S is not None:  # (..., S B, C) -> (S, ... B, C)
             if not lead or lead[-1] % S:
@@ -82,10 +93,12 @@ def policy_module(
     policy: HierarchicalPolicy,
     deterministic: bool = False,
     observation_key: str = "observation",
+    generator: torch.Generator | list[torch.Generator] | None = None,
 ) -> TensorDictModule:
-    """Wrap the policy for TorchRL: reads ``observation_key``, writes ``action`` and ``option``."""
+    """Wrap the policy for TorchRL: reads ``observation_key``, writes ``action`` and ``option``
+    (sampled from ``generator``, e.g. the algorithm's ``generator``; None: the global RNG)."""
     return TensorDictModule(
-        PolicyActor(policy, deterministic),
+        PolicyActor(policy, deterministic, generator),
         in_keys=[observation_key],
         out_keys=["action", "option"],
     )
@@ -96,7 +109,12 @@ class TimeIndexedActor(nn.Module):
     ``policies[step_count[b]]``, otherwise as :class:`PolicyActor`; the policies of one run
     (not a population)."""
 
-    def __init__(self, policies: list[HierarchicalPolicy], deterministic: bool = False) -> None:
+    def __init__(
+        self,
+        policies: list[HierarchicalPolicy],
+        deterministic: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> None:
         super().__init__()
         _check_policies(policies)
         dims = {int(p.action_dim) for p in policies}
@@ -113,7 +131,7 @@ class TimeIndexedActor(nn.Module):
             )
         self.policies = nn.ModuleList(policies)
         self.deterministic = deterministic
-        self.generator: torch.Generator | None = None
+        self.generator = generator
 
     @torch.no_grad()
     def forward(self, observation: Tensor, step_count: Tensor) -> tuple[Tensor, Tensor]:
@@ -147,11 +165,12 @@ def time_indexed_module(
     deterministic: bool = False,
     observation_key: str = "observation",
     step_key: str = "step_count",
+    generator: torch.Generator | None = None,
 ) -> TensorDictModule:
     """Wrap per-step policies for TorchRL: reads the observation and ``step_key``, writes
-    ``action`` and ``option``."""
+    ``action`` and ``option`` (sampled from ``generator``; None: the global RNG)."""
     return TensorDictModule(
-        TimeIndexedActor(policies, deterministic),
+        TimeIndexedActor(policies, deterministic, generator),
         in_keys=[observation_key, step_key],
         out_keys=["action", "option"],
     )

@@ -222,3 +222,19 @@ def test_acting_takes_the_ordinary_shapes_and_names_a_bad_one(tmp_path):
 
 def test_the_library_lists_load_run():
     assert "load_run" in dir(hireps_torch) and callable(hireps_torch.load_run)
+
+
+def test_every_top_level_name_resolves_and_each_variants_dual_is_there():
+    """``hireps_torch.__all__`` names what ``from hireps_torch import ...`` gives, the dual
+    solver of each of the three variants among them."""
+    from hireps_torch.dual import (
+        solve_episodic_dual,
+        solve_infinite_horizon_dual,
+        solve_time_indexed_dual,
+    )
+
+    for name in hireps_torch.__all__:
+        assert getattr(hireps_torch, name) is not None and name in dir(hireps_torch)
+    assert hireps_torch.solve_episodic_dual is solve_episodic_dual
+    assert hireps_torch.solve_time_indexed_dual is solve_time_indexed_dual
+    assert hireps_torch.solve_infinite_horizon_dual is solve_infinite_horizon_dual

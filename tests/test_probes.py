@@ -1101,3 +1101,34 @@ def test_train_resumes_a_moved_run_directory_in_place(finished_run, tmp_path):
     assert {k: v for k, v in summary.items() if k != "wall_seconds"} == {
         k: v for k, v in expected.items() if k != "wall_seconds"
     }
+
+
+def test_a_sixth_probes_errors_name_the_value_as_the_user_gave_it(tmp_path):
+    """Errors at the entry points speak of what the user passed: the argument's own name, a
+    broadcast number as one number, the user's indices, the actor's observation."""
+    from hireps_torch import HierarchicalPolicy, load_run, solve_episodic_dual
+    from hireps_torch.checks import check_positive
+    from hireps_torch.rollout import policy_module
+
+    with pytest.raises(ValueError, match="param_dim must be >= 1, got 0"):
+        EpisodicHiREPS.create(param_dim=0)
+    with pytest.raises(ValueError, match=r"init_std must be finite and > 0, got -1.0$"):
+        EpisodicHiREPS.create(param_dim=2, init_std=-1)
+    with pytest.raises(ValueError, match=r"epsilon must be finite and > 0, got 0.0$"):
+        solve_episodic_dual(torch.randn(10, dtype=torch.float64), epsilon=0)
+    with pytest.raises(ValueError, match=r"x must be finite and > 0, got \[0.5, -1.0\]"):
+        check_positive("x", torch.tensor([0.5, -1.0]))  # numbers that differ: all of them
+    with pytest.raises(ValueError, match="without context, pass the number of samples N >= 1"):
+        EpisodicHiREPS.create(param_dim=2, seed=[0, 1]).ask(None)
+    bimodal_run(
+        BimodalConfig(run_dir=tmp_path / "r", contextual=True, episodes=400, progress=False)
+    )
+    run = load_run(tmp_path / "r")  # a population of one inside: the user's (N, C) indices
+    with pytest.raises(ValueError, match=r"first at index \[1, 0\]: nan"):
+        run.mean_action(torch.tensor([[0.0], [math.nan]]))
+    pop = HierarchicalPolicy.stack([HierarchicalPolicy.create(3, 2, 1) for _ in range(2)])
+    td = TensorDict({"observation": torch.zeros(4, 3)}, [4])
+    with pytest.raises(
+        ValueError, match=r"observation must have shape \(\.\.\., 2\) .* got \(4, 3\)"
+    ):
+        policy_module(pop)(td)

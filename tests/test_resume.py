@@ -245,6 +245,8 @@ def test_resuming_a_finished_run_says_so_and_changes_nothing(tmp_path):
     again = train("bimodal", "--resume", str(run), "--no-progress")
     assert again.returncode == 0
     assert "already finished" in again.stderr
+    other = train("bimodal", "--resume", str(run), "--epsilon", "0.3", "--no-progress")
+    assert other.returncode == 2 and "epsilon (run: 1.0, now: 0.3)" in other.stderr  # not "done"
     assert {p.name: p.read_bytes() for p in run.iterdir()} == before
 
 
@@ -276,6 +278,16 @@ def test_seeds_compare_by_the_seeds_they_name():
     assert changed_options({"seeds": "0-2"}, {"seeds": "0-3"}) == ["seeds (run: '0-2', now: '0-3')"]
     assert changed_options({"seeds": "0-2"}, {"seeds": "2,1,0"}) != []
     assert changed_options({"seeds": "0-2"}, {}) == ["seeds (run: '0-2', now: '<absent>')"]
+
+
+def test_an_option_left_out_of_config_json_is_shown_at_the_value_it_meant():
+    """config.json leaves an option out at its ABSENT_MEANS value (a run written before the
+    option existed): a changed one is shown at that value, not as '<absent>'."""
+    from hireps_torch.experiments.checkpoint import changed_options
+
+    said = changed_options({"experiment": "pendulum"}, {"experiment": "pendulum", "device": "cuda"})
+    assert said == ["device (run: 'cpu', now: 'cuda')"]
+    assert changed_options({}, {"device": "cpu:0"}) == []  # the same device
 
 
 def test_the_final_checkpoint_loads_with_weights_only_and_gives_the_same_actions(tmp_path):

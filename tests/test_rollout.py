@@ -220,3 +220,24 @@ def test_actors_refuse_complex_observations():
         )
         with pytest.raises(TypeError, match="observation must hold real numbers, got dtype"):
             module(td)
+
+
+def test_actors_draw_from_the_generator_they_are_given():
+    """policy_module / time_indexed_module(..., generator=g) sample from g (the same draws
+    as the policy's own sample with a generator of that seed), not from the global RNG."""
+    pol = HierarchicalPolicy.create(
+        3, 2, 1, init_std=1.0, generator=torch.Generator().manual_seed(1)
+    )
+    obs = torch.randn(8, 2, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    td = TensorDict({"observation": obs, "step_count": torch.zeros(8, 1, dtype=torch.long)}, [8])
+    want = pol.sample(obs, torch.Generator().manual_seed(7))[0]
+    for make in (policy_module, time_indexed_module):
+        actor = make(
+            pol if make is policy_module else [pol], generator=torch.Generator().manual_seed(7)
+        )
+        torch.manual_seed(0)
+        assert torch.equal(actor(td.clone())["action"], want)
+        torch.manual_seed(0)
+        assert not torch.equal(
+            make(pol if make is policy_module else [pol])(td.clone())["action"], want
+        )

@@ -95,6 +95,14 @@ def test_parse_grid_names_bad_entries(grid, fixed, message):
         parse_grid("pendulum", grid, fixed)
 
 
+def test_an_unknown_option_lists_only_the_options_a_sweep_may_set():
+    with pytest.raises(ValueError, match="has no option 'no_such'; options: ") as info:
+        parse_grid("pendulum", ["no_such=1,2"])
+    listed = str(info.value).split("options: ")[1].split(", ")
+    assert "n_options" in listed and "episodes" in listed
+    assert not {"seed", "seeds", "run_dir", "resume", "progress"} & set(listed)
+
+
 @pytest.mark.parametrize(
     ("grid", "why"),
     [

@@ -8,6 +8,7 @@ import platform
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -796,3 +797,25 @@ def test_a_second_ctrl_c_in_the_clean_up_keeps_the_resume_instructions(monkeypat
     err = capsys.readouterr().err
     assert stop.value.code == 143
     assert "stopped after iteration 9" in err and "Continue with: --resume runs" in err, err
+
+
+@pytest.mark.parametrize(
+    ("name", "options", "message"),
+    [
+        ("pendulum", {"episodes": 30}, r"episodes \(30\) is not a multiple of episodes_per_it"),
+        ("ball-on-beam", {"episodes": 10}, r"plays 3 iteration\(s\), 9 episodes"),
+        ("bimodal", {"episodes": 500}, r"samples_per_iteration \(200\): the run plays 2 itera"),
+        ("hockey-fixed-start", {"episodes": 25}, r"plays 2 iteration\(s\), 20 episodes"),
+    ],
+)
+def test_episodes_that_leave_part_of_an_iteration_over_are_said(name, options, message):
+    """A budget that is not a whole number of iterations is rounded down, with a warning that
+    says how many episodes the run plays; whole budgets warn nothing."""
+    from hireps_torch.experiments import ALGORITHMS, EXPERIMENTS
+
+    config_cls = EXPERIMENTS[name][0]
+    with pytest.warns(UserWarning, match=message):
+        ALGORITHMS[name](config_cls(**options))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        ALGORITHMS[name](config_cls())

@@ -132,6 +132,7 @@ class EpisodicHiREPS(HiREPSBase):
                 s draws and learns what it would alone (to round-off).
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
+        param_dim = check_count("param_dim", param_dim, 1)
         policy, sampling, seeds = member_policies(
             seed, population, [init_mean], n_options, context_dim, param_dim, **policy_kwargs
         )
@@ -156,7 +157,9 @@ class EpisodicHiREPS(HiREPSBase):
                     f"(N, {self.context_dim}) tensor of contexts, got {contexts!r}"
                 )
             count = n if contexts is None else check_count("the number of samples", contexts, 1)
-            if count is None or count < 1:
+            if count is None:
+                raise ValueError("without context, pass the number of samples N >= 1, got None")
+            if count < 1:
                 raise ValueError(f"the number of samples must be >= 1, got {count}")
             if count >= 2**63:  # torch's sizes are int64
                 raise ValueError(f"the number of samples must be below 2**63, got {count}")
@@ -267,7 +270,8 @@ class EpisodicHiREPS(HiREPSBase):
 
     # ---- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue the run bit-for-bit."""
+        """Everything needed to continue the run bit-for-bit, as a copy (later updates leave it
+        as it is)."""
         return self._state(policy=self.policy.state_dict(), epsilon=self.epsilon)
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:

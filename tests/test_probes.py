@@ -1126,6 +1126,11 @@ def test_a_sixth_probes_errors_name_the_value_as_the_user_gave_it(tmp_path):
     run = load_run(tmp_path / "r")  # a population of one inside: the user's (N, C) indices
     with pytest.raises(ValueError, match=r"first at index \[1, 0\]: nan"):
         run.mean_action(torch.tensor([[0.0], [math.nan]]))
+    ti = TimeIndexedHiREPS.create(3, 2, 2)
+    with pytest.raises(
+        ValueError, match=r"the arguments swapped\? ask / act take \(step, contexts\)"
+    ):
+        ti.ask(torch.zeros(4, 2), 0)
     pop = HierarchicalPolicy.stack([HierarchicalPolicy.create(3, 2, 1) for _ in range(2)])
     td = TensorDict({"observation": torch.zeros(4, 3)}, [4])
     with pytest.raises(

@@ -219,7 +219,9 @@ def check_step(step: int, n_steps: int) -> int:
             raise TypeError
         k = operator.index(step)
     except TypeError:
-        raise ValueError(f"step must be an integer in [0, {n_steps}), got {step!r}") from None
+        swapped = " (the arguments swapped? ask / act take (step, contexts))"
+        hint = swapped if getattr(step, "ndim", 0) else ""
+        raise ValueError(f"step must be an integer in [0, {n_steps}), got {step!r}{hint}") from None
     if not 0 <= k < n_steps:
         raise ValueError(f"step must be in [0, {n_steps}) (K = {n_steps} decision steps), got {k}")
     return k

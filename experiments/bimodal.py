@@ -12,14 +12,7 @@ import torch
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
 from hireps_torch.experiments.checkpoint import RunState
-from hireps_torch.experiments.loop import (
-    MAX_COUNT,
-    Run,
-    ask_tell_loop,
-    finish_run,
-    resume_point,
-    whole_iterations,
-)
+from hireps_torch.experiments.loop import Run, ask_tell_loop, check_budget, finish_run, resume_point
 from hireps_torch.experiments.options import (
     RunOptions,
     check_options,
@@ -64,18 +57,11 @@ class BimodalConfig(RunOptions):
     """Floor on the option covariance eigenvalues."""
 
 
-def _validate(cfg: BimodalConfig) -> None:
+def _validate(cfg: BimodalConfig) -> int:
+    """``cfg`` checked; its iterations."""
     check_options(cfg, counts=("n_options",), positive=("bump_width", "init_std"))
     check_variance_floor(cfg)
-    for name, low in (("samples_per_iteration", 2), ("episodes", 1)):
-        if not low <= getattr(cfg, name) <= MAX_COUNT:
-            raise ValueError(f"{name} must be in {low}..{MAX_COUNT}, got {getattr(cfg, name)}")
-    if cfg.episodes < cfg.samples_per_iteration:
-        raise ValueError(
-            f"episodes ({cfg.episodes}) must be at least samples_per_iteration "
-            f"({cfg.samples_per_iteration})"
-        )
-    whole_iterations(cfg.episodes, cfg.samples_per_iteration, "samples_per_iteration")
+    return check_budget(cfg.episodes, cfg.samples_per_iteration, "samples_per_iteration", 2)
 
 
 def _make_algorithm(
@@ -108,7 +94,7 @@ def algorithm(cfg: BimodalConfig) -> EpisodicHiREPS:
 def run(cfg: BimodalConfig) -> dict[str, Any]:
     """HiREPS or REPS on the (contextual) two-Gaussians task, one seed or a population;
     returns the summary."""
-    _validate(cfg)
+    iterations = _validate(cfg)
     resume = resume_point("bimodal", cfg)
     task = _task(cfg)
     seeds = member_seeds(cfg)
@@ -148,7 +134,6 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
         ]
 
     session = Run("bimodal", cfg, RunState(algo, generators=ctx_gens), resume)
-    iterations = cfg.episodes // n
     ask_tell_loop(
         session,
         step,

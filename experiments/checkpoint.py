@@ -7,7 +7,6 @@
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import signal
 import sys
@@ -63,26 +62,18 @@ class RunFinished(Exception):
 
 
 class Stateful(Protocol):
+    """An algorithm: its ``state_dict`` a copy that later updates leave as it is."""
+
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: Mapping[str, Any]) -> None: ...
 
 
 class EnvState(Protocol):
-    """The running state of a run's environments (see :mod:`hireps_torch.experiments.envstate`)."""
+    """The running state of a run's environments (see :mod:`hireps_torch.experiments.envstate`),
+    its ``state_dict`` a copy."""
 
     def state_dict(self) -> dict[str, Any] | None: ...
     def load_state_dict(self, state: Mapping[str, Any] | None) -> None: ...
-
-
-def _detached(x: Any) -> Any:
-    """A deep copy with tensors cloned, so a snapshot does not follow later in-place updates."""
-    if isinstance(x, torch.Tensor):
-        return x.detach().clone()
-    if isinstance(x, Mapping):
-        return {k: _detached(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_detached(v) for v in x]
-    return copy.deepcopy(x)
 
 
 @dataclasses.dataclass
@@ -96,12 +87,12 @@ class RunState:
 
     def state_dict(self) -> dict[str, Any]:
         return {
-            "algorithm": _detached(self.algorithm.state_dict()),
+            "algorithm": self.algorithm.state_dict(),
             "rng": {
                 "torch": torch.get_rng_state(),
                 **{name: g.get_state() for name, g in self.generators.items()},
             },
-            "env": None if self.env is None else _detached(self.env.state_dict()),
+            "env": None if self.env is None else self.env.state_dict(),
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:

@@ -49,7 +49,6 @@ __all__ = [
     "infinite_horizon_update",
     "logged_rows",
     "resume_point",
-    "whole_iterations",
 ]
 
 Postfix = Callable[[dict[str, Any]], dict[str, Any]]
@@ -66,8 +65,19 @@ class Resume:
 
 def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
     """Check the run options and, for ``cfg.resume``, that the run exists, has not finished
-    (:class:`RunFinished`) and has the same options; call it before building anything."""
+    (:class:`RunFinished`) and has the same options; call it at the start of a run, before
+    building anything. Warns (at the run's caller) where the episodes leave part of an
+    iteration over."""
     cfg.check_run_options()
+    per_name = "samples_per_iteration" if experiment == "bimodal" else "episodes_per_iteration"
+    episodes, per = getattr(cfg, "episodes", 0), getattr(cfg, per_name, 1)
+    if episodes % per:
+        warnings.warn(
+            f"episodes ({episodes}) is not a multiple of {per_name} ({per}): the run plays "
+            f"{episodes // per} iteration(s), {episodes // per * per} episodes",
+            UserWarning,
+            stacklevel=3,
+        )
     if cfg.resume is None:
         return None
     run_dir = Path(cfg.resume)
@@ -452,34 +462,23 @@ MAX_WORKERS = 1024
 """The most worker processes a run starts."""
 
 
-def check_budget(episodes: int, episodes_per_iteration: int, **positive: int) -> int:
-    """Every count >= 1 and at least one iteration's episodes; returns the iterations."""
-    counts = {**positive, "episodes_per_iteration": episodes_per_iteration, "episodes": episodes}
-    for name, value in counts.items():
-        top = MAX_WORKERS if name == "workers" else MAX_COUNT
-        if not 1 <= value <= top:
-            raise ValueError(f"{name} must be in 1..{top}, got {value}")
-    if episodes < episodes_per_iteration:
-        raise ValueError(
-            f"episodes ({episodes}) must be at least episodes_per_iteration "
-            f"({episodes_per_iteration})"
-        )
-    return whole_iterations(episodes, episodes_per_iteration)
-
-
-def whole_iterations(
-    episodes: int, per_iteration: int, name: str = "episodes_per_iteration"
+def check_budget(
+    episodes: int,
+    per_iteration: int,
+    per_name: str = "episodes_per_iteration",
+    least: int = 1,
+    **positive: int,
 ) -> int:
-    """The iterations ``episodes`` hold, with a warning where they leave episodes over."""
-    iterations = episodes // per_iteration
-    if episodes % per_iteration:
-        warnings.warn(
-            f"episodes ({episodes}) is not a multiple of {name} ({per_iteration}): the run "
-            f"plays {iterations} iteration(s), {iterations * per_iteration} episodes",
-            UserWarning,
-            stacklevel=2,
-        )
-    return iterations
+    """Every count in 1..its top (``per_iteration``, named ``per_name``, from ``least``) and at
+    least one iteration's episodes; returns the iterations (episodes // per_iteration)."""
+    counts = {**positive, per_name: per_iteration, "episodes": episodes}
+    for name, value in counts.items():
+        low, top = least if name == per_name else 1, MAX_WORKERS if name == "workers" else MAX_COUNT
+        if not low <= value <= top:
+            raise ValueError(f"{name} must be in {low}..{top}, got {value}")
+    if episodes < per_iteration:
+        raise ValueError(f"episodes ({episodes}) must be at least {per_name} ({per_iteration})")
+    return episodes // per_iteration
 
 
 def infinite_horizon_postfix(row: dict[str, Any]) -> dict[str, Any]:

@@ -3,13 +3,13 @@
 - In the repository: python train.py <experiment> [--options].
 - hireps-train <experiment> --help lists an experiment's options.
 - A run writes config.json, metrics.csv (a row per iteration), checkpoint.pt (after every
-  iteration and on Ctrl-C), learning_curve.png and, once finished, summary.json.
+  iteration and on Ctrl-C / SIGTERM), learning_curve.png and, once finished, summary.json.
 - Its directory: --run-dir, by default runs/<experiment>/<timestamp>.
 - hireps-train <experiment> --resume RUN_DIR continues an interrupted run exactly.
 - hireps-train sweep --experiment E --seeds 0-4 --grid OPTION=V1,V2 runs a grid of
   configurations x seeds; run it again to finish an interrupted sweep.
 
-The experiments live in hireps_torch.experiments; this module is the command line only.
+The experiments are the modules of hireps_torch.experiments, to call from Python too.
 """
 
 from __future__ import annotations

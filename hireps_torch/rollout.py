@@ -58,11 +58,7 @@ class PolicyActor(nn.Module):
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         lead, C = observation.shape[:-1], observation.shape[-1]
         s, policy = as_float_tensor("observation", observation), self.policy
-        if C != policy.context_dim:
-            raise ValueError(
-                f"observation must have shape (..., {policy.context_dim}) (the policy's state "
-                f"dimension), got {tuple(observation.shape)}"
-            )
+        _check_width(observation, policy.context_dim)
         S = policy.population
         if S is not None:  # (..., S B, C) -> (S, ... B, C)
             if not lead or lead[-1] % S:
@@ -78,6 +74,15 @@ class PolicyActor(nn.Module):
             o = o.reshape(S, *lead[:-1], lead[-1] // S).movedim(0, -2)
         dtype = observation.dtype if observation.is_floating_point() else torch.float64
         return a.to(dtype).reshape(*lead, a.shape[-1]), o.reshape(lead)
+
+
+def _check_width(observation: Tensor, C: int) -> None:
+    """A ValueError unless ``observation`` is (..., C), C the policies' state dimension."""
+    if observation.shape[-1:] != (C,):
+        raise ValueError(
+            f"observation must have shape (..., {C}) (the policy's state dimension), got "
+            f"{tuple(observation.shape)}"
+        )
 
 
 def _check_policies(policies: object) -> None:
@@ -96,7 +101,8 @@ def policy_module(
     generator: torch.Generator | list[torch.Generator] | None = None,
 ) -> TensorDictModule:
     """Wrap the policy for TorchRL: reads ``observation_key``, writes ``action`` and ``option``
-    (sampled from ``generator``, e.g. the algorithm's ``generator``; None: the global RNG)."""
+    (sampled from ``generator``, e.g. the algorithm's ``generator``; None: the global RNG, as a
+    collector with worker processes needs)."""
     return TensorDictModule(
         PolicyActor(policy, deterministic, generator),
         in_keys=[observation_key],
@@ -137,6 +143,7 @@ class TimeIndexedActor(nn.Module):
     def forward(self, observation: Tensor, step_count: Tensor) -> tuple[Tensor, Tensor]:
         lead = observation.shape[:-1]
         s = as_float_tensor("observation", observation).reshape(-1, observation.shape[-1])
+        _check_width(observation, int(self.policies[0].context_dim))  # type: ignore[arg-type]
         if step_count.is_floating_point() or step_count.is_complex():
             raise ValueError(f"step_count must be an integer tensor, got {step_count.dtype}")
         if step_count.shape not in (lead, (*lead, 1)):
@@ -204,6 +211,12 @@ def make_collector(
             f"{type(create_env_fn).__name__}"
         )
     seed = None if seed is None else check_seed("seed", seed)
+    if num_workers > 1 and getattr(getattr(policy, "module", None), "generator", None) is not None:
+        raise ValueError(
+            f"the actor samples from its generator, which num_workers = {num_workers} processes "
+            "would each copy (the same draws in every worker): build it with generator=None "
+            "(each worker then draws from its own global RNG, seeded by seed)"
+        )
     common: dict[str, Any] = {
         "frames_per_batch": frames_per_batch,
         "total_frames": total_frames,

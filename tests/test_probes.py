@@ -1127,10 +1127,9 @@ def test_a_sixth_probes_errors_name_the_value_as_the_user_gave_it(tmp_path):
     with pytest.raises(ValueError, match=r"first at index \[1, 0\]: nan"):
         run.mean_action(torch.tensor([[0.0], [math.nan]]))
     ti = TimeIndexedHiREPS.create(3, 2, 2)
-    with pytest.raises(
-        ValueError, match=r"the arguments swapped\? ask / act take \(step, contexts\)"
-    ):
-        ti.ask(torch.zeros(4, 2), 0)
+    for swapped in (lambda: ti.ask(torch.zeros(4, 2), 0), lambda: ti.sample(0, torch.zeros(4, 2))):
+        with pytest.raises(ValueError, match=r"got a Tensor of shape \(4, 2\) \(sample and mean"):
+            swapped()
     pop = HierarchicalPolicy.stack([HierarchicalPolicy.create(3, 2, 1) for _ in range(2)])
     td = TensorDict({"observation": torch.zeros(4, 3)}, [4])
     with pytest.raises(

@@ -241,3 +241,22 @@ def test_actors_draw_from_the_generator_they_are_given():
         assert not torch.equal(
             make(pol if make is policy_module else [pol])(td.clone())["action"], want
         )
+
+
+def test_a_shared_generator_is_refused_with_worker_processes_and_widths_are_named():
+    """A collector with worker processes would copy the actor's generator into each (the same
+    draws everywhere): refused before any process starts. Both actors name an observation of
+    the wrong width."""
+    pol = HierarchicalPolicy.create(3, 2, 1)
+    actor = policy_module(pol, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="num_workers = 2 processes would each copy"):
+        make_collector(lambda: PendulumSwingUpBatchEnv(4, PendulumParams()), actor,
+                       frames_per_batch=8, num_workers=2)  # fmt: skip
+    td = TensorDict(
+        {"observation": torch.zeros(4, 3), "step_count": torch.zeros(4, 1, dtype=torch.long)}, [4]
+    )
+    for actor in (policy_module(pol), time_indexed_module([pol])):
+        with pytest.raises(
+            ValueError, match=r"observation must have shape \(\.\.\., 2\) .*got \(4, 3\)"
+        ):
+            actor(td.clone())

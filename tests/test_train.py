@@ -809,13 +809,16 @@ def test_a_second_ctrl_c_in_the_clean_up_keeps_the_resume_instructions(monkeypat
     ],
 )
 def test_episodes_that_leave_part_of_an_iteration_over_are_said(name, options, message):
-    """A budget that is not a whole number of iterations is rounded down, with a warning that
-    says how many episodes the run plays; whole budgets warn nothing."""
+    """A run whose budget is not a whole number of iterations is rounded down, with a warning
+    (where the run starts: resume_point) that says how many episodes it plays; whole budgets,
+    and building the algorithm alone (load_run, a sweep's checks), warn nothing."""
     from hireps_torch.experiments import ALGORITHMS, EXPERIMENTS
+    from hireps_torch.experiments.loop import resume_point
 
     config_cls = EXPERIMENTS[name][0]
     with pytest.warns(UserWarning, match=message):
-        ALGORITHMS[name](config_cls(**options))
+        assert resume_point(name, config_cls(**options)) is None
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
-        ALGORITHMS[name](config_cls())
+        resume_point(name, config_cls())
+        ALGORITHMS[name](config_cls(**options))

@@ -219,9 +219,13 @@ def check_step(step: int, n_steps: int) -> int:
             raise TypeError
         k = operator.index(step)
     except TypeError:
-        swapped = " (the arguments swapped? ask / act take (step, contexts))"
-        hint = swapped if getattr(step, "ndim", 0) else ""
-        raise ValueError(f"step must be an integer in [0, {n_steps}), got {step!r}{hint}") from None
+        if shape := tuple(getattr(step, "shape", ())):  # states in the step's place?
+            raise ValueError(
+                f"step must be an integer in [0, {n_steps}), got a {type(step).__name__} of "
+                f"shape {shape} (sample and mean_action take (states, step); a time-indexed "
+                "algorithm's ask, act and value take (step, contexts))"
+            ) from None
+        raise ValueError(f"step must be an integer in [0, {n_steps}), got {step!r}") from None
     if not 0 <= k < n_steps:
         raise ValueError(f"step must be in [0, {n_steps}) (K = {n_steps} decision steps), got {k}")
     return k
@@ -273,15 +277,23 @@ class HiREPSBase:
     """Shared bookkeeping: kappa_rel, prune_threshold, generator, iteration and their checkpoint."""
 
     policies: Sequence[HierarchicalPolicy]
+    policy: HierarchicalPolicy  # the variants with one policy
 
     def __init__(
         self,
+        policy: HierarchicalPolicy | None = None,
         *,
         kappa_rel: float | None,
         prune_threshold: float,
         seed: int | Sequence[int] | None,
         population: int | None = None,
     ) -> None:
+        """``policy``: the one policy of a variant with one (its population taken from it)."""
+        if policy is not None:
+            if not isinstance(policy, HierarchicalPolicy):
+                got = type(policy).__name__
+                raise TypeError(f"policy must be a HierarchicalPolicy, got {got}")
+            population, self.policy, self.policies = policy.population, policy, (policy,)
         if kappa_rel is not None:
             kappa_rel = check_nonnegative_float("kappa_rel", kappa_rel)
         self.kappa_rel = kappa_rel

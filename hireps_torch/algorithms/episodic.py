@@ -72,14 +72,7 @@ class EpisodicHiREPS(HiREPSBase):
         seed: int | Sequence[int] | None = None,
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
-        if not isinstance(policy, HierarchicalPolicy):
-            raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
-        super().__init__(
-            kappa_rel=kappa_rel,
-            prune_threshold=prune_threshold,
-            seed=seed,
-            population=policy.population,
-        )
+        super().__init__(policy, kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         context_dim = check_count("context_dim", context_dim, 0)
         if policy.context_dim != context_dim:
             raise ValueError(
@@ -92,8 +85,6 @@ class EpisodicHiREPS(HiREPSBase):
                 f"context_features take contexts of dimension {context_features.in_features}, "
                 f"not context_dim = {context_dim}"
             )
-        self.policy = policy
-        self.policies = (policy,)
         self.context_dim = context_dim
         self.context_features = context_features or (
             QuadraticFeatures(context_dim) if context_dim > 0 else None

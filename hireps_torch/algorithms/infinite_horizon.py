@@ -74,14 +74,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
         self.gamma = check_gamma(gamma)
-        if not isinstance(policy, HierarchicalPolicy):
-            raise TypeError(f"policy must be a HierarchicalPolicy, got {type(policy).__name__}")
-        super().__init__(
-            kappa_rel=kappa_rel,
-            prune_threshold=prune_threshold,
-            seed=seed,
-            population=policy.population,
-        )
+        super().__init__(policy, kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         if check_feature_map("value_features", value_features) is None:
             raise TypeError("value_features must be a feature map (e.g. FourierFeatures)")
         C = value_features.in_features
@@ -90,8 +83,6 @@ class InfiniteHorizonHiREPS(HiREPSBase):
                 f"value_features take states of dimension {C}, the policy of dimension "
                 f"{policy.context_dim}"
             )
-        self.policy = policy
-        self.policies = (policy,)
         self.value_features = value_features.to(self.device)  # where the policy is
         per_member = policy.population is not None and getattr(initial_states, "dim", int)() == 3
         s0 = self._states(initial_states, "initial_states", population=per_member)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import functools
+import hashlib
 import math
 import os
 import tempfile
@@ -125,7 +126,9 @@ def _kuka_urdf_path() -> str:
 def arm_urdf(geometry: ArmGeometry = ArmGeometry()) -> tuple[str, str]:
     """The iiwa URDF with the stick links: (urdf text, path of a file holding it).
 
-    Mesh paths are made absolute so the file can live outside pybullet_data.
+    Mesh paths are made absolute so the file can live outside pybullet_data. The file is
+    ``hireps_iiwa_stick_<hash of the text>.urdf`` in the temp directory, shared by every process
+    and left there for the next.
     """
     require_robot_extra()
     src_path = _kuka_urdf_path()
@@ -162,10 +165,18 @@ def arm_urdf(geometry: ArmGeometry = ArmGeometry()) -> tuple[str, str]:
   </link>
 </robot>"""
     text = text.replace("</robot>", stick)
-    fd, path = tempfile.mkstemp(prefix="hireps_iiwa_stick_", suffix=".urdf")
+    # one file per text, replaced whole: processes that end without atexit (killed, Ray's
+    # workers) leave no copies behind, and a reader never sees a half-written file
+    name = f"hireps_iiwa_stick_{hashlib.sha256(text.encode()).hexdigest()[:16]}.urdf"
+    path = os.path.join(tempfile.gettempdir(), name)
+    fd, part = tempfile.mkstemp(prefix="hireps_iiwa_stick_", suffix=".part")
     with os.fdopen(fd, "w") as f:
         f.write(text)
-    atexit.register(_remove, path)
+    try:
+        os.replace(part, path)
+    except OSError:  # another user's file of that name (a shared /tmp): keep ours apart
+        path = part
+        atexit.register(_remove, part)
     return text, path
 
 

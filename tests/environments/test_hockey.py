@@ -320,3 +320,31 @@ def test_a_closed_env_names_its_closing(episodic):
         with pytest.raises(RuntimeError, match="the environment was closed: make a new one"):
             call()
     e.close()  # a second close is harmless
+
+
+def test_processes_killed_without_atexit_leave_one_arm_urdf_behind(tmp_path):
+    """Every process writes the arm's URDF under one name per text (before: one file per
+    process, removed at exit only, so killed workers left theirs in /tmp)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import os\n"
+        "from hireps_torch.envs.hockey.kinematics import arm_urdf\n"
+        "text, path = arm_urdf()\n"
+        "assert open(path).read() == text\n"
+        "print(path)\n"
+        "os._exit(0)\n"  # like a killed worker: no atexit
+    )
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    paths = [
+        subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        for _ in range(2)
+    ]
+    assert paths[0] == paths[1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [os.path.basename(paths[0])]
+    text, _ = kin_module.arm_urdf()
+    assert (tmp_path / os.path.basename(paths[0])).read_text() == text

@@ -169,7 +169,7 @@ def arm_urdf(geometry: ArmGeometry = ArmGeometry()) -> tuple[str, str]:
     # workers) leave no copies behind, and a reader never sees a half-written file
     name = f"hireps_iiwa_stick_{hashlib.sha256(text.encode()).hexdigest()[:16]}.urdf"
     path = os.path.join(tempfile.gettempdir(), name)
-    fd, part = tempfile.mkstemp(prefix="hireps_iiwa_stick_", suffix=".part")
+    fd, part = tempfile.mkstemp(prefix="hireps_iiwa_stick_", suffix=".urdf")
     with os.fdopen(fd, "w") as f:
         f.write(text)
     try:

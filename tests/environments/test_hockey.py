@@ -348,3 +348,19 @@ def test_processes_killed_without_atexit_leave_one_arm_urdf_behind(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == [os.path.basename(paths[0])]
     text, _ = kin_module.arm_urdf()
     assert (tmp_path / os.path.basename(paths[0])).read_text() == text
+
+
+def test_an_arm_urdf_name_taken_by_another_user_gives_a_file_of_our_own(tmp_path, monkeypatch):
+    """Where the shared name cannot be replaced (another user's file in a sticky /tmp), the
+    process keeps its own copy under its own name."""
+    import os
+
+    def refuse(src, dst):
+        raise PermissionError(1, "Operation not permitted", dst)
+
+    monkeypatch.setattr(kin_module.tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(kin_module.os, "replace", refuse)
+    geometry = kin_module.ArmGeometry(stick_length=0.51)  # not in arm_urdf's cache
+    text, path = kin_module.arm_urdf(geometry)
+    assert os.path.dirname(path) == str(tmp_path) and path.endswith(".urdf")
+    assert open(path).read() == text and len(list(tmp_path.iterdir())) == 1

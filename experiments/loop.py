@@ -124,14 +124,25 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
                 check_same_run(run_dir, ckpt, saved)
             except ValueError as exc:
                 raise ValueError(f"cannot resume {run_dir}: {exc}; nothing was changed") from None
+        # rows without a checkpoint: its first was not due yet, or its write failed (the run
+        # starts over); more rows than that: a checkpoint was there and is gone
+        every = saved.get("checkpoint_every", 1)
         for d, n in logged.items():
-            if ckpt is None and n:
+            if ckpt is None and n > (every if isinstance(every, int) else 0):
                 raise ValueError(
                     f"cannot resume {run_dir}: {d / 'metrics.csv'} holds {n} row(s) but there "
                     f"is no {run_dir / 'checkpoint.pt'} to continue them from; restore the "
                     "checkpoint, or move the directory away and start a new run (nothing was "
                     "changed)"
                 )
+        if ckpt is None and any(logged.values()):
+            warnings.warn(
+                f"{run_dir} holds no checkpoint.pt (the run stopped before its first one was "
+                f"written): the run starts over, playing the {max(logged.values())} "
+                "iteration(s) in its metrics.csv again",
+                UserWarning,
+                stacklevel=3,
+            )
         return Resume(run_dir, ckpt)
     finally:
         lock.release()
@@ -177,12 +188,18 @@ def _check_members(experiment: str, cfg: RunOptions, run_dir: Path) -> None:
 
 
 def logged_rows(path: Path) -> int:
-    """The data rows of a ``metrics.csv`` (0 if absent; a ``ValueError`` if not a file)."""
+    """The data rows of a ``metrics.csv`` (0 if absent; a ``ValueError`` if not a text file)."""
     if path.exists() and not path.is_file():
         raise ValueError(f"{path} is not a file; move it away (nothing was changed)")
     if not path.is_file():
         return 0
-    return max(sum(1 for line in path.read_bytes().splitlines() if line.strip()) - 1, 0)
+    try:
+        text = path.read_bytes().decode()
+    except UnicodeDecodeError as exc:
+        raise ValueError(
+            f"{path} is not text ({exc}); move it away (nothing was changed)"
+        ) from None
+    return max(sum(1 for line in text.splitlines() if line.strip()) - 1, 0)
 
 
 class Run:

@@ -69,6 +69,10 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
             os.unlink(tmp)
 
 
+_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+"""The names :func:`atomic_write`'s temporary files take (``mkstemp``'s 8 random characters)."""
+
+
 class DirectoryLock:
     """An exclusive ``flock`` on a directory (one writer per run directory) until
     :meth:`release`, garbage collection or the process's end; one another process holds is a
@@ -178,6 +182,10 @@ class RunWriter:
                     break
                 d.rmdir()
             raise
+        if resuming:  # what an earlier session's atomic_write left when it was killed
+            for tmp in self.dir.iterdir():
+                if _TEMPORARY.fullmatch(tmp.name) and tmp.is_file():
+                    tmp.unlink()
         self.start = time.perf_counter() - elapsed
         self._fields: list[str] | None = None
         self.rows: list[dict[str, Any]] = []

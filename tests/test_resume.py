@@ -795,3 +795,23 @@ def test_options_that_do_not_change_a_run_may_differ_on_resume(tmp_path):
     assert pendulum(device="cpu:0").checkpoint is None
     with pytest.raises(ValueError, match=r"workers \(run: 1, now: 2\)"):
         pendulum(workers=2)
+
+
+def test_a_run_killed_before_its_first_checkpoint_starts_over_and_ends_as_a_fresh_run(tmp_path):
+    """kill -9 before the first checkpoint was due (--checkpoint-every 1000): --resume starts
+    the run over, says so, and ends as an uninterrupted run; atomic_write's temporary files of
+    the killed session go (before: refused, 'restore the checkpoint', with none ever written)."""
+    options = {"episodes": 3000, "samples_per_iteration": 100, "seed": 4}
+    in_process("bimodal", tmp_path / "full", **options)
+    run = tmp_path / "run"
+    stopped = stop_run(
+        ["bimodal", *cli(options), "--checkpoint-every", "1000"], run, 3, signal.SIGKILL
+    )
+    assert stopped.code == -signal.SIGKILL
+    assert not (run / "checkpoint.pt").exists() and len(rows(run)) >= 3
+    stale = run / ".checkpoint.pt.a1b2c3d4.tmp"
+    stale.write_bytes(b"half a checkpoint")
+    with pytest.warns(UserWarning, match=r"no checkpoint.pt .* starts over, playing the \d+"):
+        resume_in_process("bimodal", run)
+    assert not stale.exists()
+    assert_same_run(run, tmp_path / "full")

@@ -21,10 +21,11 @@ import json
 import math
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
 import statistics
 import typing
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -336,7 +337,36 @@ def _one_thread(run: SweepRun) -> dict[str, Any]:
     return run_one(run)
 
 
+class SweepTerminated(KeyboardInterrupt):
+    """A sweep stopped by SIGTERM (as Ctrl-C stops it; ``signame`` gives the exit code 143)."""
+
+    signame = "SIGTERM"
+
+
+@contextlib.contextmanager
+def _sigterm_stops() -> Iterator[None]:
+    """While active (in the main thread), SIGTERM raises :class:`SweepTerminated`."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise SweepTerminated("SIGTERM")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
+    with _sigterm_stops():
+        _local_runs(runs, workers, done, failed)
+
+
+def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
     if workers == 1:  # one thread as in the worker processes: the same sums, the same results
         for run in runs:
             try:
@@ -357,7 +387,9 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
             while queued and len(going) < workers:
                 run = queued.pop(0)
                 reader, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_in_worker, args=(run, send, stop), daemon=True)
+                proc = ctx.Process(
+                    target=_in_worker, args=(run, send, stop, os.getpid()), daemon=True
+                )
                 # the worker starts with SIGINT blocked: a Ctrl-C waits until it is ready
                 mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
                 try:
@@ -386,18 +418,19 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
         _stop_workers([proc for _, proc in going.values()])
 
 
-def _in_worker(run: SweepRun, send: Any, stop: Any) -> None:
+def _in_worker(run: SweepRun, send: Any, stop: Any, parent: int) -> None:
     """A local worker process: one run, its outcome sent back as (kind, value); ``stop.value``
-    (a shared byte) set asks for a stop at the next iteration boundary, as a first SIGINT does."""
+    (a shared byte) set, or the sweep's process ``parent`` gone (even by kill -9), asks for a
+    stop at the next iteration boundary, as a first SIGINT does."""
     import threading
     import time
 
     from hireps_torch.experiments.checkpoint import record_early_stops, request_stop
 
     def watch() -> None:
-        while not stop.value:
+        while not stop.value and os.getppid() == parent:
             time.sleep(0.1)
-        request_stop("the sweep's stop")
+        request_stop("the sweep's stop" if stop.value else "the sweep's end")
 
     record_early_stops()
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one held since the start lands
@@ -408,8 +441,9 @@ def _in_worker(run: SweepRun, send: Any, stop: Any) -> None:
         out = ("interrupted", str(interrupted))
     except BaseException as exc:
         out = ("error", f"{type(exc).__name__}: {exc}")
-    send.send(out)
-    send.close()
+    with contextlib.suppress(OSError):  # BrokenPipeError: the sweep is gone
+        send.send(out)
+        send.close()
 
 
 _STOP_SECONDS = 60.0  # a run going finishes its iteration within this, or is stopped at once
@@ -615,7 +649,8 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
             failure, results = exc, exc.results
         except KeyboardInterrupt as stop:
             why = f" ({stop})" if str(stop) else ""
-            raise KeyboardInterrupt(
+            term = getattr(stop, "signame", None) == "SIGTERM"
+            raise (SweepTerminated if term else KeyboardInterrupt)(
                 f"the sweep stopped{why}; every run keeps its last checkpoint (the runs that "
                 "were going wrote one as they stopped). Run the same command again: finished "
                 "runs are reused and the others resume from their checkpoints"

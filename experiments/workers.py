@@ -174,6 +174,21 @@ def _play_chunk(
     return play_episodes(_ENV[key], actor, seed, episodes, steps)
 
 
+def exit_with_parent(parent: int) -> None:
+    """End this worker process once process ``parent`` is no longer its parent (it died, even by
+    kill -9: a pool's workers would otherwise wait on its queue, orphaned, for ever); polled
+    from a daemon thread."""
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
 def split_episodes(episodes: Sequence[int], parts: int) -> list[list[int]]:
     """Contiguous, nearly equal chunks (no empty ones) of ``episodes`` for ``parts`` workers."""
     eps = np.asarray([int(e) for e in episodes], dtype=np.int64)
@@ -217,7 +232,10 @@ class LocalProcessPool:
         for attempt in range(MAX_RETRIES + 1):
             if self._executor is None:
                 self._executor = ProcessPoolExecutor(
-                    self.workers, mp_context=multiprocessing.get_context("spawn")
+                    self.workers,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=exit_with_parent,
+                    initargs=(os.getpid(),),
                 )
             pool = self._executor
             # workers spawn during submit; one starts MKL while it imports torch, before any

@@ -377,7 +377,12 @@ def test_a_sweep_directory_has_one_sweep_at_a_time(tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_of_a_sweep_with_workers_says_how_to_finish_it(tmp_path):
+@pytest.mark.parametrize("stop", ["ctrl-c", "sigterm", "kill -9"])
+def test_a_stopped_sweep_with_workers_leaves_no_process_and_says_how_to_finish_it(tmp_path, stop):
+    """Ctrl-C (SIGINT to the group), SIGTERM to the sweep alone (a cluster's requeue; before:
+    the sweep died at once and its workers ran on), kill -9 of the sweep (before: its workers
+    ran their runs to the end): every worker stops at an iteration boundary with a checkpoint,
+    and nothing is left running."""
     out = tmp_path / "sw"
     args = [
         "--experiment",
@@ -406,17 +411,23 @@ def test_ctrl_c_of_a_sweep_with_workers_says_how_to_finish_it(tmp_path):
     deadline = time.time() + 120
     while time.time() < deadline and not (metrics.exists() and metrics.read_text().count("\n") > 2):
         time.sleep(0.05)
-    os.killpg(p.pid, signal.SIGINT)  # what Ctrl-C in a terminal sends: the whole group
+    if stop == "ctrl-c":
+        os.killpg(p.pid, signal.SIGINT)  # what Ctrl-C in a terminal sends: the whole group
+    else:
+        p.send_signal(signal.SIGTERM if stop == "sigterm" else signal.SIGKILL)
     start = time.time()
     _, err = p.communicate(timeout=120)
     assert time.time() - start < 30, err
-    assert p.returncode == 130, err
-    for _ in range(50):  # the multiprocessing resource tracker ends as its parent ends
+    assert p.returncode == {"ctrl-c": 130, "sigterm": 143, "kill -9": -9}[stop], err
+    for _ in range(300):  # the multiprocessing resource tracker ends as its parent ends
         left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True).stdout
         if not left.split():
             break
         time.sleep(0.1)
     assert not left.split(), f"processes left behind: {left}"
+    assert (out / "bimodal" / "default" / "seed0" / "checkpoint.pt").is_file()
+    if stop == "kill -9":
+        return
     assert "interrupted: the sweep stopped" in err
     assert "Run the same command again" in err
     assert (out / "bimodal" / "default" / "seed0" / "checkpoint.pt").is_file()

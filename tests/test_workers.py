@@ -56,3 +56,55 @@ def test_workers_act_with_the_updated_policy_after_a_weight_sync(tmp_path):
     # batch 0 with the initial policy (mean 0), then every batch with the last synced update
     assert abs(means[0]) < 1e-6
     assert abs(means[1] - 0.5) < 1e-6 and abs(means[2] - 1.0) < 1e-6
+
+
+ORPHAN_SCRIPT = textwrap.dedent(
+    """
+    import functools, threading, time
+    from hireps_torch.experiments.workers import LocalProcessPool
+
+    if __name__ == "__main__":
+        # workers busy building their environment (a ten-minute sleep) when the parent dies
+        pool = LocalProcessPool(functools.partial(time.sleep, 600), workers=2)
+        threading.Thread(target=pool.play, args=(None, 0, [0, 1], 1), daemon=True).start()
+        while pool._executor is None or len(pool._executor._processes) < 2:
+            time.sleep(0.05)
+        print(*pool._executor._processes, flush=True)
+        time.sleep(600)
+    """
+)
+
+
+def _alive(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+def test_a_pools_workers_end_when_their_parent_is_killed(tmp_path):
+    """kill -9 of the process that owns a LocalProcessPool (hockey --workers N): its workers
+    end within seconds (before: they waited on its queue for ever, ~490 MB each)."""
+    import os
+    import signal
+    import time
+
+    script = tmp_path / "orphans.py"
+    script.write_text(ORPHAN_SCRIPT)
+    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    workers = [int(w) for w in p.stdout.readline().split()]
+    try:
+        assert len(workers) == 2
+        time.sleep(1.0)
+        p.kill()
+        p.wait()
+        deadline = time.time() + 60
+        while time.time() < deadline and any(_alive(w) for w in workers):
+            time.sleep(0.2)
+        assert not any(_alive(w) for w in workers), "a worker outlived its parent"
+    finally:
+        for w in workers:
+            if _alive(w):
+                os.kill(w, signal.SIGKILL)

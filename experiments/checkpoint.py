@@ -35,7 +35,9 @@ __all__ = [
     "stop_on_signals",
 ]
 
-FORMAT = 2
+FORMAT = 3
+"""3: ``rows`` holds each member's ``metrics.csv`` text (one string, cheap to save); 2 (still
+read): its rows as dicts, which every checkpoint pickled again."""
 CHECKPOINT_KEYS = ("algorithm", "rng", "env", "rows", "iteration", "elapsed")
 """The entries of a checkpoint that a resume reads (besides ``format``)."""
 RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every", "backend", "ray_address")
@@ -136,7 +138,7 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
         ) from exc
     if not isinstance(ckpt, dict):
         raise ValueError(f"{path} holds a {type(ckpt).__name__}, not a checkpoint of this code")
-    if ckpt.get("format") != FORMAT:
+    if ckpt.get("format") not in (2, FORMAT):
         raise ValueError(
             f"{path} was written by another version of this code (format "
             f"{ckpt.get('format')!r}, expected {FORMAT}); it cannot be resumed exactly"
@@ -144,6 +146,8 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
     if missing := [k for k in CHECKPOINT_KEYS if k not in ckpt]:
         raise ValueError(f"{path} is not a complete checkpoint: it has no {missing}")
     it, members = ckpt["iteration"], ckpt["rows"]
+    if ckpt["format"] == FORMAT:
+        members = ckpt["rows"] = _parsed_rows(path, members)
     if not (
         isinstance(members, list)
         and members
@@ -162,6 +166,19 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
     if isinstance(ckpt["elapsed"], bool) or not isinstance(ckpt["elapsed"], (int, float)):
         raise ValueError(f"{path} is damaged: its elapsed time is {ckpt['elapsed']!r}")
     return ckpt
+
+
+def _parsed_rows(path: Path, texts: Any) -> list[list[dict[str, Any]]]:
+    """The rows of a format-3 checkpoint at ``path`` (``texts``: each member's metrics.csv
+    text), or a ``ValueError`` saying it is damaged."""
+    from hireps_torch.experiments.rundir import parse_rows
+
+    if not (isinstance(texts, list) and texts and all(isinstance(t, str) for t in texts)):
+        raise ValueError(f"{path} is damaged: its rows are not one metrics.csv text per member")
+    try:
+        return [parse_rows(text) for text in texts]
+    except ValueError as exc:
+        raise ValueError(f"{path} is damaged: {exc}") from None
 
 
 def read_config(run_dir: Path) -> dict[str, Any]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import json
 import math
 import os
@@ -30,6 +31,7 @@ __all__ = [
     "default_run_dir",
     "jsonable",
     "make_logger",
+    "parse_rows",
 ]
 
 LoggerName = Literal["csv", "tensorboard", "wandb"]
@@ -50,15 +52,18 @@ def default_run_dir(experiment: str, root: str | Path = "runs") -> Path:
 def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` on a temporary file next to ``path``, then move it into place; a
     failed write is an ``OSError`` naming ``path`` (the file there before is kept)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    kept = f"the previous {path.name} is kept" if path.exists() else "nothing was written"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:  # a read-only directory, one without permission, ...
+        raise OSError(f"cannot write {path} ({exc.strerror or exc}): {kept}") from exc
     os.close(fd)
     try:
         try:
             write(Path(tmp))
         except (OSError, RuntimeError) as exc:  # torch.save wraps the OSError in a RuntimeError
             why = next(iter(str(exc).splitlines()), "")[:200] or type(exc).__name__
-            kept = f"the previous {path.name} is kept" if path.exists() else "nothing was written"
             raise OSError(f"cannot write {path} ({why}; is the disk full?): {kept}") from exc
         mask = os.umask(0)
         os.umask(mask)
@@ -71,6 +76,30 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
 
 _TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
 """The names :func:`atomic_write`'s temporary files take (``mkstemp``'s 8 random characters)."""
+
+
+def parse_rows(text: str) -> list[dict[str, Any]]:
+    """The rows of a ``metrics.csv`` text as :meth:`RunWriter.log` had them (numbers, booleans,
+    None for an empty cell; a cell is read as a number only where it reads back as the same
+    text, so the rows written again give the same file); a ``ValueError`` for a row that does
+    not fit the header."""
+    rows = list(csv.DictReader(io.StringIO(text, newline="")))
+    for k, r in enumerate(rows, 1):
+        if None in r or None in r.values():
+            raise ValueError(f"its metrics row {k} does not fit the header")
+    return [{key: _cell(v) for key, v in r.items()} for r in rows]
+
+
+def _cell(text: str) -> Any:
+    if text in ("True", "False"):
+        return text == "True"
+    if text == "":
+        return None
+    for kind in (int, float):
+        with contextlib.suppress(ValueError):
+            if str(value := kind(text)) == text:
+                return value
+    return text
 
 
 class DirectoryLock:
@@ -185,10 +214,12 @@ class RunWriter:
         if resuming:  # what an earlier session's atomic_write left when it was killed
             for tmp in self.dir.iterdir():
                 if _TEMPORARY.fullmatch(tmp.name) and tmp.is_file():
-                    tmp.unlink()
+                    with contextlib.suppress(OSError):  # a read-only directory: said below
+                        tmp.unlink()
         self.start = time.perf_counter() - elapsed
         self._fields: list[str] | None = None
         self.rows: list[dict[str, Any]] = []
+        self._text: list[str] = []  # metrics.csv's text: header, then one piece per row
         if resuming:
             self._rewrite_metrics(rows or [])
         if not resuming or not (self.dir / "config.json").is_file():  # a member's, deleted
@@ -204,15 +235,21 @@ class RunWriter:
         if not self.rows:
             path.unlink(missing_ok=True)
             return
-        self._fields = fields = list(self.rows[0])
+        self._fields = list(self.rows[0])
+        self._text = [self._csv(self.rows, header=True)]
+        atomic_write(path, lambda p: p.write_text(self._text[0], newline=""))
 
-        def write(p: Path) -> None:
-            with p.open("w", newline="") as f:
-                out = csv.DictWriter(f, fields, extrasaction="ignore")
-                out.writeheader()
-                out.writerows(self.rows)
+    def _csv(self, rows: Sequence[Mapping[str, Any]], header: bool = False) -> str:
+        out = io.StringIO(newline="")
+        writer = csv.DictWriter(out, self._fields or [], extrasaction="ignore")
+        if header:
+            writer.writeheader()
+        writer.writerows(rows)
+        return out.getvalue()
 
-        atomic_write(path, write)
+    def csv_text(self) -> str:
+        """What ``metrics.csv`` holds."""
+        return "".join(self._text)
 
     def write_json(self, name: str, data: Mapping[str, Any]) -> None:
         text = json.dumps(jsonable(data), indent=2, sort_keys=False) + "\n"
@@ -221,13 +258,13 @@ class RunWriter:
     def log(self, row: Mapping[str, Any]) -> None:
         """Append one row to ``metrics.csv`` (columns fixed by the first row)."""
         clean = {k: (v if not isinstance(v, (list, tuple)) else len(v)) for k, v in row.items()}
-        path = self.dir / "metrics.csv"
-        if self._fields is None:
+        first = self._fields is None
+        if first:
             self._fields = list(clean)
-            with path.open("w", newline="") as f:
-                csv.DictWriter(f, self._fields).writeheader()
-        with path.open("a", newline="") as f:
-            csv.DictWriter(f, self._fields, extrasaction="ignore").writerow(clean)
+        text = self._csv([clean], header=first)
+        with (self.dir / "metrics.csv").open("w" if first else "a", newline="") as f:
+            f.write(text)
+        self._text.append(text)
         self.rows.append(dict(clean))
         if self.logger is not None:
             step = int(clean.get("iteration", len(self.rows)))

@@ -1,6 +1,7 @@
 """``hireps_torch.load_run``: a run directory loaded back as its config and its algorithm,
 for finished and interrupted runs of every experiment and for a member of a population."""
 
+import csv
 import dataclasses
 import json
 import os
@@ -89,7 +90,14 @@ def test_a_population_member_loads_as_its_part_of_the_population(tmp_path):
     for key, value in state["policy"].items():
         whole = population["algorithm"]["policy"][key]
         assert torch.equal(value, whole[1:2] if whole.shape != value.shape else whole), key
-    assert loaded.metrics == population["rows"][1]
+    with (root / "seed5" / "metrics.csv").open(newline="") as f:
+        assert population["rows"][1] == f.read()  # the checkpoint holds each member's text
+    with (root / "seed5" / "metrics.csv").open() as f:
+        logged = list(csv.DictReader(f))
+    assert len(logged) == population["iteration"]
+    assert [{k: str(v) for k, v in r.items()} for r in loaded.metrics] == logged
+    assert type(loaded.metrics[0]["iteration"]) is int and type(loaded.metrics[0]["kl"]) is float
+    assert type(loaded.metrics[0]["dual_converged"]) is bool
     with pytest.raises(ValueError, match="is a population .*load one member"):
         hireps_torch.load_run(root)
 

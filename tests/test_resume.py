@@ -721,26 +721,30 @@ def test_a_stop_asked_from_another_thread_is_taken_at_the_boundary_and_a_signal_
     assert checkpoint.ACTIVE is None
 
 
-def test_a_sweep_worker_stops_at_its_boundary_when_the_sweep_stops(tmp_path, monkeypatch):
+@pytest.mark.parametrize("why", ["stop", "end"])
+def test_a_sweep_worker_stops_at_its_boundary_when_the_sweep_stops(tmp_path, monkeypatch, why):
     """A worker that never saw the Ctrl-C (it was starting up) stops at its next iteration
-    boundary once the sweep sets its stop event, and says so."""
+    boundary once the sweep sets its stop event, or once the sweep's process is no longer its
+    parent (killed), and says so."""
     import multiprocessing
 
     from hireps_torch.experiments import checkpoint, sweep
 
     monkeypatch.setattr(checkpoint, "EARLY", checkpoint.StopRequest())
     saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    stop, (reader, send) = multiprocessing.RawValue("b", 1), multiprocessing.Pipe(duplex=False)
+    stop, (reader, send) = multiprocessing.RawValue("b", 0), multiprocessing.Pipe(duplex=False)
+    stop.value = why == "stop"
+    parent = os.getppid() if why == "stop" else -1  # -1: a parent that is gone
     options = {"episodes": 400000, "samples_per_iteration": 20}
     run = sweep.SweepRun("bimodal", "default", 0, options, tmp_path / "seed0")
     try:
-        sweep._in_worker(run, send, stop)  # it installs its own signal handlers
+        sweep._in_worker(run, send, stop, parent)  # it installs its own signal handlers
     finally:
         for sig, handler in saved.items():
             signal.signal(sig, handler)
     kind, message = reader.recv()
     assert kind == "interrupted"
-    assert re.match(r"the sweep's stop: stopped after iteration \d+;", message), message
+    assert re.match(rf"the sweep's {why}: stopped after iteration \d+;", message), message
     assert (tmp_path / "seed0" / "checkpoint.pt").is_file()
 
 
@@ -815,3 +819,65 @@ def test_a_run_killed_before_its_first_checkpoint_starts_over_and_ends_as_a_fres
         resume_in_process("bimodal", run)
     assert not stale.exists()
     assert_same_run(run, tmp_path / "full")
+
+
+def test_a_checkpoint_holds_each_members_metrics_as_one_text(tmp_path):
+    """The rows go into a checkpoint as metrics.csv's text (before: as dicts, whose pickling
+    made every checkpoint of a long run slower: 23.5 ms at 2000 rows against 1.4 ms without)."""
+    run = tmp_path / "run"
+    in_process("bimodal", run, episodes=400, samples_per_iteration=20)
+    ckpt = torch.load(run / "checkpoint.pt")
+    assert ckpt["format"] == 3 and ckpt["iteration"] == 20
+    assert ckpt["rows"] == [(run / "metrics.csv").read_bytes().decode()]
+    ckpt["rows"] = ["iteration,kl\r\n1,0.5,7\r\n"]  # a row longer than the header
+    torch.save(ckpt, run / "checkpoint.pt")
+    (run / "summary.json").unlink()
+    with pytest.raises(ValueError, match="checkpoint.pt is damaged: its metrics row 1 does not"):
+        resume_in_process("bimodal", run)
+
+
+def test_a_checkpoint_of_format_2_with_its_rows_inside_resumes_as_before(tmp_path):
+    """Run directories written before the checkpoints counted their rows still resume."""
+    options = {"episodes": 3000, "samples_per_iteration": 100, "seed": 5}
+    in_process("bimodal", tmp_path / "full", **options)
+    run = tmp_path / "run"
+    code, err = interrupt(["bimodal", *cli(options)], run, 4)
+    assert code == 130, err
+    path = run / "checkpoint.pt"
+    ckpt = torch.load(path)
+    kept = list(csv.DictReader(ckpt["rows"][0].splitlines()))
+    assert len(kept) == ckpt["iteration"]
+    ckpt["rows"] = [[{k: _typed(v) for k, v in r.items()} for r in kept]]
+    ckpt["format"] = 2
+    torch.save(ckpt, path)
+    (run / "metrics.csv").write_text("iteration\n")  # format 2 rewrites it from its rows
+    resume_in_process("bimodal", run)
+    assert_same_run(run, tmp_path / "full")
+
+
+def _typed(text):
+    if text in ("True", "False"):
+        return text == "True"
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
+
+
+def test_a_run_directory_that_cannot_be_written_is_named_on_resume(tmp_path, monkeypatch):
+    """A resume into a directory where no file can be made (read-only, immutable) names the
+    file it would write, not the hidden temporary name (before: '[Errno 1] Operation not
+    permitted: .../.metrics.csv.i1fdoaj7.tmp'), and changes nothing."""
+    import tempfile
+
+    run = _unfinished(tmp_path, "run")
+    before = _files(run)
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(1, "Operation not permitted", kwargs.get("dir"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(OSError, match=r"cannot write .*metrics.csv \(Operation not permitted\)"):
+        resume_in_process("bimodal", run)
+    monkeypatch.undo()
+    assert _files(run) == before

@@ -311,11 +311,16 @@ class Run:
 
 def keep_freed_memory(pad: int = 1 << 30) -> bool:
     """Have glibc's ``malloc`` keep up to ``pad`` bytes of freed heap (``mallopt(M_TOP_PAD)``,
-    process-wide); returns whether it was set (why: benchmarks/README.md, "population.py")."""
+    process-wide; glibc's default is 128 KiB); returns whether it was set (why:
+    benchmarks/README.md, "population.py"). With ``pad`` 0 or less: the default again, and the
+    kept heap handed back (``malloc_trim``)."""
     name = ctypes.util.find_library("c")
     try:
         libc = ctypes.CDLL(name)
-        return bool(libc.mallopt(-2, pad))  # M_TOP_PAD
+        done = bool(libc.mallopt(-2, pad if pad > 0 else 128 * 1024))  # M_TOP_PAD
+        if done and pad <= 0:
+            libc.malloc_trim(0)
+        return done
     except (OSError, AttributeError, TypeError):
         return False
 
@@ -403,6 +408,7 @@ def ask_tell_loop(
         raise
     finally:
         bar.close()
+        keep_freed_memory(0)  # the process goes on (a notebook, a sweep): its heap back
     return run
 
 

@@ -25,7 +25,7 @@ import os
 import signal
 import statistics
 import typing
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -343,26 +343,14 @@ class SweepTerminated(KeyboardInterrupt):
     signame = "SIGTERM"
 
 
-@contextlib.contextmanager
-def _sigterm_stops() -> Iterator[None]:
-    """While active (in the main thread), SIGTERM raises :class:`SweepTerminated`."""
-
-    def handler(signum: int, frame: Any) -> None:
-        raise SweepTerminated("SIGTERM")
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+def _terminate(signum: int, frame: Any) -> None:
+    raise SweepTerminated("SIGTERM")
 
 
 def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
-    with _sigterm_stops():
+    from hireps_torch.rollout import signal_handled
+
+    with signal_handled(signal.SIGTERM, _terminate):  # SIGTERM stops a sweep as Ctrl-C does
         _local_runs(runs, workers, done, failed)
 
 

@@ -28,6 +28,7 @@ __all__ = [
     "shutdown_collector",
     "time_indexed_module",
     "transitions",
+    "signal_handled",
     "workers_ignore_sigint",
 ]
 
@@ -242,18 +243,24 @@ def make_collector(
 
 
 @contextlib.contextmanager
-def workers_ignore_sigint() -> Iterator[None]:
-    """SIGINT ignored while worker processes start (they inherit it), so that a Ctrl-C reaches
-    only the main process; a no-op outside the main thread."""
+def signal_handled(sig: int, handler: Any) -> Iterator[None]:
+    """``handler`` (a function or ``signal.SIG_IGN``) for signal ``sig`` while active, the one
+    before after; a no-op outside the main thread."""
     try:
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        previous = signal.signal(sig, handler)
     except ValueError:  # not the main thread
         yield
         return
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(sig, previous)
+
+
+def workers_ignore_sigint() -> contextlib.AbstractContextManager[None]:
+    """SIGINT ignored while worker processes start (they inherit it), so that a Ctrl-C reaches
+    only the main process; a no-op outside the main thread."""
+    return signal_handled(signal.SIGINT, signal.SIG_IGN)
 
 
 def shutdown_collector(collector: Any) -> None:

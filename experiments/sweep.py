@@ -378,12 +378,7 @@ def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Fail
                 proc = ctx.Process(
                     target=_in_worker, args=(run, send, stop, os.getpid()), daemon=True
                 )
-                # the worker starts with SIGINT blocked: a Ctrl-C waits until it is ready
-                mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-                try:
-                    proc.start()
-                finally:
-                    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+                proc.start()
                 send.close()
                 going[reader] = (run, proc)
             for ready in multiprocessing.connection.wait(list(going)):
@@ -421,7 +416,6 @@ def _in_worker(run: SweepRun, send: Any, stop: Any, parent: int) -> None:
         request_stop("the sweep's stop" if stop.value else "the sweep's end")
 
     record_early_stops()
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one held since the start lands
     threading.Thread(target=watch, daemon=True).start()
     try:
         out: tuple[str, Any] = ("ok", _one_thread(run))

@@ -364,8 +364,7 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     from hireps_torch.rollout import policy_module, time_indexed_module
 
     iterations = _check(cfg)
-    # before any arithmetic (see experiments/workers.py); a warning only matters with workers
-    reproducible_mkl(warn=cfg.workers > 1 or cfg.backend == "ray")
+    reproducible_mkl()  # before any arithmetic (see experiments/workers.py)
     sequential = isinstance(cfg, HockeySequentialConfig)
     experiment = (
         "hockey_fixed_start"

@@ -6,8 +6,8 @@
 
 Episode ``e`` draws from ``(seed, e)`` alone (:func:`episode_seeds`), so neither the worker nor
 the backend changes the result. Every process that plays or updates runs MKL as
-``MKL_CBWR=COMPATIBLE`` (:func:`reproducible_mkl`; a session running hockey with workers should
-start with it set; why: benchmarks/README.md, "Robot hockey defaults").
+``MKL_CBWR=COMPATIBLE`` (:func:`reproducible_mkl`; a Python session running hockey should start
+with it set, as ``hireps-train`` does; why: benchmarks/README.md, "Robot hockey defaults").
 """
 
 from __future__ import annotations
@@ -89,8 +89,10 @@ def reproducible_mkl(warn: bool = True) -> bool:
     if mode == 1 and warn:
         warnings.warn(
             "MKL started before MKL_CBWR=COMPATIBLE was set (arithmetic ran before the run "
-            "began): episodes played in this process can differ in the last bits from those "
-            "played by worker processes; set MKL_CBWR=COMPATIBLE before starting Python",
+            "began, as import torchrl does): episodes played in this process can differ in the "
+            "last bits, and the run then in its course, from the same seed's run by "
+            "hireps-train or by worker processes; set MKL_CBWR=COMPATIBLE before starting "
+            "Python",
             RuntimeWarning,
             stacklevel=2,
         )

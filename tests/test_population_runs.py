@@ -220,6 +220,7 @@ HOCKEY = ["--episodes", "6", "--episodes-per-iteration", "6", "--final-eval-epis
 @pytest.mark.parametrize(
     "name", ["hockey-sequential", pytest.param("hockey-fixed-start", marks=pytest.mark.slow)]
 )
+@pytest.mark.filterwarnings("ignore:MKL started")  # both runs in this process: the same mode
 def test_a_hockey_population_member_learns_its_ordinary_runs_update(tmp_path, name):
     """Each member of a hockey population plays the episodes of its own ``--seed`` run and
     learns its update, to the round-off of the members' batched refit, and loads as that run

@@ -730,6 +730,33 @@ def test_the_command_puts_hockey_runs_in_reproducible_mkl_before_torch_computes(
     assert mode in ("None", "2", "3")  # None: a torch without MKL; 1 would be MKL's default
 
 
+def test_a_hockey_run_whose_process_started_mkl_first_says_it_differs_from_the_command(tmp_path):
+    """main() from Python after torchrl's import (MKL in its default mode): the run warns that it
+    can differ from hireps-train's run of the same seed (before: only with workers)."""
+    run = str(tmp_path / "run")
+    code = (
+        "import os, warnings\n"
+        "os.environ.pop('MKL_CBWR', None)\n"
+        "from hireps_torch.cli import main\n"
+        "from hireps_torch.experiments.workers import _mkl_mode\n"
+        "if _mkl_mode() is None: print('NO MKL'); raise SystemExit\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    main(['hockey-sequential', '--episodes', '2', '--episodes-per-iteration', '2',\n"
+        f"          '--final-eval-episodes', '1', '--no-progress', '--run-dir', {run!r}])\n"
+        "print('WARNED' if any('hireps-train' in str(x.message) for x in w) else 'SILENT')\n"
+    )
+    env = {**__import__("os").environ, "OMP_NUM_THREADS": "1"}
+    env.pop("MKL_CBWR", None)
+    p = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    if "NO MKL" in p.stdout:
+        pytest.skip("torch without MKL")
+    assert p.stdout.split()[-1] == "WARNED", p.stderr[-3000:]
+
+
 def test_calling_main_in_a_process_leaves_its_environment_alone(tmp_path, monkeypatch):
     import train
 

@@ -243,6 +243,16 @@ class Run:
                 )
             state.load_state_dict(ckpt)
             self.start_iteration = int(ckpt["iteration"])
+            threads = ckpt.get("threads", torch.get_num_threads())  # format 2: not recorded
+            if threads != torch.get_num_threads():
+                warnings.warn(
+                    f"{root / 'checkpoint.pt'} was written with {threads} torch thread(s), this "
+                    f"process has {torch.get_num_threads()}: the run goes on as a run of its "
+                    "seed, but not bit for bit as it would have (round-off moves with the "
+                    f"threads; OMP_NUM_THREADS={threads} continues it exactly)",
+                    UserWarning,
+                    stacklevel=2,
+                )
         rows: list[Any] = [None] * len(self.seeds)  # None: a new run
         if resume is not None:
             rows = [[] for _ in self.seeds] if ckpt is None else ckpt["rows"]
@@ -292,6 +302,7 @@ class Run:
             **self.state.state_dict(),
             "rows": [w.csv_text() for w in self.writers],  # a str pickles at copy speed
             "elapsed": self.root.elapsed(),
+            "threads": torch.get_num_threads(),  # round-off moves with them
         }
 
     def end_iteration(self, iteration: int, force: bool = False) -> None:
@@ -461,7 +472,7 @@ def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, 
     experiment, seeds, root = run.experiment.replace("_", "-"), run.seeds, run.root.dir
     runs = [SweepRun(experiment, experiment, s, {}, root / f"seed{s}") for s in seeds]
     results = {(experiment, s): summary for s, summary in zip(seeds, summaries, strict=True)}
-    print(summarize(runs, results, root, stem="population"))
+    print(summarize(runs, results, root, stem="population", seconds="s (population)"))
     metric = METRICS[experiment][0]
     values = [float(s[metric]) for s in summaries]
     return run.root.finish(

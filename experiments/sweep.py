@@ -544,10 +544,11 @@ def summarize(
     results: Mapping[tuple[str, int], Mapping[str, Any]],
     out: Path,
     stem: str = "sweep",
+    seconds: str = "s/run",
 ) -> str:
-    """Write ``<stem>.md`` (table), ``.json`` (summaries) and ``.png`` (mean +- std bands) to
-    ``out``; returns the table. The metric and the curve column: the experiment's
-    :data:`METRICS`."""
+    """Write ``<stem>.md`` (table), ``.json`` (summaries) and ``.png`` (mean +- sample std
+    bands) to ``out``; returns the table. The metric and the curve column: the experiment's
+    :data:`METRICS`; ``seconds``: the header of the mean ``wall_seconds`` column."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -561,7 +562,7 @@ def summarize(
     experiment = runs[0].experiment
     metric, curve = METRICS[experiment]
     lines = [
-        f"| configuration | seeds | {metric} (mean ± std) | per seed | s/run |",
+        f"| configuration | seeds | {metric} (mean ± std) | per seed | {seconds} |",
         "|---|--:|--:|---|--:|",
     ]
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -583,7 +584,8 @@ def summarize(
             k = min(map(len, logs))
             x = np.array([float(w["episodes"]) for w in logs[0][:k]])
             ys = np.array([[float(w[curve]) for w in log[:k]] for log in logs])
-            mean, std = ys.mean(0), ys.std(0)
+            mean = ys.mean(0)
+            std = ys.std(0, ddof=1) if len(ys) > 1 else np.zeros_like(mean)  # as the table's
             ax.plot(x, mean, label=name)
             ax.fill_between(x, mean - std, mean + std, alpha=0.2)
         table = "\n".join(lines)

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -397,6 +398,29 @@ def _unfinished(tmp_path, name, **options):
 
 def _files(run):
     return {p.name: (p.read_bytes() if p.is_file() else "dir") for p in run.iterdir()}
+
+
+def test_a_resume_with_other_torch_threads_than_the_checkpoint_warns_how_to_match(tmp_path):
+    """Round-off moves with torch's thread count: a resume with another one than the run was
+    written with says so, and which OMP_NUM_THREADS continues it exactly; the same count is
+    silent (before: nothing said, and the run went another way)."""
+    ours = torch.get_num_threads()
+    for name, threads in (("other", ours + 6), ("same", ours)):
+        run = _unfinished(tmp_path, name)
+        ckpt = torch.load(run / "checkpoint.pt")
+        assert ckpt["threads"] == ours
+        ckpt["threads"] = threads
+        torch.save(ckpt, run / "checkpoint.pt")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            resume_in_process("bimodal", run)
+        said = [str(w.message) for w in caught if "torch thread" in str(w.message)]
+        if threads == ours:
+            assert said == []
+        else:
+            assert len(said) == 1 and f"written with {threads} torch thread(s)" in said[0]
+            assert f"this process has {ours}" in said[0]
+            assert f"OMP_NUM_THREADS={threads}" in said[0]
 
 
 def test_a_checkpoint_of_another_run_is_refused_naming_what_differs(tmp_path):

@@ -157,6 +157,35 @@ def test_an_in_process_sweep_writes_runs_table_and_plot_and_reuses_them(tmp_path
     assert stamps == [(r.run_dir / "summary.json").stat().st_mtime_ns for r in runs]
 
 
+def test_the_plots_band_is_the_tables_sample_std(tmp_path, monkeypatch):
+    """The band around each curve is the sample std (n - 1), as in the table beside it
+    (before: the population std, narrower by sqrt((n - 1) / n))."""
+    import matplotlib.axes
+    import numpy as np
+
+    from hireps_torch.experiments.sweep import SweepRun
+
+    runs, results = [], {}
+    for seed, value in ((0, 0.0), (1, 3.0), (2, 6.0)):
+        d = tmp_path / f"seed{seed}"
+        d.mkdir()
+        (d / "metrics.csv").write_text(f"episodes,eval_return\n10,{value}\n20,{2 * value}\n")
+        runs.append(SweepRun("bimodal", "c", seed, {}, d))
+        results[("c", seed)] = {"final_return": value, "wall_seconds": 1.0}
+    bands = []
+    fill = matplotlib.axes.Axes.fill_between
+    monkeypatch.setattr(
+        matplotlib.axes.Axes,
+        "fill_between",
+        lambda self, x, lo, hi, **kw: bands.append((lo, hi)) or fill(self, x, lo, hi, **kw),
+    )
+    table = summarize(runs, results, tmp_path, stem="population", seconds="s (population)")
+    assert "3 ± 3 |" in table and "| s (population) |" in table
+    ((lo, hi),) = bands
+    np.testing.assert_allclose(hi, [6.0, 12.0])  # mean 3, 6 + sample std 3, 6
+    np.testing.assert_allclose(lo, [0.0, 0.0])
+
+
 def _ray_processes() -> list[str]:
     found = []
     for proc in Path("/proc").glob("[0-9]*"):

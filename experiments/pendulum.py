@@ -100,7 +100,8 @@ class PendulumConfig(RunOptions):
     max_velocity: float = 10.0
     """Velocity range (rad/s) the Fourier and gating features are scaled to."""
     workers: int = 1
-    """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector)."""
+    """Collector worker processes (1: torchrl Collector in this process; >1: MultiSyncCollector,
+    whose workers draw the noise: another run of the same seed)."""
     eval_rollouts: int = 50
     """Noise-free evaluation rollouts (5 s each), at the end and every eval_every iterations."""
     eval_every: int = 5

@@ -227,7 +227,8 @@ class EpisodicHiREPS(HiREPSBase):
             option_entropy`` (before), ``policy_entropy`` (after), ``n_active_options, pruned,
             refitted`` (False: no information), ``mean_return, max_return, dual_converged,
             dual_iterations, feature_error, iteration``; ``kappa`` is NaN where the entropy
-            bound is off.
+            bound is off; ``policy_entropy`` is the options' Gaussian entropies weighted by
+            the gating's prior (not the mixture's entropy).
         """
         c, theta, R = self._samples(contexts, params, returns)
         (bound,), lr, kappa = option_bounds(

@@ -257,7 +257,8 @@ class TimeIndexedHiREPS(HiREPSBase):
             effective_sample_size, option_entropy, policy_entropy, n_active_options, pruned,
             refitted, mean_rewards``; scalars ``feature_error, dual_converged,
             dual_iterations, mean_return`` (of the summed rewards), ``max_return, iteration``;
-            ``kappa`` is NaN where the entropy bound is off.
+            ``kappa`` is NaN where the entropy bound is off; ``policy_entropy`` as in
+            :meth:`EpisodicHiREPS.tell`.
         """
         s, theta, R = self._episodes(states, params, rewards)
         lead, (N, K) = R.shape[:-2], R.shape[-2:]

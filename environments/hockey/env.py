@@ -240,7 +240,7 @@ class RobotHockeyEnv(gym.Env):
         self.shot_index += 1
         self._target = result.target
         distance = float(np.linalg.norm(result.target))
-        zone = float(zone_reward(torch.tensor(distance), self.params.zones))
+        zone = float(zone_reward(torch.tensor(distance, dtype=torch.float64), self.params.zones))
         terminated = self.shot_index == self.params.n_shots
         zone_r = zone if terminated else 0.0
         info = {

@@ -92,6 +92,19 @@ def test_zone_rewards_at_the_edges():
     assert torch.equal(zone_reward(d, zones), expected)
 
 
+def test_a_shot_ending_on_a_zone_edge_scores_that_zone(env, monkeypatch):
+    """The env's zone of a target puck exactly 1.4 m from the base is 1, as zone_reward's
+    (before: the distance went through float32, 1.39999998, and scored 0)."""
+    from hireps_torch.envs.hockey.sim import ShotResult
+
+    env.reset(seed=0)
+    edge = ShotResult(0.5, np.array([1.4, 0.0]), np.zeros(2), 1, False)
+    monkeypatch.setattr(env.sim, "shot", lambda *a, **k: edge)
+    for _ in range(env.params.n_shots):
+        _, reward, _, _, info = env.step(env.demo_action())
+    assert info["zone"] == 1 and reward == pytest.approx(1.0 - 0.5)
+
+
 def test_episode_is_three_shots_with_the_zone_reward_at_the_end(env):
     start, _ = env.reset(seed=3)
     soft = env.demo_action()
@@ -104,7 +117,9 @@ def test_episode_is_three_shots_with_the_zone_reward_at_the_end(env):
         assert info["min_gap"] > 0.1
         assert np.abs(obs - start).max() < 1e-3  # untouched target puck stays
     assert terms == [False, False, True]
-    zone = float(zone_reward(torch.tensor(np.linalg.norm(obs)), env.params.zones))
+    zone = float(
+        zone_reward(torch.tensor(np.linalg.norm(obs), dtype=torch.float64), env.params.zones)
+    )
     assert rewards[-1] == pytest.approx(-info["min_gap"] + zone)
     with pytest.raises(RuntimeError, match="reset"):
         env.step(soft)

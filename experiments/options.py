@@ -144,6 +144,7 @@ ABSENT_MEANS = {
     "exploration_floor_end": None,
     "option_goal_offset": False,
     "epsilon_end": None,
+    "restart_probability": None,
 }
 """Options added after the first run directories, with the value that reproduces the older
 runs: ``config.json`` leaves an option out at that value, so old and new directories compare

@@ -62,7 +62,9 @@ class PendulumConfig(RunOptions):
     n_options: int = 5
     """Number of options (ignored for flat)."""
     steps_per_decision: int = 5
-    """d: control steps (at 100 Hz) per decision; restart probability 0.02 / d."""
+    """d: control steps (at 100 Hz) per decision."""
+    restart_probability: float | None = None
+    """Restart probability per decision, 1 - gamma (None: the paper's 0.02 / d)."""
     episodes: int = 1000
     """Total episodes (episode_seconds of experience per parallel pendulum each)."""
     episodes_per_iteration: int = 20
@@ -202,6 +204,9 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
     )
     check_variance_floor(cfg)
     check_fourier_bases(cfg, 2)
+    p = cfg.restart_probability
+    if p is not None and not 0.0 < p < 1.0:  # the dual needs restarts: gamma < 1
+        raise option_error("restart_probability", p, "in (0, 1), or None for 0.02 / d")
     B = cfg.episodes_per_iteration
     iterations = check_budget(
         cfg.episodes,
@@ -211,7 +216,11 @@ def _checked(cfg: PendulumConfig) -> tuple[PendulumParams, int]:
         workers=cfg.workers,
     )
     params = PendulumParams(
-        steps_per_decision=cfg.steps_per_decision, kp=cfg.kp, kd=cfg.kd, start_noise=cfg.start_noise
+        steps_per_decision=cfg.steps_per_decision,
+        kp=cfg.kp,
+        kd=cfg.kd,
+        start_noise=cfg.start_noise,
+        restart_probability=cfg.restart_probability,
     )
     if cfg.episode_seconds / params.decision_seconds > MAX_DECISIONS:
         raise option_error(

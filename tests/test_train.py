@@ -456,6 +456,7 @@ def test_wandb_logger_runs_offline_without_an_account(tmp_path, monkeypatch):
         ("pendulum", {"eval_rollouts": 0}, "eval_rollouts (--eval-rollouts) must be an integer"),
         ("pendulum", {"episode_seconds": -1.0}, "episode_seconds (--episode-seconds) must be"),
         ("pendulum", {"episode_seconds": float("nan")}, "got nan"),
+        ("pendulum", {"restart_probability": 0.0}, "restart_probability (--restart-probability)"),
         ("bimodal", {"bump_width": 0.0}, "bump_width (--bump-width) must be finite and > 0"),
         ("bimodal", {"n_options": 0}, "n_options (--n-options) must be an integer >= 1"),
         ("ball-on-beam", {"fourier_bases": 0}, "fourier_bases (--fourier-bases)"),
@@ -471,6 +472,28 @@ def test_bad_option_values_are_named_before_anything_is_written(tmp_path, name, 
     with pytest.raises(ValueError, match=re.escape(message)):
         in_process(name, tmp_path, "r", **options)
     assert not (tmp_path / "r").exists()
+
+
+def test_the_pendulums_restart_probability_reaches_its_envs_and_its_dual(tmp_path):
+    """--restart-probability sets 1 - gamma per decision for the pendulums and the dual (None:
+    the paper's 0.02 / d), and config.json leaves it out at None, as runs before it."""
+    import json
+
+    from hireps_torch.experiments.pendulum import PendulumConfig, _checked, _make_algorithm
+
+    for given, d, restart in ((None, 2, 0.01), (0.0008, 1, 0.0008)):
+        cfg = PendulumConfig(restart_probability=given, steps_per_decision=d)
+        params, _ = _checked(cfg)
+        assert params.restart == restart and params.gamma == 1.0 - restart
+        algo = _make_algorithm(cfg, params, [0])
+        assert algo.gamma == 1.0 - restart
+    short = {"episodes": 20, "episode_seconds": 1.0, "eval_rollouts": 1}
+    in_process("pendulum", tmp_path, "paper", **short)
+    in_process("pendulum", tmp_path, "held", restart_probability=0.5, **short)
+    paper, held = [
+        json.loads((tmp_path / n / "config.json").read_text()) for n in ("paper", "held")
+    ]
+    assert "restart_probability" not in paper and held["restart_probability"] == 0.5
 
 
 def test_ball_on_beam_value_features_couple_position_and_velocity_and_skip_the_angle():

@@ -355,6 +355,8 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
 
 
 def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
+    from hireps_torch.rollout import workers_ignore_sigint
+
     if workers == 1:  # one thread as in the worker processes: the same sums, the same results
         for run in runs:
             try:
@@ -378,7 +380,8 @@ def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Fail
                 proc = ctx.Process(
                     target=_in_worker, args=(run, send, stop, os.getpid()), daemon=True
                 )
-                proc.start()
+                with workers_ignore_sigint():  # a Ctrl-C waits until the run can take it
+                    proc.start()
                 send.close()
                 going[reader] = (run, proc)
             for ready in multiprocessing.connection.wait(list(going)):
@@ -416,6 +419,7 @@ def _in_worker(run: SweepRun, send: Any, stop: Any, parent: int) -> None:
         request_stop("the sweep's stop" if stop.value else "the sweep's end")
 
     record_early_stops()
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one held since the start lands
     threading.Thread(target=watch, daemon=True).start()
     try:
         out: tuple[str, Any] = ("ok", _one_thread(run))

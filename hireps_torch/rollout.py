@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import multiprocessing
 import signal
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -233,10 +234,21 @@ def make_collector(
                 f"frames_per_batch = {frames_per_batch} must be divisible by num_workers = "
                 f"{num_workers}"
             )
-        with workers_ignore_sigint():
-            collector = MultiSyncCollector(
-                [create_env_fn] * num_workers, policy, cat_results="stack", **common
-            )
+        before = set(multiprocessing.active_children())
+        built: MultiSyncCollector | None = None
+        try:
+            with workers_ignore_sigint():
+                built = MultiSyncCollector(
+                    [create_env_fn] * num_workers, policy, cat_results="stack", **common
+                )
+        except BaseException:  # a Ctrl-C while the workers start: none of them is left
+            if built is not None:
+                shutdown_collector(built)
+            for proc in set(multiprocessing.active_children()) - before:
+                proc.kill()
+                proc.join()
+            raise
+        collector = built
     if seed is not None:
         collector.set_seed(seed)
     return collector
@@ -257,10 +269,19 @@ def signal_handled(sig: int, handler: Any) -> Iterator[None]:
         signal.signal(sig, previous)
 
 
-def workers_ignore_sigint() -> contextlib.AbstractContextManager[None]:
-    """SIGINT ignored while worker processes start (they inherit it), so that a Ctrl-C reaches
-    only the main process; a no-op outside the main thread."""
-    return signal_handled(signal.SIGINT, signal.SIG_IGN)
+@contextlib.contextmanager
+def workers_ignore_sigint() -> Iterator[None]:
+    """SIGINT blocked in this thread while worker processes start: they inherit the block and
+    never see a Ctrl-C (a worker that wants it unblocks it), and this process takes one that
+    came meanwhile when the block ends."""
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # its first start unblocks SIGINT in the caller
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 def shutdown_collector(collector: Any) -> None:

@@ -401,9 +401,9 @@ def _files(run):
 
 
 def test_a_resume_with_other_torch_threads_than_the_checkpoint_warns_how_to_match(tmp_path):
-    """Round-off moves with torch's thread count: a resume with another one than the run was
-    written with says so, and which OMP_NUM_THREADS continues it exactly; the same count is
-    silent (before: nothing said, and the run went another way)."""
+    """Round-off moves with torch's thread count: a resume computing with another one than the
+    run was written with says so; the same count is silent (before: nothing said, and the run
+    went another way)."""
     ours = torch.get_num_threads()
     for name, threads in (("other", ours + 6), ("same", ours)):
         run = _unfinished(tmp_path, name)
@@ -414,13 +414,12 @@ def test_a_resume_with_other_torch_threads_than_the_checkpoint_warns_how_to_matc
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             resume_in_process("bimodal", run)
-        said = [str(w.message) for w in caught if "torch thread" in str(w.message)]
+        said = [str(w.message) for w in caught if "thread(s)" in str(w.message)]
         if threads == ours:
             assert said == []
         else:
-            assert len(said) == 1 and f"written with {threads} torch thread(s)" in said[0]
-            assert f"this process has {ours}" in said[0]
-            assert f"OMP_NUM_THREADS={threads}" in said[0]
+            assert len(said) == 1 and f"computed with {threads} thread(s)" in said[0]
+            assert f"this run computes with {ours}" in said[0] and "OMP_NUM_THREADS" in said[0]
 
 
 def test_a_checkpoint_of_another_run_is_refused_naming_what_differs(tmp_path):
@@ -663,6 +662,56 @@ def test_ctrl_c_of_a_run_with_workers_ends_it_cleanly_every_time(tmp_path, kind)
                 break
             time.sleep(0.2)
         assert not left.stdout.split(), f"processes left behind: {left.stdout}"
+
+
+def _spawned_children(pid):
+    """The multiprocessing workers (spawned) of process ``pid``."""
+    found = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            ppid = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            spawned = b"spawn_main" in (proc / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == pid and spawned:
+            found.append(int(proc.name))
+    return found
+
+
+@pytest.mark.slow
+def test_ctrl_c_while_the_collectors_workers_start_ends_the_run_cleanly(tmp_path):
+    """Ctrl-C (SIGINT to the group) while ``pendulum --workers 2`` waits for its collector's
+    workers to start (they import torch for seconds): exit 130 without a traceback, no process
+    left (before: the parent ignored SIGINT then, and the run played on to its end)."""
+    p = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *WORKER_RUNS["pendulum"].split()]
+        + ["--run-dir", str(tmp_path / "run"), "--no-progress"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        start_new_session=True,
+    )
+    deadline = time.time() + 240
+    while p.poll() is None and len(_spawned_children(p.pid)) < 2 and time.time() < deadline:
+        time.sleep(0.01)
+    assert not (tmp_path / "run" / "metrics.csv").exists()  # still starting
+    os.killpg(p.pid, signal.SIGINT)
+    try:
+        _, err = p.communicate(timeout=90)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.communicate()
+        pytest.fail("the run went on after Ctrl-C while its workers started")
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err, err
+    for _ in range(50):
+        left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True)
+        if not left.stdout.split():
+            break
+        time.sleep(0.2)
+    assert not left.stdout.split(), f"processes left behind: {left.stdout}"
 
 
 @pytest.mark.parametrize(

@@ -56,7 +56,8 @@ Start state
     n1, n2 ~ N(0, 1) (the perturbation's size is our choice).
 
 Episode end
-    The task never terminates. With probability ``1 - gamma = 0.02 / d`` per decision the
+    The task never terminates. With probability ``1 - gamma`` per decision (the paper's
+    ``0.02 / d`` unless ``restart_probability`` is given) the
     system restarts from the start distribution (the infinite-horizon setting of the paper);
     the adapters report that as ``truncated``. ``max_decisions`` (default: none) adds a time
     cap, also reported as ``truncated``.

@@ -1,7 +1,8 @@
 """Checkpoints that continue a run exactly, and the interruption that writes one.
 
 ``checkpoint.pt`` holds :class:`RunState`'s entries, each member's ``metrics.csv`` ``rows``,
-``iteration``, ``elapsed``, ``config``, ``experiment`` and ``finished``: plain data that
+``iteration``, ``elapsed``, ``config``, ``experiment``, ``finished`` and ``threads`` (torch's, as
+the run computed): plain data that
 ``torch.load(path)`` reads with ``weights_only=True``.
 """
 

@@ -234,6 +234,7 @@ class Run:
         self.state = state
         self.every = cfg.checkpoint_every
         ckpt = None if resume is None else resume.checkpoint
+        self.threads = torch.get_num_threads()  # as the run computes (after collector workers)
         self.start_iteration = 0
         if ckpt is not None:  # first: a checkpoint that does not fit changes no file
             if len(ckpt["rows"]) != len(self.seeds):
@@ -243,13 +244,14 @@ class Run:
                 )
             state.load_state_dict(ckpt)
             self.start_iteration = int(ckpt["iteration"])
-            threads = ckpt.get("threads", torch.get_num_threads())  # format 2: not recorded
-            if threads != torch.get_num_threads():
+            threads = ckpt.get("threads", self.threads)  # format 2: not recorded
+            if threads != self.threads:
                 warnings.warn(
-                    f"{root / 'checkpoint.pt'} was written with {threads} torch thread(s), this "
-                    f"process has {torch.get_num_threads()}: the run goes on as a run of its "
-                    "seed, but not bit for bit as it would have (round-off moves with the "
-                    f"threads; OMP_NUM_THREADS={threads} continues it exactly)",
+                    f"{root / 'checkpoint.pt'} was written while torch computed with {threads} "
+                    f"thread(s), this run computes with {self.threads}: it goes on as a run of "
+                    "its seed, but not bit for bit as it would have (round-off moves with the "
+                    "threads); resume it with the thread count it was started with "
+                    "(OMP_NUM_THREADS) to continue it exactly",
                     UserWarning,
                     stacklevel=2,
                 )
@@ -302,7 +304,7 @@ class Run:
             **self.state.state_dict(),
             "rows": [w.csv_text() for w in self.writers],  # a str pickles at copy speed
             "elapsed": self.root.elapsed(),
-            "threads": torch.get_num_threads(),  # round-off moves with them
+            "threads": self.threads,  # round-off moves with them
         }
 
     def end_iteration(self, iteration: int, force: bool = False) -> None:

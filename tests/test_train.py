@@ -753,9 +753,11 @@ def test_the_command_puts_hockey_runs_in_reproducible_mkl_before_torch_computes(
     assert mode in ("None", "2", "3")  # None: a torch without MKL; 1 would be MKL's default
 
 
+@pytest.mark.slow
 def test_a_hockey_run_whose_process_started_mkl_first_says_it_differs_from_the_command(tmp_path):
     """main() from Python after torchrl's import (MKL in its default mode): the run warns that it
     can differ from hireps-train's run of the same seed (before: only with workers)."""
+    pytest.importorskip("pybullet")
     run = str(tmp_path / "run")
     code = (
         "import os, warnings\n"

@@ -82,10 +82,10 @@ class Stopped:
     pid: int  # also the process group's id with ``group``
 
 
-def stop_run(args, run, after_rows, sig=signal.SIGINT, *, watch=None, group=False):
+def stop_run(args, run, after_rows, sig=signal.SIGINT, *, watch=None, group=False, when=None):
     """Start ``train.py args --run-dir run``; once ``watch`` (``run/metrics.csv`` by default)
-    holds ``after_rows`` rows, send ``sig``, to the whole process group with ``group`` (what
-    Ctrl-C in a terminal does)."""
+    holds ``after_rows`` rows (or ``when(process)`` holds), send ``sig``, to the whole process
+    group with ``group`` (what Ctrl-C in a terminal does)."""
     p = subprocess.Popen(
         [sys.executable, str(ROOT / "train.py"), *args, "--run-dir", str(run), "--no-progress"],
         cwd=ROOT,
@@ -98,7 +98,7 @@ def stop_run(args, run, after_rows, sig=signal.SIGINT, *, watch=None, group=Fals
     m = watch or run / "metrics.csv"
     deadline = time.time() + 240
     while p.poll() is None and time.time() < deadline:
-        if m.exists() and len(m.read_text().splitlines()) > after_rows:
+        if when(p) if when else m.exists() and len(m.read_text().splitlines()) > after_rows:
             break
         time.sleep(0.002)
     if group:
@@ -656,12 +656,17 @@ def test_ctrl_c_of_a_run_with_workers_ends_it_cleanly_every_time(tmp_path, kind)
         assert out.code == 130, err
         assert "Traceback" not in err and "checkpoint written" in err, err
         assert torch.load(run / "checkpoint.pt")["iteration"] >= 1
-        for _ in range(50):
-            left = subprocess.run(["pgrep", "-g", str(out.pid)], capture_output=True, text=True)
-            if not left.stdout.split():
-                break
-            time.sleep(0.2)
-        assert not left.stdout.split(), f"processes left behind: {left.stdout}"
+        assert_no_process_left(out.pid)
+
+
+def assert_no_process_left(group):
+    """No process of process group ``group`` is alive within 10 s."""
+    for _ in range(50):
+        left = subprocess.run(["pgrep", "-g", str(group)], capture_output=True, text=True)
+        if not left.stdout.split():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"processes left behind: {left.stdout}")
 
 
 def _spawned_children(pid):
@@ -683,35 +688,16 @@ def test_ctrl_c_while_the_collectors_workers_start_ends_the_run_cleanly(tmp_path
     """Ctrl-C (SIGINT to the group) while ``pendulum --workers 2`` waits for its collector's
     workers to start (they import torch for seconds): exit 130 without a traceback, no process
     left (before: the parent ignored SIGINT then, and the run played on to its end)."""
-    p = subprocess.Popen(
-        [sys.executable, str(ROOT / "train.py"), *WORKER_RUNS["pendulum"].split()]
-        + ["--run-dir", str(tmp_path / "run"), "--no-progress"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-        start_new_session=True,
-    )
-    deadline = time.time() + 240
-    while p.poll() is None and len(_spawned_children(p.pid)) < 2 and time.time() < deadline:
-        time.sleep(0.01)
-    assert not (tmp_path / "run" / "metrics.csv").exists()  # still starting
-    os.killpg(p.pid, signal.SIGINT)
-    try:
-        _, err = p.communicate(timeout=90)
-    except subprocess.TimeoutExpired:
-        os.killpg(p.pid, signal.SIGKILL)
-        p.communicate()
-        pytest.fail("the run went on after Ctrl-C while its workers started")
-    assert p.returncode == 130, err
-    assert "Traceback" not in err and "interrupted" in err, err
-    for _ in range(50):
-        left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True)
-        if not left.stdout.split():
-            break
-        time.sleep(0.2)
-    assert not left.stdout.split(), f"processes left behind: {left.stdout}"
+    run = tmp_path / "run"
+
+    def starting(p):
+        return len(_spawned_children(p.pid)) >= 2
+
+    out = stop_run(WORKER_RUNS["pendulum"].split(), run, 0, group=True, when=starting)
+    assert not (run / "metrics.csv").exists()  # it was still starting
+    assert out.code == 130, out.err
+    assert "Traceback" not in out.err and "interrupted" in out.err, out.err
+    assert_no_process_left(out.pid)
 
 
 @pytest.mark.parametrize(

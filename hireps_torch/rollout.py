@@ -1,4 +1,4 @@
-"""TorchRL glue (the only place TensorDicts appear): the policy as a TensorDictModule,
+"""TorchRL glue (the only place TensorDicts appear): the policy as a TensorDict module,
 collectors and their shutdown. Usage: README.md."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModuleBase, dispatch
 from torch import Tensor, nn
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase
@@ -21,6 +21,7 @@ from hireps_torch.checks import as_float_tensor, check_count, check_seed
 from hireps_torch.policies import HierarchicalPolicy
 
 __all__ = [
+    "ActorModule",
     "PolicyActor",
     "TimeIndexedActor",
     "episodes",
@@ -96,20 +97,43 @@ def _check_policies(policies: object) -> None:
             raise TypeError(f"policy {k} must be a HierarchicalPolicy, got {type(pol).__name__}")
 
 
+class ActorModule(TensorDictModuleBase):
+    """An actor (:class:`PolicyActor`, :class:`TimeIndexedActor`) as a TensorDict module: reads
+    ``in_keys``, writes ``action`` and ``option`` into the tensordict it is given and returns
+    it; called with keyword tensors (``module(observation=x)``), returns ``(action, option)``.
+    What a ``TensorDictModule`` over the actor does, less its generic output conversion."""
+
+    def __init__(self, actor: nn.Module, in_keys: list[str]) -> None:
+        super().__init__()
+        self.module = actor
+        self.in_keys = list(in_keys)
+        self.out_keys = ["action", "option"]
+
+    @dispatch(auto_batch_size=False)
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        inputs = [tensordict.get(key, None) for key in self.in_keys]
+        if any(x is None for x in inputs):
+            missing = [k for k, x in zip(self.in_keys, inputs, strict=True) if x is None]
+            raise KeyError(
+                f"the actor reads {missing}, which the tensordict does not hold: "
+                f"{sorted(map(str, tensordict.keys()))}"
+            )
+        action, option = self.module(*inputs)
+        tensordict.set("action", action)
+        tensordict.set("option", option)
+        return tensordict
+
+
 def policy_module(
     policy: HierarchicalPolicy,
     deterministic: bool = False,
     observation_key: str = "observation",
     generator: torch.Generator | list[torch.Generator] | None = None,
-) -> TensorDictModule:
+) -> ActorModule:
     """Wrap the policy for TorchRL: reads ``observation_key``, writes ``action`` and ``option``
     (sampled from ``generator``, e.g. the algorithm's ``generator``; None: the global RNG, as a
     collector with worker processes needs)."""
-    return TensorDictModule(
-        PolicyActor(policy, deterministic, generator),
-        in_keys=[observation_key],
-        out_keys=["action", "option"],
-    )
+    return ActorModule(PolicyActor(policy, deterministic, generator), [observation_key])
 
 
 class TimeIndexedActor(nn.Module):
@@ -175,19 +199,17 @@ def time_indexed_module(
     observation_key: str = "observation",
     step_key: str = "step_count",
     generator: torch.Generator | None = None,
-) -> TensorDictModule:
+) -> ActorModule:
     """Wrap per-step policies for TorchRL: reads the observation and ``step_key``, writes
     ``action`` and ``option`` (sampled from ``generator``; None: the global RNG)."""
-    return TensorDictModule(
-        TimeIndexedActor(policies, deterministic, generator),
-        in_keys=[observation_key, step_key],
-        out_keys=["action", "option"],
+    return ActorModule(
+        TimeIndexedActor(policies, deterministic, generator), [observation_key, step_key]
     )
 
 
 def make_collector(
     create_env_fn: Callable[[], EnvBase],
-    policy: TensorDictModule,
+    policy: TensorDictModuleBase,
     *,
     frames_per_batch: int,
     total_frames: int = -1,
@@ -197,7 +219,8 @@ def make_collector(
 ) -> Collector | MultiSyncCollector:
     """A TorchRL collector over ``create_env_fn()``.
 
-    ``num_workers = 1``: a :class:`~torchrl.collectors.Collector` using the policy in place;
+    ``num_workers = 1``: a :class:`~torchrl.collectors.Collector` using the policy in place,
+    without trajectory ids (``("collector", "traj_ids")``: episodes end where ``done`` is set);
     more: a :class:`~torchrl.collectors.MultiSyncCollector` (call
     ``collector.update_policy_weights_()`` after each update, :func:`shutdown_collector` at the
     end, and guard the script with ``if __name__ == "__main__":``). ``reset_at_each_iter``
@@ -227,7 +250,7 @@ def make_collector(
     }
     collector: Collector | MultiSyncCollector
     if num_workers == 1:
-        collector = Collector(create_env_fn, policy, **common)
+        collector = Collector(create_env_fn, policy, track_traj_ids=False, **common)
     else:
         if frames_per_batch % num_workers:
             raise ValueError(

@@ -1,4 +1,4 @@
-"""TorchRL glue: the policy as a TensorDictModule, a Collector over the batched pendulum."""
+"""TorchRL glue: the policy as a TensorDict module, a Collector over the batched pendulum."""
 
 import pytest
 import torch
@@ -34,6 +34,7 @@ def test_collector_gathers_decisions_with_their_options():
     assert len(batches) == 2
     b = batches[0]
     assert b.batch_size == torch.Size([4, 10])
+    assert "collector" not in b.keys()  # no trajectory ids: episodes end where done is set
     assert b["option"].dtype == torch.int64 and set(b["option"].unique().tolist()) <= {0, 1, 2}
     s, a, r, s2, o = transitions(b, "state")
     assert s.shape == (40, 2) and a.shape == (40, 1) and r.shape == (40,) and o.shape == (40,)
@@ -69,6 +70,19 @@ def test_deterministic_actor_uses_the_mean_of_the_most_probable_option():
     expected, option = pol.mean_action(obs.double())
     assert torch.allclose(td["action"], expected.float())
     assert torch.equal(td["option"], option)
+
+
+def test_the_actor_module_writes_into_its_tensordict_and_answers_keywords_with_tensors():
+    pol = HierarchicalPolicy.create(2, 2, 1)
+    actor = policy_module(pol, deterministic=True, observation_key="obs")
+    obs = torch.randn(5, 2, generator=torch.Generator().manual_seed(1))
+    td = TensorDict({"obs": obs}, batch_size=[5])
+    assert actor(td) is td and set(td.keys()) == {"obs", "action", "option"}
+    action, option = actor(obs=obs)
+    assert torch.equal(action, td["action"]) and torch.equal(option, td["option"])
+    assert (actor.in_keys, actor.out_keys) == (["obs"], ["action", "option"])
+    with pytest.raises(KeyError, match="obs"):
+        actor(TensorDict({"observation": obs}, batch_size=[5]))
 
 
 def test_time_indexed_actor_acts_with_the_policy_of_each_step():

@@ -190,10 +190,14 @@ def control_step(state: Tensor, torque: Tensor, params: PendulumParams) -> Tenso
     """One control step (dt, torque held) with RK4: state (B, 2), torque (B,) -> (B, 2)."""
     h = params.dt
     th, om = state[..., 0], state[..., 1]
+    # the stages' angle slopes k_i are the stages' velocities, each computed once
     k1t, k1o = om, _accel(th, om, torque, params)
-    k2t, k2o = om + 0.5 * h * k1o, _accel(th + 0.5 * h * k1t, om + 0.5 * h * k1o, torque, params)
-    k3t, k3o = om + 0.5 * h * k2o, _accel(th + 0.5 * h * k2t, om + 0.5 * h * k2o, torque, params)
-    k4t, k4o = om + h * k3o, _accel(th + h * k3t, om + h * k3o, torque, params)
+    k2t = om + 0.5 * h * k1o
+    k2o = _accel(th + 0.5 * h * k1t, k2t, torque, params)
+    k3t = om + 0.5 * h * k2o
+    k3o = _accel(th + 0.5 * h * k2t, k3t, torque, params)
+    k4t = om + h * k3o
+    k4o = _accel(th + h * k3t, k4t, torque, params)
     th = th + h / 6.0 * (k1t + 2.0 * k2t + 2.0 * k3t + k4t)
     om = om + h / 6.0 * (k1o + 2.0 * k2o + 2.0 * k3o + k4o)
     return torch.stack([wrap_angle(th), om], dim=-1)

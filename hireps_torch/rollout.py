@@ -99,9 +99,11 @@ def _check_policies(policies: object) -> None:
 
 class ActorModule(TensorDictModuleBase):
     """An actor (:class:`PolicyActor`, :class:`TimeIndexedActor`) as a TensorDict module: reads
-    ``in_keys``, writes ``action`` and ``option`` into the tensordict it is given and returns
-    it; called with keyword tensors (``module(observation=x)``), returns ``(action, option)``.
-    What a ``TensorDictModule`` over the actor does, less its generic output conversion."""
+    ``in_keys``, writes the actor's action and option under ``out_keys`` (``action``,
+    ``option``) into ``tensordict_out`` (default: the tensordict it is given) and returns it;
+    called with keyword tensors (``module(observation=x)``), returns ``(action, option)``.
+    A ``TensorDictModule`` over the actor without its generic output conversion and without
+    ``set_skip_existing``: entries already present are overwritten."""
 
     def __init__(self, actor: nn.Module, in_keys: list[str]) -> None:
         super().__init__()
@@ -110,7 +112,9 @@ class ActorModule(TensorDictModuleBase):
         self.out_keys = ["action", "option"]
 
     @dispatch(auto_batch_size=False)
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def forward(
+        self, tensordict: TensorDictBase, tensordict_out: TensorDictBase | None = None
+    ) -> TensorDictBase:
         inputs = [tensordict.get(key, None) for key in self.in_keys]
         if any(x is None for x in inputs):
             missing = [k for k, x in zip(self.in_keys, inputs, strict=True) if x is None]
@@ -118,10 +122,10 @@ class ActorModule(TensorDictModuleBase):
                 f"the actor reads {missing}, which the tensordict does not hold: "
                 f"{sorted(map(str, tensordict.keys()))}"
             )
-        action, option = self.module(*inputs)
-        tensordict.set("action", action)
-        tensordict.set("option", option)
-        return tensordict
+        out = tensordict if tensordict_out is None else tensordict_out
+        for key, value in zip(self.out_keys, self.module(*inputs), strict=True):
+            out.set(key, value)
+        return out
 
 
 def policy_module(

@@ -72,7 +72,7 @@ def test_deterministic_actor_uses_the_mean_of_the_most_probable_option():
     assert torch.equal(td["option"], option)
 
 
-def test_the_actor_module_writes_into_its_tensordict_and_answers_keywords_with_tensors():
+def test_the_actor_module_writes_its_out_keys_into_a_tensordict_and_answers_keywords():
     pol = HierarchicalPolicy.create(2, 2, 1)
     actor = policy_module(pol, deterministic=True, observation_key="obs")
     obs = torch.randn(5, 2, generator=torch.Generator().manual_seed(1))
@@ -81,6 +81,10 @@ def test_the_actor_module_writes_into_its_tensordict_and_answers_keywords_with_t
     action, option = actor(obs=obs)
     assert torch.equal(action, td["action"]) and torch.equal(option, td["option"])
     assert (actor.in_keys, actor.out_keys) == (["obs"], ["action", "option"])
+    out = TensorDict({}, batch_size=[5])
+    assert actor(td, tensordict_out=out) is out and torch.equal(out["option"], td["option"])
+    actor.out_keys = ["a", "o"]  # renamed outputs are written under their new names
+    assert set(actor(TensorDict({"obs": obs}, batch_size=[5])).keys()) == {"obs", "a", "o"}
     with pytest.raises(KeyError, match="obs"):
         actor(TensorDict({"observation": obs}, batch_size=[5]))
 

@@ -7,8 +7,9 @@
    (each unique configuration runs once per seed and is shared between figures). By default
    each configuration's seeds run as one population (``train.py pendulum --seeds 0-4``: one
    process, one batched simulation; :class:`hireps_torch.experiments.loop.Run`),
-   ``--workers`` populations at a time (2 by default, one process and one thread each, one
-   per core of the 2-core reference machine; the slow configurations first). With
+   ``--workers`` populations at a time (2 by default, one process and one thread each, each
+   process held to a core of its own where there are enough; the slow configurations first).
+   With
    ``--separate``, as one sweep of separate runs (:mod:`hireps_torch.experiments.sweep`):
    ``--workers`` runs at a time, in local processes or (``--backend ray``)
    as Ray tasks, on this machine or a cluster (``--ray-address``). ``--resume`` of an
@@ -34,6 +35,7 @@ run and of the whole ablation.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -162,15 +164,32 @@ def _population(options: dict[str, Any], seeds: str, root: Path, threads: int | 
     run_experiment(PendulumConfig(**options, seeds=seeds, run_dir=root, progress=False))
 
 
+def core_sets(available: list[int], workers: int, threads: int) -> list[set[int]] | None:
+    """The cores each of ``workers`` worker processes of ``threads`` threads keeps to, one set
+    per worker and none shared; None (every worker on every core) for one worker or too few
+    cores."""
+    if workers < 2 or len(available) < workers * threads:
+        return None
+    cores = sorted(available)
+    return [set(cores[w * threads : (w + 1) * threads]) for w in range(workers)]
+
+
+def _pin(sets: Any) -> None:
+    """Keep this worker process to a set of cores taken from the queue ``sets``: its members'
+    duals then run side by side only on cores of its own, not in threads that compete with
+    the other workers'."""
+    os.sched_setaffinity(0, sets.get())
+
+
 def run_populations(
     runs: list[SweepRun], report: Any, workers: int = 1, threads: int | None = None
 ) -> dict[tuple[str, int], dict[str, Any]]:
     """Each configuration's seeds as one population (``train.py pendulum --seeds``), ``workers``
-    populations at a time in spawned processes (in this process for 1), in the order of
-    ``runs``; a configuration whose population finished before (its ``population.json``) is read
-    back, after each member's ``config.json`` is checked against the options asked for (a
-    ValueError naming those that differ, e.g. a default changed since). Returns every run's
-    summary."""
+    populations at a time in spawned processes (in this process for 1; each held to cores of
+    its own, :func:`core_sets`), in the order of ``runs``; a configuration whose population
+    finished before (its ``population.json``) is read back, after each member's
+    ``config.json`` is checked against the options asked for (a ValueError naming those that
+    differ, e.g. a default changed since). Returns every run's summary."""
     import json
     import multiprocessing
     import shutil
@@ -191,7 +210,15 @@ def run_populations(
             _population(*job)
     elif todo:
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx) as pool:
+        n = min(workers, len(todo))
+        cores = list(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        pin: dict[str, Any] = {}
+        if sets := core_sets(cores, n, threads or 1):
+            queue = ctx.Queue()
+            for cores_of_one in sets:
+                queue.put(cores_of_one)
+            pin = {"initializer": _pin, "initargs": (queue,)}
+        with ProcessPoolExecutor(n, mp_context=ctx, **pin) as pool:
             for future in [pool.submit(_population, *job) for job in todo]:
                 future.result()
     done: dict[tuple[str, int], dict[str, Any]] = {}

@@ -77,3 +77,11 @@ def test_ablation_populations_side_by_side_equal_one_after_the_other(tmp_path, m
         assert seen == list(options)
         metrics[workers] = [(r.run_dir / "metrics.csv").read_text() for r in runs]
     assert metrics[1] == metrics[2]
+
+
+def test_ablation_workers_keep_to_cores_of_their_own_when_there_are_enough():
+    core_sets = ablations().core_sets
+    assert core_sets([1, 0], 2, 1) == [{0}, {1}]
+    assert core_sets([0, 1, 2, 3, 4], 2, 2) == [{0, 1}, {2, 3}]
+    assert core_sets([0, 1], 1, 1) is None  # one worker keeps every core
+    assert core_sets([0, 1, 2], 2, 2) is None  # too few to give each its own

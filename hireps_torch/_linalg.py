@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["log_softmax", "logsumexp", "min_norm_lstsq", "softmax"]
+__all__ = ["log_softmax", "logsumexp", "matmul_each", "min_norm_lstsq", "softmax"]
 
 
 def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
@@ -17,6 +17,20 @@ def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
         cut = torch.finfo(A.dtype).eps * max(A.shape[-2], A.shape[-1])
         x = torch.linalg.pinv(A, rtol=cut) @ B
     return x
+
+
+def matmul_each(a: Tensor, b: Tensor) -> Tensor:
+    """a @ b member by member: a (S, ..., M, K) holds S members along its first dimension, b
+    (S, ..., K, Q) too or (K, Q) shared; a 2-D a has none. Each member's product is the call
+    its own run makes (a population of one, shapes (1, ..., M, K)) on a copy of its own: torch
+    (MKL) rounds a product's entries by the batch size, the rows around them and their memory
+    alignment, so a member's sums round as in its own run."""
+    if a.dim() == 2:
+        return a @ b
+    each = b.dim() == a.dim()
+    return torch.cat(
+        [a[s : s + 1].clone() @ (b[s : s + 1].clone() if each else b) for s in range(a.shape[0])]
+    )
 
 
 # softmaxes over a short last dimension (the gating's O) as elementwise passes (faster on CPU)

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from hireps_torch._linalg import matmul_each
 from hireps_torch.checks import as_float_tensor, check_count, check_finite
 
 __all__ = [
@@ -195,7 +196,7 @@ class FourierFeatures(FeatureMap):
         """x: (..., C) -> (..., out_features)."""
         x = self._input(x)
         u = (x.to(torch.float64) - self.low) / self.width
-        phase = math.pi * u @ self.coefficients.T
+        phase = matmul_each(math.pi * u, self.coefficients.T)
         out = torch.cat([phase.cos(), phase.sin()], -1) if self.with_sin else phase.cos()
         return out.to(x.dtype)
 

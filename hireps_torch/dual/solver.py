@@ -103,13 +103,16 @@ def solve_blocks(
     (``collapse``) where weights collapsed, ``stacklevel`` frames up."""
     S = R.shape[0]
 
-    def one(x: Tensor | None, s: int) -> Tensor | None:
-        return None if x is None else x[s : s + 1]
+    def one(x: Tensor, s: int) -> Tensor:  # a copy of its own: MKL rounds by alignment
+        return x[s : s + 1].clone() if S > 1 else x
+
+    def some(x: Tensor | None, s: int) -> Tensor | None:
+        return None if x is None else one(x, s)
 
     def alone(s: int) -> tuple[DualSolution, list[_Warning]]:
         prefix = f"{member_name(s, seeds)}: " if S > 1 else ""
-        Rs, lr, es = R[s : s + 1], log_resp[s : s + 1], eps[s : s + 1]
-        return _solve_one(Rs, lr, es, one(D, s), one(c, s), one(kappa, s), settings, prefix)
+        Rs, lr, es = one(R, s), one(log_resp, s), one(eps, s)
+        return _solve_one(Rs, lr, es, some(D, s), some(c, s), some(kappa, s), settings, prefix)
 
     size = log_resp[0].numel() + (0 if D is None else D[0].numel())  # one problem's
     solved = side_by_side(alone, range(S), R.device, size)

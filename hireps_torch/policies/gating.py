@@ -7,7 +7,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor, nn
 
-from hireps_torch._linalg import log_softmax, softmax
+from hireps_torch._linalg import log_softmax, matmul_each, softmax
 from hireps_torch._parallel import member_chunks, side_by_side
 from hireps_torch.checks import (
     as_checked,
@@ -239,7 +239,7 @@ def _newton_fit(
     for _ in range(max_iter):
         logits = (X @ theta.mT).masked_fill(~active.unsqueeze(-2), float("-inf"))
         p = softmax(logits)  # (..., N, O)
-        g = (w[..., None] * (p - t)).mT @ X + pen * theta  # (..., O, F+1)
+        g = matmul_each((w[..., None] * (p - t)).mT, X) + pen * theta  # (..., O, F+1)
         g = torch.where(active[..., None], g, 0.0).flatten(-2)
         running &= g.abs().amax(-1) > NEWTON_GTOL
         if not bool(running.any()):
@@ -300,7 +300,7 @@ def _hessian(XX: Tensor, w: Tensor, p: Tensor, entry: tuple[Tensor, Tensor]) -> 
         q = -p[..., o:]
         q[..., 0] += 1.0
         c.append(wp[..., o : o + 1] * q)
-    return (torch.cat(c, -1).mT @ XX)[(..., *entry)]
+    return matmul_each(torch.cat(c, -1).mT, XX)[(..., *entry)]
 
 
 class ConstantGating(Gating):

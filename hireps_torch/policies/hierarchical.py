@@ -352,11 +352,13 @@ class HierarchicalPolicy(PolicyModule):
         else:  # the one option is active (the most probable is never pruned) and has it all
             fitted, flags = self.active, [[True]]
         x = pf.to(torch.float64)
+        # columns of one layout either way (a member's sums round as in its own run)
+        filled = torch.where(fitted[..., None, :], w, 1.0)
         for o, opt in enumerate(self.sub_policies):
             if not any(flags[o]):  # no weight (or pruned) in every member: left to pruning
                 continue
             every = all(flags[o])
-            col = w[..., o] if every else torch.where(fitted[..., o, None], w[..., o], 1.0)
+            col = w[..., o] if every else filled[..., o]
             try:
                 fit = opt.fit_checked(x, t, col)
             except ValueError as exc:

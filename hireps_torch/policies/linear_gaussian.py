@@ -8,7 +8,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor, nn
 
-from hireps_torch._linalg import min_norm_lstsq
+from hireps_torch._linalg import matmul_each, min_norm_lstsq
 from hireps_torch.checks import (
     FIX_SAMPLES,
     all_finite,
@@ -53,15 +53,15 @@ def weighted_least_squares(
     Y = targets.to(torch.float64)
     w = weights.to(torch.float64)
     if x.shape[-1] == 0:  # no regressors: the weighted mean
-        mean = (w.unsqueeze(-2) @ Y).squeeze(-2) / w.sum(-1, keepdim=True)
+        mean = matmul_each(w.unsqueeze(-2), Y).squeeze(-2) / w.sum(-1, keepdim=True)
         return Y.new_zeros(*Y.shape[:-2], Y.shape[-1], 0), mean
     X = torch.cat([x.new_ones(*x.shape[:-1], 1), x], -1)
-    A = X.mT @ (w[..., None] * X)
+    A = matmul_each(X.mT, w[..., None] * X)
     if ridge > 0 and X.shape[-1] > 1:
         reg = ridge * w.sum(-1, keepdim=True) * X.new_ones(X.shape[-1])
         reg[..., 0] = 0.0
         A = A + torch.diag_embed(reg)
-    B = X.mT @ (w[..., None] * Y)
+    B = matmul_each(X.mT, w[..., None] * Y)
     beta, info = torch.linalg.solve_ex(A, B)
     singular = info != 0
     if bool(singular.any()):  # fewer effective samples than regressors: least-norm fit
@@ -163,8 +163,8 @@ def map_linear_regression(
     lam = (prior_samples / n_eff)[..., None]
     diag = lam * Z.new_ones(Z.shape[-1])
     diag[..., 1:] = diag[..., 1:] + ridge / s**2
-    A = Z.mT @ (w[..., None] * Z) + torch.diag_embed(diag)
-    B = Z.mT @ (w[..., None] * y) + lam[..., None] * beta0
+    A = matmul_each(Z.mT, w[..., None] * Z) + torch.diag_embed(diag)
+    B = matmul_each(Z.mT, w[..., None] * y) + lam[..., None] * beta0
     beta = torch.linalg.solve(A, B)
     W = (beta[..., 1:, :] / s[..., :, None]).mT.contiguous()
     return W, (beta[..., 0, :] - _matvec(W, m)).contiguous()
@@ -307,7 +307,7 @@ class LinearGaussian(PolicyModule):
         except RuntimeError:
             raise self._overflow(x, y, None) from None
         resid = y - b.unsqueeze(-2) if x.shape[-1] == 0 else y - (x @ W.mT + b.unsqueeze(-2))
-        cov = (w[..., None] * resid).mT @ resid / w.sum(-1)[..., None, None]
+        cov = matmul_each((w[..., None] * resid).mT, resid) / w.sum(-1)[..., None, None]
         if self.covariance_prior > 0:
             n_eff = (w.sum(-1) ** 2 / (w**2).sum(-1))[..., None, None]
             k = self.covariance_prior

@@ -4,6 +4,7 @@ would alone."""
 import pytest
 import torch
 
+from hireps_torch._linalg import matmul_each
 from hireps_torch.features import QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy, LinearGaussian, SoftmaxGating
 from hireps_torch.policies._population import categorical
@@ -279,3 +280,45 @@ def test_prune_names_a_bad_members_mask_and_prunes_nothing(mask):
     assert torch.equal(pop.active, before)
     with pytest.raises(ValueError, match=r"must be None or a bool tensor of shape \(\) \(\[S\]"):
         pols[0].prune(data()[0][0], 0.5, members=torch.tensor([True]))
+
+
+def test_matmul_each_rounds_each_member_as_its_own_run():
+    """Member s of :func:`matmul_each` is its own run's product (a population of one, on
+    tensors of its own) bit for bit, also for sample counts that misalign the members in
+    memory; a shared right factor and a 2-D product are plain products."""
+    g = torch.Generator().manual_seed(0)
+    for n in (1600, 1601):
+        X = torch.randn(3, n, 3, generator=g, dtype=torch.float64)
+        w = torch.rand(3, n, generator=g, dtype=torch.float64)
+        y = torch.randn(3, n, 1, generator=g, dtype=torch.float64)
+        wx, wy = w[..., None] * X, w[..., None] * y
+        for a, b in [(X.mT, wx), (X.mT, wy), (wy.mT, y)]:
+            out = matmul_each(a, b)
+            for s in range(3):
+                assert torch.equal(out[s : s + 1], a[s : s + 1].clone() @ b[s : s + 1].clone())
+        c = torch.randn(3, 26, generator=g, dtype=torch.float64)
+        out = matmul_each(X, c)
+        for s in range(3):
+            assert torch.equal(out[s : s + 1], X[s : s + 1].clone() @ c)
+    assert torch.equal(matmul_each(X[0].mT, wx[0]), X[0].mT @ wx[0])
+
+
+def test_population_refit_equals_each_member_as_a_population_of_one_bit_for_bit():
+    """With many samples (where torch's batched products round by the batch size and the
+    member's place), member s of a population refits as ``stack([policy_s])`` does, bit for
+    bit: a member of a population run is its ordinary run."""
+    pols = members()
+    pop = HierarchicalPolicy.stack(pols)
+    g = torch.Generator().manual_seed(1)
+    n = 1601
+    ctx = torch.randn(S, n, C, generator=g, dtype=torch.float64)
+    theta = torch.randn(S, n, D, generator=g, dtype=torch.float64)
+    w = torch.rand(S, n, O, generator=g, dtype=torch.float64)
+    new = pop.fit_parameters(ctx, theta, w)
+    for s, p in enumerate(pols):
+        alone = HierarchicalPolicy.stack([p]).fit_parameters(
+            ctx[s : s + 1], theta[s : s + 1], w[s : s + 1]
+        )
+        assert new.keys() == alone.keys()
+        for key, value in alone.items():
+            assert torch.equal(new[key][s : s + 1], value), (s, key)

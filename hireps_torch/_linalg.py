@@ -20,17 +20,19 @@ def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
 
 
 def matmul_each(a: Tensor, b: Tensor) -> Tensor:
-    """a @ b member by member: a (S, ..., M, K) holds S members along its first dimension, b
-    (S, ..., K, Q) too or (K, Q) shared; a 2-D a has none. Each member's product is the call
-    its own run makes (a population of one, shapes (1, ..., M, K)) on a copy of its own: torch
+    """a @ b member by member: a tensor of 3 or more dimensions holds S members along its first
+    (1: the same for every member), a 2-D one is shared. Each member's product is the call its
+    own run makes (a population of one, shapes (1, ..., M, K)) on a copy of its own: torch
     (MKL) rounds a product's entries by the batch size, the rows around them and their memory
     alignment, so a member's sums round as in its own run."""
-    if a.dim() == 2:
+    if a.dim() <= 2 and b.dim() <= 2:
         return a @ b
-    each = b.dim() == a.dim()
-    return torch.cat(
-        [a[s : s + 1].clone() @ (b[s : s + 1].clone() if each else b) for s in range(a.shape[0])]
-    )
+    S = max(t.shape[0] if t.dim() > 2 else 1 for t in (a, b))
+
+    def member(t: Tensor, s: int) -> Tensor:
+        return t if t.dim() <= 2 else t[s : s + 1].clone() if t.shape[0] > 1 else t.clone()
+
+    return torch.cat([member(a, s) @ member(b, s) for s in range(S)])
 
 
 # softmaxes over a short last dimension (the gating's O) as elementwise passes (faster on CPU)

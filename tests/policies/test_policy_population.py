@@ -322,3 +322,15 @@ def test_population_refit_equals_each_member_as_a_population_of_one_bit_for_bit(
         assert new.keys() == alone.keys()
         for key, value in alone.items():
             assert torch.equal(new[key][s : s + 1], value), (s, key)
+
+
+def test_matmul_each_broadcasts_a_shared_or_single_member_factor():
+    """A factor with one member (or none) serves every member, as torch's product does."""
+    g = torch.Generator().manual_seed(2)
+    a = torch.randn(3, 4, 5, generator=g, dtype=torch.float64)
+    for b in (
+        torch.randn(1, 5, 2, generator=g, dtype=torch.float64),
+        torch.randn(5, 2, generator=g, dtype=torch.float64),
+    ):
+        torch.testing.assert_close(matmul_each(a, b), a @ b, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(matmul_each(b.mT, a.mT), b.mT @ a.mT, rtol=1e-12, atol=1e-12)

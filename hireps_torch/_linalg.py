@@ -20,14 +20,18 @@ def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
 
 
 def matmul_each(a: Tensor, b: Tensor) -> Tensor:
-    """a @ b member by member: a tensor of 3 or more dimensions holds S members along its first
-    (1: the same for every member), a 2-D one is shared. Each member's product is the call its
-    own run makes (a population of one, shapes (1, ..., M, K)) on a copy of its own: torch
-    (MKL) rounds a product's entries by the batch size, the rows around them and their memory
-    alignment, so a member's sums round as in its own run."""
-    if a.dim() <= 2 and b.dim() <= 2:
+    """a @ b member by member on the CPU: a tensor of 3 or more dimensions holds S members along
+    its first (1: the same for every member; both such tensors of one rank), a 2-D one is
+    shared. Each member's product is the call its own run makes (a population of one, shapes
+    (1, ..., M, K)) on a copy of its own: MKL rounds a product's entries by the batch size, the
+    rows around them and their memory alignment, so a member's sums round as in its own run.
+    Elsewhere (and for one member or none) the product itself."""
+    lead = [t.shape[0] for t in (a, b) if t.dim() > 2]
+    S = max(lead, default=0)
+    if a.device.type != "cpu" or S <= 1 or (a.dim() > 2 and b.dim() > 2 and a.dim() != b.dim()):
         return a @ b
-    S = max(t.shape[0] if t.dim() > 2 else 1 for t in (a, b))
+    if any(n not in (1, S) for n in lead):
+        raise ValueError(f"matmul_each: member counts {lead} of shapes {a.shape} @ {b.shape}")
 
     def member(t: Tensor, s: int) -> Tensor:
         return t if t.dim() <= 2 else t[s : s + 1].clone() if t.shape[0] > 1 else t.clone()

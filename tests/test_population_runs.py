@@ -153,10 +153,11 @@ def policy_tensors(checkpoint, member):
 @pytest.mark.parametrize("case", list(SHORT))
 def test_a_member_of_a_population_equals_its_ordinary_run(tmp_path, case):
     """Every member of ``--seeds 3,5,8`` writes the metrics of ``--seed S`` (to 1e-6, the same
-    dual iterations) and ends with its policy (to 1e-8). A member computes its sums over its
-    samples as its own run does (:func:`~hireps_torch._linalg.matmul_each`), so on one machine
-    the two are the same bits; before, the pendulum's closed loop grew the batched products'
-    round-off to ~1e-8 in the policies within three updates."""
+    dual iterations) and ends with its policy (to 1e-8), the issue's tolerances. A member
+    computes its products over its samples as its own run does
+    (:func:`~hireps_torch._linalg.matmul_each`; on this machine the two are the same bits);
+    before, the pendulum's closed loop grew the batched products' round-off to ~1e-8 in the
+    policies within three updates."""
     name = case.removesuffix("-odd")
     run(name, *SHORT[case], "--seeds", "3,5,8", "--run-dir", str(tmp_path / "pop"))
     for m, seed in enumerate((3, 5, 8)):

@@ -141,7 +141,7 @@ class SoftmaxGating(Gating):
     def log_probs(self, features: Tensor) -> Tensor:
         """features: ([S,] N, F) -> log pi(o | s): ([S,] N, O), -inf for pruned options."""
         x = self._features(features)
-        logits = x @ self.weight.mT + self.bias.unsqueeze(-2)
+        logits = matmul_each(x, self.weight.mT) + self.bias.unsqueeze(-2)
         logits = logits.masked_fill(~self.active.unsqueeze(-2), float("-inf"))
         return log_softmax(logits)
 

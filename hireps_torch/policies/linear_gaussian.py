@@ -246,7 +246,7 @@ class LinearGaussian(PolicyModule):
     def mean(self, features: Tensor) -> Tensor:
         """features: ([S,] N, F) -> mean ([S,] N, D)."""
         x = self._features(features)
-        return x @ self.weight.mT + self.bias.unsqueeze(-2)
+        return matmul_each(x, self.weight.mT) + self.bias.unsqueeze(-2)
 
     @property
     def covariance(self) -> Tensor:
@@ -306,7 +306,11 @@ class LinearGaussian(PolicyModule):
                 W, b = weighted_least_squares(x, y, w, ridge=r)
         except RuntimeError:
             raise self._overflow(x, y, None) from None
-        resid = y - b.unsqueeze(-2) if x.shape[-1] == 0 else y - (x @ W.mT + b.unsqueeze(-2))
+        resid = (
+            y - b.unsqueeze(-2)
+            if x.shape[-1] == 0
+            else y - (matmul_each(x, W.mT) + b.unsqueeze(-2))
+        )
         cov = matmul_each((w[..., None] * resid).mT, resid) / w.sum(-1)[..., None, None]
         if self.covariance_prior > 0:
             n_eff = (w.sum(-1) ** 2 / (w**2).sum(-1))[..., None, None]

@@ -303,25 +303,41 @@ def test_matmul_each_rounds_each_member_as_its_own_run():
     assert torch.equal(matmul_each(X[0].mT, wx[0]), X[0].mT @ wx[0])
 
 
-def test_population_refit_equals_each_member_as_a_population_of_one_bit_for_bit():
-    """With many samples (where torch's batched products round by the batch size and the
-    member's place), member s of a population refits as ``stack([policy_s])`` does, bit for
-    bit: a member of a population run is its ordinary run."""
-    pols = members()
+@pytest.mark.parametrize("quadratic, dim", [(False, D), (True, 1)])
+def test_population_refit_equals_each_member_as_a_population_of_one_bit_for_bit(quadratic, dim):
+    """With many samples (where MKL's batched products round by the batch size and the
+    member's place), member s of a population refits and scores as ``stack([policy_s])``
+    does, bit for bit; also with five policy features and one action dimension (one output
+    column). A member of a population run is its ordinary run."""
+    pols = [
+        HierarchicalPolicy.create(
+            O,
+            C,
+            dim,
+            gating_features=QuadraticFeatures(C),
+            policy_features=QuadraticFeatures(C) if quadratic else None,
+            generator=torch.Generator().manual_seed(s),
+        )
+        for s in range(S)
+    ]
     pop = HierarchicalPolicy.stack(pols)
     g = torch.Generator().manual_seed(1)
     n = 1601
     ctx = torch.randn(S, n, C, generator=g, dtype=torch.float64)
-    theta = torch.randn(S, n, D, generator=g, dtype=torch.float64)
+    theta = torch.randn(S, n, dim, generator=g, dtype=torch.float64)
     w = torch.rand(S, n, O, generator=g, dtype=torch.float64)
+    ones = [HierarchicalPolicy.stack([p]) for p in pols]
     new = pop.fit_parameters(ctx, theta, w)
-    for s, p in enumerate(pols):
-        alone = HierarchicalPolicy.stack([p]).fit_parameters(
-            ctx[s : s + 1], theta[s : s + 1], w[s : s + 1]
-        )
+    pop.weighted_fit(ctx, theta, w)
+    scores, (means, _) = pop.log_joint(ctx, theta), pop.mean_action(ctx)
+    for s, one in enumerate(ones):
+        alone = one.fit_parameters(ctx[s : s + 1], theta[s : s + 1], w[s : s + 1])
         assert new.keys() == alone.keys()
         for key, value in alone.items():
             assert torch.equal(new[key][s : s + 1], value), (s, key)
+        one.weighted_fit(ctx[s : s + 1], theta[s : s + 1], w[s : s + 1])
+        assert torch.equal(scores[s : s + 1], one.log_joint(ctx[s : s + 1], theta[s : s + 1]))
+        assert torch.equal(means[s : s + 1], one.mean_action(ctx[s : s + 1])[0])
 
 
 def test_matmul_each_broadcasts_a_shared_or_single_member_factor():

@@ -8,6 +8,7 @@ from typing import Any, Literal
 
 import torch
 
+from hireps_torch._linalg import reduce_each
 from hireps_torch.algorithms import InfiniteHorizonHiREPS
 from hireps_torch.envs._common import MemberTasks, ScalarActionBatchEnv
 from hireps_torch.envs.pendulum import (
@@ -289,7 +290,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
     def rows(r: torch.Tensor, _: torch.Tensor) -> list[dict[str, Any]]:
         due = cfg.eval_every > 0 and algo.iteration % cfg.eval_every == 0
         evs = evaluate() if due else None
-        average = (r.mean(-1) / params.steps_per_decision).tolist()
+        average = (reduce_each(r, "mean", -1) / params.steps_per_decision).tolist()
         return [
             {
                 "average_return": average[m],

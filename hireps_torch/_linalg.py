@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
 from torch import Tensor
 
-__all__ = ["log_softmax", "logsumexp", "matmul_each", "min_norm_lstsq", "softmax"]
+__all__ = ["log_softmax", "logsumexp", "matmul_each", "min_norm_lstsq", "reduce_each", "softmax"]
 
 
 def min_norm_lstsq(A: Tensor, B: Tensor) -> Tensor:
@@ -37,6 +39,25 @@ def matmul_each(a: Tensor, b: Tensor) -> Tensor:
         return t if t.dim() <= 2 else t[s : s + 1].clone() if t.shape[0] > 1 else t.clone()
 
     return torch.cat([member(a, s) @ member(b, s) for s in range(S)])
+
+
+def reduce_each(
+    t: Tensor, op: Literal["sum", "mean"], dim: int | tuple[int, ...], keepdim: bool = False
+) -> Tensor:
+    """``t.sum`` / ``t.mean`` (``op``) over ``dim`` one leading index at a time (the dimensions
+    before the first reduced one: a population's members) on the CPU with several torch
+    threads: torch splits a reduction of 32768 or more numbers across its threads when it is
+    the only output, as in a member's own run, and not when it is one of S."""
+    dims = [d % t.dim() for d in ((dim,) if isinstance(dim, int) else dim)]
+    first = min(dims)
+    lead = t.shape[:first]
+    fn = torch.sum if op == "sum" else torch.mean
+    if t.device.type != "cpu" or torch.get_num_threads() == 1 or lead.numel() <= 1:
+        return fn(t, dim, keepdim=keepdim)
+    flat = t.reshape(-1, *t.shape[first:])
+    inner = tuple(d - first + 1 for d in dims)
+    out = torch.cat([fn(flat[i : i + 1], inner, keepdim=keepdim) for i in range(len(flat))])
+    return out.reshape(*lead, *out.shape[1:])
 
 
 # softmaxes over a short last dimension (the gating's O) as elementwise passes (faster on CPU)

@@ -210,6 +210,23 @@ def test_a_pendulum_member_does_not_depend_on_its_companions(tmp_path):
     assert a == b
 
 
+def test_a_d1_member_equals_its_ordinary_run_with_two_torch_threads(tmp_path):
+    """With two torch threads (torch's default here) a d = 1 member's sums over its 40,000
+    samples split across the threads as in its own run: the same rows. (Summed as one of S
+    they were not split, and the member's policy parted from its run's by 1e-3 within two
+    updates.)"""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        argv = ["pendulum", "--episodes", "40", "--steps-per-decision", "1", "--eval-rollouts", "2"]
+        run(*argv, "--seeds", "3,5", "--run-dir", str(tmp_path / "pop"))
+        run(*argv, "--seed", "5", "--run-dir", str(tmp_path / "alone"))
+    finally:
+        torch.set_num_threads(threads)
+    mine = rows(tmp_path / "pop" / "seed5" / "metrics.csv")
+    assert len(mine) == 2 and mine == rows(tmp_path / "alone" / "metrics.csv")
+
+
 HOCKEY = ["--episodes", "6", "--episodes-per-iteration", "6", "--final-eval-episodes", "0"]
 
 

@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from hireps_torch._linalg import reduce_each
 from hireps_torch.dual import DualSolution
 from hireps_torch.dual.inputs import LOG_RESP_FLOOR
 from hireps_torch.policies import HierarchicalPolicy
@@ -39,7 +40,8 @@ def option_bound(
         return OptionBound(None, context.new_zeros(policy.batch_shape), None)
     lr = policy.log_responsibilities(context, theta)
     p = lr.exp()
-    entropy = torch.where(several, -(torch.where(p > 0, p * lr, 0.0)).sum(-1).mean(-1), 0.0)
+    per_sample = torch.where(p > 0, p * lr, 0.0).sum(-1)
+    entropy = torch.where(several, -reduce_each(per_sample, "mean", -1), 0.0)
     kappa = None if kappa_rel is None else torch.where(several, kappa_rel * entropy, math.inf)
     return OptionBound(lr, entropy, kappa)
 
@@ -139,7 +141,7 @@ def apply_refit(
     sol, bound, k = refit.sol, refit.bound, refit.block
     subs = policy.sub_policies
     if policy.n_options > 1:
-        prior = policy.gating.probs(policy.gating_features(context)).mean(-2)
+        prior = reduce_each(policy.gating.probs(policy.gating_features(context)), "mean", -2)
         ent = (prior * torch.stack([o.entropy() for o in subs], -1)).sum(-1)
     else:  # one option: pi(o | s) = 1
         ent = subs[0].entropy()

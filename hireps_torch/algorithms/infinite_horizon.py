@@ -18,6 +18,7 @@ from typing import Any, Unpack
 import torch
 from torch import Tensor
 
+from hireps_torch._linalg import reduce_each
 from hireps_torch.algorithms._options import apply_refit, option_bounds, per_member, plan_refit
 from hireps_torch.algorithms.base import (
     Experience,
@@ -255,7 +256,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         return {
             "iteration": per_member(self.iteration, lead),
             **report,
-            "mean_reward": R.mean(-1).tolist(),
+            "mean_reward": reduce_each(R, "mean", -1).tolist(),
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------

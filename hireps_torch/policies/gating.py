@@ -7,7 +7,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor, nn
 
-from hireps_torch._linalg import log_softmax, matmul_each, softmax
+from hireps_torch._linalg import log_softmax, matmul_each, reduce_each, softmax
 from hireps_torch._parallel import member_chunks, side_by_side
 from hireps_torch.checks import (
     as_checked,
@@ -86,7 +86,7 @@ class Gating(PolicyModule):
                 f"where sample_weights > 0: row {row} sums to {sums[tuple(at)].item():.6g} on "
                 f"the active options" + (f" (pruned: {pruned})" if pruned else "")
             )
-        w = w / w.sum(-1, keepdim=True)
+        w = w / reduce_each(w, "sum", -1, True)
         return self.fit_checked(x.to(torch.float64), t, w, check_count("max_iter", max_iter, 1))
 
     def fit_checked(
@@ -157,12 +157,14 @@ class SoftmaxGating(Gating):
         """
         act = self.active
         if self.in_features == 0:
-            prior = torch.where(act, (w[..., None] * t).sum(-2).clamp_min(1e-300), 0.0)
+            prior = torch.where(
+                act, reduce_each(w[..., None] * t, "sum", -2).clamp_min(1e-300), 0.0
+            )
             logp = torch.log(prior / prior.sum(-1, keepdim=True))
             centred = logp - _active_mean(torch.where(act, logp, 0.0), act)
             return {"bias": torch.where(act, centred.to(self.bias.dtype), self.bias)}
         # no target mass: minimiser at logit -inf, so left out and set to DEAD_LOGIT
-        dead = act & ((w[..., None] * t).sum(-2) <= 0)
+        dead = act & (reduce_each(w[..., None] * t, "sum", -2) <= 0)
         fit = act & ~dead
         W0, b0 = self.weight.to(torch.float64), self.bias.to(torch.float64)
         if self.population is None:
@@ -206,7 +208,7 @@ def _cross_entropy(
     keep = active.unsqueeze(-2)
     logits = (x @ W.mT + b.unsqueeze(-2)).masked_fill(~keep, float("-inf"))
     logp = log_softmax(logits)
-    fit = torch.where(keep, w[..., None] * t * logp, 0.0).sum((-2, -1))
+    fit = reduce_each(torch.where(keep, w[..., None] * t * logp, 0.0), "sum", (-2, -1))
     return -fit + 0.5 * l2 * torch.where(active[..., None], W**2, 0.0).sum((-2, -1))
 
 

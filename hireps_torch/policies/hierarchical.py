@@ -8,7 +8,7 @@ from typing import Any, cast
 import torch
 from torch import Tensor, nn
 
-from hireps_torch._linalg import log_softmax, logsumexp
+from hireps_torch._linalg import log_softmax, logsumexp, reduce_each
 from hireps_torch.checks import (
     FIX_SAMPLES,
     as_checked,
@@ -343,11 +343,13 @@ class HierarchicalPolicy(PolicyModule):
             assert gf is not None
             ws = w.sum(-1)
             targets = w / torch.where(ws > 0, ws, 1.0)[..., None]  # rows without weight stay 0
-            norm = ws / ws.sum(-1, keepdim=True)
+            norm = ws / reduce_each(ws, "sum", -1, True)
             x = gf.to(torch.float64)
             new = {f"gating.{k}": v for k, v in self.gating.fit_checked(x, targets, norm).items()}
-            total = w.sum((-2, -1))
-            fitted = self.active & (w.sum(-2) > 1e-12 * total[..., None])  # ([S,] O)
+            total = reduce_each(w, "sum", (-2, -1))
+            fitted = self.active & (
+                reduce_each(w, "sum", -2) > 1e-12 * total[..., None]
+            )  # ([S,] O)
             flags = fitted.reshape(-1, O).T.tolist()  # per option, per member
         else:  # the one option is active (the most probable is never pruned) and has it all
             fitted, flags = self.active, [[True]]
@@ -408,7 +410,7 @@ class HierarchicalPolicy(PolicyModule):
             )
         if c.shape[-2] == 0:
             raise ValueError("prune needs at least one context, got an empty (0, C) batch")
-        prior = self.gating.probs(self.gating_features(c)).mean(-2)
+        prior = reduce_each(self.gating.probs(self.gating_features(c)), "mean", -2)
         drop = self.active & (prior < limit)
         drop.scatter_(-1, prior.argmax(-1, keepdim=True), False)
         if members is not None:
@@ -426,7 +428,7 @@ class HierarchicalPolicy(PolicyModule):
         """Mean entropy of p(o | s, theta) over the samples: a scalar or (S,)."""
         lr = self.log_responsibilities(context, theta)
         p = lr.exp()
-        return -(torch.where(p > 0, p * lr, torch.zeros_like(p))).sum(-1).mean(-1)
+        return -reduce_each(torch.where(p > 0, p * lr, torch.zeros_like(p)).sum(-1), "mean", -1)
 
 
 def _same_map(a: FeatureMap, b: FeatureMap) -> bool:

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor, nn
 
-from hireps_torch._linalg import matmul_each, min_norm_lstsq
+from hireps_torch._linalg import matmul_each, min_norm_lstsq, reduce_each
 from hireps_torch.checks import (
     FIX_SAMPLES,
     all_finite,
@@ -53,12 +53,12 @@ def weighted_least_squares(
     Y = targets.to(torch.float64)
     w = weights.to(torch.float64)
     if x.shape[-1] == 0:  # no regressors: the weighted mean
-        mean = matmul_each(w.unsqueeze(-2), Y).squeeze(-2) / w.sum(-1, keepdim=True)
+        mean = matmul_each(w.unsqueeze(-2), Y).squeeze(-2) / reduce_each(w, "sum", -1, True)
         return Y.new_zeros(*Y.shape[:-2], Y.shape[-1], 0), mean
     X = torch.cat([x.new_ones(*x.shape[:-1], 1), x], -1)
     A = matmul_each(X.mT, w[..., None] * X)
     if ridge > 0 and X.shape[-1] > 1:
-        reg = ridge * w.sum(-1, keepdim=True) * X.new_ones(X.shape[-1])
+        reg = ridge * reduce_each(w, "sum", -1, True) * X.new_ones(X.shape[-1])
         reg[..., 0] = 0.0
         A = A + torch.diag_embed(reg)
     B = matmul_each(X.mT, w[..., None] * Y)
@@ -149,10 +149,10 @@ def map_linear_regression(
     x = inputs.to(torch.float64)
     y = targets.to(torch.float64)
     w = weights.to(torch.float64)
-    w = w / w.sum(-1, keepdim=True)
-    n_eff = 1.0 / (w**2).sum(-1)
-    m = (w[..., None] * x).sum(-2)
-    s = (w[..., None] * (x - m[..., None, :]) ** 2).sum(-2).sqrt()
+    w = w / reduce_each(w, "sum", -1, True)
+    n_eff = 1.0 / reduce_each(w**2, "sum", -1)
+    m = reduce_each(w[..., None] * x, "sum", -2)
+    s = reduce_each(w[..., None] * (x - m[..., None, :]) ** 2, "sum", -2).sqrt()
     magnitude = x.abs().amax(-2) if x.shape[-2] else torch.zeros_like(m)
     s = torch.where(s > 1e-12 * magnitude, s, torch.ones_like(s))
     ones = x.new_ones(*x.shape[:-1], 1, dtype=torch.float64)
@@ -311,9 +311,10 @@ class LinearGaussian(PolicyModule):
             if x.shape[-1] == 0
             else y - (matmul_each(x, W.mT) + b.unsqueeze(-2))
         )
-        cov = matmul_each((w[..., None] * resid).mT, resid) / w.sum(-1)[..., None, None]
+        total = reduce_each(w, "sum", -1)
+        cov = matmul_each((w[..., None] * resid).mT, resid) / total[..., None, None]
         if self.covariance_prior > 0:
-            n_eff = (w.sum(-1) ** 2 / (w**2).sum(-1))[..., None, None]
+            n_eff = (total**2 / reduce_each(w**2, "sum", -1))[..., None, None]
             k = self.covariance_prior
             cov = (n_eff * cov + k * self.covariance.to(torch.float64)) / (n_eff + k)
         # a non-finite W or b makes every residual of its row, and so cov, non-finite

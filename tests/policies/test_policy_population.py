@@ -4,7 +4,7 @@ would alone."""
 import pytest
 import torch
 
-from hireps_torch._linalg import matmul_each
+from hireps_torch._linalg import matmul_each, reduce_each
 from hireps_torch.features import QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy, LinearGaussian, SoftmaxGating
 from hireps_torch.policies._population import categorical
@@ -350,3 +350,25 @@ def test_matmul_each_broadcasts_a_shared_or_single_member_factor():
     ):
         torch.testing.assert_close(matmul_each(a, b), a @ b, rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(matmul_each(b.mT, a.mT), b.mT @ a.mT, rtol=1e-12, atol=1e-12)
+
+
+def test_reduce_each_sums_each_member_as_its_own_run_with_several_threads():
+    """With two torch threads a sum of 40,000 numbers is split across them when it is the only
+    output; :func:`reduce_each` sums each member as its own run (a population of one) does."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        g = torch.Generator().manual_seed(3)
+        t = torch.rand(3, 8000, 5, generator=g, dtype=torch.float64)
+        for op, dim in [("sum", -1), ("sum", (-2, -1)), ("mean", -2), ("sum", -2)]:
+            out = reduce_each(t, op, dim)
+            for s in range(3):
+                own = getattr(t[s : s + 1].clone(), op)(dim)
+                assert torch.equal(out[s : s + 1], own), (op, dim, s)
+        flat = t.reshape(3, -1)
+        kept = reduce_each(flat, "sum", -1, keepdim=True)
+        assert kept.shape == (3, 1)
+        for s in range(3):
+            assert torch.equal(kept[s], flat[s : s + 1].clone().sum(-1, keepdim=True)[0])
+    finally:
+        torch.set_num_threads(threads)

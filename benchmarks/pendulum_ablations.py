@@ -4,16 +4,13 @@
    control steps per call) at 20, 200 and 2000 parallel pendulums, next to gymnasium's own
    ``Pendulum-v1`` stepped in a Python loop, measured in the same run (control steps/s).
 2. ``train.py pendulum`` for every configuration of the four figures over ``--seeds`` seeds
-   (each unique configuration runs once per seed and is shared between figures). By default
-   each configuration's seeds run as one population (``train.py pendulum --seeds 0-4``: one
-   process, one batched simulation; :class:`hireps_torch.experiments.loop.Run`),
-   ``--workers`` populations at a time (2 by default, one process and one thread each, each
-   process held to a core of its own where there are enough; the slow configurations first).
-   With
-   ``--separate``, as one sweep of separate runs (:mod:`hireps_torch.experiments.sweep`):
-   ``--workers`` runs at a time, in local processes or (``--backend ray``)
-   as Ray tasks, on this machine or a cluster (``--ray-address``). ``--resume`` of an
-   interrupted ablation reuses what finished:
+   (each unique configuration runs once per seed and is shared between figures), as one sweep
+   (:mod:`hireps_torch.experiments.sweep`, one thread per run) in which each configuration's
+   seeds run as one population (``--members``: ``train.py pendulum --seeds 0-4``, one batched
+   simulation), or with ``--separate`` as separate runs: ``--workers`` at a time (2 by
+   default; the slow configurations first), in local processes each held to cores of its own,
+   or (``--backend ray``) as Ray tasks, on this machine or a cluster (``--ray-address``).
+   ``--resume`` of an interrupted ablation reuses what finished and resumes the rest:
 
    - 16a: options 1 / 2 / 5 / 10 (d = 5)
    - 16b: d = 1 / 2 / 5 / 10 (5 options)
@@ -35,7 +32,6 @@ run and of the whole ablation.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import time
@@ -59,7 +55,7 @@ from benchmarks._common import (  # noqa: E402
 from hireps_torch.envs.pendulum import PendulumSwingUpBatchEnv  # noqa: E402
 from hireps_torch.experiments.pendulum import PendulumConfig  # noqa: E402
 from hireps_torch.experiments.rundir import atomic_write  # noqa: E402
-from hireps_torch.experiments.sweep import SweepRun, check_same_options, plan, run_sweep  # noqa: E402
+from hireps_torch.experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "learned-1": {"n_options": 1},
@@ -155,83 +151,6 @@ def _first(summary: dict[str, Any]) -> str:
 SLOWNESS = {"d1": 7.0, "d2": 2.7, "learned-10": 1.4}
 
 
-def _population(options: dict[str, Any], seeds: str, root: Path, threads: int | None) -> None:
-    """One configuration's seeds as one population (in a worker process)."""
-    from hireps_torch.experiments import run_experiment
-
-    if threads is not None:
-        torch.set_num_threads(threads)
-    run_experiment(PendulumConfig(**options, seeds=seeds, run_dir=root, progress=False))
-
-
-def core_sets(available: list[int], workers: int, threads: int) -> list[set[int]] | None:
-    """The cores each of ``workers`` worker processes of ``threads`` threads keeps to, one set
-    per worker and none shared; None (every worker on every core) for one worker or too few
-    cores."""
-    if workers < 2 or len(available) < workers * threads:
-        return None
-    cores = sorted(available)
-    return [set(cores[w * threads : (w + 1) * threads]) for w in range(workers)]
-
-
-def _pin(sets: Any) -> None:
-    """Keep this worker process to a set of cores taken from the queue ``sets``: its members'
-    duals then run side by side only on cores of its own, not in threads that compete with
-    the other workers'."""
-    os.sched_setaffinity(0, sets.get())
-
-
-def run_populations(
-    runs: list[SweepRun], report: Any, workers: int = 1, threads: int | None = None
-) -> dict[tuple[str, int], dict[str, Any]]:
-    """Each configuration's seeds as one population (``train.py pendulum --seeds``), ``workers``
-    populations at a time in spawned processes (in this process for 1; each held to cores of
-    its own, :func:`core_sets`), in the order of ``runs``; a configuration whose population
-    finished before (its ``population.json``) is read back, after each member's
-    ``config.json`` is checked against the options asked for (a ValueError naming those that
-    differ, e.g. a default changed since). Returns every run's summary."""
-    import json
-    import multiprocessing
-    import shutil
-    from concurrent.futures import ProcessPoolExecutor
-
-    names = list(dict.fromkeys(r.name for r in runs))
-    mine = {name: [r for r in runs if r.name == name] for name in names}
-    todo = []
-    for name in names:
-        root = mine[name][0].run_dir.parent
-        if not (root / "population.json").is_file():
-            if root.exists():  # an unfinished population: run it again
-                shutil.rmtree(root)
-            seeds = ",".join(str(r.seed) for r in mine[name])
-            todo.append((mine[name][0].options, seeds, root, threads))
-    if workers == 1:
-        for job in todo:
-            _population(*job)
-    elif todo:
-        ctx = multiprocessing.get_context("spawn")
-        n = min(workers, len(todo))
-        cores = list(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-        pin: dict[str, Any] = {}
-        if sets := core_sets(cores, n, threads or 1):
-            queue = ctx.Queue()
-            for cores_of_one in sets:
-                queue.put(cores_of_one)
-            pin = {"initializer": _pin, "initargs": (queue,)}
-        with ProcessPoolExecutor(n, mp_context=ctx, **pin) as pool:
-            for future in [pool.submit(_population, *job) for job in todo]:
-                future.result()
-    done: dict[tuple[str, int], dict[str, Any]] = {}
-    for name in names:
-        for r in mine[name]:
-            member = PendulumConfig(**r.options, seed=r.seed, run_dir=r.run_dir, progress=False)
-            check_same_options(r, member)
-            summary = json.loads((r.run_dir / "summary.json").read_text())
-            done[(name, r.seed)] = summary
-            report(r, summary)
-    return done
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seeds", type=int, default=5)
@@ -243,38 +162,25 @@ def main() -> None:
     ap.add_argument(
         "--separate",
         action="store_true",
-        help="run every seed as its own run (a sweep) instead of each configuration's seeds "
-        "as one population (train.py pendulum --seeds, one process, torch's threads)",
+        help="run every seed as its own run instead of each configuration's seeds as one "
+        "population (train.py pendulum --seeds)",
     )
     ap.add_argument(
         "--workers",
         type=int,
         default=2,
-        help="runs (with --separate) or populations at the same time, one process each",
+        help="runs (populations, or with --separate runs) at the same time, one process each",
     )
     ap.add_argument("--backend", choices=["local", "ray"], default="local")
     ap.add_argument("--ray-address", default=None, help="an existing Ray cluster (--backend ray)")
     ap.add_argument(
         "--resume", type=Path, default=None, help="finish the ablation written to this folder"
     )
-    ap.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="torch threads per process (default: 1 with --separate or --workers > 1, else "
-        "torch's default)",
-    )
     args = ap.parse_args()
     if args.workers < 1:
         raise SystemExit(f"--workers must be >= 1, got {args.workers}")
-    one = args.separate or args.workers > 1
-    threads = args.threads if args.threads is not None else (1 if one else None)
-    if args.resume is not None:
-        out = args.resume
-        if threads is not None:
-            torch.set_num_threads(threads)
-    else:
-        out = start_benchmark(args.out, args.seeds, threads)
+    torch.set_num_threads(1)  # as each run of the sweep computes
+    out = args.resume if args.resume is not None else start_benchmark(args.out, args.seeds)
     if not args.skip_speed:
         env_speed()
 
@@ -283,7 +189,8 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown configurations {unknown}; known: {', '.join(CONFIGS)}")
     options = {k: {**CONFIGS[k], "episodes": args.episodes} for k in configs}
-    runs = plan("pendulum", options, range(args.seeds), out / "runs")
+    members = 1 if args.separate else args.seeds
+    runs = plan("pendulum", options, list(range(args.seeds)), out / "runs", members)
     # the slow configurations first, so that the last runs to finish are short ones
     runs.sort(key=lambda r: -SLOWNESS.get(r.name, 1.0))
 
@@ -297,18 +204,15 @@ def main() -> None:
         )
 
     t_all = time.perf_counter()
-    if args.separate:
-        done = run_sweep(
-            runs,
-            backend=args.backend,
-            workers=args.workers,
-            ray_address=args.ray_address,
-            progress=False,
-            on_result=report,
-        )
-    else:
-        done = run_populations(runs, report, args.workers, threads)
-    for run in runs:
+    done = run_sweep(
+        runs,
+        backend=args.backend,
+        workers=args.workers,
+        ray_address=args.ray_address,
+        progress=False,
+        on_result=report,
+    )
+    for run in (member for r in runs for member in r.members()):
         x, y = read_curve(run.run_dir)
         done[(run.name, run.seed)] = {**done[(run.name, run.seed)], "curve": y, "episodes_axis": x}
     total = time.perf_counter() - t_all

@@ -1,9 +1,11 @@
 """A population of seeds in one process against one seed alone, side by side.
 
 1. ``train.py pendulum --seed 0`` (the ordinary run), ``train.py pendulum --seeds 0-(S-1)``
-   (one population) and ``--seed 0`` again, the same episodes, one after the other in this
-   run: wall times, and the population's against the mean of the two single seeds (the
-   machine's speed drifts between runs minutes apart).
+   (one population), the same seeds as a sweep of ``--workers`` populations (``train.py sweep
+   --members ceil(S / workers) --workers``: one process per population, each on cores of its
+   own; 0 workers: skipped) and ``--seed 0`` again, the same episodes, one after the other in
+   this run: wall times, and each against the mean of the two single seeds (the machine's
+   speed drifts between runs minutes apart).
 2. The population's learning: final success per seed, and the share of seeds ending with
    success >= 0.9, next to separate runs of the same seeds (``--separate DIR``: a finished
    ``train.py sweep --experiment pendulum`` whose ``sweep.json`` is read, or
@@ -12,16 +14,19 @@
    draws what its ordinary run draws, but batched arithmetic may round differently, which a
    long run can amplify, so the two are compared in distribution.
 
-    python benchmarks/population.py [--seeds 20] [--episodes 1000] [--separate DIR]
-        [--run-separate] [--out DIR]
+    python benchmarks/population.py [--seeds 20] [--episodes 1000] [--workers CORES]
+        [--separate DIR] [--run-separate] [--out DIR]
 
-Threads: torch's default (2 on the 2-core reference machine) for both runs, or ``--threads``.
+Threads: torch's default (2 on the 2-core reference machine) for the runs in this process, or
+``--threads``; one in each of the sweep's processes.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -52,6 +57,10 @@ def main() -> None:
     ap.add_argument("--separate", type=Path, default=None, help="a finished pendulum sweep")
     ap.add_argument("--run-separate", action="store_true", help="run the separate sweep here")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    ap.add_argument(
+        "--workers", type=int, default=cores or 1, help="processes of the sweep (default: cores)"
+    )
     args = ap.parse_args()
     out = start_benchmark(args.out, args.seeds, args.threads)
     import torch
@@ -73,6 +82,21 @@ def main() -> None:
         )
     )
     t_pop = time.perf_counter() - t
+    t_sweep = math.nan
+    if args.workers > 0:
+        from hireps_torch.experiments.sweep import plan, run_sweep
+
+        members = -(-S // args.workers)
+        pops = plan(
+            "pendulum",
+            {"default": {"episodes": args.episodes}},
+            list(range(S)),
+            out / "sweep",
+            members,
+        )
+        t = time.perf_counter()
+        run_sweep(pops, workers=args.workers, progress=False)
+        t_sweep = time.perf_counter() - t
     t_after, _ = one_seed("one_after")  # the machine's speed drifts: one seed on either side
     t_one = (t_before + t_after) / 2
     print(
@@ -83,6 +107,12 @@ def main() -> None:
         f"population of {S} seeds: {t_pop:.1f} s = {t_pop / t_one:.2f} x one seed (their mean; "
         f"{t_pop / max(t_before, t_after):.2f}-{t_pop / min(t_before, t_after):.2f} x either)"
     )
+    if args.workers > 0:
+        print(
+            f"the same seeds as {len(pops)} population(s) of at most {members} on "
+            f"{args.workers} worker(s) (train.py sweep --members {members} --workers "
+            f"{args.workers}): {t_sweep:.1f} s = {t_sweep / t_one:.2f} x one seed"
+        )
 
     success = {int(k): float(v) for k, v in pop["per_seed"].items()}
     good = sum(v >= 0.9 for v in success.values())
@@ -114,6 +144,9 @@ def main() -> None:
         "one_seed_seconds_before_after": [t_before, t_after],
         "population_seconds": t_pop,
         "ratio": t_pop / t_one,
+        "sweep_workers": args.workers,
+        "sweep_seconds": t_sweep,
+        "sweep_ratio": t_sweep / t_one,
         "population_success": success,
     }
     if separate is not None:

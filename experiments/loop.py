@@ -228,6 +228,7 @@ class Run:
             else default_run_dir(experiment)
         )
         self.seeds, self.population = member_seeds(cfg), cfg.seeds is not None
+        self.progress = cfg.progress
         self.configs: list[Any] = [dataclasses.replace(cfg, run_dir=root)]
         if self.population:
             self.configs = member_configs(cfg, root)
@@ -474,7 +475,9 @@ def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, 
     experiment, seeds, root = run.experiment.replace("_", "-"), run.seeds, run.root.dir
     runs = [SweepRun(experiment, experiment, s, {}, root / f"seed{s}") for s in seeds]
     results = {(experiment, s): summary for s, summary in zip(seeds, summaries, strict=True)}
-    print(summarize(runs, results, root, stem="population", seconds="s (population)"))
+    table = summarize(runs, results, root, stem="population", seconds="s (population)")
+    if run.progress:  # the members' table, where a bar showed the run
+        print(table)
     metric = METRICS[experiment][0]
     values = [float(s[metric]) for s in summaries]
     return run.root.finish(

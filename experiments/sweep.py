@@ -4,10 +4,13 @@
         --grid n_options=1,2,5 --grid steps_per_decision=1,5 --set episodes=200 \\
         --out runs/sweep --backend ray --workers 2
 
-Each (configuration, seed) runs in ``OUT/<experiment>/<configuration>/seed<S>``; finished runs
-are reused and interrupted ones resumed. At the end: ``sweep.md`` (table), ``sweep.json``
-(summaries) and ``sweep.png`` (mean +- std curves) of this command's runs (a later sweep into
-the same ``OUT`` rewrites them and keeps every run directory).
+Each (configuration, seed) runs in ``OUT/<experiment>/<configuration>/seed<S>``, or, with
+``--members M``, each configuration's seeds run as populations of at most M members
+(``train.py --seeds``) in ``OUT/<experiment>/<configuration>/seeds<A>-<B>``; finished runs
+are reused and interrupted ones resumed, and local workers keep to cores of their own. At the
+end: ``sweep.md`` (table), ``sweep.json`` (summaries) and ``sweep.png`` (mean +- std curves) of
+this command's runs, per seed (a later sweep into the same ``OUT`` rewrites them and keeps
+every run directory).
 """
 
 from __future__ import annotations
@@ -84,6 +87,9 @@ class SweepConfig:
     """local: this process (--workers 1) or spawned processes; ray: one Ray task per run."""
     workers: int = 1
     """Runs at the same time (CPUs of the local Ray instance with --backend ray)."""
+    members: int = 1
+    """Seeds per run: above 1, each configuration's seeds run as populations of at most this
+    many members, in as few runs as that allows."""
     ray_address: str | None = None
     """An existing Ray cluster (HOST:PORT, ray://HOST:PORT or auto) for --backend ray."""
     progress: bool = True
@@ -92,13 +98,30 @@ class SweepConfig:
 
 @dataclass(frozen=True)
 class SweepRun:
-    """One run of a sweep: configuration ``name`` of ``experiment`` with ``options``."""
+    """One run of a sweep: configuration ``name`` of ``experiment`` with ``options``; with
+    ``seeds``, a population of those seeds (``seed`` the first) whose members write
+    ``run_dir/seed<s>``."""
 
     experiment: str
     name: str
     seed: int
     options: dict[str, Any] = field(default_factory=dict)
     run_dir: Path = Path()
+    seeds: tuple[int, ...] = ()
+
+    def members(self) -> list[SweepRun]:
+        """A population's members as ordinary runs in their own directories; else ``[self]``."""
+        if not self.seeds:
+            return [self]
+        return [
+            dataclasses.replace(self, seed=s, run_dir=Path(self.run_dir) / f"seed{s}", seeds=())
+            for s in self.seeds
+        ]
+
+    def config(self, config_cls: type, **run_options: Any) -> Any:
+        """The run's config: its options, seed(s) and ``run_options``."""
+        seeds = {"seeds": ",".join(map(str, self.seeds))} if self.seeds else {"seed": self.seed}
+        return config_cls(**self.options, **seeds, **run_options)
 
 
 def _config_class(experiment: str) -> type:
@@ -206,15 +229,31 @@ def plan(
     configurations: Mapping[str, Mapping[str, Any]],
     seeds: Sequence[int],
     out: Path,
+    members: int = 1,
 ) -> list[SweepRun]:
-    """Every (configuration, seed) as a :class:`SweepRun` in ``out/<experiment>/<name>/seed<S>``."""
+    """Every (configuration, seed) as a :class:`SweepRun` in ``out/<experiment>/<name>/seed<S>``;
+    for ``members`` > 1 each configuration's seeds as populations of at most ``members`` (sizes
+    as equal as can be), in ``out/<experiment>/<name>/seeds<A>-<B>`` (first and last seed)."""
     _config_class(experiment)
     if not seeds:
         raise ValueError("a sweep needs at least one seed")
+    if isinstance(members, bool) or not isinstance(members, int) or members < 1:
+        raise ValueError(f"members must be an integer >= 1, got {members!r}")
+    n = -(-len(seeds) // members)  # runs per configuration
+    cuts = [round(i * len(seeds) / n) for i in range(n + 1)]
+    groups = [tuple(int(s) for s in seeds[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    one = members == 1
     return [
-        SweepRun(experiment, name, int(s), dict(opts), Path(out) / experiment / name / f"seed{s}")
+        SweepRun(
+            experiment,
+            name,
+            g[0],
+            dict(opts),
+            Path(out) / experiment / name / (f"seed{g[0]}" if one else f"seeds{g[0]}-{g[-1]}"),
+            () if one else g,
+        )
         for name, opts in configurations.items()
-        for s in seeds
+        for g in groups
     ]
 
 
@@ -226,7 +265,7 @@ def run_one(run: SweepRun) -> dict[str, Any]:
 
     config_cls, run_fn = EXPERIMENTS[run.experiment]
     d = Path(run.run_dir)
-    cfg = config_cls(**run.options, seed=run.seed, run_dir=d, progress=False)
+    cfg = run.config(config_cls, run_dir=d, progress=False)
     if (d / "config.json").is_file():
         check_same_options(run, cfg)
         if (d / "summary.json").is_file():
@@ -249,20 +288,23 @@ class DamagedSummary(ValueError):
 
 
 def _finished_summary(run: SweepRun) -> dict[str, Any]:
-    """A finished run's ``summary.json`` holding its metric, else a :class:`DamagedSummary`."""
+    """A finished run's ``summary.json`` holding its metric (a population's: its members' do),
+    else a :class:`DamagedSummary`."""
+    for member in run.members() if run.seeds else []:
+        _finished_summary(member)
     path = Path(run.run_dir) / "summary.json"
     metric = METRICS[run.experiment][0]
     try:
         summary = json.loads(path.read_text())
         if not isinstance(summary, dict):
             raise ValueError(f"it holds a JSON {type(summary).__name__}")
-        if summary.get(metric) is not None:  # None: NaN in summary.json (jsonable)
-            float(summary[metric])
-        elif metric not in summary:
+        if not run.seeds and metric not in summary:  # a population's members hold it
             raise ValueError(f"it has no {metric!r}")
+        if not run.seeds and summary[metric] is not None:  # None: NaN in summary.json
+            float(summary[metric])
     except (OSError, UnicodeDecodeError, ValueError, TypeError) as exc:
         raise DamagedSummary(f"{path} is damaged ({exc}); move it away to run it again") from None
-    if not (path.parent / "metrics.csv").is_file():  # the sweep's curves read it
+    if not run.seeds and not (path.parent / "metrics.csv").is_file():  # the curves read it
         raise DamagedSummary(
             f"{path.parent} finished but its metrics.csv is missing; restore it, or move the run "
             "directory away to run it again"
@@ -301,7 +343,7 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
         config_cls = _config_class(run.experiment)
         try:
             with torch.random.fork_rng(devices=[]):  # a check draws nothing a run would see
-                cfg = config_cls(**run.options, seed=run.seed, progress=False)
+                cfg = run.config(config_cls, progress=False)
                 cfg.check_run_options()
                 ALGORITHMS[run.experiment](cfg)
         except (ValueError, TypeError, ImportError) as exc:
@@ -313,16 +355,17 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
 
 
 class SweepFailed(Exception):
-    """Runs of a sweep that failed (the others ran): ``failures`` maps (configuration, seed)
-    to the error, ``results`` holds the summaries of the runs that ended."""
+    """Runs of a sweep that failed (the others ran): ``failures`` maps (configuration, the
+    run's folder: ``seed<S>`` or a population's ``seeds<A>-<B>``) to the error, ``results``
+    holds the summaries of the (configuration, seed) runs that ended."""
 
     def __init__(
-        self, failures: Mapping[tuple[str, int], str], results: Mapping[tuple[str, int], Any]
+        self, failures: Mapping[tuple[str, str], str], results: Mapping[tuple[str, int], Any]
     ) -> None:
         self.failures, self.results = dict(failures), dict(results)
         super().__init__(
             f"{len(self.failures)} run(s) of the sweep failed, the others ran: "
-            + "; ".join(f"{n}/seed{s}: {why}" for (n, s), why in self.failures.items())
+            + "; ".join(f"{n}/{d}: {why}" for (n, d), why in self.failures.items())
         )
 
 
@@ -371,21 +414,25 @@ def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Fail
     # byte: an Event's set() waits for every waiter to wake, and an exited worker never does)
     stop = ctx.RawValue("b", 0)
     queued = list(runs)
-    going: dict[Any, tuple[SweepRun, Any]] = {}  # the result pipe -> (run, process)
+    free = core_sets(workers)
+    going: dict[Any, tuple[SweepRun, Any, set[int] | None]] = {}  # result pipe -> run, process
     try:
         while queued or going:
             while queued and len(going) < workers:
                 run = queued.pop(0)
+                cores = free.pop() if free else None
                 reader, send = ctx.Pipe(duplex=False)
                 proc = ctx.Process(
-                    target=_in_worker, args=(run, send, stop, os.getpid()), daemon=True
+                    target=_in_worker, args=(run, send, stop, os.getpid(), cores), daemon=True
                 )
                 with workers_ignore_sigint():  # a Ctrl-C waits until the run can take it
                     proc.start()
                 send.close()
-                going[reader] = (run, proc)
+                going[reader] = (run, proc, cores)
             for ready in multiprocessing.connection.wait(list(going)):
-                run, proc = going.pop(ready)
+                run, proc, cores = going.pop(ready)
+                if cores is not None:
+                    free.append(cores)
                 receive: Any = ready
                 try:
                     kind, value = receive.recv()
@@ -401,17 +448,33 @@ def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Fail
                     failed(run, RuntimeError(value))
     finally:  # an error or Ctrl-C: the runs going stop at their next iteration boundary
         stop.value = 1
-        _stop_workers([proc for _, proc in going.values()])
+        _stop_workers([proc for _, proc, _ in going.values()])
 
 
-def _in_worker(run: SweepRun, send: Any, stop: Any, parent: int) -> None:
-    """A local worker process: one run, its outcome sent back as (kind, value); ``stop.value``
-    (a shared byte) set, or the sweep's process ``parent`` gone (even by kill -9), asks for a
-    stop at the next iteration boundary, as a first SIGINT does."""
+def core_sets(workers: int) -> list[set[int]]:
+    """Disjoint sets of this process's cores, one per worker (an even share each), or none for
+    one worker or fewer cores than workers (each then sees every core)."""
+    if workers < 2 or not hasattr(os, "sched_getaffinity"):
+        return []
+    cores = sorted(os.sched_getaffinity(0))
+    share = len(cores) // workers
+    return [set(cores[w * share : (w + 1) * share]) for w in range(workers)] if share else []
+
+
+def _in_worker(
+    run: SweepRun, send: Any, stop: Any, parent: int, cores: set[int] | None = None
+) -> None:
+    """A local worker process: one run on ``cores`` (None: every core), its outcome sent back
+    as (kind, value); ``stop.value`` (a shared byte) set, or the sweep's process ``parent``
+    gone (even by kill -9), asks for a stop at the next iteration boundary, as a first SIGINT
+    does. Held to its own cores, a population's members go side by side only on those."""
     import threading
     import time
 
     from hireps_torch.experiments.checkpoint import record_early_stops, request_stop
+
+    if cores:
+        os.sched_setaffinity(0, cores)
 
     def watch() -> None:
         while not stop.value and os.getppid() == parent:
@@ -494,25 +557,35 @@ def run_sweep(
     ``on_result(run, summary)`` as each ends; returns ``{(name, seed): summary}``. The
     backend and the configurations are checked first unless ``checked``; failed runs do not
     stop the others and raise :class:`SweepFailed` once all have ended."""
-    keys = [(r.name, r.seed) for r in runs]
+    keys = [(m.name, m.seed) for r in runs for m in r.members()]
     if len(set(keys)) != len(keys):
         raise ValueError("a sweep holds the same (configuration, seed) twice")
     if not checked:
         check_pool(workers, backend, ray_address, reach=True)
         check_configurations(runs)
     results: dict[tuple[str, int], dict[str, Any]] = {}
-    failures: dict[tuple[str, int], str] = {}
+    failures: dict[tuple[str, str], str] = {}
     bar = tqdm(total=len(runs), desc="sweep", disable=not progress)
 
     def failed(run: SweepRun, exc: BaseException) -> None:
-        failures[(run.name, run.seed)] = f"{type(exc).__name__}: {exc}"
+        failures[(run.name, Path(run.run_dir).name)] = f"{type(exc).__name__}: {exc}"
         bar.update(1)
 
     def done(run: SweepRun, summary: dict[str, Any]) -> None:
-        results[(run.name, run.seed)] = summary
+        if run.seeds:  # a population: its members' own summaries
+            reused = {"reused": True} if summary.get("reused") else {}
+            try:
+                ends = [(m, {**_finished_summary(m), **reused}) for m in run.members()]
+            except DamagedSummary as exc:
+                failed(run, exc)
+                return
+        else:
+            ends = [(run, summary)]
         bar.update(1)
-        if on_result is not None:
-            on_result(run, summary)
+        for member, end in ends:
+            results[(member.name, member.seed)] = end
+            if on_result is not None:
+                on_result(member, end)
 
     todo = []
     for run in runs:  # finished runs are read here: no worker (and no Ray) for them
@@ -610,7 +683,7 @@ def summarize(
 def main(cfg: SweepConfig) -> dict[str, Any]:
     """``hireps-train sweep``: plan, run (reusing, resuming), summarize; returns what it wrote."""
     configurations = parse_grid(cfg.experiment, cfg.grid, cfg.set)
-    runs = plan(cfg.experiment, configurations, parse_seeds(cfg.seeds), cfg.out)
+    runs = plan(cfg.experiment, configurations, parse_seeds(cfg.seeds), cfg.out, cfg.members)
     check_pool(cfg.workers, cfg.backend, cfg.ray_address, reach=True)  # before anything is written
     check_configurations(runs)
     out = Path(cfg.out) / cfg.experiment
@@ -643,7 +716,7 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
                 "were going wrote one as they stopped). Run the same command again: finished "
                 "runs are reused and the others resume from their checkpoints"
             ) from None
-        ended = [r for r in runs if (r.name, r.seed) in results]
+        ended = [m for r in runs for m in r.members() if (m.name, m.seed) in results]
         table = summarize(ended, results, out) if ended else ""
     finally:
         lock.release()

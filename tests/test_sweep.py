@@ -551,3 +551,125 @@ def test_a_sweep_whose_every_run_failed_points_to_no_table(tmp_path):
         main(cfg)
     assert "run(s) of the sweep failed" in str(failed.value)
     assert "sweep.md" not in str(failed.value) and not (out / "bimodal" / "sweep.md").exists()
+
+
+# ---- populations (--members) ---------------------------------------------------------------
+
+
+def test_plan_runs_each_configurations_seeds_as_populations_of_at_most_members(tmp_path):
+    configs = {"a": {"episodes": 400}, "b": {}}
+    runs = plan("bimodal", configs, [3, 4, 5, 6, 7], tmp_path, members=3)
+    assert [(r.name, r.seeds) for r in runs] == [
+        ("a", (3, 4)),
+        ("a", (5, 6, 7)),
+        ("b", (3, 4)),
+        ("b", (5, 6, 7)),
+    ]
+    assert runs[1].run_dir == tmp_path / "bimodal" / "a" / "seeds5-7" and runs[1].seed == 5
+    assert [(m.seed, m.run_dir, m.seeds) for m in runs[1].members()] == [
+        (s, runs[1].run_dir / f"seed{s}", ()) for s in (5, 6, 7)
+    ]
+    from hireps_torch.experiments.bimodal import BimodalConfig
+
+    cfg = runs[1].config(BimodalConfig, progress=False)
+    assert (cfg.seeds, cfg.seed, cfg.episodes) == ("5,6,7", 0, 400)
+    one = plan("bimodal", configs, [3, 4], tmp_path, members=1)
+    assert [(r.seed, r.seeds, r.run_dir.name) for r in one][:2] == [
+        (3, (), "seed3"),
+        (4, (), "seed4"),
+    ]
+    assert one[0].members() == [one[0]]
+    assert [r.seeds for r in plan("bimodal", configs, [1, 2], tmp_path, members=9)] == [(1, 2)] * 2
+    for bad in (0, -1, True, 2.0):
+        with pytest.raises(ValueError, match=f"members must be an integer >= 1, got {bad!r}"):
+            plan("bimodal", configs, [1], tmp_path, members=bad)
+
+
+def test_a_sweep_of_populations_writes_the_runs_of_separate_seeds_and_reuses_them(tmp_path):
+    """Each member of a population writes, bit for bit, the metrics.csv of its seed's own run;
+    the table and sweep.json are per seed; a second sweep reuses the populations."""
+    configs = parse_grid("bimodal", ["n_options=1,3"], ["episodes=400"])
+    separate = plan("bimodal", configs, [0, 1, 2], tmp_path / "separate")
+    pops = plan("bimodal", configs, [0, 1, 2], tmp_path / "pops", members=2)
+    seen = []
+    expected = run_sweep(separate, progress=False)
+    results = run_sweep(pops, progress=False, on_result=lambda r, s: seen.append((r.name, r.seed)))
+    assert set(results) == set(expected) == set(seen) and len(seen) == 6
+    members = [m for r in pops for m in r.members()]
+    for m, r in zip(members, separate, strict=True):
+        assert (m.name, m.seed) == (r.name, r.seed)
+        assert (m.run_dir / "metrics.csv").read_bytes() == (r.run_dir / "metrics.csv").read_bytes()
+        assert (
+            results[(m.name, m.seed)]["final_return"] == expected[(r.name, r.seed)]["final_return"]
+        )
+    table = summarize(members, results, tmp_path / "pops" / "bimodal")
+    assert "| n_options=3 | 3 |" in table and "2: " in table
+    stamps = [(r.run_dir / "summary.json").stat().st_mtime_ns for r in pops]
+    again = run_sweep(pops, progress=False)
+    assert set(again) == set(results) and all(v.get("reused") for v in again.values())
+    assert stamps == [(r.run_dir / "summary.json").stat().st_mtime_ns for r in pops]
+
+
+def test_an_unfinished_population_of_a_sweep_resumes_to_the_same_members(tmp_path):
+    pops = plan("bimodal", {"default": {"episodes": 400}}, [0, 1], tmp_path, members=2)
+    run_sweep(pops, progress=False)
+    before = {m.seed: (m.run_dir / "metrics.csv").read_bytes() for m in pops[0].members()}
+    (pops[0].run_dir / "summary.json").unlink()  # as if stopped before its end
+    again = run_sweep(pops, progress=False)
+    assert not any(v.get("reused") for v in again.values())
+    assert before == {m.seed: (m.run_dir / "metrics.csv").read_bytes() for m in pops[0].members()}
+
+
+def test_a_finished_population_with_other_options_is_refused_naming_the_option(tmp_path):
+    """A population finished with the KL bound held is not reused by a sweep that asks for
+    the schedule (nor the other way round): the error names the option, nothing changes."""
+    held = plan("pendulum", {"d": {"episodes": 40, "epsilon_end": None}}, [0, 1], tmp_path, 2)
+    run_sweep(held, progress=False)
+    summary = (held[0].run_dir / "summary.json").read_bytes()
+    scheduled = plan("pendulum", {"d": {"episodes": 40}}, [0, 1], tmp_path, 2)
+    with pytest.raises(ValueError, match="other options than this sweep asks for: epsilon_end"):
+        run_sweep(scheduled, progress=False)
+    assert (held[0].run_dir / "summary.json").read_bytes() == summary
+
+
+def test_a_population_whose_member_summary_is_damaged_fails_alone_named_by_its_folder(tmp_path):
+    from hireps_torch.experiments.sweep import DamagedSummary, _finished_summary
+
+    pops = plan("bimodal", {"default": {"episodes": 400}}, [0, 1, 2, 3], tmp_path, members=2)
+    run_sweep(pops, progress=False)
+    bad = pops[0].run_dir / "seed1" / "summary.json"
+    bad.write_text("{}")
+    with pytest.raises(DamagedSummary, match=f"{bad} is damaged"):
+        _finished_summary(pops[0])
+    with pytest.raises(SweepFailed, match=r"default/seeds0-1: DamagedSummary: .*seed1") as failed:
+        run_sweep(pops, progress=False)
+    assert set(failed.value.results) == {("default", 2), ("default", 3)}
+
+
+def test_local_workers_keep_to_cores_of_their_own_when_there_are_enough(monkeypatch):
+    from hireps_torch.experiments.sweep import core_sets
+
+    for cores, workers, sets in [
+        ({1, 0}, 2, [{0}, {1}]),
+        ({0, 1, 2, 3, 4}, 2, [{0, 1}, {2, 3}]),
+        ({0, 1}, 1, []),  # one worker keeps every core
+        ({0, 1}, 3, []),  # too few to give each its own
+    ]:
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid, cores=cores: cores)
+        assert core_sets(workers) == sets
+
+
+@pytest.mark.slow
+def test_populations_in_two_workers_equal_populations_one_after_the_other(tmp_path):
+    """Two configurations' pendulum populations, each in a worker process held to a core of
+    its own, write the metrics they write one after the other in this process."""
+    configs = {"learned-2": {"n_options": 2, "episodes": 40}, "d10": {"steps_per_decision": 10}}
+    configs["d10"]["episodes"] = 40
+    metrics = {}
+    for workers in (1, 2):
+        runs = plan("pendulum", configs, [0, 1], tmp_path / f"w{workers}", members=2)
+        run_sweep(runs, workers=workers, progress=False)
+        metrics[workers] = [
+            (m.run_dir / "metrics.csv").read_text() for r in runs for m in r.members()
+        ]
+    assert metrics[1] == metrics[2]

@@ -7,10 +7,10 @@
 Each (configuration, seed) runs in ``OUT/<experiment>/<configuration>/seed<S>``, or, with
 ``--members M``, each configuration's seeds run as populations of at most M members
 (``train.py --seeds``) in ``OUT/<experiment>/<configuration>/seeds<A>-<B>``; finished runs
-are reused and interrupted ones resumed, and local workers keep to cores of their own. At the
-end: ``sweep.md`` (table), ``sweep.json`` (summaries) and ``sweep.png`` (mean +- std curves) of
-this command's runs, per seed (a later sweep into the same ``OUT`` rewrites them and keeps
-every run directory).
+are reused and interrupted ones resumed. Each local worker process starts once, keeps to cores
+of its own and takes runs one after the other. At the end: ``sweep.md`` (table), ``sweep.json``
+(summaries) and ``sweep.png`` (mean +- std curves) of this command's runs, per seed (a later
+sweep into the same ``OUT`` rewrites them and keeps every run directory).
 """
 
 from __future__ import annotations
@@ -415,40 +415,49 @@ def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Fail
     stop = ctx.RawValue("b", 0)
     queued = list(runs)
     free = core_sets(workers)
-    going: dict[Any, tuple[SweepRun, Any, set[int] | None]] = {}  # result pipe -> run, process
+    live: dict[Any, tuple[Any, set[int] | None]] = {}  # a worker's pipe -> its process, cores
+    idle: list[Any] = []  # the pipes of workers waiting for a run
+    going: dict[Any, SweepRun] = {}  # a worker's pipe -> its run
     try:
         while queued or going:
-            while queued and len(going) < workers:
-                run = queued.pop(0)
-                cores = free.pop() if free else None
-                reader, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(
-                    target=_in_worker, args=(run, send, stop, os.getpid(), cores), daemon=True
-                )
-                with workers_ignore_sigint():  # a Ctrl-C waits until the run can take it
-                    proc.start()
-                send.close()
-                going[reader] = (run, proc, cores)
+            while queued and (idle or len(live) < workers):
+                if not idle:  # a worker more: it takes runs until the sweep ends
+                    cores = free.pop() if free else None
+                    here, there = ctx.Pipe()
+                    proc = ctx.Process(
+                        target=_in_worker, args=(there, stop, os.getpid(), cores), daemon=True
+                    )
+                    with workers_ignore_sigint():  # a Ctrl-C waits until the run can take it
+                        proc.start()
+                    there.close()
+                    live[here] = (proc, cores)
+                    idle.append(here)
+                conn = idle.pop()
+                going[conn] = run = queued.pop(0)
+                conn.send(run)
             for ready in multiprocessing.connection.wait(list(going)):
-                run, proc, cores = going.pop(ready)
-                if cores is not None:
-                    free.append(cores)
+                run = going.pop(ready)
                 receive: Any = ready
                 try:
                     kind, value = receive.recv()
+                    idle.append(ready)
                 except EOFError:  # the process died without a word
+                    proc, cores = live.pop(ready)
                     proc.join()
+                    free.extend([cores] if cores is not None else [])
                     kind, value = "error", f"its worker process died (exit code {proc.exitcode})"
-                proc.join()
                 if kind == "ok":
                     done(run, value)
                 elif kind == "interrupted":
                     raise KeyboardInterrupt(value)
                 else:
                     failed(run, RuntimeError(value))
-    finally:  # an error or Ctrl-C: the runs going stop at their next iteration boundary
+    finally:  # the end, an error or Ctrl-C: the runs going stop at their next iteration boundary
         stop.value = 1
-        _stop_workers([proc for _, proc, _ in going.values()])
+        for conn in idle:
+            with contextlib.suppress(OSError):
+                conn.send(None)
+        _stop_workers([proc for proc, _ in live.values()])
 
 
 def core_sets(workers: int) -> list[set[int]]:
@@ -461,13 +470,12 @@ def core_sets(workers: int) -> list[set[int]]:
     return [set(cores[w * share : (w + 1) * share]) for w in range(workers)] if share else []
 
 
-def _in_worker(
-    run: SweepRun, send: Any, stop: Any, parent: int, cores: set[int] | None = None
-) -> None:
-    """A local worker process: one run on ``cores`` (None: every core), its outcome sent back
-    as (kind, value); ``stop.value`` (a shared byte) set, or the sweep's process ``parent``
-    gone (even by kill -9), asks for a stop at the next iteration boundary, as a first SIGINT
-    does. Held to its own cores, a population's members go side by side only on those."""
+def _in_worker(conn: Any, stop: Any, parent: int, cores: set[int] | None = None) -> None:
+    """A local worker process on ``cores`` (None: every core): runs from ``conn`` one after the
+    other, each one's outcome sent back as (kind, value), until None, the pipe's end or an
+    interrupted run. ``stop.value`` (a shared byte) set, or the sweep's process ``parent`` gone
+    (even by kill -9), asks for a stop at the next iteration boundary, as a first SIGINT does.
+    Held to its own cores, a population's members go side by side only on those."""
     import threading
     import time
 
@@ -484,15 +492,25 @@ def _in_worker(
     record_early_stops()
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one held since the start lands
     threading.Thread(target=watch, daemon=True).start()
-    try:
-        out: tuple[str, Any] = ("ok", _one_thread(run))
-    except KeyboardInterrupt as interrupted:
-        out = ("interrupted", str(interrupted))
-    except BaseException as exc:
-        out = ("error", f"{type(exc).__name__}: {exc}")
-    with contextlib.suppress(OSError):  # BrokenPipeError: the sweep is gone
-        send.send(out)
-        send.close()
+    kind = "ok"
+    while kind != "interrupted":
+        try:
+            run = conn.recv()
+        except (EOFError, OSError):  # the sweep is gone
+            return
+        if run is None:
+            return
+        try:
+            out: tuple[str, Any] = ("ok", _one_thread(run))
+        except KeyboardInterrupt as interrupted:
+            out = ("interrupted", str(interrupted))
+        except BaseException as exc:
+            out = ("error", f"{type(exc).__name__}: {exc}")
+        kind = out[0]
+        try:
+            conn.send(out)
+        except OSError:  # BrokenPipeError: the sweep is gone
+            return
 
 
 _STOP_SECONDS = 60.0  # a run going finishes its iteration within this, or is stopped at once

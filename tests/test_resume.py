@@ -791,17 +791,18 @@ def test_a_sweep_worker_stops_at_its_boundary_when_the_sweep_stops(tmp_path, mon
 
     monkeypatch.setattr(checkpoint, "EARLY", checkpoint.StopRequest())
     saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    stop, (reader, send) = multiprocessing.RawValue("b", 0), multiprocessing.Pipe(duplex=False)
+    stop, (here, there) = multiprocessing.RawValue("b", 0), multiprocessing.Pipe()
     stop.value = why == "stop"
     parent = os.getppid() if why == "stop" else -1  # -1: a parent that is gone
     options = {"episodes": 400000, "samples_per_iteration": 20}
-    run = sweep.SweepRun("bimodal", "default", 0, options, tmp_path / "seed0")
+    here.send(sweep.SweepRun("bimodal", "default", 0, options, tmp_path / "seed0"))
+    here.send(None)  # no second run
     try:
-        sweep._in_worker(run, send, stop, parent)  # it installs its own signal handlers
+        sweep._in_worker(there, stop, parent)  # it installs its own signal handlers
     finally:
         for sig, handler in saved.items():
             signal.signal(sig, handler)
-    kind, message = reader.recv()
+    kind, message = here.recv()
     assert kind == "interrupted"
     assert re.match(rf"the sweep's {why}: stopped after iteration \d+;", message), message
     assert (tmp_path / "seed0" / "checkpoint.pt").is_file()

@@ -88,8 +88,7 @@ class SweepConfig:
     workers: int = 1
     """Runs at the same time (CPUs of the local Ray instance with --backend ray)."""
     members: int = 1
-    """Seeds per run: above 1, each configuration's seeds run as populations of at most this
-    many members, in as few runs as that allows."""
+    """Seeds per run: above 1, each configuration's seeds as populations of at most this many."""
     ray_address: str | None = None
     """An existing Ray cluster (HOST:PORT, ray://HOST:PORT or auto) for --backend ray."""
     progress: bool = True

@@ -6,11 +6,11 @@
 
 Each (configuration, seed) runs in ``OUT/<experiment>/<configuration>/seed<S>``, or, with
 ``--members M``, each configuration's seeds run as populations of at most M members
-(``train.py --seeds``) in ``OUT/<experiment>/<configuration>/seeds<A>-<B>``; finished runs
-are reused and interrupted ones resumed. Each local worker process starts once, keeps to cores
-of its own and takes runs one after the other. At the end: ``sweep.md`` (table), ``sweep.json``
-(summaries) and ``sweep.png`` (mean +- std curves) of this command's runs, per seed (a later
-sweep into the same ``OUT`` rewrites them and keeps every run directory).
+(``train.py --seeds``), each in ``OUT/<experiment>/<configuration>/seeds0-9`` (its seeds);
+finished runs are reused and interrupted ones resumed. Each local worker process starts once,
+keeps to cores of its own and takes runs one after the other. At the end: ``sweep.md`` (table),
+``sweep.json`` (summaries) and ``sweep.png`` (mean +- std curves) of this command's runs, per
+seed (a later sweep into the same ``OUT`` rewrites them and keeps every run directory).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import hashlib
 import io
 import itertools
 import json
@@ -119,8 +120,26 @@ class SweepRun:
 
     def config(self, config_cls: type, **run_options: Any) -> Any:
         """The run's config: its options, seed(s) and ``run_options``."""
-        seeds = {"seeds": ",".join(map(str, self.seeds))} if self.seeds else {"seed": self.seed}
+        seeds = {"seeds": seeds_text(self.seeds)} if self.seeds else {"seed": self.seed}
         return config_cls(**self.options, **seeds, **run_options)
+
+
+def seeds_text(seeds: Sequence[int]) -> str:
+    """Seeds sorted, as ``--seeds`` ranges: (9, 0, 1, 2, 5) -> ``"0-2,5,9"``."""
+    ordered = sorted(seeds)
+    spans = [
+        [s for _, s in g] for _, g in itertools.groupby(enumerate(ordered), lambda p: p[1] - p[0])
+    ]
+    return ",".join(str(a[0]) if len(a) == 1 else f"{a[0]}-{a[-1]}" for a in spans)
+
+
+def _population_dir(seeds: Sequence[int]) -> str:
+    """``seeds<text>`` (:func:`seeds_text`), or for a long text its first and last seed and a
+    hash of it: one name per set of seeds."""
+    text = seeds_text(seeds)
+    if len(text) <= 64:
+        return f"seeds{text}"
+    return f"seeds{min(seeds)}-{max(seeds)}_{hashlib.sha1(text.encode()).hexdigest()[:12]}"
 
 
 def _config_class(experiment: str) -> type:
@@ -231,8 +250,9 @@ def plan(
     members: int = 1,
 ) -> list[SweepRun]:
     """Every (configuration, seed) as a :class:`SweepRun` in ``out/<experiment>/<name>/seed<S>``;
-    for ``members`` > 1 each configuration's seeds as populations of at most ``members`` (sizes
-    as equal as can be), in ``out/<experiment>/<name>/seeds<A>-<B>`` (first and last seed)."""
+    for ``members`` > 1 each configuration's seeds, in the order given, as populations of at
+    most ``members`` (sizes as equal as can be), each in ``out/<experiment>/<name>/seeds<...>``
+    named by its seeds (:func:`seeds_text`: ``seeds0-4``, ``seeds3,5-6``)."""
     _config_class(experiment)
     if not seeds:
         raise ValueError("a sweep needs at least one seed")
@@ -240,7 +260,7 @@ def plan(
         raise ValueError(f"members must be an integer >= 1, got {members!r}")
     n = -(-len(seeds) // members)  # runs per configuration
     cuts = [round(i * len(seeds) / n) for i in range(n + 1)]
-    groups = [tuple(int(s) for s in seeds[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    groups = [sorted(int(s) for s in seeds[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
     one = members == 1
     return [
         SweepRun(
@@ -248,8 +268,8 @@ def plan(
             name,
             g[0],
             dict(opts),
-            Path(out) / experiment / name / (f"seed{g[0]}" if one else f"seeds{g[0]}-{g[-1]}"),
-            () if one else g,
+            Path(out) / experiment / name / (f"seed{g[0]}" if one else _population_dir(g)),
+            () if one else tuple(g),
         )
         for name, opts in configurations.items()
         for g in groups
@@ -268,6 +288,8 @@ def run_one(run: SweepRun) -> dict[str, Any]:
     if (d / "config.json").is_file():
         check_same_options(run, cfg)
         if (d / "summary.json").is_file():
+            for m in run.members() if run.seeds else []:  # each member's own config too
+                check_same_options(m, m.config(config_cls, run_dir=m.run_dir, progress=False))
             return {**_finished_summary(run), "reused": True}
         # interrupted: continue from its checkpoint
         cfg = dataclasses.replace(
@@ -286,13 +308,18 @@ class DamagedSummary(ValueError):
     ``metrics.csv``."""
 
 
-def _finished_summary(run: SweepRun) -> dict[str, Any]:
+def _finished_summary(run: SweepRun, population: Path | None = None) -> dict[str, Any]:
     """A finished run's ``summary.json`` holding its metric (a population's: its members' do),
-    else a :class:`DamagedSummary`."""
+    else a :class:`DamagedSummary` (for a member of the ``population`` in that directory)."""
     for member in run.members() if run.seeds else []:
-        _finished_summary(member)
+        _finished_summary(member, Path(run.run_dir))
     path = Path(run.run_dir) / "summary.json"
     metric = METRICS[run.experiment][0]
+    redo = (
+        None
+        if population is None
+        else f"move {population / 'summary.json'} away: the population then writes it again"
+    )
     try:
         summary = json.loads(path.read_text())
         if not isinstance(summary, dict):
@@ -302,12 +329,11 @@ def _finished_summary(run: SweepRun) -> dict[str, Any]:
         if not run.seeds and summary[metric] is not None:  # None: NaN in summary.json
             float(summary[metric])
     except (OSError, UnicodeDecodeError, ValueError, TypeError) as exc:
-        raise DamagedSummary(f"{path} is damaged ({exc}); move it away to run it again") from None
+        again = redo or "move it away to run it again"
+        raise DamagedSummary(f"{path} is damaged ({exc}); {again}") from None
     if not run.seeds and not (path.parent / "metrics.csv").is_file():  # the curves read it
-        raise DamagedSummary(
-            f"{path.parent} finished but its metrics.csv is missing; restore it, or move the run "
-            "directory away to run it again"
-        )
+        again = redo or "restore it, or move the run directory away to run it again"
+        raise DamagedSummary(f"{path.parent} finished but its metrics.csv is missing; {again}")
     return summary
 
 
@@ -355,7 +381,7 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
 
 class SweepFailed(Exception):
     """Runs of a sweep that failed (the others ran): ``failures`` maps (configuration, the
-    run's folder: ``seed<S>`` or a population's ``seeds<A>-<B>``) to the error, ``results``
+    run's folder: ``seed<S>`` or a population's ``seeds0-9``) to the error, ``results``
     holds the summaries of the (configuration, seed) runs that ended."""
 
     def __init__(
@@ -432,8 +458,14 @@ def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Fail
                     live[here] = (proc, cores)
                     idle.append(here)
                 conn = idle.pop()
-                going[conn] = run = queued.pop(0)
-                conn.send(run)
+                try:
+                    conn.send(queued[0])
+                except OSError:  # it died waiting: the run goes to another
+                    proc, cores = live.pop(conn)
+                    proc.join()
+                    free.extend([cores] if cores is not None else [])
+                    continue
+                going[conn] = queued.pop(0)
             for ready in multiprocessing.connection.wait(list(going)):
                 run = going.pop(ready)
                 receive: Any = ready
@@ -592,7 +624,7 @@ def run_sweep(
         if run.seeds:  # a population: its members' own summaries
             reused = {"reused": True} if summary.get("reused") else {}
             try:
-                ends = [(m, {**_finished_summary(m), **reused}) for m in run.members()]
+                ends = [(m, {**_finished_summary(m, run.run_dir), **reused}) for m in run.members()]
             except DamagedSummary as exc:
                 failed(run, exc)
                 return
@@ -684,7 +716,8 @@ def summarize(
             ax.fill_between(x, mean - std, mean + std, alpha=0.2)
         table = "\n".join(lines)
         out.mkdir(parents=True, exist_ok=True)
-        as_json = json.dumps({f"{n}/seed{s}": dict(v) for (n, s), v in results.items()}, indent=1)
+        ordered = {f"{r.name}/seed{r.seed}": dict(results[(r.name, r.seed)]) for r in runs}
+        as_json = json.dumps(ordered, indent=1)  # in the order of ``runs``
         atomic_write(out / f"{stem}.json", lambda p: p.write_text(as_json))
         atomic_write(out / f"{stem}.md", lambda p: p.write_text(table + "\n"))
         ax.set_xlabel("episodes")
@@ -734,7 +767,8 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
                 "runs are reused and the others resume from their checkpoints"
             ) from None
         ended = [m for r in runs for m in r.members() if (m.name, m.seed) in results]
-        table = summarize(ended, results, out) if ended else ""
+        seconds = "s (population)" if cfg.members > 1 else "s/run"
+        table = summarize(ended, results, out, seconds=seconds) if ended else ""
     finally:
         lock.release()
     print(table)

@@ -19,6 +19,7 @@ from hireps_torch.experiments.sweep import (
     parse_seeds,
     plan,
     run_sweep,
+    seeds_text,
     summarize,
 )
 
@@ -572,7 +573,22 @@ def test_plan_runs_each_configurations_seeds_as_populations_of_at_most_members(t
     from hireps_torch.experiments.bimodal import BimodalConfig
 
     cfg = runs[1].config(BimodalConfig, progress=False)
-    assert (cfg.seeds, cfg.seed, cfg.episodes) == ("5,6,7", 0, 400)
+    assert (cfg.seeds, cfg.seed, cfg.episodes) == ("5-7", 0, 400)
+    mixed = plan("bimodal", {"a": {}}, [7, 3, 5, 0, 9], tmp_path, members=3)
+    assert [(r.seeds, r.seed, r.run_dir.name) for r in mixed] == [
+        ((3, 7), 3, "seeds3,7"),  # the order given splits, each population sorted
+        ((0, 5, 9), 0, "seeds0,5,9"),
+    ]
+    assert seeds_text([9, 0, 1, 2, 5, -3, -2]) == "-3--2,0-2,5,9"
+    assert parse_seeds(seeds_text([9, 0, 1, 2, 5, -3, -2])) == [-3, -2, 0, 1, 2, 5, 9]
+    many = [
+        plan("bimodal", {"a": {}}, list(range(0, k, 2)), tmp_path, members=99)[0] for k in (80, 82)
+    ]
+    names = [r.run_dir.name for r in many]  # long texts: first and last seed and a hash
+    assert names[0].startswith("seeds0-78_") and names[1].startswith("seeds0-80_")
+    assert len(set(names)) == 2 and all(len(n) < 40 for n in names)
+    other = plan("bimodal", {"a": {}}, list(range(0, 80, 2)) + [1], tmp_path, members=99)[0]
+    assert other.run_dir.name.startswith("seeds0-78_") and other.run_dir.name != names[0]
     one = plan("bimodal", configs, [3, 4], tmp_path, members=1)
     assert [(r.seed, r.seeds, r.run_dir.name) for r in one][:2] == [
         (3, (), "seed3"),
@@ -638,12 +654,36 @@ def test_a_population_whose_member_summary_is_damaged_fails_alone_named_by_its_f
     pops = plan("bimodal", {"default": {"episodes": 400}}, [0, 1, 2, 3], tmp_path, members=2)
     run_sweep(pops, progress=False)
     bad = pops[0].run_dir / "seed1" / "summary.json"
+    metrics = (bad.parent / "metrics.csv").read_bytes()
     bad.write_text("{}")
-    with pytest.raises(DamagedSummary, match=f"{bad} is damaged"):
+    advice = f"move {pops[0].run_dir / 'summary.json'} away: the population then writes it again"
+    with pytest.raises(DamagedSummary, match=f"{bad} is damaged .*; {advice}"):
         _finished_summary(pops[0])
     with pytest.raises(SweepFailed, match=r"default/seeds0-1: DamagedSummary: .*seed1") as failed:
         run_sweep(pops, progress=False)
     assert set(failed.value.results) == {("default", 2), ("default", 3)}
+    (pops[0].run_dir / "summary.json").rename(tmp_path / "away.json")  # as the error advises
+    again = run_sweep(pops, progress=False)
+    assert again[("default", 1)]["final_return"] == json.loads(bad.read_text())["final_return"]
+    assert (bad.parent / "metrics.csv").read_bytes() == metrics
+    (bad.parent / "metrics.csv").unlink()  # the same advice for a member's missing metrics
+    with pytest.raises(SweepFailed, match=f"metrics.csv is missing; {advice}"):
+        run_sweep(pops, progress=False)
+    (pops[0].run_dir / "summary.json").unlink()
+    run_sweep(pops, progress=False)
+    assert (bad.parent / "metrics.csv").read_bytes() == metrics
+
+
+def test_a_finished_population_whose_member_config_changed_is_refused_naming_it(tmp_path):
+    pops = plan("bimodal", {"default": {"episodes": 400}}, [0, 1], tmp_path, members=2)
+    run_sweep(pops, progress=False)
+    config = pops[0].run_dir / "seed1" / "config.json"
+    config.write_text(config.read_text().replace('"n_options": 10', '"n_options": 3'))
+    with pytest.raises(ValueError, match=r"seeds0-1/seed1 holds a run with other options .*n_opt"):
+        run_sweep(pops, progress=False)
+    config.unlink()
+    with pytest.raises(ValueError, match=r"seed1/config.json cannot be read"):
+        run_sweep(pops, progress=False)
 
 
 def test_local_workers_keep_to_cores_of_their_own_when_there_are_enough(monkeypatch):

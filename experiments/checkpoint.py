@@ -20,6 +20,7 @@ from typing import Any, Protocol
 import torch
 
 __all__ = [
+    "EARLIER_POPULATION",
     "RUN_ONLY_OPTIONS",
     "CheckpointState",
     "RunFinished",
@@ -29,6 +30,7 @@ __all__ = [
     "changed_options",
     "check_same_run",
     "checkpoint_dir",
+    "earlier_population",
     "load_checkpoint",
     "read_config",
     "run_config",
@@ -142,7 +144,8 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
     if ckpt.get("format") not in (2, FORMAT):
         raise ValueError(
             f"{path} was written by another version of this code (format "
-            f"{ckpt.get('format')!r}, expected {FORMAT}); it cannot be resumed exactly"
+            f"{ckpt.get('format')!r}, expected {FORMAT}): this version can neither resume nor "
+            "load it (nothing was changed)"
         )
     if missing := [k for k in CHECKPOINT_KEYS if k not in ckpt]:
         raise ValueError(f"{path} is not a complete checkpoint: it has no {missing}")
@@ -281,12 +284,27 @@ def _meaning(key: str, value: Any) -> Any:
     return value
 
 
+EARLIER_POPULATION = (
+    "a population that an earlier version of this code ran, which wrote no checkpoint: it "
+    "cannot be resumed; run it again with another --run-dir"
+)
+
+
+def earlier_population(run_dir: Path) -> str:
+    """A note for a directory without config.json that holds members of an earlier version's
+    population (``seed<s>/config.json``), else ``""``."""
+    if any(run_dir.glob("seed*/config.json")):
+        return f" Its seed<s>/ directories look like the members of {EARLIER_POPULATION}"
+    return ""
+
+
 def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
     """The config a run directory was started with (``config.json``), as a ``config_cls``,
     with ``run_dir`` set to where it is now and no ``resume``."""
     path = run_dir / "config.json"
     if not path.is_file():
-        raise ValueError(f"{run_dir}: no config.json there; is it a run directory?")
+        note = earlier_population(run_dir)
+        raise ValueError(f"{run_dir}: no config.json there; is it a run directory?{note}")
     data = read_config(run_dir)
     if str(data.get("experiment", experiment)).replace("-", "_") != experiment.replace("-", "_"):
         raise ValueError(

@@ -17,6 +17,7 @@ import torch
 from tqdm.auto import tqdm
 
 from hireps_torch.experiments.checkpoint import (
+    EARLIER_POPULATION,
     FORMAT,
     CheckpointState,
     RunFinished,
@@ -25,6 +26,7 @@ from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
     checkpoint_dir,
+    earlier_population,
     load_checkpoint,
     read_config,
     stop_on_signals,
@@ -82,7 +84,11 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         return None
     run_dir = Path(cfg.resume)
     if not (run_dir / "config.json").is_file():
-        raise ValueError(f"cannot resume {run_dir}: it holds no config.json (not a run directory)")
+        raise ValueError(
+            f"cannot resume {run_dir}: it holds no config.json (not a run directory)."
+            + earlier_population(run_dir)
+            + " (nothing was changed)"
+        )
     # a run still writing the directory is refused before its files are read (they may be
     # between two writes); the run's own writer takes the lock again for the whole run
     lock = DirectoryLock(run_dir)
@@ -129,11 +135,12 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         every = saved.get("checkpoint_every", 1)
         for d, n in logged.items():
             if ckpt is None and n > (every if isinstance(every, int) else 0):
+                earlier = seeds is None and run_dir.resolve().name == f"seed{saved.get('seed')}"
                 raise ValueError(
                     f"cannot resume {run_dir}: {d / 'metrics.csv'} holds {n} row(s) but there "
                     f"is no {run_dir / 'checkpoint.pt'} to continue them from; restore the "
                     "checkpoint, or move the directory away and start a new run (nothing was "
-                    "changed)"
+                    "changed)" + (f". If it is a member of {EARLIER_POPULATION}" if earlier else "")
                 )
         if ckpt is None and any(logged.values()):
             warnings.warn(

@@ -21,6 +21,7 @@ from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
     checkpoint_dir,
+    earlier_population,
     load_checkpoint,
     read_config,
     run_config,
@@ -87,7 +88,8 @@ def load_run(run_dir: str | Path) -> LoadedRun:
         raise TypeError(f"run_dir must be a path (str or Path), got {type(run_dir).__name__}")
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
-        raise ValueError(f"{run_dir} holds no config.json: it is not a run directory")
+        note = earlier_population(run_dir)
+        raise ValueError(f"{run_dir} holds no config.json: it is not a run directory.{note}")
     saved = read_config(run_dir)
     name = str(saved.get("experiment", "")).replace("_", "-")
     if name not in EXPERIMENTS:
@@ -111,8 +113,9 @@ def load_run(run_dir: str | Path) -> LoadedRun:
             if not rows
             else f"{root} holds no checkpoint.pt but {rows} metrics row(s): the run is writing "
             "its first checkpoint (load it again in a moment), a population member's policy is "
-            "in its population's checkpoint (load it inside the population's directory), or the "
-            "checkpoint was moved away"
+            "in its population's checkpoint (load it inside the population's directory), the "
+            "checkpoint was moved away, or it is a member of a population that an earlier version "
+            "of this code ran, which wrote no checkpoint"
         )
     check_same_run(root, ckpt, saved if member is None else read_config(root))
     state = ckpt["algorithm"]

@@ -19,23 +19,15 @@ def run(*argv):
     return train.main([*argv, "--no-progress"])
 
 
-def test_bimodal_population_members_equal_their_ordinary_runs(tmp_path):
+def test_a_bimodal_population_writes_its_members_and_its_table(tmp_path):
     short = ["--episodes", "600", "--samples-per-iteration", "200"]
     summary = run("bimodal", *short, "--seeds", "3,5,8", "--run-dir", str(tmp_path / "pop"))
     assert summary["seeds"] == [3, 5, 8] and summary["metric"] == "final_return"
     for name in ("population.md", "population.json", "population.png"):
         assert (tmp_path / "pop" / name).is_file(), name
-    alone = run("bimodal", *short, "--seed", "5", "--run-dir", str(tmp_path / "alone"))
-    member = tmp_path / "pop" / "seed5"
-    config = json.loads((member / "config.json").read_text())
-    assert config["seed"] == 5 and "seeds" not in config
-    mine, theirs = rows(member / "metrics.csv"), rows(tmp_path / "alone" / "metrics.csv")
-    assert len(mine) == len(theirs) == 3
-    for a, b in zip(mine, theirs, strict=True):
-        for key in ("eval_return", "eta", "kl", "mean_return", "n_active_options"):
-            assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-9, abs=1e-12), key
-    member_summary = json.loads((member / "summary.json").read_text())
-    assert member_summary["final_return"] == pytest.approx(alone["final_return"], rel=1e-9)
+    for seed in (3, 5, 8):
+        config = json.loads((tmp_path / "pop" / f"seed{seed}" / "config.json").read_text())
+        assert config["seed"] == seed and "seeds" not in config
     table = (tmp_path / "pop" / "population.md").read_text()
     assert "3: " in table and "8: " in table
 
@@ -128,6 +120,7 @@ def test_bad_population_options_name_the_value(tmp_path, argv, error, match):
 
 
 SHORT = {
+    "bimodal": ["--episodes", "600", "--samples-per-iteration", "200"],
     "pendulum": ["--episodes", "60", "--episode-seconds", "2", "--eval-rollouts", "4"],
     # 246 decisions per iteration: the members' samples do not fill whole cache lines
     "pendulum-odd": [
@@ -142,6 +135,22 @@ SHORT = {
     ],
     "ball-on-beam": ["--episodes", "8", "--episodes-per-iteration", "2", "--eval-episodes", "2"],
 }
+
+
+def assert_close_tree(a, b, where="summary"):
+    """JSON values a and b equal, their numbers to 1e-6 relative."""
+    if isinstance(b, dict):
+        assert isinstance(a, dict) and a.keys() == b.keys(), where
+        for key in b:
+            assert_close_tree(a[key], b[key], f"{where}[{key!r}]")
+    elif isinstance(b, list):
+        assert isinstance(a, list) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert_close_tree(x, y, f"{where}[{i}]")
+    elif isinstance(b, float) and not isinstance(a, bool):
+        assert a == pytest.approx(b, rel=1e-6, abs=1e-9, nan_ok=True), where
+    else:
+        assert a == b, where
 
 
 def policy_tensors(checkpoint, member):
@@ -182,8 +191,8 @@ def test_a_member_of_a_population_equals_its_ordinary_run(tmp_path, case):
             torch.testing.assert_close(value, single[key], rtol=1e-8, atol=1e-12)
         summary = json.loads((member / "summary.json").read_text())
         expected = json.loads((alone / "summary.json").read_text())
-        for key in ("seed", "iterations", "n_active_options"):
-            assert summary[key] == expected[key], key
+        del summary["wall_seconds"], expected["wall_seconds"]
+        assert_close_tree(summary, expected)
 
 
 def test_a_pendulum_member_does_not_depend_on_its_companions(tmp_path):

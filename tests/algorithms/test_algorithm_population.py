@@ -1,5 +1,5 @@
 """Population runs: S seeds of one algorithm in one object, each member learning what it learns
-alone (first updates equal to 1e-8, samples independent of the companions)."""
+alone (three updates equal to 1e-8, samples independent of the companions)."""
 
 import copy
 import warnings
@@ -17,6 +17,7 @@ from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.features import FourierFeatures
 
 SEEDS = [3, 5, 11]
+UPDATES = 3
 
 
 def objective(theta, c):
@@ -47,7 +48,7 @@ def test_episodic_population_equals_separate_runs(n_options, kappa_rel):
     alone = [EpisodicHiREPS.create(2, seed=s, **kwargs) for s in SEEDS]
     assert pop.population == 3 and pop.policy.population == 3
     assert_members_equal(pop.policy, alone, 0.0)  # the same initial policies
-    for it in range(2):
+    for it in range(UPDATES):
         c = contexts(it)
         theta = pop.ask(c)
         report = pop.tell(c, theta, objective(theta, c))
@@ -73,6 +74,10 @@ def test_a_member_learns_the_same_whatever_its_companions():
         torch.testing.assert_close(t1[0], t2[0], rtol=0, atol=1e-10)
         first.tell(c.expand(2, -1, -1), t1, objective(t1, c))
         second.tell(c.expand(3, -1, -1), t2, objective(t2, c))
+    theirs = second.policy.state_dict()
+    for key, value in first.policy.state_dict().items():
+        if value.dim() and value.shape[0] == 2:  # the members' own tensors
+            torch.testing.assert_close(value[0], theirs[key][0], rtol=0, atol=1e-10, msg=key)
 
 
 def test_copies_of_one_problem_get_identical_updates():
@@ -111,24 +116,28 @@ def test_infinite_horizon_population_equals_separate_runs():
     alone = [InfiniteHorizonHiREPS.create(2, 1, seed=s, **kw) for s in SEEDS]
     g = torch.Generator().manual_seed(1)
     states = torch.rand(3, 60, 2, generator=g, dtype=torch.float64) * 2 - 1
-    actions = pop.sample(states)
-    nxt = (states + 0.1 * torch.cat([actions, -actions], -1)).clamp(-1, 1)
-    rewards = -(nxt**2).sum(-1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the same warnings alone and together
-        report = pop.learn(
-            Experience(states[:, :, None], actions[:, :, None], rewards[..., None], nxt[:, :, None])
-        )
-        for s, algo in enumerate(alone):
-            own = algo.sample(states[s])
-            torch.testing.assert_close(actions[s], own, rtol=0, atol=1e-12)
-            mine = algo.update(states[s], own, rewards[s], nxt[s])
-            assert report["eta"][s] == pytest.approx(mine["eta"], rel=1e-8)
-            assert report["kl"][s] == pytest.approx(mine["kl"], rel=1e-8, abs=1e-12)
-            torch.testing.assert_close(
-                pop.value_weights[s], algo.value_weights, rtol=1e-8, atol=1e-8
+    for _ in range(UPDATES):
+        actions = pop.sample(states)
+        nxt = (states + 0.1 * torch.cat([actions, -actions], -1)).clamp(-1, 1)
+        rewards = -(nxt**2).sum(-1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the same warnings alone and together
+            report = pop.learn(
+                Experience(
+                    states[:, :, None], actions[:, :, None], rewards[..., None], nxt[:, :, None]
+                )
             )
-    assert_members_equal(pop.policy, alone, 1e-8)
+            for s, algo in enumerate(alone):
+                own = algo.sample(states[s])
+                torch.testing.assert_close(actions[s], own, rtol=0, atol=1e-12)
+                mine = algo.update(states[s], own, rewards[s], nxt[s])
+                assert report["eta"][s] == pytest.approx(mine["eta"], rel=1e-8)
+                assert report["kl"][s] == pytest.approx(mine["kl"], rel=1e-8, abs=1e-12)
+                torch.testing.assert_close(
+                    pop.value_weights[s], algo.value_weights, rtol=1e-8, atol=1e-8
+                )
+        assert_members_equal(pop.policy, alone, 1e-8)
+        states = nxt
     assert pop.value(states).shape == (3, 60)
 
 
@@ -223,7 +232,7 @@ def test_time_indexed_population_equals_separate_runs(kappa_rel):
     pop = TimeIndexedHiREPS.create(3, 2, 1, seed=SEEDS, **kw)
     alone = [TimeIndexedHiREPS.create(3, 2, 1, seed=s, **kw) for s in SEEDS]
     g = torch.Generator().manual_seed(0)
-    for it in range(2):
+    for it in range(UPDATES):
         states = torch.zeros(3, 40, 3, 1, dtype=torch.float64)
         params = torch.zeros(3, 40, 3, 2, dtype=torch.float64)
         states[:, :, 0] = torch.randn(3, 40, 1, generator=g, dtype=torch.float64)

@@ -241,6 +241,7 @@ def test_algorithms_on_cuda_equal_the_cpu(population):
 
 
 @cuda
+@pytest.mark.parametrize("members", [["--seed", "3"], ["--seeds", "0-1"]])
 @pytest.mark.parametrize(
     "argv",
     [
@@ -257,33 +258,16 @@ def test_algorithms_on_cuda_equal_the_cpu(population):
         ["bimodal", "--episodes", "400", "--samples-per-iteration", "200"],
     ],
 )
-def test_population_runs_on_cuda_match_the_cpu(tmp_path, argv):
+def test_runs_on_cuda_match_the_cpu(tmp_path, argv, members):
+    """One seed or a population: each run's first update on the GPU as on the CPU."""
     for device in ("cpu", "cuda"):
         train.main(
-            [
-                *argv,
-                "--seeds",
-                "0-1",
-                "--device",
-                device,
-                "--no-progress",
-                "--run-dir",
-                str(tmp_path / device),
-            ]
-        )
-    for s in (0, 1):
-        assert_first_updates_agree(tmp_path / "cpu" / f"seed{s}", tmp_path / "cuda" / f"seed{s}")
-
-
-@cuda
-def test_an_ordinary_run_on_cuda_matches_the_cpu(tmp_path):
-    argv = ["pendulum", "--seed", "3", "--episodes", "40", "--episode-seconds", "0.5"]
-    for device in ("cpu", "cuda"):
-        train.main(
-            [*argv, "--eval-rollouts", "4", "--device", device, "--no-progress"]
+            [*argv, *members, "--device", device, "--no-progress"]
             + ["--run-dir", str(tmp_path / device)]
         )
-    assert_first_updates_agree(tmp_path / "cpu", tmp_path / "cuda")
+    dirs = ["."] if members[0] == "--seed" else ["seed0", "seed1"]
+    for d in dirs:
+        assert_first_updates_agree(tmp_path / "cpu" / d, tmp_path / "cuda" / d)
 
 
 def assert_first_updates_agree(cpu_run, gpu_run):

@@ -52,10 +52,10 @@ from benchmarks._common import (  # noqa: E402
     start_benchmark,
     write_results,
 )
-from hireps_torch.algorithms import TimeIndexedHiREPS  # noqa: E402
-from hireps_torch.envs.hockey import ENV_ID, demo_action  # noqa: E402
+from hireps_torch.envs.hockey import ENV_ID  # noqa: E402
 from hireps_torch.experiments.hockey import HockeySequentialConfig  # noqa: E402
 from hireps_torch.experiments.rundir import atomic_write  # noqa: E402
+from hireps_torch.experiments.saved import LoadedRun, load_run  # noqa: E402
 from hireps_torch.experiments.sweep import SweepRun, plan, run_sweep  # noqa: E402
 
 
@@ -112,18 +112,11 @@ def plot_curves(
     plt.close(fig)
 
 
-def load_sequential(run_dir: Path) -> tuple[Any, Any]:
-    """A finished sequential run's config and algorithm, built as the run built it."""
-    from hireps_torch.experiments.checkpoint import saved_config
-    from hireps_torch.experiments.hockey import _make_algorithm, hockey_params
-
-    cfg = saved_config(HockeySequentialConfig, "hockey-sequential", run_dir)
-    params = hockey_params(cfg)
-    demo = torch.as_tensor(demo_action(params), dtype=torch.float64)
-    algo = _make_algorithm(cfg, params.n_shots, demo, params)
-    assert isinstance(algo, TimeIndexedHiREPS)
-    algo.load_state_dict(torch.load(run_dir / "checkpoint.pt", weights_only=True)["algorithm"])
-    return cfg, algo
+def load_sequential(run_dir: Path) -> LoadedRun:
+    """A finished sequential run (its config, and its algorithm: a population of one)."""
+    run = load_run(run_dir)
+    assert run.experiment == "hockey-sequential", run.experiment
+    return run
 
 
 def describe_strategy(run_dir: Path, n_episodes: int = 10) -> list[list[float]]:
@@ -133,10 +126,12 @@ def describe_strategy(run_dir: Path, n_episodes: int = 10) -> list[list[float]]:
     from hireps_torch.experiments.workers import play_episodes
     from hireps_torch.rollout import episodes, time_indexed_module
 
-    cfg, algo = load_sequential(run_dir)
+    run = load_sequential(run_dir)
+    cfg = run.config
     env = _make_env(ENV_ID, True, hockey_params(cfg))
     try:
-        actor = time_indexed_module(list(algo.policies), deterministic=True)
+        policies = [p.member(0) for p in run.algorithm.policies]
+        actor = time_indexed_module(policies, deterministic=True)
         first = 2 * 10**9  # starts that neither training nor the final evaluation used
         batch = play_episodes(env, actor, cfg.seed, range(first, first + n_episodes), 3)
     finally:
@@ -156,12 +151,13 @@ def record_episode(run_dir: Path, out: Path, seed: int = 0) -> dict[str, Any]:
     from hireps_torch.envs.hockey import RobotHockeyEnv
     from hireps_torch.experiments.hockey import hockey_params
 
-    cfg, algo = load_sequential(run_dir)  # the run's policy, and its task below
+    run = load_sequential(run_dir)  # the run's policy, and its task below
+    cfg = run.config
     env = RobotHockeyEnv(hockey_params(cfg), render_mode="rgb_array", frame_every=12)
     obs, _ = env.reset(seed=seed)
     frames, strip, total, zone = [env.render()], [env.render()], 0.0, 0
     for k in range(env.params.n_shots):
-        action = algo.act(k, torch.as_tensor(obs[None], dtype=torch.float64))[0]
+        action = run.mean_action(torch.as_tensor(obs[None], dtype=torch.float64), k)[0]
         obs, r, _, _, info = env.step(action.numpy())
         total += r
         zone = info["zone"]

@@ -145,8 +145,8 @@ def _exploration_std(cfg: HockeyConfig, repeats: int, demo: torch.Tensor) -> tor
 
 
 def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params: Any) -> Algorithm:
-    """Time-indexed (14 per shot) or episodic (3 x 14) HiREPS, starting at the demo shot; with
-    ``--seeds``, a population whose member s is the algorithm of ``--seed s``."""
+    """Time-indexed (14 per shot) or episodic (3 x 14) HiREPS, starting at the demo shot: a
+    population whose member s is the algorithm of ``--seed s`` (one member for ``--seed``)."""
     sequential = isinstance(cfg, HockeySequentialConfig)
     std = _exploration_std(cfg, 1 if sequential else n_shots, demo)
     common: dict[str, Any] = dict(
@@ -157,7 +157,7 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params:
         min_variance=variance_floor(cfg, std, 0, 1),
         covariance_prior=cfg.covariance_prior,
         mean_prior=cfg.mean_prior,
-        seed=cfg.seed if cfg.seeds is None else member_seeds(cfg),
+        seed=member_seeds(cfg),
     )
     if cfg.option_features == "aim":
         from hireps_torch.envs.hockey.aim import AimFeatures
@@ -285,15 +285,9 @@ def _update(
             for policy in algo.policies:
                 for option in policy.sub_policies:
                     option.min_variance = low.to(option.min_variance)
-        s, a, r, _ = (
-            x[0] if algo.population is None else torch.stack(x) for x in zip(*parts, strict=True)
-        )
+        s, a, r, _ = (torch.stack(x) for x in zip(*parts, strict=True))
         diag = algo.learn(Experience(states=s, actions=a, rewards=r))
-        mine = (
-            [diag]
-            if algo.population is None
-            else [{key: value[m] for key, value in diag.items()} for m in range(len(parts))]
-        )
+        mine = [{key: value[m] for key, value in diag.items()} for m in range(len(parts))]
         rows = []
         for (_, _, rewards, final), d in zip(parts, mine, strict=True):
             scalars = {k: v for k, v in d.items() if not isinstance(v, (list, tuple))}
@@ -384,9 +378,7 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
     B = cfg.episodes_per_iteration
 
     def members() -> list[list[Any]]:
-        """Each member's policies (copies in a population)."""
-        if algo.population is None:
-            return [list(algo.policies)]
+        """Each member's policies (copies)."""
         return [[p.member(m) for p in algo.policies] for m in range(len(seeds))]
 
     def actor(policies: list[Any]) -> Any:

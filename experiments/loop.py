@@ -16,6 +16,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from hireps_torch.checks import NO_MEMBER_DIMENSION
 from hireps_torch.experiments.checkpoint import (
     EARLIER_POPULATION,
     FORMAT,
@@ -250,7 +251,15 @@ class Run:
                     f"{root / 'checkpoint.pt'} holds {len(ckpt['rows'])} member(s), "
                     f"this run {len(self.seeds)}; nothing was changed"
                 )
-            state.load_state_dict(ckpt)
+            try:
+                state.load_state_dict(ckpt)
+            except ValueError as exc:
+                earlier = NO_MEMBER_DIMENSION in str(exc)  # an ordinary hockey run's, before
+                raise ValueError(
+                    f"cannot resume {root}: {exc}"
+                    + ("; an earlier version of this code wrote it" if earlier else "")
+                    + "; nothing was changed"
+                ) from None
             self.start_iteration = int(ckpt["iteration"])
             threads = ckpt.get("threads", self.threads)  # format 2: not recorded
             if threads != self.threads:

@@ -74,8 +74,6 @@ class LoadedRun:
                     f"states must have shape (N, {C}) with N >= 1, got {tuple(x.shape)}"
                 )
             as_finite_f64("states", x)  # named at the user's (N, C), before a leading 1
-        if self.algorithm.population is None:  # hockey: one ordinary algorithm
-            return act(x, step)
         return act(x[None], step)[0]
 
 

@@ -14,6 +14,7 @@ from torch import Tensor
 
 __all__ = [
     "FIX_SAMPLES",
+    "NO_MEMBER_DIMENSION",
     "as_checked",
     "as_f64",
     "as_finite_f64",
@@ -314,6 +315,9 @@ def check_prune_threshold(value: float, name: str = "prune_threshold") -> float:
     return threshold
 
 
+NO_MEMBER_DIMENSION = "it holds one run without a member dimension"
+
+
 def check_state_dict(
     what: str, expected: Mapping[str, Tensor], state: object, strict: bool = True
 ) -> None:
@@ -326,15 +330,18 @@ def check_state_dict(
             raise TypeError(f"{what}: state entry {key!r} must be a tensor, got {type(value)}")
         if key in expected and value.is_meta:
             raise ValueError(f"{what}: state entry {key!r} is a meta tensor (no values)")
-    wrong = [
-        f"{key}: saved {tuple(state[key].shape)}, expected {tuple(ref.shape)}"
-        for key, ref in expected.items()
-        if key in state and state[key].shape != ref.shape
-    ]
+    wrong = [key for key, ref in expected.items() if key in state and state[key].shape != ref.shape]
     if wrong:
+        if all(expected[k].shape == (1, *state[k].shape) for k in wrong):
+            why = f"{NO_MEMBER_DIMENSION}, where this is a population of one"
+        else:
+            why = "another population size, number of options or dimension?"
+        shapes = [
+            f"{k}: saved {tuple(state[k].shape)}, expected {tuple(expected[k].shape)}"
+            for k in wrong
+        ]
         raise ValueError(
-            f"{what}: the checkpoint was made for other shapes (another population size, "
-            f"number of options or dimension?): {'; '.join(wrong)}"
+            f"{what}: the checkpoint was made for other shapes ({why}): {'; '.join(shapes)}"
         )
     missing = [k for k in expected if k not in state]
     unexpected = [k for k in state if k not in expected]

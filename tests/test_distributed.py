@@ -62,6 +62,11 @@ def _assert_ray_gone() -> None:
     assert _ray_processes() == []
 
 
+def members(algo):
+    """A one-member hockey algorithm's policies as one run's (the actor plays those)."""
+    return [p.member(0) for p in algo.policies]
+
+
 def _actor_and_env() -> tuple[object, object]:
     from hireps_torch.envs.hockey import ENV_ID, HockeyParams, demo_action
     from hireps_torch.rollout import time_indexed_module
@@ -69,7 +74,7 @@ def _actor_and_env() -> tuple[object, object]:
     cfg = hockey.HockeySequentialConfig(n_options=2, episodes=4, episodes_per_iteration=2)
     demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
     algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
-    return time_indexed_module(list(algo.policies)), hockey._make_env(ENV_ID, True)
+    return time_indexed_module(members(algo)), hockey._make_env(ENV_ID, True)
 
 
 def test_episode_seeds_are_per_episode_and_repeat():
@@ -106,10 +111,11 @@ HISTORY_SCRIPT = textwrap.dedent(
     demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
     torch.manual_seed(0)
     algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
-    actor = time_indexed_module(list(algo.policies))
+    actor = time_indexed_module([p.member(0) for p in algo.policies])
     env = hockey._make_env(ENV_ID, True)
     s, a, r, _ = episodes(play_episodes(env, actor, 0, range(12), 3), 3)
-    algo.learn(Experience(states=s, actions=a, rewards=r))  # a policy that hits the pucks
+    algo.learn(Experience(states=s[None], actions=a[None], rewards=r[None]))  # hits the pucks
+    actor = time_indexed_module([p.member(0) for p in algo.policies])
     first = play_episodes(env, actor, 0, range(12, 18), 3)
     again = play_episodes(env, actor, 0, range(12, 18), 3)
     later = play_episodes(env, actor, 0, [15, 16, 17], 3)
@@ -325,7 +331,8 @@ KILL_SCRIPT = textwrap.dedent(
     if __name__ == "__main__":
         cfg = hockey.HockeySequentialConfig(n_options=2)
         demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
-        policies = list(hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg)).policies)
+        algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
+        policies = [p.member(0) for p in algo.policies]
         dying = TensorDictModule(DieOnce(policies), ["observation", "step_count"],
                                  ["action", "option"])
         pool = make_pool(make_env, workers=2, backend=sys.argv[1])
@@ -436,7 +443,7 @@ THREADS_SCRIPT = textwrap.dedent(
         demo = torch.as_tensor(demo_action(HockeyParams()), dtype=torch.float64)
         torch.manual_seed(0)
         algo = hockey._make_algorithm(cfg, 3, demo, hockey.hockey_params(cfg))
-        actor = time_indexed_module(list(algo.policies))
+        actor = time_indexed_module([p.member(0) for p in algo.policies])
         env = hockey._make_env(ENV_ID, True)
         played = {}
         for threads in (1, 2, 4):

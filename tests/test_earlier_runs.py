@@ -65,3 +65,14 @@ def test_load_run_of_an_earlier_versions_run_is_refused_saying_why(earlier, run,
     with pytest.raises(ValueError, match=why):
         load_run(earlier / run)
     assert files(earlier) == before
+
+
+def test_resume_of_an_earlier_versions_hockey_run_is_refused_saying_why(earlier):
+    """An ordinary hockey run of dab85ff held its policies without a member dimension."""
+    pytest.importorskip("pybullet")
+    before = files(earlier)
+    with pytest.raises(ValueError, match="an earlier version of this code wrote it; nothing was"):
+        main(
+            ["hockey-sequential", "--resume", str(earlier / "hockey_interrupted"), "--no-progress"]
+        )
+    assert files(earlier) == before

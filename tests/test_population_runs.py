@@ -243,12 +243,10 @@ HOCKEY = ["--episodes", "6", "--episodes-per-iteration", "6", "--final-eval-epis
     "name", ["hockey-sequential", pytest.param("hockey-fixed-start", marks=pytest.mark.slow)]
 )
 @pytest.mark.filterwarnings("ignore:MKL started")  # both runs in this process: the same mode
-def test_a_hockey_population_member_learns_its_ordinary_runs_update(tmp_path, name):
+def test_a_hockey_population_member_is_its_ordinary_run(tmp_path, name):
     """Each member of a hockey population plays the episodes of its own ``--seed`` run and
-    learns its update, to round-off (an ordinary hockey run holds its policies without a member
-    dimension: its 2-D products round otherwise than a member's), and loads as that run does.
-    (Later episodes can be played with policies that differ in the last bits, which the
-    pybullet contacts amplify: 2e-4 in the average reward of the next iteration, measured.)"""
+    learns its update to the bit (an ordinary hockey run is a population of one), and loads as
+    that run does."""
     pytest.importorskip("pybullet")
     from hireps_torch import load_run
 
@@ -258,20 +256,7 @@ def test_a_hockey_population_member_learns_its_ordinary_runs_update(tmp_path, na
     for seed in (3, 5):
         alone, member = tmp_path / f"alone{seed}", tmp_path / "pop" / f"seed{seed}"
         run(name, *HOCKEY, "--seed", str(seed), "--run-dir", str(alone))
-        (a,), (b,) = rows(member / "metrics.csv"), rows(alone / "metrics.csv")
-        assert a.keys() == b.keys()
-        for key in ("average_reward", "zone3_share", "zone_reward", "final_distance"):
-            assert a[key] == b[key], (seed, key)  # the same episodes
-        for key in a:
-            try:
-                x, y = float(a[key]), float(b[key])
-            except ValueError:
-                assert a[key] == b[key], (seed, key)
-                continue
-            if key == "dual_iterations":  # a stop can move (18 against 22 measured)
-                assert abs(x - y) <= 6, (seed, key, x, y)
-                continue
-            assert x == pytest.approx(y, rel=1e-6, abs=1e-9, nan_ok=True), (seed, key)
+        assert (member / "metrics.csv").read_bytes() == (alone / "metrics.csv").read_bytes()
         ours, theirs = (json.loads((d / "summary.json").read_text()) for d in (member, alone))
         for key in ("wall_seconds", "seconds_per_shot"):
             ours.pop(key), theirs.pop(key)
@@ -279,12 +264,10 @@ def test_a_hockey_population_member_learns_its_ordinary_runs_update(tmp_path, na
         a, b = load_run(member), load_run(alone)
         assert a.iteration == b.iteration == 1
         for step in range(len(a.algorithm.policies)):
-            torch.testing.assert_close(
-                a.mean_action(states, step), b.mean_action(states, step), rtol=1e-6, atol=1e-9
-            )
+            assert torch.equal(a.mean_action(states, step), b.mean_action(states, step))
         for p, q in zip(a.algorithm.policies, b.algorithm.policies, strict=True):
             for (key, x), y in zip(p.state_dict().items(), q.state_dict().values(), strict=True):
-                torch.testing.assert_close(x, y, rtol=1e-6, atol=1e-9, msg=key)
+                assert torch.equal(x, y), key
 
 
 def test_a_populations_warnings_name_each_member_by_its_seed(tmp_path):

@@ -147,6 +147,7 @@ def test_aim_slopes_option_start_keeps_the_means_at_the_start_mean(demo, variant
     )
     aimed = hockey._make_algorithm(Config(seed=3, option_features="position"), 3, demo, params)
     for a, b in zip(plain.policies, aimed.policies, strict=True):
+        a, b = a.member(0), b.member(0)  # one member: --seed 3
         for o_plain, o_aim in zip(a.sub_policies, b.sub_policies, strict=True):
             torch.testing.assert_close(o_aim.weight, W.repeat(a.action_dim // 14, 1))
             torch.testing.assert_close(o_aim.mean(p0), o_plain.mean(p0), rtol=0, atol=1e-12)
@@ -184,6 +185,7 @@ def test_options_on_aim_features_turn_by_the_angle_at_any_distance(demo):
         p = torch.tensor([[x, 0.1]], dtype=torch.float64)
         phi = aim_angle(p[0])
         for a, b in zip(algo.policies, plain.policies, strict=True):
+            a, b = a.member(0), b.member(0)  # one member: --seed 2
             for o_aim, o_plain in zip(a.sub_policies, b.sub_policies, strict=True):
                 expected = o_plain.mean(p)[0] + d * phi  # plain: the same bias, no slopes
                 aimed = o_aim.mean(a.policy_features(p))[0]

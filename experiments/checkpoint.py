@@ -294,7 +294,10 @@ def earlier_population(run_dir: Path) -> str:
     """A note for a directory without config.json that holds members of an earlier version's
     population (``seed<s>/config.json``), else ``""``."""
     if any(run_dir.glob("seed*/config.json")):
-        return f" Its seed<s>/ directories look like the members of {EARLIER_POPULATION}"
+        return (
+            f" If its seed<s>/ directories are the members of {EARLIER_POPULATION}; if they are "
+            "a sweep's runs, run the sweep again"
+        )
     return ""
 
 

@@ -28,8 +28,8 @@ def files(root):
 @pytest.mark.parametrize(
     "run, why",
     [
-        ("population_interrupted", "seed<s>/ directories look like the members of a population"),
-        ("population_finished", "seed<s>/ directories look like the members of a population"),
+        ("population_interrupted", "If its seed<s>/ directories are the members of a population"),
+        ("population_finished", "If its seed<s>/ directories are the members of a population"),
         ("population_interrupted/seed1", "If it is a member of a population"),
         ("run_interrupted", r"another version of this code \(format 1, expected 3\)"),
     ],

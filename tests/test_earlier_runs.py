@@ -76,3 +76,11 @@ def test_resume_of_an_earlier_versions_hockey_run_is_refused_saying_why(earlier)
             ["hockey-sequential", "--resume", str(earlier / "hockey_interrupted"), "--no-progress"]
         )
     assert files(earlier) == before
+
+
+def test_load_run_of_an_earlier_versions_hockey_run_names_the_missing_member_dimension(earlier):
+    pytest.importorskip("pybullet")
+    before = files(earlier)
+    with pytest.raises(ValueError, match="it holds one run without a member dimension"):
+        load_run(earlier / "hockey_interrupted")
+    assert files(earlier) == before

@@ -21,6 +21,7 @@ import torch
 
 __all__ = [
     "EARLIER_POPULATION",
+    "EARLIER_RUN",
     "RUN_ONLY_OPTIONS",
     "CheckpointState",
     "RunFinished",
@@ -30,7 +31,7 @@ __all__ = [
     "changed_options",
     "check_same_run",
     "checkpoint_dir",
-    "earlier_population",
+    "no_config_note",
     "load_checkpoint",
     "read_config",
     "run_config",
@@ -284,20 +285,25 @@ def _meaning(key: str, value: Any) -> Any:
     return value
 
 
+EARLIER_RUN = "it cannot be resumed; run it again with another --run-dir"
 EARLIER_POPULATION = (
-    "a population that an earlier version of this code ran, which wrote no checkpoint: it "
-    "cannot be resumed; run it again with another --run-dir"
+    "a population that an earlier version of this code ran, which wrote no checkpoint: "
+    + EARLIER_RUN
 )
 
 
-def earlier_population(run_dir: Path) -> str:
-    """A note for a directory without config.json that holds members of an earlier version's
-    population (``seed<s>/config.json``), else ``""``."""
+def no_config_note(run_dir: Path) -> str:
+    """Why ``run_dir`` has no config.json, where that can be told: it does not exist, it is not
+    a directory, it holds runs of their own (``seed<s>/`` with checkpoints: a sweep's?) or an
+    earlier version's population (``seed<s>/`` without); else ``""``."""
+    if not run_dir.exists():
+        return " It does not exist."
+    if not run_dir.is_dir():
+        return " It is not a directory."
+    if any(run_dir.glob("seed*/checkpoint.pt")):
+        return " Its seed<s>/ directories are runs of their own (a sweep's?): resume each of them."
     if any(run_dir.glob("seed*/config.json")):
-        return (
-            f" If its seed<s>/ directories are the members of {EARLIER_POPULATION}; if they are "
-            "a sweep's runs, run the sweep again"
-        )
+        return f" If its seed<s>/ directories are the members of {EARLIER_POPULATION}."
     return ""
 
 
@@ -306,7 +312,7 @@ def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
     with ``run_dir`` set to where it is now and no ``resume``."""
     path = run_dir / "config.json"
     if not path.is_file():
-        note = earlier_population(run_dir)
+        note = no_config_note(run_dir)
         raise ValueError(f"{run_dir}: no config.json there; is it a run directory?{note}")
     data = read_config(run_dir)
     if str(data.get("experiment", experiment)).replace("-", "_") != experiment.replace("-", "_"):

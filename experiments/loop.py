@@ -19,6 +19,7 @@ from tqdm.auto import tqdm
 from hireps_torch.checks import NO_MEMBER_DIMENSION
 from hireps_torch.experiments.checkpoint import (
     EARLIER_POPULATION,
+    EARLIER_RUN,
     FORMAT,
     CheckpointState,
     RunFinished,
@@ -27,8 +28,8 @@ from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
     checkpoint_dir,
-    earlier_population,
     load_checkpoint,
+    no_config_note,
     read_config,
     stop_on_signals,
 )
@@ -87,7 +88,7 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
     if not (run_dir / "config.json").is_file():
         raise ValueError(
             f"cannot resume {run_dir}: it holds no config.json (not a run directory)."
-            + earlier_population(run_dir)
+            + no_config_note(run_dir)
             + " (nothing was changed)"
         )
     # a run still writing the directory is refused before its files are read (they may be
@@ -257,7 +258,11 @@ class Run:
                 earlier = NO_MEMBER_DIMENSION in str(exc)  # an ordinary hockey run's, before
                 raise ValueError(
                     f"cannot resume {root}: {exc}"
-                    + ("; an earlier version of this code wrote it" if earlier else "")
+                    + (
+                        f"; an earlier version of this code wrote it: {EARLIER_RUN}"
+                        if earlier
+                        else ""
+                    )
                     + "; nothing was changed"
                 ) from None
             self.start_iteration = int(ckpt["iteration"])

@@ -16,13 +16,13 @@ import torch
 from torch import Tensor
 
 from hireps_torch.algorithms import Algorithm
-from hireps_torch.checks import as_finite_f64, as_float_tensor, check_count
+from hireps_torch.checks import NO_MEMBER_DIMENSION, as_finite_f64, as_float_tensor, check_count
 from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
     checkpoint_dir,
-    earlier_population,
     load_checkpoint,
+    no_config_note,
     read_config,
     run_config,
 )
@@ -86,7 +86,7 @@ def load_run(run_dir: str | Path) -> LoadedRun:
         raise TypeError(f"run_dir must be a path (str or Path), got {type(run_dir).__name__}")
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
-        note = earlier_population(run_dir)
+        note = no_config_note(run_dir)
         raise ValueError(f"{run_dir} holds no config.json: it is not a run directory.{note}")
     saved = read_config(run_dir)
     name = str(saved.get("experiment", "")).replace("_", "-")
@@ -109,11 +109,15 @@ def load_run(run_dir: str | Path) -> LoadedRun:
             f"{root} holds no checkpoint.pt: the run had not finished its first iteration, "
             "so nothing was learned yet"
             if not rows
+            else f"{root} holds no checkpoint.pt but {rows} metrics row(s) and a summary.json: a "
+            "population member's policy is in its population's checkpoint (load it inside the "
+            "population's directory), the checkpoint was moved away, or it is a member of a "
+            "population that an earlier version of this code ran, which wrote no checkpoint"
+            if (run_dir / "summary.json").is_file()
             else f"{root} holds no checkpoint.pt but {rows} metrics row(s): the run is writing "
             "its first checkpoint (load it again in a moment), a population member's policy is "
-            "in its population's checkpoint (load it inside the population's directory), the "
-            "checkpoint was moved away, or it is a member of a population that an earlier version "
-            "of this code ran, which wrote no checkpoint"
+            "in its population's checkpoint (load it inside the population's directory), or the "
+            "checkpoint was moved away"
         )
     check_same_run(root, ckpt, saved if member is None else read_config(root))
     state = ckpt["algorithm"]
@@ -125,7 +129,10 @@ def load_run(run_dir: str | Path) -> LoadedRun:
     try:
         algorithm.load_state_dict(state)
     except ValueError as exc:
-        raise ValueError(f"{root / 'checkpoint.pt'} does not fit its run: {exc}") from None
+        earlier = (
+            "; an earlier version of this code wrote it" if NO_MEMBER_DIMENSION in str(exc) else ""
+        )
+        raise ValueError(f"{root / 'checkpoint.pt'} does not fit its run: {exc}{earlier}") from None
     return LoadedRun(
         run_dir=run_dir,
         experiment=name,

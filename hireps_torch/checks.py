@@ -340,6 +340,8 @@ def check_state_dict(
             f"{k}: saved {tuple(state[k].shape)}, expected {tuple(expected[k].shape)}"
             for k in wrong
         ]
+        if len(shapes) > 3:
+            shapes = [*shapes[:2], f"and {len(shapes) - 2} more"]
         raise ValueError(
             f"{what}: the checkpoint was made for other shapes ({why}): {'; '.join(shapes)}"
         )

@@ -71,7 +71,10 @@ def test_resume_of_an_earlier_versions_hockey_run_is_refused_saying_why(earlier)
     """An ordinary hockey run of dab85ff held its policies without a member dimension."""
     pytest.importorskip("pybullet")
     before = files(earlier)
-    with pytest.raises(ValueError, match="an earlier version of this code wrote it; nothing was"):
+    with pytest.raises(
+        ValueError,
+        match="an earlier version of this code wrote it: it cannot be resumed; run it again",
+    ):
         main(
             ["hockey-sequential", "--resume", str(earlier / "hockey_interrupted"), "--no-progress"]
         )
@@ -84,3 +87,14 @@ def test_load_run_of_an_earlier_versions_hockey_run_names_the_missing_member_dim
     with pytest.raises(ValueError, match="it holds one run without a member dimension"):
         load_run(earlier / "hockey_interrupted")
     assert files(earlier) == before
+
+
+def test_resume_of_a_folder_of_runs_or_of_nothing_says_what_it_is(tmp_path):
+    short = ["--episodes", "400", "--samples-per-iteration", "200", "--no-progress"]
+    main(["bimodal", *short, "--seed", "0", "--run-dir", str(tmp_path / "sweep" / "seed0")])
+    before = files(tmp_path)
+    with pytest.raises(ValueError, match="seed<s>/ directories are runs of their own"):
+        main(["bimodal", "--resume", str(tmp_path / "sweep"), "--no-progress"])
+    with pytest.raises(ValueError, match="It does not exist"):
+        main(["bimodal", "--resume", str(tmp_path / "nothing"), "--no-progress"])
+    assert files(tmp_path) == before

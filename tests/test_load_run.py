@@ -151,7 +151,12 @@ def test_directories_that_are_not_loadable_runs_get_a_clear_error(tmp_path):
     before = sorted(p.name for p in early.iterdir())
     assert before == ["config.json"]  # loading wrote nothing
     train("bimodal", tmp_path / "moved")
-    (tmp_path / "moved" / "checkpoint.pt").unlink()  # or not yet written in its first iteration
+    (tmp_path / "moved" / "checkpoint.pt").unlink()
+    with pytest.raises(
+        ValueError, match=r"row\(s\) and a summary.json: .* the checkpoint was moved away"
+    ):
+        hireps_torch.load_run(tmp_path / "moved")
+    (tmp_path / "moved" / "summary.json").unlink()  # or not yet written in its first iteration
     with pytest.raises(ValueError, match=r"no checkpoint.pt but \d+ metrics row\(s\): the run "):
         hireps_torch.load_run(tmp_path / "moved")
 

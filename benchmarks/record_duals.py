@@ -99,7 +99,7 @@ def main() -> None:
         _recording(module)
     with tempfile.TemporaryDirectory() as tmp:
         for name, seeds, options in RUNS:
-            config_cls, run = EXPERIMENTS[name]
+            config_cls, run = EXPERIMENTS[name].config, EXPERIMENTS[name].run
             for seed in seeds:
                 _CURRENT.update(experiment=name, seed=seed)
                 before = len(PROBLEMS)

@@ -10,8 +10,9 @@ and actions give the same trajectory in both.
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any, TypeVar
 
 import gymnasium as gym
@@ -423,3 +424,17 @@ class ScalarActionBatchEnv(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         self.task.seed(seed)
+
+
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """torch computes on one thread inside the block (or the decorated function), the thread
+    count restored after: a task whose simulation amplifies round-off (hockey's contacts) then
+    plays the same episodes whatever the process's thread count, worker or backend (torch
+    splits large reductions, and MKL its products, by the threads)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

@@ -19,15 +19,6 @@ from hireps_torch.envs.ball_on_beam import (
 )
 from hireps_torch.experiments.checkpoint import RunState
 from hireps_torch.experiments.envstate import BatchedTaskState
-from hireps_torch.experiments.loop import (
-    Run,
-    check_budget,
-    collector_loop,
-    finish_run,
-    infinite_horizon_postfix,
-    infinite_horizon_update,
-    resume_point,
-)
 from hireps_torch.experiments.options import (
     RunOptions,
     check_fourier_bases,
@@ -37,8 +28,21 @@ from hireps_torch.experiments.options import (
     option_error,
     stream_seed,
 )
+from hireps_torch.experiments.runner import (
+    Experiment,
+    Run,
+    check_budget,
+    infinite_horizon_postfix,
+    resume_point,
+)
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import HierarchicalPolicy
+from hireps_torch.rollout import (
+    make_collector,
+    member_transitions,
+    policy_module,
+    shutdown_collector,
+)
 
 __all__ = [
     "BallOnBeamConfig",
@@ -46,6 +50,7 @@ __all__ = [
     "GoalOffsetFeatures",
     "closer_goal",
     "build_ball_on_beam_policy",
+    "EXPERIMENT",
     "run",
     "value_features",
 ]
@@ -216,16 +221,15 @@ def algorithm(cfg: BallOnBeamConfig) -> InfiniteHorizonHiREPS:
 
 def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the ball on a beam (one seed or a population); its summary."""
-    from hireps_torch.rollout import make_collector, policy_module
-
-    B = cfg.episodes_per_iteration
     iterations = _checked(cfg)
-    resume = resume_point("ball_on_beam", cfg)
+    resume = resume_point(EXPERIMENT, cfg)
+    B = cfg.episodes_per_iteration
     params = BeamParams()
     seeds = member_seeds(cfg)
+    S = len(seeds)
     algo = _make_algorithm(cfg, params, seeds).to(cfg.device)
     policy, dev = algo.policy, algo.device
-    frames = len(seeds) * B * params.decisions_per_episode
+    frames = S * B * params.decisions_per_episode
     actor = policy_module(policy, generator=algo.generator)  # each member's own generator
     collector = make_collector(
         lambda: ScalarActionBatchEnv(
@@ -239,47 +243,43 @@ def run(cfg: BallOnBeamConfig) -> dict[str, Any]:
         reset_at_each_iter=True,
     )
     eval_seeds = [stream_seed(s, "eval") for s in seeds]
-
-    def rows(r: torch.Tensor, terminated: torch.Tensor) -> list[dict[str, Any]]:
-        evs: list[BeamEvaluation] = evaluate_beam(
-            lambda x: policy.mean_action(x.to(dev))[0].cpu(),
-            params,
-            n_episodes=cfg.eval_episodes,
-            seed=eval_seeds,
-        )
-        average, falls = (r.sum(-1) / B).tolist(), terminated.sum(-1).tolist()
-        return [
-            {
-                "average_return": average[m],
-                "falls": int(falls[m]),
-                "eval_return": ev.average_return,
-                "eval_success_rate": ev.success_rate,
-            }
-            for m, ev in enumerate(evs)
-        ]
-
-    label = f"ball_on_beam/{cfg.n_options}opt"
+    label = f"ball-on-beam/{cfg.n_options}opt"
     state = RunState(algo, env=BatchedTaskState(collector, carry=False))
-    session = collector_loop(
-        collector,
-        lambda: Run("ball_on_beam", cfg, state, resume),
-        infinite_horizon_update(algo, rows),
-        iterations=iterations,
-        episodes_per_iteration=B,
-        label=label,
-        postfix=infinite_horizon_postfix,
-        progress=cfg.progress,
-    )
-    active = policy.active.sum(-1).tolist()
-    return finish_run(
-        session,
-        curve=("episodes", ["average_return", "eval_return"]),
-        title=label,
-        summaries=[
-            _summary(c, r, iterations, int(n))
-            for c, r, n in zip(session.configs, session.rows, active, strict=True)
-        ],
-    )
+    try:
+        with Run(EXPERIMENT, cfg, state, resume) as run:
+            batches = iter(collector)
+            for it in run.iterations(iterations, label, infinite_horizon_postfix):
+                s, a, r, s_next, terminated = member_transitions(next(batches), S)
+                diag = algo.update(s, a, r, s_next, terminated)
+                evs: list[BeamEvaluation] = evaluate_beam(
+                    lambda x: policy.mean_action(x.to(dev))[0].cpu(),
+                    params,
+                    n_episodes=cfg.eval_episodes,
+                    seed=eval_seeds,
+                )
+                average, falls = (r.sum(-1) / B).tolist(), terminated.sum(-1).tolist()
+                run.log(
+                    [
+                        {
+                            "iteration": it + 1,
+                            "episodes": (it + 1) * B,
+                            "average_return": average[m],
+                            "falls": int(falls[m]),
+                            "eval_return": ev.average_return,
+                            "eval_success_rate": ev.success_rate,
+                        }
+                        | {key: value[m] for key, value in diag.items()}
+                        for m, ev in enumerate(evs)
+                    ]
+                )
+            active = policy.active.sum(-1).tolist()
+            summaries = [
+                _summary(c, r, iterations, int(n))
+                for c, r, n in zip(run.configs, run.rows, active, strict=True)
+            ]
+            return run.finish(summaries, title=label)
+    finally:
+        shutdown_collector(collector)
 
 
 def _summary(
@@ -289,7 +289,7 @@ def _summary(
     first_success = next((int(w["episodes"]) for w in rows if w["eval_success_rate"] >= 0.9), None)
     last = rows[-1]
     return {
-        "experiment": "ball_on_beam",
+        "experiment": "ball-on-beam",
         "n_options": cfg.n_options,
         "seed": cfg.seed,
         "episodes": iterations * cfg.episodes_per_iteration,
@@ -301,3 +301,14 @@ def _summary(
         "episodes_to_success": first_success,
         "n_active_options": n_active,
     }
+
+
+EXPERIMENT = Experiment(
+    "ball-on-beam",
+    BallOnBeamConfig,
+    run,
+    algorithm,
+    metric="success_rate",
+    curve="eval_return",
+    curves=("average_return", "eval_return"),
+)

@@ -12,7 +12,6 @@ import torch
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
 from hireps_torch.experiments.checkpoint import RunState
-from hireps_torch.experiments.loop import Run, ask_tell_loop, check_budget, finish_run, resume_point
 from hireps_torch.experiments.options import (
     RunOptions,
     check_options,
@@ -21,9 +20,11 @@ from hireps_torch.experiments.options import (
     stream_seed,
 )
 from hireps_torch.experiments.rundir import atomic_write
+from hireps_torch.experiments.runner import Experiment, Run, check_budget, resume_point
 
 __all__ = [
     "BimodalConfig",
+    "EXPERIMENT",
     "modes_covered",
     "option_summary",
     "plot_bimodal_options",
@@ -95,7 +96,7 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
     """HiREPS or REPS on the (contextual) two-Gaussians task, one seed or a population;
     returns the summary."""
     iterations = _validate(cfg)
-    resume = resume_point("bimodal", cfg)
+    resume = resume_point(EXPERIMENT, cfg)
     task = _task(cfg)
     seeds = member_seeds(cfg)
     S, n = len(seeds), cfg.samples_per_iteration
@@ -117,53 +118,50 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
             out = task(flat)
         return out.reshape(theta.shape[:2]).to(dev)
 
-    def step(it: int) -> list[dict[str, Any]]:
-        ctx = None
-        if isinstance(task, ContextualTwoGaussians):
-            ctx = torch.stack([task.sample_contexts(n, g) for g in ctx_gens.values()]).to(dev)
-            theta = algo.ask(ctx)
-        else:
-            theta = algo.ask(n)
-        diag = algo.tell(ctx, theta, score(ctx, theta))
-        grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1).to(dev)
-        evals = score(grid, algo.act(1 if grid is None else grid)).mean(-1).tolist()
-        return [
-            {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evals[m]}
-            | {key: value[m] for key, value in diag.items()}
+    label = f"bimodal/{cfg.algorithm}"
+    grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1).to(dev)
+    with Run(EXPERIMENT, cfg, RunState(algo, generators=ctx_gens), resume) as run:
+        for it in run.iterations(iterations, label, _postfix):
+            ctx = None
+            if isinstance(task, ContextualTwoGaussians):
+                ctx = torch.stack([task.sample_contexts(n, g) for g in ctx_gens.values()]).to(dev)
+                theta = algo.ask(ctx)
+            else:
+                theta = algo.ask(n)
+            diag = algo.tell(ctx, theta, score(ctx, theta))
+            evals = score(grid, algo.act(1 if grid is None else grid)).mean(-1).tolist()
+            run.log(
+                [
+                    {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evals[m]}
+                    | {key: value[m] for key, value in diag.items()}
+                    for m in range(S)
+                ]
+            )
+        solo = [
+            (REPS if cfg.algorithm == "reps" else EpisodicHiREPS)(
+                algo.policy.member(m).cpu(), context_dim=task.context_dim, epsilon=cfg.epsilon
+            )
             for m in range(S)
         ]
-
-    session = Run("bimodal", cfg, RunState(algo, generators=ctx_gens), resume)
-    ask_tell_loop(
-        session,
-        step,
-        iterations=iterations,
-        label=f"bimodal/{cfg.algorithm}",
-        postfix=lambda row: {
-            "ret": f"{row['mean_return']:.3f}",
-            "kl": f"{row['kl']:.2f}",
-            "opts": row["n_active_options"],
-        },
-        progress=cfg.progress,
-    )
-    solo = [
-        (REPS if cfg.algorithm == "reps" else EpisodicHiREPS)(
-            algo.policy.member(m).cpu(), context_dim=task.context_dim, epsilon=cfg.epsilon
-        )
-        for m in range(S)
-    ]
-    if isinstance(task, TwoGaussians):
-        for a, writer in zip(solo, session.writers, strict=True):
-            plot_bimodal_options(a, task, writer.dir / "options.png")
-    return finish_run(
-        session,
-        curve=("episodes", ["mean_return", "eval_return"]),
-        title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
-        summaries=[
+        if isinstance(task, TwoGaussians):
+            for a, writer in zip(solo, run.writers, strict=True):
+                plot_bimodal_options(a, task, writer.dir / "options.png")
+        summaries = [
             _summary(c, a, task, r, iterations)
-            for c, a, r in zip(session.configs, solo, session.rows, strict=True)
-        ],
-    )
+            for c, a, r in zip(run.configs, solo, run.rows, strict=True)
+        ]
+        return run.finish(
+            summaries,
+            title=f"two Gaussians ({cfg.algorithm}{', contextual' if cfg.contextual else ''})",
+        )
+
+
+def _postfix(row: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "ret": f"{row['mean_return']:.3f}",
+        "kl": f"{row['kl']:.2f}",
+        "opts": row["n_active_options"],
+    }
 
 
 def _task(cfg: BimodalConfig) -> TwoGaussians | ContextualTwoGaussians:
@@ -272,3 +270,15 @@ def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -
     fig.tight_layout()
     atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=110))
     plt.close(fig)
+
+
+EXPERIMENT = Experiment(
+    "bimodal",
+    BimodalConfig,
+    run,
+    algorithm,
+    metric="final_return",
+    curve="eval_return",
+    curves=("mean_return", "eval_return"),
+    per_iteration="samples_per_iteration",
+)

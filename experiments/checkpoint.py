@@ -9,6 +9,7 @@ the run computed): plain data that
 from __future__ import annotations
 
 import dataclasses
+import json
 import signal
 import sys
 import types
@@ -19,9 +20,16 @@ from typing import Any, Protocol
 
 import torch
 
+from hireps_torch.experiments.migrations import (
+    ABSENT_MEANS,
+    READABLE_FORMATS,
+    current_config,
+    no_config_note,
+)
+from hireps_torch.experiments.options import parse_seeds
+from hireps_torch.experiments.rundir import parse_rows
+
 __all__ = [
-    "EARLIER_POPULATION",
-    "EARLIER_RUN",
     "RUN_ONLY_OPTIONS",
     "CheckpointState",
     "RunFinished",
@@ -31,7 +39,6 @@ __all__ = [
     "changed_options",
     "check_same_run",
     "checkpoint_dir",
-    "no_config_note",
     "load_checkpoint",
     "read_config",
     "run_config",
@@ -40,14 +47,11 @@ __all__ = [
 ]
 
 FORMAT = 3
-"""3: ``rows`` holds each member's ``metrics.csv`` text (one string, cheap to save); 2 (still
-read): its rows as dicts, which every checkpoint pickled again."""
+"""The format this version writes (those it reads: ``migrations.READABLE_FORMATS``)."""
 CHECKPOINT_KEYS = ("algorithm", "rng", "env", "rows", "iteration", "elapsed")
 """The entries of a checkpoint that a resume reads (besides ``format``)."""
 RUN_ONLY_OPTIONS = ("run_dir", "resume", "progress", "checkpoint_every", "backend", "ray_address")
 """Options that may differ between a run and its resumption (they do not change results)."""
-HOCKEY_RUN_ONLY_OPTIONS = ("workers",)
-"""Those of hockey's too (its episodes are played by index, by any number of workers)."""
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -142,7 +146,7 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
         ) from exc
     if not isinstance(ckpt, dict):
         raise ValueError(f"{path} holds a {type(ckpt).__name__}, not a checkpoint of this code")
-    if ckpt.get("format") not in (2, FORMAT):
+    if ckpt.get("format") not in READABLE_FORMATS:
         raise ValueError(
             f"{path} was written by another version of this code (format "
             f"{ckpt.get('format')!r}, expected {FORMAT}): this version can neither resume nor "
@@ -176,8 +180,6 @@ def load_checkpoint(run_dir: Path, map_location: str | None = None) -> Checkpoin
 def _parsed_rows(path: Path, texts: Any) -> list[list[dict[str, Any]]]:
     """The rows of a format-3 checkpoint at ``path`` (``texts``: each member's metrics.csv
     text), or a ``ValueError`` saying it is damaged."""
-    from hireps_torch.experiments.rundir import parse_rows
-
     if not (isinstance(texts, list) and texts and all(isinstance(t, str) for t in texts)):
         raise ValueError(f"{path} is damaged: its rows are not one metrics.csv text per member")
     try:
@@ -187,9 +189,9 @@ def _parsed_rows(path: Path, texts: Any) -> list[list[dict[str, Any]]]:
 
 
 def read_config(run_dir: Path) -> dict[str, Any]:
-    """A run directory's ``config.json`` as a dict (a ``ValueError`` naming the file if not)."""
-    import json
-
+    """A run directory's ``config.json`` as a dict, as this version writes it
+    (:func:`~hireps_torch.experiments.migrations.current_config`; a ``ValueError`` naming the
+    file if not)."""
     path = run_dir / "config.json"
     try:
         data = json.loads(path.read_text())
@@ -197,20 +199,19 @@ def read_config(run_dir: Path) -> dict[str, Any]:
         raise ValueError(f"{path} cannot be read as JSON ({exc})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path} holds a JSON {type(data).__name__}, not the options of a run")
-    return data
+    return current_config(data)
 
 
 def changed_options(
-    saved: Mapping[str, Any], now: Mapping[str, Any], labels: tuple[str, str] = ("run", "now")
+    saved: Mapping[str, Any],
+    now: Mapping[str, Any],
+    labels: tuple[str, str] = ("run", "now"),
+    run_only: tuple[str, ...] = (),
 ) -> list[str]:
     """Differing options as ``name (run: saved, now: current)`` (``labels`` name the two
-    sides), ignoring :data:`RUN_ONLY_OPTIONS` (and hockey's :data:`HOCKEY_RUN_ONLY_OPTIONS`)."""
-    from hireps_torch.experiments.options import ABSENT_MEANS
-
+    sides), ignoring :data:`RUN_ONLY_OPTIONS` and the experiment's own ``run_only``."""
     a, b = labels
-    ignored: tuple[str, ...] = RUN_ONLY_OPTIONS
-    if str(saved.get("experiment", "")).startswith("hockey"):
-        ignored += HOCKEY_RUN_ONLY_OPTIONS
+    ignored = RUN_ONLY_OPTIONS + run_only
 
     def given(options: Mapping[str, Any], key: str) -> Any:  # left out: the value it meant
         return options.get(key, ABSENT_MEANS.get(key, "<absent>"))
@@ -235,7 +236,6 @@ def checkpoint_dir(run_dir: Path, seed: int) -> tuple[Path, tuple[int, int] | No
     seeds = read_config(parent).get("seeds")
     if seeds is None:
         return run_dir, None
-    from hireps_torch.experiments.options import parse_seeds
 
     try:
         members = parse_seeds(seeds)
@@ -249,10 +249,13 @@ def checkpoint_dir(run_dir: Path, seed: int) -> tuple[Path, tuple[int, int] | No
     return parent, (members.index(seed), len(members))
 
 
-def check_same_run(run_dir: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any]) -> None:
+def check_same_run(
+    run_dir: Path, ckpt: Mapping[str, Any], saved: Mapping[str, Any], run_only: tuple[str, ...] = ()
+) -> None:
     """A ``ValueError`` unless the checkpoint in ``run_dir`` was written by the run that its
     ``config.json`` (``saved``) describes: the same experiment and options."""
     checkpoint, config = run_dir / "checkpoint.pt", run_dir / "config.json"
+    ckpt = current_config(ckpt)
     if ckpt.get("experiment") != saved.get("experiment"):
         raise ValueError(
             f"{checkpoint} is of a {ckpt.get('experiment')!r} run, but {config} of a "
@@ -260,7 +263,10 @@ def check_same_run(run_dir: Path, ckpt: Mapping[str, Any], saved: Mapping[str, A
         )
     theirs = ckpt.get("config")
     if diff := changed_options(
-        theirs if isinstance(theirs, dict) else {}, saved, ("checkpoint.pt", "config.json")
+        current_config(theirs) if isinstance(theirs, dict) else {},
+        saved,
+        ("checkpoint.pt", "config.json"),
+        run_only,
     ):
         raise ValueError(
             f"{checkpoint} was written by a run with other options than {config} holds: "
@@ -273,8 +279,6 @@ def _meaning(key: str, value: Any) -> Any:
     """What an option's value means when two are compared: ``seeds`` as the seeds it names
     (``0-2`` and ``0,1,2`` are the same population), a CPU ``device`` as ``cpu`` (``cpu:0`` is
     the same device), anything else as it is."""
-    from hireps_torch.experiments.options import parse_seeds
-
     if key == "seeds" and isinstance(value, str):
         try:
             return parse_seeds(value)
@@ -285,28 +289,6 @@ def _meaning(key: str, value: Any) -> Any:
     return value
 
 
-EARLIER_RUN = "it cannot be resumed; run it again with another --run-dir"
-EARLIER_POPULATION = (
-    "a population that an earlier version of this code ran, which wrote no checkpoint: "
-    + EARLIER_RUN
-)
-
-
-def no_config_note(run_dir: Path) -> str:
-    """Why ``run_dir`` has no config.json, where that can be told: it does not exist, it is not
-    a directory, it holds runs of their own (``seed<s>/`` with checkpoints: a sweep's?) or an
-    earlier version's population (``seed<s>/`` without); else ``""``."""
-    if not run_dir.exists():
-        return " It does not exist."
-    if not run_dir.is_dir():
-        return " It is not a directory."
-    if any(run_dir.glob("seed*/checkpoint.pt")):
-        return " Its seed<s>/ directories are runs of their own (a sweep's?): resume each of them."
-    if any(run_dir.glob("seed*/config.json")):
-        return f" If its seed<s>/ directories are the members of {EARLIER_POPULATION}."
-    return ""
-
-
 def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
     """The config a run directory was started with (``config.json``), as a ``config_cls``,
     with ``run_dir`` set to where it is now and no ``resume``."""
@@ -315,12 +297,10 @@ def run_config(config_cls: type, experiment: str, run_dir: Path) -> Any:
         note = no_config_note(run_dir)
         raise ValueError(f"{run_dir}: no config.json there; is it a run directory?{note}")
     data = read_config(run_dir)
-    if str(data.get("experiment", experiment)).replace("-", "_") != experiment.replace("-", "_"):
+    if data.get("experiment", experiment) != experiment:
         raise ValueError(
             f"{run_dir}: that run is a {data.get('experiment')!r} run, not {experiment!r}"
         )
-    from hireps_torch.experiments.options import ABSENT_MEANS
-
     fields = {f.name for f in dataclasses.fields(config_cls)}
     # an option left out of config.json was at its ABSENT_MEANS value
     values = {k: v for k, v in (ABSENT_MEANS | data).items() if k in fields}

@@ -2,29 +2,48 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from typing import Any, Literal
 
 import torch
+from torchrl.envs import GymEnv, StepCounter, TransformedEnv
 
+import hireps_torch.envs  # noqa: F401  (registers the ids, also in worker processes)
 from hireps_torch.algorithms import Algorithm, EpisodicHiREPS, Experience, TimeIndexedHiREPS
+from hireps_torch.envs.hockey import (
+    ENV_ID,
+    EPISODIC_ENV_ID,
+    AimFeatures,
+    HockeyParams,
+    aim_slopes,
+    demo_action,
+    turn_derivative,
+    zone_reward,
+)
 from hireps_torch.experiments.checkpoint import RunState
-from hireps_torch.experiments.loop import Run, ask_tell_loop, check_budget, finish_run, resume_point
 from hireps_torch.experiments.options import (
     RunOptions,
     check_options,
     member_seeds,
     option_error,
 )
-from hireps_torch.experiments.workers import Backend, check_pool, make_pool, reproducible_mkl
+from hireps_torch.experiments.runner import Experiment, Run, check_budget, resume_point
+from hireps_torch.experiments.workers import (
+    Backend,
+    check_pool,
+    make_pool,
+    play_episodes,
+    reproducible_mkl,
+)
+from hireps_torch.rollout import episodes, policy_module, time_indexed_module
 
 __all__ = [
     "HockeyConfig",
     "HockeyEpisodicConfig",
     "HockeyFixedStartConfig",
     "HockeySequentialConfig",
+    "VARIANTS",
     "hockey_params",
     "run",
 ]
@@ -122,8 +141,6 @@ def _hockey_rows(
     rewards: torch.Tensor, final: torch.Tensor, zones: tuple[float, float, float, float]
 ) -> dict[str, Any]:
     """Per-iteration hockey metrics of N episodes: rewards (N, K), final positions (N, 2)."""
-    from hireps_torch.envs.hockey import zone_reward
-
     zone = zone_reward(final.norm(dim=-1), zones)
     returns = rewards.sum(-1)
     return {
@@ -160,8 +177,6 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params:
         seed=member_seeds(cfg),
     )
     if cfg.option_features == "aim":
-        from hireps_torch.envs.hockey.aim import AimFeatures
-
         common["policy_features"] = AimFeatures(params.geometry)
     algo: Algorithm
     if sequential:
@@ -178,8 +193,6 @@ def _make_algorithm(cfg: HockeyConfig, n_shots: int, demo: torch.Tensor, params:
 def _aim_options(algo: Algorithm, demo: torch.Tensor, params: Any) -> None:
     """Every option's mean = bias + W (f(p) - f(p0)) on its features f, W the aim mapping's
     slopes at the start mean p0 (the same for every shot), its mean at p0 kept."""
-    from hireps_torch.envs.hockey.aim import AimFeatures, aim_slopes, turn_derivative
-
     p0 = torch.tensor(params.target_mean, dtype=torch.float64)  # f0: its features
     for policy in algo.policies:
         f0 = policy.policy_features(p0.reshape(1, 2))[0]
@@ -236,8 +249,6 @@ def _check(cfg: HockeyConfig) -> int:
 
 def hockey_params(cfg: HockeyConfig) -> Any:
     """The task constants of a run: HockeyParams with the config's start and physics."""
-    from hireps_torch.envs.hockey import HockeyParams
-
     return HockeyParams(
         target_std=cfg.start_std,
         puck_restitution=cfg.puck_restitution,
@@ -248,10 +259,6 @@ def hockey_params(cfg: HockeyConfig) -> Any:
 
 def _make_env(env_id: str, sequential: bool, params: Any = None) -> Any:
     """The gymnasium env through TorchRL; the sequential variant counts its shots."""
-    from torchrl.envs import GymEnv, StepCounter, TransformedEnv
-
-    import hireps_torch.envs  # noqa: F401  (registers the ids in worker processes)
-
     env = GymEnv(env_id) if params is None else GymEnv(env_id, params=params)
     return TransformedEnv(env, StepCounter()) if sequential else env
 
@@ -267,40 +274,16 @@ def variance_floor(cfg: HockeyConfig, std: torch.Tensor, update: int, updates: i
     return ((f * std) ** 2).clamp_min(cfg.min_variance)
 
 
-def _update(
-    algo: Algorithm,
-    K: int,
-    zones: tuple[float, float, float, float],
-    floor: Callable[[int], torch.Tensor] | None = None,
-) -> Any:
-    """One iteration: each member's whole K-shot episodes (one batch per member) into one
-    ``learn``, returning each member's row fields (per-shot diagnostics as ``<name>_<shot>``),
-    the variance floor ``floor(algo.iteration)`` set first."""
-    from hireps_torch.rollout import episodes
-
-    def update(batches: list[Any]) -> list[dict[str, Any]]:
-        parts = [episodes(batch, K) for batch in batches]
-        if floor is not None:
-            low = floor(algo.iteration)
-            for policy in algo.policies:
-                for option in policy.sub_policies:
-                    option.min_variance = low.to(option.min_variance)
-        s, a, r, _ = (torch.stack(x) for x in zip(*parts, strict=True))
-        diag = algo.learn(Experience(states=s, actions=a, rewards=r))
-        mine = [{key: value[m] for key, value in diag.items()} for m in range(len(parts))]
-        rows = []
-        for (_, _, rewards, final), d in zip(parts, mine, strict=True):
-            scalars = {k: v for k, v in d.items() if not isinstance(v, (list, tuple))}
-            steps = {
-                f"{key}_{k + 1}": d[key][k]
-                for key in PER_STEP
-                if isinstance(d.get(key), (list, tuple))
-                for k in range(len(d[key]))
-            }
-            rows.append({**_hockey_rows(rewards, final, zones), **scalars, **steps})
-        return rows
-
-    return update
+def _member_row(diag: dict[str, Any], m: int) -> dict[str, Any]:
+    """Member ``m``'s update diagnostics as row fields (the per-shot ones as ``<name>_<shot>``)."""
+    mine = {key: value[m] for key, value in diag.items()}
+    steps = {
+        f"{key}_{k + 1}": mine[key][k]
+        for key in PER_STEP
+        if isinstance(mine.get(key), (list, tuple))
+        for k in range(len(mine[key]))
+    }
+    return {k: v for k, v in mine.items() if not isinstance(v, (list, tuple))} | steps
 
 
 EVAL_FIRST_EPISODE = 10**9
@@ -314,10 +297,6 @@ def evaluate_final_policy(
     fresh episodes in this process:
     ``eval_average_reward``, ``eval_zone3_share``, ``eval_zone_reward`` (noise-free) and
     ``final_policy_average_reward`` (exploring, on the same starts)."""
-    from hireps_torch.envs.hockey import ENV_ID, EPISODIC_ENV_ID
-    from hireps_torch.experiments.workers import play_episodes
-    from hireps_torch.rollout import episodes, policy_module, time_indexed_module
-
     sequential = isinstance(cfg, HockeySequentialConfig)
     env = _make_env(ENV_ID if sequential else EPISODIC_ENV_ID, sequential, params)
     K = len(policies)
@@ -343,8 +322,6 @@ def evaluate_final_policy(
 
 def algorithm(cfg: HockeyConfig) -> Algorithm:
     """``cfg`` checked as :func:`run` checks it, and the untrained algorithm it starts from."""
-    from hireps_torch.envs.hockey import demo_action
-
     _check(cfg)
     params = hockey_params(cfg)
     demo = torch.as_tensor(demo_action(params), dtype=torch.float64)
@@ -354,95 +331,111 @@ def algorithm(cfg: HockeyConfig) -> Algorithm:
 def run(cfg: HockeyConfig) -> dict[str, Any]:
     """Sequential or episodic HiREPS on the simulated robot hockey task, one seed or a
     population; returns the summary."""
-    from hireps_torch.envs.hockey import ENV_ID, EPISODIC_ENV_ID, demo_action
-    from hireps_torch.rollout import policy_module, time_indexed_module
-
     iterations = _check(cfg)
     reproducible_mkl()  # before any arithmetic (see experiments/workers.py)
     sequential = isinstance(cfg, HockeySequentialConfig)
-    experiment = (
-        "hockey_fixed_start"
-        if isinstance(cfg, HockeyFixedStartConfig)
-        else "hockey_sequential"
-        if sequential
-        else "hockey_episodic"
-    )
-    resume = resume_point(experiment, cfg)
+    entry = next(e for e in VARIANTS if type(cfg) is e.config)
+    resume = resume_point(entry, cfg)
     params = hockey_params(cfg)
     demo = torch.as_tensor(demo_action(params), dtype=torch.float64)  # the initial mean
     seeds = member_seeds(cfg)
     torch.manual_seed(seeds[0])
     algo = _make_algorithm(cfg, params.n_shots, demo, params)
     K = len(algo.policies)  # decision steps per episode: 3 shots, or 1 vector of 42 numbers
-    env_id = ENV_ID if sequential else EPISODIC_ENV_ID
     B = cfg.episodes_per_iteration
-
-    def members() -> list[list[Any]]:
-        """Each member's policies (copies)."""
-        return [[p.member(m) for p in algo.policies] for m in range(len(seeds))]
-
-    def actor(policies: list[Any]) -> Any:
-        return time_indexed_module(policies) if sequential else policy_module(policies[0])
-
-    floor = None
-    if cfg.exploration_floor_end is not None:
-        std = _exploration_std(cfg, 1 if sequential else params.n_shots, demo)
-        floor = partial(variance_floor, cfg, std, updates=iterations)
-    label = f"{experiment}/{cfg.n_options}opt"
+    std = _exploration_std(cfg, 1 if sequential else params.n_shots, demo)
+    label = f"{entry.name}/{cfg.n_options}opt"
     state = RunState(algo)  # episode e's randomness comes from (seed, e): no env state
-    update = _update(algo, K, params.zones, floor)
     # the pool (worker processes, Ray) last, right before the loop; closed however it ends
     pool = make_pool(
-        partial(_make_env, env_id, sequential, params), cfg.workers, cfg.backend, cfg.ray_address
+        partial(_make_env, ENV_ID if sequential else EPISODIC_ENV_ID, sequential, params),
+        cfg.workers,
+        cfg.backend,
+        cfg.ray_address,
     )
-
-    def step(it: int) -> list[dict[str, Any]]:
-        episodes = range(it * B, (it + 1) * B)  # member s plays those of the run of seed s
-        batches = [
-            pool.play(actor(p), s, episodes, K) for p, s in zip(members(), seeds, strict=True)
-        ]
-        return [{"iteration": it + 1, "episodes": (it + 1) * B, **row} for row in update(batches)]
-
     try:
-        session = ask_tell_loop(
-            Run(experiment, cfg, state, resume),
-            step,
-            iterations=iterations,
-            label=label,
-            postfix=lambda row: {
-                "reward": f"{row['average_reward']:.2f}",
-                "zone3": f"{row['zone3_share']:.2f}",
-            },
-            progress=cfg.progress,
-        )
+        with Run(entry, cfg, state, resume) as run:
+            for it in run.iterations(iterations, label, _postfix):
+                # member m plays episodes it B .. (it + 1) B - 1 of the run of its seed
+                indices = range(it * B, (it + 1) * B)
+                played = [
+                    episodes(pool.play(_actor(policies, sequential), s, indices, K), K)
+                    for policies, s in zip(_members(algo), seeds, strict=True)
+                ]
+                if cfg.exploration_floor_end is not None:  # the exploration floor's schedule
+                    low = variance_floor(cfg, std, it, iterations)
+                    for policy in algo.policies:
+                        for option in policy.sub_policies:
+                            option.min_variance = low.to(option.min_variance)
+                s, a, r, _ = (torch.stack(x) for x in zip(*played, strict=True))
+                diag = algo.learn(Experience(states=s, actions=a, rewards=r))
+                run.log(
+                    [
+                        {"iteration": it + 1, "episodes": (it + 1) * B}
+                        | _hockey_rows(rewards, final, params.zones)
+                        | _member_row(diag, m)
+                        for m, (_, _, rewards, final) in enumerate(played)
+                    ]
+                )
+            pool.close()
+            shots = iterations * B * params.n_shots * len(seeds)
+            elapsed = run.root.elapsed()
+            n_eval = B if cfg.final_eval_episodes is None else cfg.final_eval_episodes
+            summaries = []
+            for seed, policies, rows in zip(seeds, _members(algo), run.rows, strict=True):
+                last = rows[-1]
+                summaries.append(
+                    {
+                        "experiment": entry.name,
+                        "n_options": cfg.n_options,
+                        "seed": seed,
+                        "episodes": iterations * B,
+                        "iterations": iterations,
+                        "final_average_reward": last["average_reward"],
+                        "final_return": last["average_reward"],
+                        "zone3_share": last["zone3_share"],
+                        "final_zone_reward": last["zone_reward"],
+                        "n_active_options": [int(p.active.sum()) for p in policies],
+                        "seconds_per_shot": elapsed / shots,
+                        **(
+                            evaluate_final_policy(cfg, policies, params, n_eval, seed)
+                            if n_eval
+                            else {}
+                        ),
+                    }
+                )
+            return run.finish(summaries, title=label, ylabel="average reward per episode")
     finally:
         pool.close()
-    shots = iterations * B * params.n_shots * len(seeds)
-    elapsed = session.root.elapsed()
-    n_eval = B if cfg.final_eval_episodes is None else cfg.final_eval_episodes
-    summaries = []
-    for seed, policies, rows in zip(seeds, members(), session.rows, strict=True):
-        last = rows[-1]
-        summaries.append(
-            {
-                "experiment": experiment,
-                "n_options": cfg.n_options,
-                "seed": seed,
-                "episodes": iterations * B,
-                "iterations": iterations,
-                "final_average_reward": last["average_reward"],
-                "final_return": last["average_reward"],
-                "zone3_share": last["zone3_share"],
-                "final_zone_reward": last["zone_reward"],
-                "n_active_options": [int(p.active.sum()) for p in policies],
-                "seconds_per_shot": elapsed / shots,
-                **(evaluate_final_policy(cfg, policies, params, n_eval, seed) if n_eval else {}),
-            }
-        )
-    return finish_run(
-        session,
-        curve=("episodes", ["average_reward"]),
-        title=label,
-        ylabel="average reward per episode",
-        summaries=summaries,
+
+
+def _members(algo: Algorithm) -> list[list[Any]]:
+    """Each member's policies (copies)."""
+    return [[p.member(m) for p in algo.policies] for m in range(algo.population)]
+
+
+def _actor(policies: list[Any], sequential: bool) -> Any:
+    return time_indexed_module(policies) if sequential else policy_module(policies[0])
+
+
+def _postfix(row: dict[str, Any]) -> dict[str, Any]:
+    return {"reward": f"{row['average_reward']:.2f}", "zone3": f"{row['zone3_share']:.2f}"}
+
+
+def _entry(name: str, config: type) -> Experiment:
+    return Experiment(
+        name,
+        config,
+        run,
+        algorithm,
+        metric="final_average_reward",
+        curve="average_reward",
+        run_only=("workers",),  # its episodes are played by index, by any number of workers
     )
+
+
+VARIANTS = (
+    _entry("hockey-sequential", HockeySequentialConfig),
+    _entry("hockey-episodic", HockeyEpisodicConfig),
+    _entry("hockey-fixed-start", HockeyFixedStartConfig),
+)

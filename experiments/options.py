@@ -3,22 +3,28 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import numbers
 import os
+import re
 import types
 import typing
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from hireps_torch.algorithms.base import stream_seed
 from hireps_torch.checks import check_device, check_present_device
+from hireps_torch.experiments.migrations import ABSENT_MEANS
 from hireps_torch.experiments.rundir import (
     LoggerName,
     check_logger,
     check_new_run_dir,
     jsonable,
 )
+from hireps_torch.features import MAX_FOURIER_TERMS
+from hireps_torch.policies.linear_gaussian import FLOOR_RANGE
 
 __all__ = [
     "RunOptions",
@@ -138,19 +144,6 @@ def _check_type(name: str, value: Any, hint: Any) -> None:
         raise option_error(name, value, want[hint], TypeError)
 
 
-ABSENT_MEANS = {
-    "device": "cpu",
-    "final_eval_episodes": None,
-    "exploration_floor_end": None,
-    "option_goal_offset": False,
-    "epsilon_end": None,
-    "restart_probability": None,
-}
-"""Options added after the first run directories, with the value that reproduces the older
-runs: ``config.json`` leaves an option out at that value, so old and new directories compare
-equal, and an old one is resumed with it (even where the default has changed since)."""
-
-
 def config_dict(experiment: str, cfg: Any) -> dict[str, Any]:
     """``config.json``'s content: the experiment's name and every option, JSON-ready
     (``seeds`` only for a population; options at their :data:`ABSENT_MEANS` value left out)."""
@@ -171,9 +164,6 @@ MAX_SEEDS = 10_000
 def parse_seeds(text: str) -> list[int]:
     """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,3,7"``; ``"0-2,9"``. A repeated seed, an empty or
     reversed range and anything else are a ValueError naming the text."""
-    import re
-    from collections import Counter
-
     seeds: list[int] = []
     for part in str(text).split(","):
         m = re.fullmatch(r"\s*(-?[0-9]+)\s*(?:-\s*(-?[0-9]+)\s*)?", part)
@@ -204,8 +194,6 @@ def check_options(
     """Refuse bad values before anything is built: ``counts`` integers >= 1, ``positive``
     finite > 0, ``nonnegative`` finite >= 0 (None where the type allows it), after
     :func:`check_types`; the message names the option and the value."""
-    import math
-
     check_types(cfg)
     for name in counts:
         value = getattr(cfg, name)
@@ -221,8 +209,6 @@ def check_options(
 
 def check_variance_floor(cfg: Any) -> None:
     """``cfg.min_variance`` within :data:`~hireps_torch.policies.linear_gaussian.FLOOR_RANGE`."""
-    from hireps_torch.policies.linear_gaussian import FLOOR_RANGE
-
     value, (low, high) = cfg.min_variance, FLOOR_RANGE
     if not low <= value <= high:  # nan and +-inf fail it
         raise option_error("min_variance", value, f"in [{low:g}, {high:g}] (a variance)")
@@ -231,8 +217,6 @@ def check_variance_floor(cfg: Any) -> None:
 def check_fourier_bases(cfg: Any, state_dim: int) -> None:
     """``cfg.fourier_bases`` (bases per dimension of a ``state_dim``-dimensional Fourier
     basis) >= 2 and small enough for :class:`~hireps_torch.features.FourierFeatures`."""
-    from hireps_torch.features import MAX_FOURIER_TERMS
-
     n = cfg.fourier_bases
     if n < 2 or n**state_dim > MAX_FOURIER_TERMS:
         top = int(round(MAX_FOURIER_TERMS ** (1 / state_dim)))

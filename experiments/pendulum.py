@@ -21,15 +21,6 @@ from hireps_torch.envs.pendulum import (
 )
 from hireps_torch.experiments.checkpoint import RunState
 from hireps_torch.experiments.envstate import BatchedTaskState
-from hireps_torch.experiments.loop import (
-    Run,
-    check_budget,
-    collector_loop,
-    finish_run,
-    infinite_horizon_postfix,
-    infinite_horizon_update,
-    resume_point,
-)
 from hireps_torch.experiments.options import (
     RunOptions,
     check_fourier_bases,
@@ -39,8 +30,21 @@ from hireps_torch.experiments.options import (
     option_error,
     stream_seed,
 )
+from hireps_torch.experiments.runner import (
+    Experiment,
+    Run,
+    check_budget,
+    infinite_horizon_postfix,
+    resume_point,
+)
 from hireps_torch.features import ConcatFeatures, FeatureMap, FourierFeatures, QuadraticFeatures
 from hireps_torch.policies import ConstantGating, HierarchicalPolicy
+from hireps_torch.rollout import (
+    make_collector,
+    member_transitions,
+    policy_module,
+    shutdown_collector,
+)
 
 __all__ = [
     "PendulumConfig",
@@ -48,6 +52,7 @@ __all__ = [
     "build_pendulum_policy",
     "pendulum_quadratic_features",
     "pendulum_value_features",
+    "EXPERIMENT",
     "run",
 ]
 
@@ -246,16 +251,15 @@ def algorithm(cfg: PendulumConfig) -> InfiniteHorizonHiREPS:
 
 def run(cfg: PendulumConfig) -> dict[str, Any]:
     """Infinite-horizon HiREPS on the swing-up, one seed or a population; returns the summary."""
-    from hireps_torch.rollout import make_collector, policy_module
-
     params, iterations = _checked(cfg)
-    B = cfg.episodes_per_iteration
-    resume = resume_point("pendulum", cfg)
+    resume = resume_point(EXPERIMENT, cfg)
+    B, d = cfg.episodes_per_iteration, params.steps_per_decision
     seeds = member_seeds(cfg)
+    S = len(seeds)
     algo = _make_algorithm(cfg, params, seeds).to(cfg.device)
     policy, dev = algo.policy, algo.device
     decisions = max(1, round(cfg.episode_seconds / params.decision_seconds))
-    frames = len(seeds) * B * decisions
+    frames = S * B * decisions
     # each member explores with its own generator (worker processes: their own global RNGs)
     actor = policy_module(policy, generator=algo.generator if cfg.workers == 1 else None)
     collector = make_collector(
@@ -280,6 +284,7 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
     eval_seeds = [stream_seed(s, "eval") for s in seeds]
 
     def evaluate() -> list[SwingUpEvaluation]:
+        """Each member's noise-free policy on ``eval_rollouts`` swing-ups."""
         return evaluate_swing_up(
             lambda x: policy.mean_action(x.to(dev))[0].cpu(),
             params,
@@ -287,47 +292,42 @@ def run(cfg: PendulumConfig) -> dict[str, Any]:
             seed=eval_seeds,
         )
 
-    def rows(r: torch.Tensor, _: torch.Tensor) -> list[dict[str, Any]]:
-        due = cfg.eval_every > 0 and algo.iteration % cfg.eval_every == 0
-        evs = evaluate() if due else None
-        average = (reduce_each(r, "mean", -1) / params.steps_per_decision).tolist()
-        return [
-            {
-                "average_return": average[m],
-                "eval_success_rate": math.nan if evs is None else evs[m].success_rate,
-                "eval_return": math.nan if evs is None else evs[m].average_return,
-            }
-            for m in range(len(seeds))
-        ]
-
-    update = infinite_horizon_update(algo, rows, mirror_decisions if cfg.mirror_samples else None)
-
-    def scheduled(batch: Any) -> list[dict[str, Any]]:
-        algo.epsilon = epsilon_at(cfg, algo.iteration, iterations)  # the KL bound, then update
-        return update(batch)
-
-    session = collector_loop(
-        collector,
-        lambda: Run("pendulum", cfg, state, resume),
-        scheduled,
-        iterations=iterations,
-        episodes_per_iteration=B,
-        label=label,
-        postfix=infinite_horizon_postfix,
-        sync_weights=cfg.workers > 1,
-        progress=cfg.progress,
-    )
-    final = evaluate()
-    active = policy.active.sum(-1).tolist()
-    return finish_run(
-        session,
-        curve=("episodes", ["average_return"]),
-        title=label,
-        summaries=[
-            _summary(c, r, ev, iterations, int(n))
-            for c, r, ev, n in zip(session.configs, session.rows, final, active, strict=True)
-        ],
-    )
+    try:
+        with Run(EXPERIMENT, cfg, state, resume) as run:
+            batches = iter(collector)
+            for it in run.iterations(iterations, label, infinite_horizon_postfix):
+                s, a, r, s_next, terminated = member_transitions(next(batches), S)
+                average = (reduce_each(r, "mean", -1) / d).tolist()
+                if cfg.mirror_samples:
+                    s, a, r, s_next, terminated = mirror_decisions(s, a, r, s_next, terminated)
+                epsilon = epsilon_at(cfg, it, iterations)  # the KL schedule
+                diag = algo.update(s, a, r, s_next, terminated, epsilon=epsilon)
+                if cfg.workers > 1:
+                    collector.update_policy_weights_()
+                due = cfg.eval_every > 0 and (it + 1) % cfg.eval_every == 0
+                evs = evaluate() if due else None
+                run.log(
+                    [
+                        {
+                            "iteration": it + 1,
+                            "episodes": (it + 1) * B,
+                            "average_return": average[m],
+                            "eval_success_rate": math.nan if evs is None else evs[m].success_rate,
+                            "eval_return": math.nan if evs is None else evs[m].average_return,
+                        }
+                        | {key: value[m] for key, value in diag.items()}
+                        for m in range(S)
+                    ]
+                )
+            final = evaluate()
+            active = policy.active.sum(-1).tolist()
+            summaries = [
+                _summary(c, r, ev, iterations, int(n))
+                for c, r, ev, n in zip(run.configs, run.rows, final, active, strict=True)
+            ]
+            return run.finish(summaries, title=label)
+    finally:
+        shutdown_collector(collector)
 
 
 def _summary(
@@ -359,3 +359,8 @@ def _summary(
         "reached_upright_share": ev.reached_share,
         "n_active_options": n_active,
     }
+
+
+EXPERIMENT = Experiment(
+    "pendulum", PendulumConfig, run, algorithm, metric="success_rate", curve="average_return"
+)

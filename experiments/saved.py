@@ -16,17 +16,18 @@ import torch
 from torch import Tensor
 
 from hireps_torch.algorithms import Algorithm
-from hireps_torch.checks import NO_MEMBER_DIMENSION, as_finite_f64, as_float_tensor, check_count
+from hireps_torch.checks import as_finite_f64, as_float_tensor, check_count
+from hireps_torch.experiments import EXPERIMENTS
 from hireps_torch.experiments.checkpoint import (
     changed_options,
     check_same_run,
     checkpoint_dir,
     load_checkpoint,
-    no_config_note,
     read_config,
     run_config,
 )
-from hireps_torch.experiments.loop import logged_rows
+from hireps_torch.experiments.migrations import earlier_version_note, no_config_note
+from hireps_torch.experiments.runner import logged_rows
 
 __all__ = ["LoadedRun", "load_run"]
 
@@ -80,8 +81,6 @@ class LoadedRun:
 def load_run(run_dir: str | Path) -> LoadedRun:
     """Load a run directory (or a population member ``<dir>/seed<s>``) written by
     ``hireps-train``, changing nothing on disk; a ``ValueError`` says what is wrong."""
-    from hireps_torch.experiments import EXPERIMENTS
-
     if not isinstance(run_dir, str | os.PathLike):
         raise TypeError(f"run_dir must be a path (str or Path), got {type(run_dir).__name__}")
     run_dir = Path(run_dir)
@@ -89,7 +88,7 @@ def load_run(run_dir: str | Path) -> LoadedRun:
         note = no_config_note(run_dir)
         raise ValueError(f"{run_dir} holds no config.json: it is not a run directory.{note}")
     saved = read_config(run_dir)
-    name = str(saved.get("experiment", "")).replace("_", "-")
+    name = str(saved.get("experiment", ""))
     if name not in EXPERIMENTS:
         raise ValueError(
             f"{run_dir / 'config.json'} names the experiment {saved.get('experiment')!r}; "
@@ -119,20 +118,20 @@ def load_run(run_dir: str | Path) -> LoadedRun:
             "in its population's checkpoint (load it inside the population's directory), or the "
             "checkpoint was moved away"
         )
-    check_same_run(root, ckpt, saved if member is None else read_config(root))
+    run_only = EXPERIMENTS[name].run_only
+    check_same_run(root, ckpt, saved if member is None else read_config(root), run_only)
     state = ckpt["algorithm"]
     if member is not None:
-        _check_member(run_dir, root, saved)
+        _check_member(run_dir, root, saved, run_only)
         population = _build(name, root)[1]
         population.load_state_dict(state)
         state = _member_state(population.state_dict(), algorithm.state_dict(), *member)
     try:
         algorithm.load_state_dict(state)
     except ValueError as exc:
-        earlier = (
-            "; an earlier version of this code wrote it" if NO_MEMBER_DIMENSION in str(exc) else ""
-        )
-        raise ValueError(f"{root / 'checkpoint.pt'} does not fit its run: {exc}{earlier}") from None
+        raise ValueError(
+            f"{root / 'checkpoint.pt'} does not fit its run: {exc}{earlier_version_note(exc)}"
+        ) from None
     return LoadedRun(
         run_dir=run_dir,
         experiment=name,
@@ -146,23 +145,23 @@ def load_run(run_dir: str | Path) -> LoadedRun:
 
 def _build(name: str, run_dir: Path) -> tuple[Any, Algorithm]:
     """The config in ``run_dir/config.json`` and its untrained algorithm."""
-    from hireps_torch.experiments import ALGORITHMS, EXPERIMENTS
-
-    config = run_config(EXPERIMENTS[name][0], name, run_dir)
+    entry = EXPERIMENTS[name]
+    config = run_config(entry.config, name, run_dir)
     try:
-        return config, ALGORITHMS[name](config)
+        return config, entry.algorithm(config)
     except (TypeError, ValueError) as exc:
         raise ValueError(
             f"{run_dir / 'config.json'} does not hold the options of a {name} run: {exc}"
         ) from None
 
 
-def _check_member(run_dir: Path, root: Path, saved: Mapping[str, Any]) -> None:
+def _check_member(
+    run_dir: Path, root: Path, saved: Mapping[str, Any], run_only: tuple[str, ...]
+) -> None:
     """A member's config.json is its population's with its own seed."""
     population = {k: v for k, v in read_config(root).items() if k not in ("seed", "seeds")}
-    if diff := changed_options(
-        population, {k: v for k, v in saved.items() if k != "seed"}, ("population", "member")
-    ):
+    member = {k: v for k, v in saved.items() if k != "seed"}
+    if diff := changed_options(population, member, ("population", "member"), run_only):
         raise ValueError(
             f"{run_dir / 'config.json'} does not match its population's {root / 'config.json'}: "
             + "; ".join(diff)

@@ -16,28 +16,35 @@ seed (a later sweep into the same ``OUT`` rewrites them and keeps every run dire
 from __future__ import annotations
 
 import contextlib
-import csv
 import dataclasses
 import hashlib
 import io
 import itertools
 import json
-import math
 import multiprocessing
 import multiprocessing.connection
 import os
 import signal
-import statistics
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
+import torch
 import tyro
 from tqdm.auto import tqdm
 
-from hireps_torch.experiments.options import parse_seeds
+from hireps_torch.experiments import EXPERIMENTS
+from hireps_torch.experiments.checkpoint import (
+    changed_options,
+    read_config,
+    record_early_stops,
+    request_stop,
+    saved_config,
+)
+from hireps_torch.experiments.options import config_dict, parse_seeds
+from hireps_torch.experiments.report import summarize
 from hireps_torch.experiments.rundir import DirectoryLock
 from hireps_torch.experiments.workers import RAY_ENV, Backend, check_pool, start_ray
 
@@ -53,18 +60,7 @@ __all__ = [
     "plan",
     "run_one",
     "run_sweep",
-    "summarize",
 ]
-
-METRICS: dict[str, tuple[str, str]] = {
-    "bimodal": ("final_return", "eval_return"),
-    "pendulum": ("success_rate", "average_return"),
-    "ball-on-beam": ("success_rate", "eval_return"),
-    "hockey-sequential": ("final_average_reward", "average_reward"),
-    "hockey-episodic": ("final_average_reward", "average_reward"),
-    "hockey-fixed-start": ("final_average_reward", "average_reward"),
-}
-"""Per experiment: (the summary's final metric in the table, the metrics.csv curve column)."""
 
 RUN_OPTIONS = {"seed", "seeds", "run_dir", "resume", "progress"}
 """Options a sweep sets itself (not allowed in --grid or --set)."""
@@ -143,13 +139,11 @@ def _population_dir(seeds: Sequence[int]) -> str:
 
 
 def _config_class(experiment: str) -> type:
-    from hireps_torch.experiments import EXPERIMENTS
-
     if experiment not in EXPERIMENTS:
         raise ValueError(
             f"unknown experiment {experiment!r}; choose one of {', '.join(EXPERIMENTS)}"
         )
-    return EXPERIMENTS[experiment][0]
+    return EXPERIMENTS[experiment].config
 
 
 def _split(entry: str, what: str) -> tuple[str, str]:
@@ -279,10 +273,8 @@ def plan(
 def run_one(run: SweepRun) -> dict[str, Any]:
     """Run, resume or reuse one run of a sweep; returns its ``summary.json`` (plus
     ``"reused": True`` when it had finished before)."""
-    from hireps_torch.experiments import EXPERIMENTS
-    from hireps_torch.experiments.checkpoint import saved_config
-
-    config_cls, run_fn = EXPERIMENTS[run.experiment]
+    entry = EXPERIMENTS[run.experiment]
+    config_cls = entry.config
     d = Path(run.run_dir)
     cfg = run.config(config_cls, run_dir=d, progress=False)
     if (d / "config.json").is_file():
@@ -300,7 +292,7 @@ def run_one(run: SweepRun) -> dict[str, Any]:
             f"sweep run directory {d} holds files but no config.json (a run stopped before it "
             "started, or something else was written there); delete it and run the sweep again"
         )
-    return run_fn(cfg)
+    return entry.run(cfg)
 
 
 class DamagedSummary(ValueError):
@@ -314,7 +306,7 @@ def _finished_summary(run: SweepRun, population: Path | None = None) -> dict[str
     for member in run.members() if run.seeds else []:
         _finished_summary(member, Path(run.run_dir))
     path = Path(run.run_dir) / "summary.json"
-    metric = METRICS[run.experiment][0]
+    metric = EXPERIMENTS[run.experiment].metric
     redo = (
         None
         if population is None
@@ -340,12 +332,9 @@ def _finished_summary(run: SweepRun, population: Path | None = None) -> dict[str
 def check_same_options(run: SweepRun, cfg: Any) -> None:
     """A ValueError naming every option in which the run already in ``run.run_dir`` differs
     from the one the sweep asks for (e.g. another ``--set``): nothing is reused or mixed."""
-    from hireps_torch.experiments.checkpoint import changed_options, read_config
-    from hireps_torch.experiments.options import config_dict
-
     saved = read_config(Path(run.run_dir))
     now = config_dict(str(saved.get("experiment", run.experiment)), cfg)
-    if diff := changed_options(saved, now):
+    if diff := changed_options(saved, now, run_only=EXPERIMENTS[run.experiment].run_only):
         raise ValueError(
             f"{run.run_dir} holds a run with other options than this sweep asks for: "
             + "; ".join(diff)
@@ -356,10 +345,6 @@ def check_same_options(run: SweepRun, cfg: Any) -> None:
 def check_configurations(runs: Sequence[SweepRun]) -> None:
     """Every configuration of ``runs`` checked as its run would check it (with its first
     seed), before any run starts: a ``ValueError`` naming each bad configuration and why."""
-    import torch
-
-    from hireps_torch.experiments import ALGORITHMS
-
     errors, seen = [], set()
     for run in runs:
         if run.name in seen:
@@ -370,7 +355,7 @@ def check_configurations(runs: Sequence[SweepRun]) -> None:
             with torch.random.fork_rng(devices=[]):  # a check draws nothing a run would see
                 cfg = run.config(config_cls, progress=False)
                 cfg.check_run_options()
-                ALGORITHMS[run.experiment](cfg)
+                EXPERIMENTS[run.experiment].algorithm(cfg)
         except (ValueError, TypeError, ImportError) as exc:
             errors.append(f"configuration {run.name} (seed {run.seed}): {exc}")
     if errors:
@@ -399,8 +384,6 @@ Failed = Callable[[SweepRun, BaseException], None]
 
 
 def _one_thread(run: SweepRun) -> dict[str, Any]:
-    import torch
-
     torch.set_num_threads(1)
     return run_one(run)
 
@@ -509,8 +492,6 @@ def _in_worker(conn: Any, stop: Any, parent: int, cores: set[int] | None = None)
     Held to its own cores, a population's members go side by side only on those."""
     import threading
     import time
-
-    from hireps_torch.experiments.checkpoint import record_early_stops, request_stop
 
     if cores:
         os.sched_setaffinity(0, cores)
@@ -659,77 +640,6 @@ def run_sweep(
     return results
 
 
-def _mean_std(xs: Sequence[float]) -> str:
-    if len(xs) == 1:
-        return f"{xs[0]:.3g}"
-    return f"{statistics.mean(xs):.3g} ± {statistics.stdev(xs):.2g}"
-
-
-def summarize(
-    runs: Sequence[SweepRun],
-    results: Mapping[tuple[str, int], Mapping[str, Any]],
-    out: Path,
-    stem: str = "sweep",
-    seconds: str = "s/run",
-) -> str:
-    """Write ``<stem>.md`` (table), ``.json`` (summaries) and ``.png`` (mean +- sample std
-    bands) to ``out``; returns the table. The metric and the curve column: the experiment's
-    :data:`METRICS`; ``seconds``: the header of the mean ``wall_seconds`` column."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    from hireps_torch.experiments.rundir import atomic_write
-
-    if not runs:
-        raise ValueError("nothing to summarize: the sweep has no runs")
-    experiment = runs[0].experiment
-    metric, curve = METRICS[experiment]
-    lines = [
-        f"| configuration | seeds | {metric} (mean ± std) | per seed | {seconds} |",
-        "|---|--:|--:|---|--:|",
-    ]
-    fig, ax = plt.subplots(figsize=(7, 4))
-    try:
-        for name in dict.fromkeys(r.name for r in runs):
-            mine = [r for r in runs if r.name == name]
-            ends = [results[(r.name, r.seed)] for r in mine]  # None in summary.json: NaN
-            vals = [math.nan if e[metric] is None else float(e[metric]) for e in ends]
-            walls = [float(e.get("wall_seconds", float("nan"))) for e in ends]
-            per_seed = ", ".join(f"{r.seed}: {v:.3g}" for r, v in zip(mine, vals, strict=True))
-            lines.append(
-                f"| {name} | {len(mine)} | {_mean_std(vals)} | {per_seed} | "
-                f"{statistics.mean(walls):.1f} |"
-            )
-            logs = []
-            for r in mine:
-                with (r.run_dir / "metrics.csv").open() as f:
-                    logs.append(list(csv.DictReader(f)))
-            k = min(map(len, logs))
-            x = np.array([float(w["episodes"]) for w in logs[0][:k]])
-            ys = np.array([[float(w[curve]) for w in log[:k]] for log in logs])
-            mean = ys.mean(0)
-            std = ys.std(0, ddof=1) if len(ys) > 1 else np.zeros_like(mean)  # as the table's
-            ax.plot(x, mean, label=name)
-            ax.fill_between(x, mean - std, mean + std, alpha=0.2)
-        table = "\n".join(lines)
-        out.mkdir(parents=True, exist_ok=True)
-        ordered = {f"{r.name}/seed{r.seed}": dict(results[(r.name, r.seed)]) for r in runs}
-        as_json = json.dumps(ordered, indent=1)  # in the order of ``runs``
-        atomic_write(out / f"{stem}.json", lambda p: p.write_text(as_json))
-        atomic_write(out / f"{stem}.md", lambda p: p.write_text(table + "\n"))
-        ax.set_xlabel("episodes")
-        ax.set_title(f"{experiment}: {curve} (mean ± std over seeds)", fontsize=9)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        atomic_write(out / f"{stem}.png", lambda p: fig.savefig(p, format="png", dpi=110))
-    finally:
-        plt.close(fig)
-    return table
-
-
 def main(cfg: SweepConfig) -> dict[str, Any]:
     """``hireps-train sweep``: plan, run (reusing, resuming), summarize; returns what it wrote."""
     configurations = parse_grid(cfg.experiment, cfg.grid, cfg.set)
@@ -768,7 +678,12 @@ def main(cfg: SweepConfig) -> dict[str, Any]:
             ) from None
         ended = [m for r in runs for m in r.members() if (m.name, m.seed) in results]
         seconds = "s (population)" if cfg.members > 1 else "s/run"
-        table = summarize(ended, results, out, seconds=seconds) if ended else ""
+        entry = EXPERIMENTS[cfg.experiment]
+        table = (
+            summarize(ended, results, out, entry.metric, entry.curve, seconds=seconds)
+            if ended
+            else ""
+        )
     finally:
         lock.release()
     print(table)

@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
+from hireps_torch.envs._common import one_thread
+
 __all__ = [
     "Backend",
     "InProcessPool",
@@ -129,27 +131,26 @@ def play_episodes(
         raise ValueError("play_episodes needs at least one episode index")
     gen = torch.Generator()
     out = []
-    previous, threads = net.generator, torch.get_num_threads()
+    previous = net.generator
     net.generator = gen
     # one thread, whatever the process was given: an episode's sums then do not depend on
     # the machine's cores, OMP_NUM_THREADS or the backend (with reproducible MKL, above)
-    torch.set_num_threads(1)
     try:
-        for e in episodes:
-            env_seed, policy_seed = episode_seeds(seed, e)
-            env.set_seed(env_seed)
-            gen.manual_seed(policy_seed)
-            td = env.rollout(steps, actor, auto_reset=True, break_when_any_done=True)
-            done = td.get(("next", "done")).reshape(-1)
-            if td.shape[-1] != steps or not bool(done[-1]) or bool(done[:-1].any()):
-                raise RuntimeError(
-                    f"episode {e} did not end after exactly {steps} steps (it ran "
-                    f"{td.shape[-1]}): play_episodes needs fixed-length episodes"
-                )
-            out.append(td)
+        with one_thread():
+            for e in episodes:
+                env_seed, policy_seed = episode_seeds(seed, e)
+                env.set_seed(env_seed)
+                gen.manual_seed(policy_seed)
+                td = env.rollout(steps, actor, auto_reset=True, break_when_any_done=True)
+                done = td.get(("next", "done")).reshape(-1)
+                if td.shape[-1] != steps or not bool(done[-1]) or bool(done[:-1].any()):
+                    raise RuntimeError(
+                        f"episode {e} did not end after exactly {steps} steps (it ran "
+                        f"{td.shape[-1]}): play_episodes needs fixed-length episodes"
+                    )
+                out.append(td)
     finally:
         net.generator = previous
-        torch.set_num_threads(threads)
     return torch.cat(out)
 
 

@@ -43,10 +43,10 @@ def parse(argv: list[str]) -> Any:
 
     resume = _resume_dir(argv)
     if argv and argv[0] in EXPERIMENTS and resume is not None:
-        config_cls = EXPERIMENTS[argv[0]][0]
+        config_cls = EXPERIMENTS[argv[0]].config
         default = saved_config(config_cls, argv[0], resume)
         return tyro.cli(config_cls, default=default, args=argv[1:], description=__doc__)
-    commands: dict[str, Callable[..., Any]] = {name: c for name, (c, _) in EXPERIMENTS.items()}
+    commands: dict[str, Callable[..., Any]] = {name: e.config for name, e in EXPERIMENTS.items()}
     commands["sweep"] = SweepConfig
     return tyro.extras.subcommand_cli_from_dict(commands, args=argv, description=__doc__)
 

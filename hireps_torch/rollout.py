@@ -29,6 +29,7 @@ __all__ = [
     "policy_module",
     "shutdown_collector",
     "time_indexed_module",
+    "member_transitions",
     "transitions",
     "signal_handled",
     "workers_ignore_sigint",
@@ -364,6 +365,24 @@ def _entries(batch: TensorDictBase, state_key: str, extra: Any) -> list[Tensor]:
         )
     flat = batch.reshape(-1)
     return [flat.get(k) for k in keys]
+
+
+def member_transitions(
+    batch: TensorDictBase, members: int, state_key: str = "state"
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """A population's collected batch (its environments member-major, as ``MemberTasks`` lays
+    them out) as each member's decisions.
+
+    Returns:
+        states (S, N, C), actions (S, N, A), rewards (S, N), next_states (S, N, C) (float64)
+        and terminated (S, N) bool, S = ``members``.
+    """
+    s, a, r, s_next, _ = transitions(batch, state_key)
+    terminated = batch["next", "terminated"].reshape(-1)
+    s, a, r, s_next, terminated = (
+        x.reshape(members, -1, *x.shape[1:]) for x in (s, a, r, s_next, terminated)
+    )
+    return s, a, r, s_next, terminated
 
 
 def transitions(

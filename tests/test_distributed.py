@@ -497,3 +497,42 @@ def test_a_ray_address_needs_a_whole_settings_frame(pieces, ok):
         else:
             with pytest.raises(ValueError, match="is not a Ray cluster"):
                 check_ray_address(f"127.0.0.1:{port}", timeout=2.0)
+
+
+def _hockey_metrics(tmp_path: Path, name: str, threads: str | None, *extra: str) -> str:
+    """metrics.csv of a tiny hockey-sequential run by ``hireps-train`` with ``threads`` torch
+    threads (None: the machine's default, OMP_NUM_THREADS unset)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_CBWR")}
+    if threads is not None:
+        env["OMP_NUM_THREADS"] = threads
+    code = "import sys; from hireps_torch.cli import entry; sys.argv[0] = 'hireps-train'; entry()"
+    args = ["hockey-sequential", *TINY, "--seed", "93", "--run-dir", str(tmp_path / name)]
+    out = subprocess.run(
+        [sys.executable, "-c", code, *args],
+        cwd=ROOT,
+        env={**env, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT,
+        check=False,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    return (tmp_path / name / "metrics.csv").read_text()
+
+
+def test_a_hockey_run_is_the_same_with_the_default_one_and_four_threads(tmp_path):
+    """Episodes and updates bit for bit whatever torch's thread count (before: the simulation's
+    set-up ran on the process's threads, and its round-off changed every episode)."""
+    default = _hockey_metrics(tmp_path, "default", None)
+    assert len(default.splitlines()) == 4  # header + 3 iterations
+    assert _hockey_metrics(tmp_path, "one", "1") == default
+    assert _hockey_metrics(tmp_path, "four", "4") == default
+
+
+@pytest.mark.slow
+def test_a_hockey_run_with_default_threads_equals_local_and_ray_workers(tmp_path):
+    pytest.importorskip("ray")
+    default = _hockey_metrics(tmp_path, "default", None)
+    assert _hockey_metrics(tmp_path, "local2", None, "--workers", "2") == default
+    assert _hockey_metrics(tmp_path, "ray2", None, "--workers", "2", "--backend", "ray") == default
+    _assert_ray_gone()

@@ -36,7 +36,7 @@ def same_tree(a, b):
 
 
 def train(name, run_dir, **options):
-    config_cls, run = EXPERIMENTS[name]
+    config_cls, run = EXPERIMENTS[name].config, EXPERIMENTS[name].run
     cfg = config_cls(progress=False, run_dir=run_dir, **{**SHORT[name], **options})
     run(cfg)
     return cfg
@@ -74,7 +74,7 @@ def test_config_json_round_trips_into_its_config_class(tmp_path):
     from hireps_torch.experiments.checkpoint import run_config
 
     cfg = train("bimodal", tmp_path / "run", seed=4, contextual=True, epsilon=0.7)
-    again = run_config(EXPERIMENTS["bimodal"][0], "bimodal", tmp_path / "run")
+    again = run_config(EXPERIMENTS["bimodal"].config, "bimodal", tmp_path / "run")
     assert again == cfg
     assert json.loads((tmp_path / "run" / "config.json").read_text())["experiment"] == "bimodal"
 
@@ -121,7 +121,7 @@ class _Interrupting:
 
 
 def test_an_interrupted_run_loads_at_its_last_checkpoint(tmp_path, monkeypatch):
-    import hireps_torch.experiments.loop as loop
+    import hireps_torch.experiments.runner as loop
 
     monkeypatch.setattr(loop, "tqdm", lambda *a, **k: _Interrupting(after=2))
     with pytest.raises(RunInterrupted):

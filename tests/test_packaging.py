@@ -66,7 +66,7 @@ def test_the_wheel_installs_one_top_level_package_and_the_command(wheel):
         scripts = z.read(entry_points).decode()
     top = {n.split("/")[0] for n in names if ".dist-info/" not in n}
     assert top == {"hireps_torch"}
-    for module in ["envs/pendulum.py", "envs/hockey/env.py", "experiments/loop.py", "cli.py"]:
+    for module in ["envs/pendulum.py", "envs/hockey/env.py", "experiments/runner.py", "cli.py"]:
         assert f"hireps_torch/{module}" in names
     assert "hireps-train = hireps_torch.cli:entry" in scripts
 

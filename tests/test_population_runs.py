@@ -277,7 +277,7 @@ def test_a_populations_warnings_name_each_member_by_its_seed(tmp_path):
 
     modules = {"bimodal": bimodal, "pendulum": pendulum, "ball-on-beam": ball_on_beam}
     for name, module in (modules | {"hockey-sequential": hockey}).items():
-        config_cls, _ = EXPERIMENTS[name]
+        config_cls, _ = EXPERIMENTS[name].config, EXPERIMENTS[name].run
         algo = module.algorithm(config_cls(seeds="7,2", run_dir=tmp_path / name))
         assert algo.seeds == [7, 2], name
     # epsilon 5 > log 200: the weights collapse; the warnings say member 1 is seed 6

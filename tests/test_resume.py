@@ -37,7 +37,7 @@ def in_process(name, run_dir, **options):
     """Run experiment ``name`` in this process (no interpreter start-up)."""
     from hireps_torch.experiments import EXPERIMENTS
 
-    config_cls, run = EXPERIMENTS[name]
+    config_cls, run = EXPERIMENTS[name].config, EXPERIMENTS[name].run
     return run(config_cls(progress=False, run_dir=run_dir, **options))
 
 
@@ -46,7 +46,7 @@ def resume_in_process(name, run_dir):
     from hireps_torch.experiments import EXPERIMENTS, run_experiment
     from hireps_torch.experiments.checkpoint import saved_config
 
-    cfg = saved_config(EXPERIMENTS[name][0], name, run_dir)
+    cfg = saved_config(EXPERIMENTS[name].config, name, run_dir)
     return run_experiment(dataclasses.replace(cfg, progress=False))
 
 
@@ -264,9 +264,9 @@ def test_resuming_with_changed_options_is_refused_and_names_them(tmp_path):
     from hireps_torch.experiments.checkpoint import saved_config
 
     with pytest.raises(ValueError, match="'bimodal' run, not 'pendulum'"):
-        saved_config(EXPERIMENTS["pendulum"][0], "pendulum", run)  # what --resume parses
+        saved_config(EXPERIMENTS["pendulum"].config, "pendulum", run)  # what --resume parses
     with pytest.raises(ValueError, match="no config.json"):
-        saved_config(EXPERIMENTS["bimodal"][0], "bimodal", tmp_path / "nowhere")
+        saved_config(EXPERIMENTS["bimodal"].config, "bimodal", tmp_path / "nowhere")
     assert {q.name: q.read_bytes() for q in run.iterdir()} == before
 
 
@@ -580,10 +580,12 @@ def test_resuming_a_member_of_a_population_points_to_the_population(tmp_path):
     # member is refused all the same (it ran on as a run of its own, and the population was lost)
     from hireps_torch.experiments import EXPERIMENTS
     from hireps_torch.experiments.checkpoint import saved_config
-    from hireps_torch.experiments.loop import resume_point
+    from hireps_torch.experiments.runner import resume_point
 
     def resume(d):
-        return resume_point("bimodal", saved_config(EXPERIMENTS["bimodal"][0], "bimodal", d))
+        return resume_point(
+            EXPERIMENTS["bimodal"], saved_config(EXPERIMENTS["bimodal"].config, "bimodal", d)
+        )
 
     for name in ("checkpoint.pt", "seed0/metrics.csv", "seed1/metrics.csv"):
         (run / name).unlink()
@@ -849,15 +851,16 @@ def test_options_that_do_not_change_a_run_may_differ_on_resume(tmp_path):
     import json
 
     from hireps_torch.experiments import EXPERIMENTS
-    from hireps_torch.experiments.loop import resume_point
     from hireps_torch.experiments.options import config_dict
+    from hireps_torch.experiments.runner import resume_point
 
     def started(name, **options):
-        cfg = EXPERIMENTS[name][0](run_dir=tmp_path / name, progress=False, **options)
+        cfg = EXPERIMENTS[name].config(run_dir=tmp_path / name, progress=False, **options)
         (tmp_path / name).mkdir()
         (tmp_path / name / "config.json").write_text(json.dumps(config_dict(name, cfg)))
         return lambda **now: resume_point(
-            name, EXPERIMENTS[name][0](resume=tmp_path / name, progress=False, **now)
+            EXPERIMENTS[name],
+            EXPERIMENTS[name].config(resume=tmp_path / name, progress=False, **now),
         )
 
     hockey = started("hockey-sequential", workers=1)

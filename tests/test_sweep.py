@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from hireps_torch.experiments.report import summarize  # noqa: E402
 from hireps_torch.experiments.sweep import (
     SweepFailed,
     parse_grid,
@@ -20,7 +21,6 @@ from hireps_torch.experiments.sweep import (
     plan,
     run_sweep,
     seeds_text,
-    summarize,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -149,7 +149,7 @@ def test_an_in_process_sweep_writes_runs_table_and_plot_and_reuses_them(tmp_path
         assert (r.run_dir / "summary.json").is_file() and (r.run_dir / "metrics.csv").is_file()
         cfg = json.loads((r.run_dir / "config.json").read_text())
         assert cfg["seed"] == r.seed and cfg["n_options"] == r.options["n_options"]
-    table = summarize(runs, results, tmp_path / "bimodal")
+    table = summarize(runs, results, tmp_path / "bimodal", "final_return", "eval_return")
     assert table.count("\n") == 3 and "| n_options=3 | 2 |" in table
     assert (tmp_path / "bimodal" / "sweep.png").stat().st_size > 0
     stamps = [(r.run_dir / "summary.json").stat().st_mtime_ns for r in runs]
@@ -180,7 +180,9 @@ def test_the_plots_band_is_the_tables_sample_std(tmp_path, monkeypatch):
         "fill_between",
         lambda self, x, lo, hi, **kw: bands.append((lo, hi)) or fill(self, x, lo, hi, **kw),
     )
-    table = summarize(runs, results, tmp_path, stem="population", seconds="s (population)")
+    table = summarize(
+        runs, results, tmp_path, "final_return", "eval_return", "population", "s (population)"
+    )
     assert "3 ± 3 |" in table and "| s (population) |" in table
     ((lo, hi),) = bands
     np.testing.assert_allclose(hi, [6.0, 12.0])  # mean 3, 6 + sample std 3, 6
@@ -373,7 +375,7 @@ def test_a_failing_run_is_named_and_the_others_still_run(tmp_path):
     bad = out / "bimodal" / "default" / "seed1"
     from hireps_torch.experiments import EXPERIMENTS
 
-    config_cls, run = EXPERIMENTS["bimodal"]
+    config_cls, run = EXPERIMENTS["bimodal"].config, EXPERIMENTS["bimodal"].run
     run(config_cls(episodes=400, seed=1, run_dir=bad, progress=False))
     (bad / "summary.json").unlink()
     (bad / "checkpoint.pt").write_bytes(b"")
@@ -528,7 +530,7 @@ def test_a_finished_run_with_a_damaged_summary_fails_alone(tmp_path):
     args = ["--experiment", "bimodal", "--seeds", "0-1", "--set", "episodes=400", "--out", str(out)]
     from hireps_torch.experiments import EXPERIMENTS
 
-    config_cls, run = EXPERIMENTS["bimodal"]
+    config_cls, run = EXPERIMENTS["bimodal"].config, EXPERIMENTS["bimodal"].run
     bad = out / "bimodal" / "default" / "seed0" / "summary.json"
     run(config_cls(episodes=400, seed=0, run_dir=bad.parent, progress=False))
     bad.write_text("{}")
@@ -618,7 +620,9 @@ def test_a_sweep_of_populations_writes_the_runs_of_separate_seeds_and_reuses_the
         assert (
             results[(m.name, m.seed)]["final_return"] == expected[(r.name, r.seed)]["final_return"]
         )
-    table = summarize(members, results, tmp_path / "pops" / "bimodal")
+    table = summarize(
+        members, results, tmp_path / "pops" / "bimodal", "final_return", "eval_return"
+    )
     assert "| n_options=3 | 3 |" in table and "2: " in table
     stamps = [(r.run_dir / "summary.json").stat().st_mtime_ns for r in pops]
     again = run_sweep(pops, progress=False)

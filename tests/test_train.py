@@ -64,7 +64,7 @@ def in_process(name, tmp_path, run_name, **options):
     """Run experiment ``name`` in this process (no interpreter start-up) into tmp_path/run_name."""
     from hireps_torch.experiments import EXPERIMENTS
 
-    config_cls, run = EXPERIMENTS[name]
+    config_cls, run = EXPERIMENTS[name].config, EXPERIMENTS[name].run
     return run(config_cls(progress=False, run_dir=tmp_path / run_name, **options))
 
 
@@ -174,7 +174,7 @@ def test_ball_on_beam_subprocess_writes_the_run_directory(tmp_path):
     p = train("ball-on-beam", "--episodes", "6", "--run-dir", str(run), "--no-progress")
     assert p.returncode == 0, p.stderr
     summary = check_run_dir(run, keys=("success_rate", "episodes_to_success"))
-    assert summary["experiment"] == "ball_on_beam" and summary["episodes"] == 6
+    assert summary["experiment"] == "ball-on-beam" and summary["episodes"] == 6
     assert 0.0 <= summary["success_rate"] <= 1.0
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     assert len(rows) == 2  # 3 episodes per iteration
@@ -263,35 +263,35 @@ def test_hockey_exploration_floor_moves_linearly_to_its_end_value():
     )
 
 
-def test_hockey_update_sets_the_floor_of_the_coming_update_before_learning(monkeypatch):
-    """_update puts floor(algo.iteration) on every option of every shot's policy before
+def test_hockey_sets_the_floor_of_each_update_before_learning(tmp_path, monkeypatch):
+    """The loop puts variance_floor(update) on every option of every shot's policy before
     algo.learn fits them (so a resumed run continues the schedule from its checkpoint)."""
-    import types
-
-    import hireps_torch.rollout
     from hireps_torch.experiments import hockey
 
-    N, K = 4, 3
-    fake = (torch.zeros(N, K, 2), torch.zeros(N, K, 14), torch.zeros(N, K), torch.zeros(N, 2))
-    monkeypatch.setattr(hireps_torch.rollout, "episodes", lambda batch, k: fake)
-    options = [types.SimpleNamespace(min_variance=torch.ones(14)) for _ in range(2 * K)]
     seen = []
+    learn = hockey.TimeIndexedHiREPS.learn
 
-    class Algo:
-        iteration, population = 7, None
-        policies = [
-            types.SimpleNamespace(sub_policies=options[2 * k : 2 * k + 2]) for k in range(K)
-        ]
+    def recording(self, experience):
+        seen.append([o.min_variance.clone() for p in self.policies for o in p.sub_policies])
+        return learn(self, experience)
 
-        def learn(self, experience):
-            seen.append([o.min_variance.clone() for o in options])
-            return {}
-
-    update = hockey._update(Algo(), K, (0.0, 1.0, 2.0, 3.0), lambda i: torch.full((14,), 0.01 * i))
-    update([None])
-    assert len(seen) == 1
-    for v in seen[0]:
-        torch.testing.assert_close(v, torch.full((14,), 0.07))
+    monkeypatch.setattr(hockey.TimeIndexedHiREPS, "learn", recording)
+    cfg = hockey.HockeySequentialConfig(
+        n_options=2,
+        episodes=6,
+        episodes_per_iteration=2,
+        exploration_floor_end=0.1,
+        final_eval_episodes=0,
+        run_dir=tmp_path / "r",
+        progress=False,
+    )
+    hockey.run(cfg)
+    demo = torch.as_tensor(hockey.demo_action(hockey.hockey_params(cfg)), dtype=torch.float64)
+    std = hockey._exploration_std(cfg, 1, demo)
+    assert len(seen) == 3
+    for it, floors in enumerate(seen):
+        for v in floors:
+            torch.testing.assert_close(v, hockey.variance_floor(cfg, std, it, 3))
 
 
 def test_run_hockey_refuses_the_base_config(tmp_path):
@@ -326,29 +326,18 @@ def test_pendulum_policy_and_value_features_follow_the_config():
     assert len({float(o.bias) for o in rand.sub_policies}) == 4
 
 
-def test_pendulum_update_can_add_the_mirrored_decisions():
-    """The update of a population of two: each member's decisions (its systems, after the
-    other's in the batch), then their mirror images; the rows see the collected ones only."""
+def test_a_populations_batch_splits_into_members_and_their_mirrored_decisions():
+    """A batch of a population of two: each member's decisions (its systems, after the
+    other's in the batch), then, mirrored, their mirror images."""
     from hireps_torch.envs.pendulum import PendulumSwingUpBatchEnv, mirror_decisions, mirror_states
-    from hireps_torch.experiments.loop import infinite_horizon_update
-
-    seen = {}
-
-    class Recorder:
-        population = 2
-
-        def update(self, *data):
-            seen["data"] = data
-            return {"eta": [1.0, 2.0]}
+    from hireps_torch.rollout import member_transitions
 
     env = PendulumSwingUpBatchEnv(4, seed=0)  # two members of two pendulums
     batch = env.rollout(3, break_when_any_done=False)
     batch["option"] = torch.zeros(4, 3, dtype=torch.int64)
-    rows = infinite_horizon_update(
-        Recorder(), lambda r, _: [{"n": x.numel()} for x in r], mirror_decisions
-    )(batch)
-    assert rows == [{"n": 6, "eta": 1.0}, {"n": 6, "eta": 2.0}]
-    s, a, r, s_next, term = seen["data"]
+    collected = member_transitions(batch, 2)
+    assert [tuple(x.shape) for x in collected] == [(2, 6, 2), (2, 6, 1), (2, 6), (2, 6, 2), (2, 6)]
+    s, a, r, s_next, term = mirror_decisions(*collected)
     assert s.shape == (2, 12, 2) and a.shape == (2, 12, 1) and term.shape == (2, 12)
     states = batch["state"].to(torch.float64).reshape(2, 6, 2)  # member after member
     assert torch.equal(s[:, :6], states) and torch.equal(s[:, 6:], mirror_states(states))
@@ -369,7 +358,8 @@ def test_every_experiment_is_registered_with_its_config_and_run():
         "hockey-episodic",
         "hockey-fixed-start",
     }
-    for name, (config_cls, run) in EXPERIMENTS.items():
+    for name, entry in EXPERIMENTS.items():
+        config_cls, run = entry.config, entry.run
         cfg = config_cls()
         assert dataclasses.is_dataclass(cfg), name
         hints = typing.get_type_hints(config_cls)
@@ -792,7 +782,7 @@ def test_calling_main_in_a_process_leaves_its_environment_alone(tmp_path, monkey
 
 
 def test_runs_keep_freed_memory_where_the_c_library_is_glibc():
-    from hireps_torch.experiments.loop import keep_freed_memory
+    from hireps_torch.experiments.runner import keep_freed_memory
 
     glibc = platform.libc_ver()[0] == "glibc"
     assert keep_freed_memory() is glibc
@@ -803,7 +793,7 @@ def test_a_run_keeps_freed_memory_while_it_runs_and_hands_it_back_after(tmp_path
     """In a process that goes on after a run (a notebook, a sweep's runs one after another) the
     heap kept for the run is handed back (before: 1 GiB of pad for the rest of the process;
     ~850 MB resident after a 20-seed pendulum population against ~450 MB)."""
-    from hireps_torch.experiments import loop
+    from hireps_torch.experiments import runner
 
     calls = []
 
@@ -818,7 +808,7 @@ def test_a_run_keeps_freed_memory_while_it_runs_and_hands_it_back_after(tmp_path
 
     import train as entry
 
-    monkeypatch.setattr(loop.ctypes, "CDLL", lambda name: Libc())
+    monkeypatch.setattr(runner.ctypes, "CDLL", lambda name: Libc())
     entry.main(["bimodal", "--episodes", "400", "--run-dir", str(tmp_path / "r"), "--no-progress"])
     assert calls == [("mallopt", -2, 1 << 30), ("mallopt", -2, 128 * 1024), ("malloc_trim", 0)]
 
@@ -890,13 +880,13 @@ def test_episodes_that_leave_part_of_an_iteration_over_are_said(name, options, m
     """A run whose budget is not a whole number of iterations is rounded down, with a warning
     (where the run starts: resume_point) that says how many episodes it plays; whole budgets,
     and building the algorithm alone (load_run, a sweep's checks), warn nothing."""
-    from hireps_torch.experiments import ALGORITHMS, EXPERIMENTS
-    from hireps_torch.experiments.loop import resume_point
+    from hireps_torch.experiments import EXPERIMENTS
+    from hireps_torch.experiments.runner import resume_point
 
-    config_cls = EXPERIMENTS[name][0]
+    config_cls = EXPERIMENTS[name].config
     with pytest.warns(UserWarning, match=message):
-        assert resume_point(name, config_cls(**options)) is None
+        assert resume_point(EXPERIMENTS[name], config_cls(**options)) is None
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
-        resume_point(name, config_cls())
-        ALGORITHMS[name](config_cls(**options))
+        resume_point(EXPERIMENTS[name], config_cls())
+        EXPERIMENTS[name].algorithm(config_cls(**options))

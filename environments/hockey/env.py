@@ -92,7 +92,7 @@ import torch
 from torch import Tensor
 
 from hireps_torch.checks import as_finite_f64, as_float_tensor, check_count
-from hireps_torch.envs._common import ResetNeeded, check_params
+from hireps_torch.envs._common import ResetNeeded, check_params, one_thread
 from hireps_torch.envs.hockey.params import HockeyParams
 from hireps_torch.envs.hockey.sim import HockeySim, demo_action
 from hireps_torch.registration import HOCKEY_EPISODIC_ID, HOCKEY_ID
@@ -181,6 +181,7 @@ class RobotHockeyEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
+    @one_thread()  # its episodes the same whatever the process's threads (also reset, play)
     def __init__(
         self,
         params: HockeyParams | None = None,
@@ -207,6 +208,7 @@ class RobotHockeyEnv(gym.Env):
         """The demonstration's shot as an action: (14,) [goal, goal velocity]."""
         return demo_action(self.sim.dmp)
 
+    @one_thread()
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -230,6 +232,7 @@ class RobotHockeyEnv(gym.Env):
         a, clipped = clip_action(action, self._low, self._high)
         return self.play(a, bool(clipped.any()))
 
+    @one_thread()
     def play(self, action: Tensor, clipped: bool) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One shot of an already checked and clipped (14,) action (what :meth:`step` does
         after :func:`clip_action`); ``clipped`` is reported in ``info``."""

@@ -207,6 +207,8 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         rewards: Tensor,
         next_states: Tensor,
         terminated: Tensor | None = None,
+        *,
+        epsilon: float | None = None,
     ) -> dict[str, Any]:
         """One policy update from transitions sampled with it; raising changes nothing.
 
@@ -217,11 +219,13 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             next_states: (N, C) states reached (before any restart).
             terminated: optional (N,) bool, ended in a terminal state: the next state's
                 features are then phi_hat_0 (a sure restart).
+            epsilon: this update's KL bound (a schedule's value); None: ``self.epsilon``.
 
         Returns:
             Diagnostics: as :meth:`EpisodicHiREPS.tell`'s, with ``mean_reward`` for
             ``mean_return, max_return``.
         """
+        eps = self.epsilon if epsilon is None else check_positive_float("epsilon", epsilon)
         s, a, R, s_next, term = self._transitions(states, actions, rewards, next_states, terminated)
         next_features = self.value_features(s_next)
         if term is not None:
@@ -231,7 +235,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
             self.policies, s[..., None, :], a[..., None, :], self.kappa_rel
         )
         lead, N = R.shape[:-1], R.shape[-1]
-        warn_if_degenerate([self.epsilon], N, 3)
+        warn_if_degenerate([eps], N, 3)
         R1 = R.reshape(-1, N)  # the dual's S problems (1 for one run)
         phi = self.value_features(s).to(R).reshape(*R1.shape, -1)
         next_features = next_features.to(R).reshape(phi.shape)
@@ -240,7 +244,7 @@ class InfiniteHorizonHiREPS(HiREPSBase):
         sol = infinite_horizon_solution(
             R1,
             lr[:, :, 0],
-            R.new_full((R1.shape[0], 1), self.epsilon),
+            R.new_full((R1.shape[0], 1), eps),
             phi,
             next_features,
             self.initial_features.to(R).expand(*lead, -1).reshape(R1.shape[0], -1),

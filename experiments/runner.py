@@ -1,4 +1,6 @@
-"""The training loops every experiment shares, and the one ending of every run."""
+"""The run library every experiment's loop uses: its registry entry (:class:`Experiment`),
+:func:`resume_point` (the run options and a resume checked before anything is built) and
+:class:`Run` (the run directories, iterations with checkpoints and signals, rows, the end)."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import dataclasses
 import os
 import statistics
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,10 +18,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from hireps_torch.checks import NO_MEMBER_DIMENSION
 from hireps_torch.experiments.checkpoint import (
-    EARLIER_POPULATION,
-    EARLIER_RUN,
     FORMAT,
     CheckpointState,
     RunFinished,
@@ -29,11 +28,16 @@ from hireps_torch.experiments.checkpoint import (
     check_same_run,
     checkpoint_dir,
     load_checkpoint,
-    no_config_note,
     read_config,
     stop_on_signals,
 )
+from hireps_torch.experiments.migrations import (
+    EARLIER_POPULATION,
+    earlier_version_note,
+    no_config_note,
+)
 from hireps_torch.experiments.options import RunOptions, config_dict, member_seeds, parse_seeds
+from hireps_torch.experiments.report import Member, summarize
 from hireps_torch.experiments.rundir import (
     DirectoryLock,
     RunWriter,
@@ -42,21 +46,44 @@ from hireps_torch.experiments.rundir import (
 )
 
 __all__ = [
+    "Experiment",
     "Postfix",
     "Resume",
     "Run",
-    "ask_tell_loop",
     "check_budget",
-    "collector_loop",
-    "finish_run",
     "infinite_horizon_postfix",
-    "infinite_horizon_update",
+    "keep_freed_memory",
     "logged_rows",
     "resume_point",
 ]
 
 Postfix = Callable[[dict[str, Any]], dict[str, Any]]
-"""Maps a logged row to the progress bar's postfix fields."""
+"""Maps a logged row (the members' mean) to the progress bar's postfix fields."""
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One registry entry: an experiment's command-line name (also ``config.json``'s
+    ``experiment``), its config class, ``run(cfg) -> summary``, ``algorithm(cfg)`` (the config
+    checked and the untrained algorithm, writing nothing), the summary's final ``metric``, the
+    ``metrics.csv`` column its population and sweep bands show (``curve``; ``curves``: those of
+    each run's learning curve, default ``(curve,)``), the option that counts episodes per
+    iteration and the options that may change between a run and its resumption besides
+    :data:`~hireps_torch.experiments.checkpoint.RUN_ONLY_OPTIONS`."""
+
+    name: str
+    config: type
+    run: Callable[[Any], dict[str, Any]]
+    algorithm: Callable[[Any], Any]
+    metric: str
+    curve: str
+    curves: tuple[str, ...] = ()
+    per_iteration: str = "episodes_per_iteration"
+    run_only: tuple[str, ...] = ()
+
+    @property
+    def plotted(self) -> tuple[str, ...]:
+        return self.curves or (self.curve,)
 
 
 @dataclass(frozen=True)
@@ -67,13 +94,13 @@ class Resume:
     checkpoint: CheckpointState | None
 
 
-def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
+def resume_point(experiment: Experiment, cfg: RunOptions) -> Resume | None:
     """Check the run options and, for ``cfg.resume``, that the run exists, has not finished
     (:class:`RunFinished`) and has the same options; call it at the start of a run, before
     building anything. Warns (at the run's caller) where the episodes leave part of an
     iteration over."""
     cfg.check_run_options()
-    per_name = "samples_per_iteration" if experiment == "bimodal" else "episodes_per_iteration"
+    per_name, run_only, experiment = experiment.per_iteration, experiment.run_only, experiment.name
     episodes, per = getattr(cfg, "episodes", 0), getattr(cfg, per_name, 1)
     if episodes % per:
         warnings.warn(
@@ -101,7 +128,7 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
                 f"cannot resume {run_dir}: it is a {saved.get('experiment')!r} run, not "
                 f"{experiment!r}"
             )
-        if diff := changed_options(saved, config_dict(experiment, cfg)):
+        if diff := changed_options(saved, config_dict(experiment, cfg), run_only=run_only):
             raise ValueError(
                 f"cannot resume {run_dir} with other options than it was started with: "
                 + "; ".join(diff)
@@ -114,7 +141,7 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
         seeds = saved.get("seeds")
         dirs = [run_dir] if seeds is None else [run_dir / f"seed{s}" for s in parse_seeds(seeds)]
         if seeds is not None:
-            _check_members(experiment, cfg, run_dir)
+            _check_members(experiment, cfg, run_dir, run_only)
         logged = {d: logged_rows(d / "metrics.csv") for d in dirs}
         ckpt = load_checkpoint(run_dir)
         if ckpt is None and seeds is None:
@@ -129,7 +156,7 @@ def resume_point(experiment: str, cfg: RunOptions) -> Resume | None:
                 )
         if ckpt is not None:
             try:
-                check_same_run(run_dir, ckpt, saved)
+                check_same_run(run_dir, ckpt, saved, run_only)
             except ValueError as exc:
                 raise ValueError(f"cannot resume {run_dir}: {exc}; nothing was changed") from None
         # rows without a checkpoint: its first was not due yet, or its write failed (the run
@@ -165,7 +192,9 @@ def member_configs(cfg: RunOptions, root: Path) -> list[Any]:
     ]
 
 
-def _check_members(experiment: str, cfg: RunOptions, run_dir: Path) -> None:
+def _check_members(
+    experiment: str, cfg: RunOptions, run_dir: Path, run_only: tuple[str, ...]
+) -> None:
     """The member directories of a population to resume are its own directories, and their
     ``config.json`` (where present; a missing one is written again) are the population's
     with their seeds: a ``ValueError`` naming the first that is not."""
@@ -185,7 +214,10 @@ def _check_members(experiment: str, cfg: RunOptions, run_dir: Path) -> None:
             if not config.is_file():
                 raise ValueError(f"{config} is not a file")
             diff = changed_options(
-                read_config(d), config_dict(experiment, member), ("config.json", "population")
+                read_config(d),
+                config_dict(experiment, member),
+                ("config.json", "population"),
+                run_only,
             )
             if diff:
                 raise ValueError(f"{config} is not its member's config: " + "; ".join(diff))
@@ -212,22 +244,35 @@ def logged_rows(path: Path) -> int:
 
 
 class Run:
-    """An open run (new, or reopened from a checkpoint): its members' writers and its state.
-    Every run is a population of S >= 1 seeds (``seeds``; ``population``: ``--seeds`` was
-    given, even of one seed); ``configs`` holds each member's config (its seed and run
-    directory, member s of a population in ``seed<s>``, no ``seeds``).
+    """An open run (new, or reopened from a checkpoint) that an experiment's loop drives::
+
+        resume = resume_point(EXPERIMENT, cfg)  # first: refuses before anything is built
+        ...  # build the task, the algorithm, the collector
+        with Run(EXPERIMENT, cfg, RunState(algo), resume) as run:
+            for it in run.iterations(n, label):  # from the checkpoint's iteration on
+                ...  # collect, update, evaluate
+                run.log(rows)  # one row per member
+            return run.finish(summaries, title=label)
+
+    :meth:`iterations` writes the checkpoint when due and, after a SIGINT/SIGTERM, at the next
+    iteration boundary, then raises :class:`RunInterrupted`; leaving the ``with`` block by an
+    error writes the last iteration's checkpoint if it was not due yet, and releases the run
+    directories. Every run is a population of S >= 1 seeds (``seeds``; ``population``:
+    ``--seeds`` was given, even of one seed); ``configs`` holds each member's config (its seed
+    and run directory, member s of a population in ``seed<s>``, no ``seeds``).
 
     Args:
-        experiment: the experiment's name (``config.json``'s ``experiment``).
+        experiment: the experiment's registry entry.
         cfg: the experiment's config (its :class:`RunOptions` part places the run).
         state: what the checkpoints hold; restored here from the checkpoint when resuming.
         resume: from :func:`resume_point`.
     """
 
     def __init__(
-        self, experiment: str, cfg: RunOptions, state: RunState, resume: Resume | None
+        self, experiment: Experiment, cfg: RunOptions, state: RunState, resume: Resume | None
     ) -> None:
-        self.experiment = experiment
+        self.entry = experiment
+        self.experiment = experiment = experiment.name
         self.config = config_dict(experiment, cfg)
         root = Path(
             resume.run_dir
@@ -255,15 +300,8 @@ class Run:
             try:
                 state.load_state_dict(ckpt)
             except ValueError as exc:
-                earlier = NO_MEMBER_DIMENSION in str(exc)  # an ordinary hockey run's, before
                 raise ValueError(
-                    f"cannot resume {root}: {exc}"
-                    + (
-                        f"; an earlier version of this code wrote it: {EARLIER_RUN}"
-                        if earlier
-                        else ""
-                    )
-                    + "; nothing was changed"
+                    f"cannot resume {root}: {exc}{earlier_version_note(exc)}; nothing was changed"
                 ) from None
             self.start_iteration = int(ckpt["iteration"])
             threads = ckpt.get("threads", self.threads)  # format 2: not recorded
@@ -299,6 +337,47 @@ class Run:
                 self.release()
                 raise
         self._unsaved: CheckpointState | None = None
+        self._loop: Iterator[int] | None = None
+
+    def __enter__(self) -> Run:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, *_: Any) -> None:
+        if self._loop is not None:
+            self._loop.close()  # its progress bar and signal handlers
+        try:
+            if kind is not None:
+                self.save_unsaved()
+        finally:
+            self.release()
+
+    def iterations(self, total: int, label: str, postfix: Postfix | None = None) -> Iterator[int]:
+        """The iterations left, ``start_iteration`` .. ``total - 1``, with a progress bar
+        (``postfix`` of the members' mean row); after each, the checkpoint when due; a first
+        SIGINT/SIGTERM stops the loop at the next boundary with :class:`RunInterrupted`."""
+        self._loop = self._iterations(total, label, postfix)
+        return self._loop
+
+    def _iterations(self, total: int, label: str, postfix: Postfix | None) -> Iterator[int]:
+        S = len(self.writers)
+        label = f"{label}/{S} seeds" if S > 1 else label
+        keep_freed_memory()
+        bar = tqdm(total=total, initial=self.start_iteration, desc=label, disable=not self.progress)
+        try:
+            with stop_on_signals() as stop:
+                for it in range(self.start_iteration, total):
+                    yield it
+                    if len(self.writers[0].rows) != it + 1:
+                        raise RuntimeError(f"iteration {it + 1} logged no rows (call run.log)")
+                    bar.update(1)
+                    if postfix is not None:
+                        bar.set_postfix(**postfix(_mean_row([w.rows[-1] for w in self.writers])))
+                    self.end_iteration(it + 1, force=stop.signame is not None)
+                    if stop.signame is not None and it + 1 < total:
+                        raise RunInterrupted(self.root.dir, it + 1, stop.signame)
+        finally:
+            bar.close()
+            keep_freed_memory(0)  # the process goes on (a notebook, a sweep): its heap back
 
     @property
     def rows(self) -> list[list[dict[str, Any]]]:
@@ -343,6 +422,43 @@ class Run:
             self.root.checkpoint(self._unsaved)
             self._unsaved = None
 
+    def finish(
+        self, summaries: Sequence[Mapping[str, Any]], *, title: str, ylabel: str = "return"
+    ) -> dict[str, Any]:
+        """The ending of every run: the final checkpoint; per member ``learning_curve.png``
+        (the entry's ``curves`` against episodes) and ``summary.json`` (plus
+        ``wall_seconds``); for a population also the members' table, band plot and summary.
+        Returns the summary (of the member, or of the population)."""
+        self.root.checkpoint(self.snapshot(len(self.writers[0].rows), finished=True))
+        curves = list(self.entry.plotted)
+        plot_learning_curves(self.writers, "episodes", curves, title=title, ylabel=ylabel)
+        written = [w.finish(s) for w, s in zip(self.writers, summaries, strict=True)]
+        if not self.population:
+            return written[0]
+        root, metric = self.root.dir, self.entry.metric
+        name = self.experiment
+        members = [Member(name, name, s, root / f"seed{s}") for s in self.seeds]
+        results = {(self.experiment, s): w for s, w in zip(self.seeds, written, strict=True)}
+        table = summarize(
+            members, results, root, metric, self.entry.curve, "population", "s (population)"
+        )
+        if self.progress:  # the members' table, where a bar showed the run
+            print(table)
+        values = [float(w[metric]) for w in written]
+        return self.root.finish(
+            {
+                "experiment": self.experiment,
+                "seeds": self.seeds,
+                "metric": metric,
+                "mean": statistics.fmean(values),
+                "std": statistics.stdev(values) if len(values) > 1 else 0.0,
+                "per_seed": dict(zip(map(str, self.seeds), values, strict=True)),
+                "run_dir": str(root),
+                "summary": str(root / "population.md"),
+                "plot": str(root / "population.png"),
+            }
+        )
+
 
 def keep_freed_memory(pad: int = 1 << 30) -> bool:
     """Have glibc's ``malloc`` keep up to ``pad`` bytes of freed heap (``mallopt(M_TOP_PAD)``,
@@ -369,151 +485,6 @@ def _mean_row(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         if isinstance(value, int | float) and not isinstance(value, bool):
             out[key] = statistics.fmean(float(r[key]) for r in rows)
     return out
-
-
-def collector_loop(
-    collector: Any,
-    open_run: Callable[[], Run],
-    update: Callable[[Any], list[dict[str, Any]]],
-    *,
-    iterations: int,
-    episodes_per_iteration: int,
-    label: str,
-    postfix: Postfix,
-    sync_weights: bool = False,
-    progress: bool = True,
-) -> Run:
-    """The loop of every experiment that collects with TorchRL: ``open_run()``, then per batch
-    ``update(batch)`` (the policy update; one dict of logged fields per member), a weight sync
-    when ``sync_weights``, one row per member (``iteration``, ``episodes``, the fields) and a
-    checkpoint when due. The collector is shut down however the loop ends. Returns the run
-    for :func:`finish_run`."""
-    from hireps_torch.rollout import shutdown_collector
-
-    try:
-        run = open_run()
-        batches = iter(collector)
-
-        def step(it: int) -> list[dict[str, Any]]:
-            members = update(next(batches))
-            if sync_weights:
-                collector.update_policy_weights_()
-            count = {"iteration": it + 1, "episodes": (it + 1) * episodes_per_iteration}
-            return [count | fields for fields in members]
-
-        ask_tell_loop(
-            run, step, iterations=iterations, label=label, postfix=postfix, progress=progress
-        )
-    finally:
-        shutdown_collector(collector)
-    return run
-
-
-def ask_tell_loop(
-    run: Run,
-    step: Callable[[int], list[dict[str, Any]]],
-    *,
-    iterations: int,
-    label: str,
-    postfix: Postfix,
-    progress: bool = True,
-) -> Run:
-    """Rounds of ``step(it)`` (ask, evaluate, tell: one row per member) from the run's start
-    iteration: log, checkpoint, stop on signals; returns the run."""
-    S = len(run.writers)
-    if S > 1:
-        label = f"{label}/{S} seeds"
-    keep_freed_memory()
-    bar = tqdm(total=iterations, initial=run.start_iteration, desc=label, disable=not progress)
-    try:
-        with stop_on_signals() as stop:
-            for it in range(run.start_iteration, iterations):
-                rows = step(it)
-                run.log(rows)
-                bar.update(1)
-                bar.set_postfix(**postfix(_mean_row(rows)))
-                run.end_iteration(it + 1, force=stop.signame is not None)
-                if stop.signame is not None and it + 1 < iterations:
-                    raise RunInterrupted(run.root.dir, it + 1, stop.signame)
-    except BaseException:
-        try:
-            run.save_unsaved()
-        finally:
-            run.release()
-        raise
-    finally:
-        bar.close()
-        keep_freed_memory(0)  # the process goes on (a notebook, a sweep): its heap back
-    return run
-
-
-def infinite_horizon_update(
-    algo: Any,
-    row: Callable[[torch.Tensor, torch.Tensor], list[dict[str, Any]]],
-    augment: Callable[..., tuple[torch.Tensor, ...]] | None = None,
-) -> Callable[[Any], list[dict[str, Any]]]:
-    """The per-batch step of the pendulum and the beam: one ``algo.update`` of all members on
-    the batch's decisions (through ``augment(s, a, r, s', terminated)`` when given), then each
-    member's ``row(rewards, terminated)`` fields (both (S, B T)) and update diagnostics."""
-    from hireps_torch.rollout import transitions
-
-    def update(batch: Any) -> list[dict[str, Any]]:
-        S = algo.population
-        s, a, r, s_next, _ = transitions(batch, "state")
-        terminated = batch["next", "terminated"].reshape(-1)
-        data = tuple(x.reshape(S, -1, *x.shape[1:]) for x in (s, a, r, s_next, terminated))
-        diag = algo.update(*(augment(*data) if augment is not None else data))
-        return [
-            fields | {key: value[m] for key, value in diag.items()}
-            for m, fields in enumerate(row(data[2], data[4]))
-        ]
-
-    return update
-
-
-def finish_run(
-    run: Run,
-    *,
-    curve: tuple[str, Sequence[str]],
-    title: str,
-    summaries: Sequence[Mapping[str, Any]],
-    ylabel: str = "return",
-) -> dict[str, Any]:
-    """The ending of every run: the final checkpoint; per member ``learning_curve.png``
-    (``curve[1]`` against ``curve[0]``) and ``summary.json`` (plus ``wall_seconds``); for a
-    population also the members' table, band plot and summary. Returns the summary (of the
-    member, or of the population)."""
-    run.root.checkpoint(run.snapshot(len(run.writers[0].rows), finished=True))
-    plot_learning_curves(run.writers, curve[0], list(curve[1]), title=title, ylabel=ylabel)
-    written = [writer.finish(s) for writer, s in zip(run.writers, summaries, strict=True)]
-    return _population_summary(run, written) if run.population else written[0]
-
-
-def _population_summary(run: Run, summaries: list[dict[str, Any]]) -> dict[str, Any]:
-    """The members' ``population.*`` files (as a sweep writes them), then its summary."""
-    from hireps_torch.experiments.sweep import METRICS, SweepRun, summarize
-
-    experiment, seeds, root = run.experiment.replace("_", "-"), run.seeds, run.root.dir
-    runs = [SweepRun(experiment, experiment, s, {}, root / f"seed{s}") for s in seeds]
-    results = {(experiment, s): summary for s, summary in zip(seeds, summaries, strict=True)}
-    table = summarize(runs, results, root, stem="population", seconds="s (population)")
-    if run.progress:  # the members' table, where a bar showed the run
-        print(table)
-    metric = METRICS[experiment][0]
-    values = [float(s[metric]) for s in summaries]
-    return run.root.finish(
-        {
-            "experiment": experiment,
-            "seeds": seeds,
-            "metric": metric,
-            "mean": statistics.fmean(values),
-            "std": statistics.stdev(values) if len(values) > 1 else 0.0,
-            "per_seed": dict(zip(map(str, seeds), values, strict=True)),
-            "run_dir": str(root),
-            "summary": str(root / "population.md"),
-            "plot": str(root / "population.png"),
-        }
-    )
 
 
 MAX_COUNT = 10**9

@@ -68,8 +68,9 @@ class Experiment:
     checked and the untrained algorithm, writing nothing), the summary's final ``metric``, the
     ``metrics.csv`` column its population and sweep bands show (``curve``; ``curves``: those of
     each run's learning curve, default ``(curve,)``), the option that counts episodes per
-    iteration and the options that may change between a run and its resumption besides
-    :data:`~hireps_torch.experiments.checkpoint.RUN_ONLY_OPTIONS`."""
+    iteration, the options that may change between a run and its resumption besides
+    :data:`~hireps_torch.experiments.checkpoint.RUN_ONLY_OPTIONS`, and whether its processes
+    run MKL as ``MKL_CBWR=COMPATIBLE`` (``workers.reproducible_mkl``)."""
 
     name: str
     config: type
@@ -80,6 +81,7 @@ class Experiment:
     curves: tuple[str, ...] = ()
     per_iteration: str = "episodes_per_iteration"
     run_only: tuple[str, ...] = ()
+    reproducible_mkl: bool = False
 
     @property
     def plotted(self) -> tuple[str, ...]:

@@ -47,6 +47,7 @@ from hireps_torch.experiments.options import config_dict, parse_seeds
 from hireps_torch.experiments.report import summarize
 from hireps_torch.experiments.rundir import DirectoryLock
 from hireps_torch.experiments.workers import RAY_ENV, Backend, check_pool, start_ray
+from hireps_torch.rollout import signal_handled, workers_ignore_sigint
 
 __all__ = [
     "SweepConfig",
@@ -205,6 +206,11 @@ def _why(said: str, hints: Mapping[str, Any], args: Sequence[str]) -> str:
     return " ".join(args)
 
 
+def _value_text(value: Any) -> str:
+    """An option's parsed value as a configuration's name shows it."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
 def parse_grid(
     experiment: str, grid: Sequence[str] = (), fixed: Sequence[str] = ()
 ) -> dict[str, dict[str, Any]]:
@@ -231,8 +237,11 @@ def parse_grid(
     for combo in itertools.product(*axes.values()):
         chosen = dict(zip(axes, combo, strict=True))
         # the name: sorted keys, so that the order of --grid options does not rename runs
-        name = ",".join(f"{k}={chosen[k]}" for k in sorted(chosen)) or "default"
-        configs[name] = _typed(config_cls, {**fixed_pairs, **chosen})
+        options = _typed(config_cls, {**fixed_pairs, **chosen})
+        # named by the parsed values (1e-1 and 0.1, ١ and 1: one name), sorted keys, so that
+        # neither the spelling nor the order of --grid options renames runs
+        name = ",".join(f"{k}={_value_text(options[k])}" for k in sorted(chosen)) or "default"
+        configs[name] = options
     return configs
 
 
@@ -399,15 +408,11 @@ def _terminate(signum: int, frame: Any) -> None:
 
 
 def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
-    from hireps_torch.rollout import signal_handled
-
     with signal_handled(signal.SIGTERM, _terminate):  # SIGTERM stops a sweep as Ctrl-C does
         _local_runs(runs, workers, done, failed)
 
 
 def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
-    from hireps_torch.rollout import workers_ignore_sigint
-
     if workers == 1:  # one thread as in the worker processes: the same sums, the same results
         for run in runs:
             try:
@@ -547,9 +552,9 @@ def _stop_workers(procs: Sequence[Any]) -> None:
 def _ray(
     runs: Sequence[SweepRun], workers: int, address: str | None, done: Done, failed: Failed
 ) -> None:
-    # hockey needs reproducible MKL in every process (experiments/workers.py); the rest one thread
-    hockey = runs[0].experiment.startswith("hockey")
-    env = RAY_ENV if hockey else {"env_vars": {"OMP_NUM_THREADS": "1"}}
+    # one thread, as local workers; reproducible MKL where the experiment needs it (hockey)
+    mkl = EXPERIMENTS[runs[0].experiment].reproducible_mkl
+    env = RAY_ENV if mkl else {"env_vars": {"OMP_NUM_THREADS": "1"}}
     ray, owns = start_ray(workers, address, env)
     task = ray.remote(num_cpus=1, max_retries=2)(_one_thread)
     try:

@@ -30,6 +30,7 @@ import torch
 from tensordict import TensorDictBase
 
 from hireps_torch.envs._common import one_thread
+from hireps_torch.rollout import workers_ignore_sigint
 
 __all__ = [
     "Backend",
@@ -229,8 +230,6 @@ class LocalProcessPool:
         self._executor: ProcessPoolExecutor | None = None
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
-        from hireps_torch.rollout import workers_ignore_sigint
-
         chunks = split_episodes(episodes, self.workers)
         for attempt in range(MAX_RETRIES + 1):
             if self._executor is None:

@@ -77,6 +77,15 @@ def test_parse_grid_gives_every_combination_with_typed_values():
     }
 
 
+def test_a_configuration_is_named_by_its_parsed_values():
+    """Other spellings of the same values name the same runs (before: the raw text, so that
+    ``n_options=\u0661,\u0663`` ran n_options 1 and 3 under other names than ``1,3``)."""
+    arabic = parse_grid("pendulum", ["n_options=\u0661,\u0663", "epsilon=1e-1"])
+    plain = parse_grid("pendulum", ["n_options=1,3", "epsilon=0.1"])
+    assert arabic == plain
+    assert list(plain) == ["epsilon=0.1,n_options=1", "epsilon=0.1,n_options=3"]
+
+
 @pytest.mark.parametrize(
     ("grid", "fixed", "message"),
     [
@@ -362,7 +371,7 @@ def test_every_configuration_is_checked_before_the_first_run(tmp_path):
         ]
     )
     assert p.returncode == 2
-    assert "configuration epsilon=-1 (seed 0): epsilon must be finite and > 0" in p.stderr
+    assert "configuration epsilon=-1.0 (seed 0): epsilon must be finite and > 0" in p.stderr
     assert not out.exists()  # nothing ran, nothing was written
 
 

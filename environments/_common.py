@@ -120,6 +120,9 @@ class BatchedTask:
     state_dim: int
     action_limit: float
     action_name: str
+    hold: bool = False
+    """Set: the next :meth:`reset` keeps every system as it is and draws nothing (a run
+    restored from a checkpoint goes on with its systems where they were)."""
 
     def __init__(self, batch: int, seed: int = 0, device: str | torch.device = "cpu") -> None:
         self.batch = check_count("batch_size", batch, 1)
@@ -165,6 +168,9 @@ class BatchedTask:
                 f"the reset mask must be a bool tensor of {self.batch} entries ((B,) or (B, 1)), "
                 f"got {what}; nothing was reset"
             )
+        if self.hold:
+            self.hold = False
+            return
         m = torch.ones(self.batch, dtype=torch.bool) if mask is None else mask.reshape(-1).cpu()
         if not bool(m.any()):  # draws nothing: a seed then starts the same episodes
             return

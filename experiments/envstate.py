@@ -81,9 +81,6 @@ class BatchedTaskState:
             for name, value in saved["tensors"].items():
                 setattr(member, name, value.clone())
             member.gen.set_state(saved["gen"])
-        if self.carry:
-            carrier = self.collector._carrier  # torchrl==0.14.1's collector state
-            carrier.set("state", task.state.clone())
-            carrier.set("observation", task.state.to(carrier.get("observation").dtype))
-            for key in ("done", "terminated", "truncated"):
-                carrier.set(key, torch.zeros_like(carrier.get(key)))
+        if self.carry:  # the collector's next observations: the restored systems, as they are
+            task.hold = True
+            self.collector.reset()

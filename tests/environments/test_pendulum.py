@@ -296,3 +296,18 @@ def test_the_constructor_seed_starts_the_episodes_that_set_seed_and_gym_start():
     assert torch.equal(built, env.reset()["state"])
     obs, _ = gym.make("hireps/PendulumSwingUp-v0").reset(seed=4)
     np.testing.assert_array_equal(obs, built[0].numpy().astype(obs.dtype))  # gym: float32
+
+
+def test_a_held_task_keeps_its_systems_through_one_reset_and_draws_nothing():
+    from hireps_torch.envs.pendulum import PendulumParams, PendulumTask
+
+    task = PendulumTask(3, PendulumParams(), seed=4)
+    task.reset()
+    task.step(torch.zeros(3, dtype=torch.float64))
+    state, t, gen = task.state.clone(), task.t.clone(), task.gen.get_state()
+    task.hold = True
+    task.reset()  # as a resumed run's collector resets: the systems go on where they were
+    assert torch.equal(task.state, state) and torch.equal(task.t, t) and not task.hold
+    assert torch.equal(task.gen.get_state(), gen)
+    task.reset()  # the next one restarts them
+    assert not torch.equal(task.state, state) and int(task.t.sum()) == 0

@@ -29,7 +29,7 @@ def response_from_rest(
     def acc(y: Tensor, z: Tensor, j: int) -> Tensor:
         return forcing[j].sub(y, alpha=k).sub_(z, alpha=d)
 
-    ys = torch.empty(n_steps + 1, forcing.shape[1], dtype=torch.float64)
+    ys = forcing.new_empty(n_steps + 1, forcing.shape[1], dtype=torch.float64)
     zs = torch.empty_like(ys)
     accs = torch.empty_like(ys)
     y, z = torch.zeros_like(ys[0]), torch.zeros_like(ys[0])

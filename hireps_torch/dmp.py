@@ -163,9 +163,9 @@ class DMP(nn.Module):
         tau = (T - 1) * dt
         vel, acc = finite_differences(pos, dt)
         z, zdot = tau * vel, tau**2 * acc  # derivatives in normalised time s
-        s = torch.arange(T, dtype=torch.float64) / (T - 1)
+        s = torch.arange(T, dtype=torch.float64, device=pos.device) / (T - 1)
         m = quintic_coefficients(pos[0], z[0], pos[-1], z[-1])  # (J, 6)
-        powers = s[:, None] ** torch.arange(6, dtype=torch.float64)  # (T, 6)
+        powers = s[:, None] ** torch.arange(6, dtype=torch.float64, device=pos.device)  # (T, 6)
         drive = powers @ (m @ self._drive_matrix()).T  # (T, J)
         k, d = self.alpha_z * self.beta_z, self.alpha_z
         f_target = zdot - drive + k * pos + d * z  # (T, J)

@@ -21,12 +21,11 @@ import hashlib
 import io
 import itertools
 import json
-import multiprocessing
-import multiprocessing.connection
-import os
 import signal
 import typing
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -39,15 +38,14 @@ from hireps_torch.experiments import EXPERIMENTS
 from hireps_torch.experiments.checkpoint import (
     changed_options,
     read_config,
-    record_early_stops,
-    request_stop,
     saved_config,
 )
 from hireps_torch.experiments.options import config_dict, parse_seeds
+from hireps_torch.experiments.pool import LocalPool
 from hireps_torch.experiments.report import summarize
 from hireps_torch.experiments.rundir import DirectoryLock
-from hireps_torch.experiments.workers import RAY_ENV, Backend, check_pool, start_ray
-from hireps_torch.rollout import signal_handled, workers_ignore_sigint
+from hireps_torch.experiments.workers import MAX_RETRIES, RAY_ENV, Backend, check_pool, start_ray
+from hireps_torch.rollout import signal_handled
 
 __all__ = [
     "SweepConfig",
@@ -408,145 +406,50 @@ def _terminate(signum: int, frame: Any) -> None:
 
 
 def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
-    with signal_handled(signal.SIGTERM, _terminate):  # SIGTERM stops a sweep as Ctrl-C does
-        _local_runs(runs, workers, done, failed)
-
-
-def _local_runs(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -> None:
-    if workers == 1:  # one thread as in the worker processes: the same sums, the same results
-        for run in runs:
-            try:
-                summary = _one_thread(run)
-            except Exception as exc:
-                failed(run, exc)
-                continue
-            done(run, summary)
-        return
-    ctx = multiprocessing.get_context("spawn")
-    # set to 1 as the sweep stops: each run going stops at its next boundary (a plain shared
-    # byte: an Event's set() waits for every waiter to wake, and an exited worker never does)
-    stop = ctx.RawValue("b", 0)
-    queued = list(runs)
-    free = core_sets(workers)
-    live: dict[Any, tuple[Any, set[int] | None]] = {}  # a worker's pipe -> its process, cores
-    idle: list[Any] = []  # the pipes of workers waiting for a run
-    going: dict[Any, SweepRun] = {}  # a worker's pipe -> its run
-    try:
-        while queued or going:
-            while queued and (idle or len(live) < workers):
-                if not idle:  # a worker more: it takes runs until the sweep ends
-                    cores = free.pop() if free else None
-                    here, there = ctx.Pipe()
-                    proc = ctx.Process(
-                        target=_in_worker, args=(there, stop, os.getpid(), cores), daemon=True
-                    )
-                    with workers_ignore_sigint():  # a Ctrl-C waits until the run can take it
-                        proc.start()
-                    there.close()
-                    live[here] = (proc, cores)
-                    idle.append(here)
-                conn = idle.pop()
+    """The runs in this process (one worker) or in a :class:`~.pool.LocalPool` of ``workers``
+    processes held to cores of their own; a run whose worker died is resumed by another, up to
+    :data:`MAX_RETRIES` times. SIGTERM stops a sweep as Ctrl-C does: the runs going stop at
+    their next iteration boundary, with a checkpoint."""
+    with signal_handled(signal.SIGTERM, _terminate):
+        if workers == 1:  # one thread as in the worker processes: the same sums, the same results
+            for run in runs:
                 try:
-                    conn.send(queued[0])
-                except OSError:  # it died waiting: the run goes to another
-                    proc, cores = live.pop(conn)
-                    proc.join()
-                    free.extend([cores] if cores is not None else [])
+                    summary = _one_thread(run)
+                except Exception as exc:
+                    failed(run, exc)
                     continue
-                going[conn] = queued.pop(0)
-            for ready in multiprocessing.connection.wait(list(going)):
-                run = going.pop(ready)
-                receive: Any = ready
-                try:
-                    kind, value = receive.recv()
-                    idle.append(ready)
-                except EOFError:  # the process died without a word
-                    proc, cores = live.pop(ready)
-                    proc.join()
-                    free.extend([cores] if cores is not None else [])
-                    kind, value = "error", f"its worker process died (exit code {proc.exitcode})"
-                if kind == "ok":
-                    done(run, value)
-                elif kind == "interrupted":
-                    raise KeyboardInterrupt(value)
-                else:
-                    failed(run, RuntimeError(value))
-    finally:  # the end, an error or Ctrl-C: the runs going stop at their next iteration boundary
-        stop.value = 1
-        for conn in idle:
-            with contextlib.suppress(OSError):
-                conn.send(None)
-        _stop_workers([proc for proc, _ in live.values()])
-
-
-def core_sets(workers: int) -> list[set[int]]:
-    """Disjoint sets of this process's cores, one per worker (an even share each), or none for
-    one worker or fewer cores than workers (each then sees every core)."""
-    if workers < 2 or not hasattr(os, "sched_getaffinity"):
-        return []
-    cores = sorted(os.sched_getaffinity(0))
-    share = len(cores) // workers
-    return [set(cores[w * share : (w + 1) * share]) for w in range(workers)] if share else []
-
-
-def _in_worker(conn: Any, stop: Any, parent: int, cores: set[int] | None = None) -> None:
-    """A local worker process on ``cores`` (None: every core): runs from ``conn`` one after the
-    other, each one's outcome sent back as (kind, value), until None, the pipe's end or an
-    interrupted run. ``stop.value`` (a shared byte) set, or the sweep's process ``parent`` gone
-    (even by kill -9), asks for a stop at the next iteration boundary, as a first SIGINT does.
-    Held to its own cores, a population's members go side by side only on those."""
-    import threading
-    import time
-
-    if cores:
-        os.sched_setaffinity(0, cores)
-
-    def watch() -> None:
-        while not stop.value and os.getppid() == parent:
-            time.sleep(0.1)
-        request_stop("the sweep's stop" if stop.value else "the sweep's end")
-
-    record_early_stops()
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one held since the start lands
-    threading.Thread(target=watch, daemon=True).start()
-    kind = "ok"
-    while kind != "interrupted":
-        try:
-            run = conn.recv()
-        except (EOFError, OSError):  # the sweep is gone
+                done(run, summary)
             return
-        if run is None:
-            return
+        mkl = EXPERIMENTS[runs[0].experiment].reproducible_mkl
+        pool = LocalPool(workers, pin=True, runs=True, reproducible_mkl=mkl)
+        deaths = dict.fromkeys(range(len(runs)), 0)
+        todo = dict(enumerate(runs))
         try:
-            out: tuple[str, Any] = ("ok", _one_thread(run))
-        except KeyboardInterrupt as interrupted:
-            out = ("interrupted", str(interrupted))
-        except BaseException as exc:
-            out = ("error", f"{type(exc).__name__}: {exc}")
-        kind = out[0]
-        try:
-            conn.send(out)
-        except OSError:  # BrokenPipeError: the sweep is gone
-            return
-
-
-_STOP_SECONDS = 60.0  # a run going finishes its iteration within this, or is stopped at once
-
-
-def _stop_workers(procs: Sequence[Any]) -> None:
-    """Wait for the workers still going; after :data:`_STOP_SECONDS` SIGTERM, then kill."""
-    import time
-
-    deadline = time.monotonic() + _STOP_SECONDS
-    for proc in procs:
-        proc.join(max(deadline - time.monotonic(), 0.0))
-    for proc in procs:
-        if proc.is_alive():
-            proc.terminate()
-            proc.join(10.0)
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
+            while todo:
+                futures = {pool.submit(_one_thread, run): k for k, run in todo.items()}
+                todo = {}
+                for future in as_completed(futures):
+                    k = futures[future]
+                    try:
+                        summary = future.result()
+                    except BrokenProcessPool:  # its worker, or another's, died: resume it
+                        deaths[k] += 1
+                        if deaths[k] <= MAX_RETRIES:
+                            todo[k] = runs[k]
+                        else:
+                            failed(
+                                runs[k], RuntimeError(f"its worker process died {deaths[k]} times")
+                            )
+                        continue
+                    except Exception as exc:
+                        failed(runs[k], exc)
+                        continue
+                    done(runs[k], summary)
+                if todo:
+                    pool.restart()
+        finally:  # the end, an error or Ctrl-C: the runs going stop at their next boundary
+            pool.stop()
+            pool.close()
 
 
 def _ray(

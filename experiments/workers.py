@@ -14,14 +14,12 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import multiprocessing
 import os
 import re
 import socket
 import uuid
 import warnings
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor
+from collections.abc import Callable, Sequence
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Literal
 
@@ -30,7 +28,7 @@ import torch
 from tensordict import TensorDictBase
 
 from hireps_torch.envs._common import one_thread
-from hireps_torch.rollout import workers_ignore_sigint
+from hireps_torch.experiments.pool import MKL_MODE, LocalPool, mkl_environment
 
 __all__ = [
     "Backend",
@@ -48,7 +46,6 @@ __all__ = [
 
 Backend = Literal["local", "ray"]
 _TAG = 0x686F636B  # separates these streams from any other use of the run's seed
-MKL_MODE = "COMPATIBLE"
 MAX_RETRIES = 3
 """How often a local pool broken by a dead worker is rebuilt to play the same episodes."""
 
@@ -62,20 +59,6 @@ def _mkl_mode() -> int | None:
     except (OSError, AttributeError):
         return None
     return int(get(1))
-
-
-@contextlib.contextmanager
-def mkl_environment() -> Iterator[None]:
-    """``MKL_CBWR=COMPATIBLE`` in ``os.environ`` inside the block (unless the user chose a
-    mode), for processes started there; restored afterwards."""
-    chosen = "MKL_CBWR" in os.environ
-    if not chosen:
-        os.environ["MKL_CBWR"] = MKL_MODE
-    try:
-        yield
-    finally:
-        if not chosen:
-            os.environ.pop("MKL_CBWR", None)
 
 
 def reproducible_mkl(warn: bool = True) -> bool:
@@ -178,21 +161,6 @@ def _play_chunk(
     return play_episodes(_ENV[key], actor, seed, episodes, steps)
 
 
-def exit_with_parent(parent: int) -> None:
-    """End this worker process once process ``parent`` is no longer its parent (it died, even by
-    kill -9: a pool's workers would otherwise wait on its queue, orphaned, for ever); polled
-    from a daemon thread."""
-    import threading
-    import time
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True).start()
-
-
 def split_episodes(episodes: Sequence[int], parts: int) -> list[list[int]]:
     """Contiguous, nearly equal chunks (no empty ones) of ``episodes`` for ``parts`` workers."""
     eps = np.asarray([int(e) for e in episodes], dtype=np.int64)
@@ -220,37 +188,27 @@ class InProcessPool:
 
 
 class LocalProcessPool:
-    """``workers`` spawned processes on this machine; each keeps its environment between
-    iterations. A pool broken by a dead worker is rebuilt and the episodes played again."""
+    """``workers`` processes of a :class:`~.pool.LocalPool` on this machine; each keeps its
+    environment between iterations. A pool broken by a dead worker is rebuilt and the episodes
+    played again."""
 
     def __init__(self, make_env: Callable[[], Any], workers: int) -> None:
         self.make_env = make_env
         self.workers = workers
         self.key = uuid.uuid4().hex
-        self._executor: ProcessPoolExecutor | None = None
+        self.pool = LocalPool(workers, reproducible_mkl=True)
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
         chunks = split_episodes(episodes, self.workers)
         for attempt in range(MAX_RETRIES + 1):
-            if self._executor is None:
-                self._executor = ProcessPoolExecutor(
-                    self.workers,
-                    mp_context=multiprocessing.get_context("spawn"),
-                    initializer=exit_with_parent,
-                    initargs=(os.getpid(),),
-                )
-            pool = self._executor
-            # workers spawn during submit; one starts MKL while it imports torch, before any
-            # initializer could run: it gets the reproducible mode from its environment
-            with mkl_environment(), workers_ignore_sigint():
-                futures: list[Future[TensorDictBase]] = [
-                    pool.submit(_play_chunk, self.make_env, self.key, actor, seed, c, steps)
-                    for c in chunks
-                ]
+            futures = [
+                self.pool.submit(_play_chunk, self.make_env, self.key, actor, seed, c, steps)
+                for c in chunks
+            ]
             try:
                 return torch.cat([f.result() for f in futures])
             except BrokenProcessPool:
-                self.close()
+                self.pool.restart()
                 if attempt == MAX_RETRIES:
                     raise RuntimeError(
                         f"worker processes died {attempt + 1} times while playing episodes "
@@ -259,9 +217,7 @@ class LocalProcessPool:
         raise AssertionError("unreachable")  # pragma: no cover
 
     def close(self) -> None:
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        self.pool.close()
 
 
 def import_ray() -> Any:

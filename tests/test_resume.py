@@ -5,7 +5,6 @@ import csv
 import dataclasses
 import json
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -789,31 +788,28 @@ def test_a_stop_asked_from_another_thread_is_taken_at_the_boundary_and_a_signal_
     assert checkpoint.ACTIVE is None
 
 
-@pytest.mark.parametrize("why", ["stop", "end"])
-def test_a_sweep_worker_stops_at_its_boundary_when_the_sweep_stops(tmp_path, monkeypatch, why):
-    """A worker that never saw the Ctrl-C (it was starting up) stops at its next iteration
-    boundary once the sweep sets its stop event, or once the sweep's process is no longer its
-    parent (killed), and says so."""
-    import multiprocessing
+def test_a_pools_run_stops_at_its_boundary_when_the_pool_stops(tmp_path):
+    """A run in a worker process that never saw the Ctrl-C stops at its next iteration boundary
+    once the pool's owner stops the pool (a sweep's Ctrl-C, SIGTERM or end), with its
+    checkpoint, and says so; the worker then ends (the sweep's kill -9: the slow sweep test)."""
+    from hireps_torch.experiments import sweep
+    from hireps_torch.experiments.pool import LocalPool
 
-    from hireps_torch.experiments import checkpoint, sweep
-
-    monkeypatch.setattr(checkpoint, "EARLY", checkpoint.StopRequest())
-    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    stop, (here, there) = multiprocessing.RawValue("b", 0), multiprocessing.Pipe()
-    stop.value = why == "stop"
-    parent = os.getppid() if why == "stop" else -1  # -1: a parent that is gone
     options = {"episodes": 400000, "samples_per_iteration": 20}
-    here.send(sweep.SweepRun("bimodal", "default", 0, options, tmp_path / "seed0"))
-    here.send(None)  # no second run
-    try:
-        sweep._in_worker(there, stop, parent)  # it installs its own signal handlers
-    finally:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
-    kind, message = here.recv()
-    assert kind == "interrupted"
-    assert re.match(rf"the sweep's {why}: stopped after iteration \d+;", message), message
+    run = sweep.SweepRun("bimodal", "default", 0, options, tmp_path / "seed0")
+    metrics = tmp_path / "seed0" / "metrics.csv"
+    with LocalPool(1, runs=True) as pool:
+        future = pool.submit(sweep.run_one, run)
+        deadline = time.time() + 120
+        while time.time() < deadline and not (
+            metrics.exists() and metrics.read_text().count("\n") > 2
+        ):
+            time.sleep(0.05)
+        pool.stop()
+        with pytest.raises(
+            KeyboardInterrupt, match=r"the pool's stop: stopped after iteration \d+;"
+        ):
+            future.result(timeout=120)
     assert (tmp_path / "seed0" / "checkpoint.pt").is_file()
 
 

@@ -700,7 +700,7 @@ def test_a_finished_population_whose_member_config_changed_is_refused_naming_it(
 
 
 def test_local_workers_keep_to_cores_of_their_own_when_there_are_enough(monkeypatch):
-    from hireps_torch.experiments.sweep import core_sets
+    from hireps_torch.experiments.pool import core_sets
 
     for cores, workers, sets in [
         ({1, 0}, 2, [{0}, {1}]),
@@ -728,35 +728,26 @@ def test_populations_in_two_workers_equal_populations_one_after_the_other(tmp_pa
     assert metrics[1] == metrics[2]
 
 
-def test_a_local_worker_takes_runs_one_after_the_other_until_told_to_end(tmp_path, monkeypatch):
-    """A worker process runs every run sent to it (one import of torch for many runs), sends
-    each outcome, a failed run included, and ends on None; a run after others writes what it
+def test_a_local_worker_takes_runs_one_after_the_other(tmp_path):
+    """A worker process runs every run given to it (one import of torch for many runs), each
+    outcome, a failed run included, back to the sweep; a run after others writes what it
     writes alone."""
-    import multiprocessing
+    from hireps_torch.experiments import sweep
+    from hireps_torch.experiments.pool import LocalPool
 
-    from hireps_torch.experiments import checkpoint, sweep
-
-    monkeypatch.setattr(checkpoint, "EARLY", checkpoint.StopRequest())
-    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    stop, (here, there) = multiprocessing.RawValue("b", 0), multiprocessing.Pipe()
     runs = plan("bimodal", {"default": {"episodes": 400}}, [0, 1], tmp_path)
     bad = sweep.SweepRun("bimodal", "bad", 2, {"episodes": -1}, tmp_path / "bad")
-    for run in [runs[0], bad, runs[1], None]:
-        here.send(run)
-    try:
-        sweep._in_worker(there, stop, os.getppid())
-    finally:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
-    outcomes = [here.recv() for _ in range(3)]
-    assert [kind for kind, _ in outcomes] == ["ok", "error", "ok"]
-    assert "episodes" in outcomes[1][1] and not here.poll()
+    with LocalPool(1, runs=True) as pool:
+        futures = [pool.submit(sweep._one_thread, run) for run in (runs[0], bad, runs[1])]
+        first = futures[0].result()
+        with pytest.raises(ValueError, match="episodes"):
+            futures[1].result()
+        last = futures[2].result()
+    assert first["seed"] == 0 and last["seed"] == 1
     alone = plan("bimodal", {"default": {"episodes": 400}}, [1], tmp_path / "alone")
     run_sweep(alone, progress=False)
-    assert (
-        outcomes[2][1]["final_return"]
-        == json.loads((alone[0].run_dir / "summary.json").read_text())["final_return"]
-    )
+    summary = json.loads((alone[0].run_dir / "summary.json").read_text())
+    assert last["final_return"] == summary["final_return"]
     assert (runs[1].run_dir / "metrics.csv").read_bytes() == (
         alone[0].run_dir / "metrics.csv"
     ).read_bytes()

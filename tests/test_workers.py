@@ -67,9 +67,9 @@ ORPHAN_SCRIPT = textwrap.dedent(
         # workers busy building their environment (a ten-minute sleep) when the parent dies
         pool = LocalProcessPool(functools.partial(time.sleep, 600), workers=2)
         threading.Thread(target=pool.play, args=(None, 0, [0, 1], 1), daemon=True).start()
-        while pool._executor is None or len(pool._executor._processes) < 2:
+        while pool.pool._executor is None or len(pool.pool._executor._processes) < 2:
             time.sleep(0.05)
-        print(*pool._executor._processes, flush=True)
+        print(*pool.pool._executor._processes, flush=True)
         time.sleep(600)
     """
 )

@@ -347,6 +347,11 @@ def record_early_stops() -> None:
         signal.signal(sig, handler)
 
 
+def stop_requested() -> bool:
+    """Whether a stop was asked for (a signal, :func:`request_stop`) and not yet taken."""
+    return (ACTIVE or EARLY).signame is not None
+
+
 def request_stop(reason: str) -> None:
     """Ask, from any thread, for a stop at the next iteration boundary, as a first signal does
     (a signal after it still counts as the first)."""

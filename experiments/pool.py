@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, TypeVar
 
-from hireps_torch.experiments import checkpoint
+from hireps_torch.experiments.checkpoint import record_early_stops, request_stop, stop_requested
 from hireps_torch.rollout import workers_ignore_sigint
 
 __all__ = ["MKL_MODE", "STOP_SECONDS", "LocalPool", "core_sets", "mkl_environment"]
@@ -78,7 +78,7 @@ def _start_worker(parent: int, stop: Any, cores: Any, runs: bool) -> None:
     if mine:
         os.sched_setaffinity(0, mine)
     if runs:
-        checkpoint.record_early_stops()
+        record_early_stops()
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one held since start lands
 
     def watch() -> None:
@@ -89,11 +89,11 @@ def _start_worker(parent: int, stop: Any, cores: Any, runs: bool) -> None:
                 os._exit(1)
             if (stop.value or orphaned) and deadline is None:
                 _HALTED.set()  # first: no call starts after this
-                checkpoint.request_stop(
+                request_stop(
                     "the pool's stop" if stop.value else "the end of the process that owns it"
                 )
                 deadline = time.monotonic() + STOP_SECONDS
-            halted = _HALTED.is_set() or checkpoint.EARLY.signame
+            halted = _HALTED.is_set() or stop_requested()
             if halted and not _BUSY.is_set() or deadline and time.monotonic() > deadline:
                 os._exit(0)
             time.sleep(0.1)
@@ -105,7 +105,7 @@ def _call(fn: Callable[..., R], *args: Any) -> R:
     """``fn(*args)``, unless a stop came before (the calls queued behind a stopped one)."""
     _BUSY.set()
     try:
-        if _HALTED.is_set() or checkpoint.EARLY.signame:
+        if _HALTED.is_set() or stop_requested():
             raise KeyboardInterrupt("the pool stopped before this call started")
         return fn(*args)
     except KeyboardInterrupt as stopped:  # RunInterrupted: the owner gets its message

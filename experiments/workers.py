@@ -234,7 +234,8 @@ def import_ray() -> Any:
 
 def check_ray_address(address: str, timeout: float = 5.0) -> None:
     """A ``ValueError`` naming ``address`` (HOST:PORT or ray://HOST:PORT; ``"auto"`` passes)
-    unless a gRPC server answers the HTTP/2 preface there within ``timeout`` seconds."""
+    unless a gRPC server (as a Ray cluster's GCS is) answers there within ``timeout`` seconds
+    (``ray.init`` would retry for minutes)."""
     if address.lower() == "auto":
         return
     hostport = address.removeprefix("ray://")
@@ -245,8 +246,8 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
             f"--ray-address must be HOST:PORT (a port in 1..65535), ray://HOST:PORT or 'auto', "
             f"got {address!r}"
         )
-    try:
-        conn = socket.create_connection((host, int(port)), timeout=timeout)
+    try:  # refused, no route and unknown hosts are named at once
+        socket.create_connection((host, int(port)), timeout=timeout).close()
     except UnicodeError:  # the host name cannot be encoded (a label over 63 characters, ...)
         raise ValueError(
             f"--ray-address {address!r}: {host[:80]!r} is not a valid host name"
@@ -256,47 +257,19 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
         raise ValueError(
             f"cannot reach the Ray cluster at --ray-address {address!r}: {why}"
         ) from None
+    import grpc  # Ray's own dependency: the 'distributed' extra, checked before this
+
+    channel = grpc.insecure_channel(hostport)
     try:
-        with conn:
-            conn.settimeout(timeout)
-            conn.sendall(_HTTP2_PREFACE)
-            answer = b""
-            while len(answer) < 9:  # a frame header may come in pieces
-                piece = conn.recv(9 - len(answer))
-                if not piece:
-                    break
-                answer += piece
-    except TimeoutError:
+        grpc.channel_ready_future(channel).result(timeout=timeout)
+    except grpc.FutureTimeoutError:
         raise ValueError(
-            f"--ray-address {address!r}: something accepts connections there but gave no "
-            f"answer of a Ray cluster within {timeout:g} s (tried a gRPC handshake); is it "
-            "the cluster's GCS port (ray start --head prints it; 6379 by default)?"
+            f"--ray-address {address!r} is not a Ray cluster: something accepts connections "
+            f"there, but no gRPC server answered within {timeout:g} s; is it the cluster's GCS "
+            "port (ray start --head prints it; 6379 by default)?"
         ) from None
-    except OSError as exc:
-        raise ValueError(
-            f"--ray-address {address!r} is not a Ray cluster: the connection failed during a "
-            f"gRPC handshake ({exc})"
-        ) from None
-    if not _is_settings_frame(answer):  # the first frame of an HTTP/2 server: SETTINGS
-        raise ValueError(
-            f"--ray-address {address!r} is not a Ray cluster: the server there answered "
-            f"{answer[:40]!r} to a gRPC handshake; is it the cluster's GCS port (ray start "
-            "--head prints it; 6379 by default)?"
-        )
-
-
-def _is_settings_frame(header: bytes) -> bool:
-    """Whether 9 bytes are the header of an HTTP/2 SETTINGS frame (RFC 9113, 6.5): type 4,
-    flags 0 or ACK, stream 0, a payload of whole 6-byte settings (none for an ACK)."""
-    if len(header) != 9 or header[3] != 0x4 or header[4] not in (0, 1):
-        return False
-    length = int.from_bytes(header[:3], "big")
-    stream = int.from_bytes(header[5:9], "big") & 0x7FFFFFFF
-    return stream == 0 and length % 6 == 0 and (header[4] == 0 or length == 0)
-
-
-_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
-"""The HTTP/2 client preface and an empty SETTINGS frame (how every gRPC call begins)."""
+    finally:
+        channel.close()
 
 
 RAY_ENV = {"env_vars": {"MKL_CBWR": MKL_MODE, "OMP_NUM_THREADS": "1"}}
@@ -365,10 +338,10 @@ def check_pool(workers: object, backend: object, address: str | None, reach: boo
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     if address is not None and backend != "ray":
         raise ValueError(f"--ray-address {address!r} needs --backend ray (got {backend!r})")
-    if reach and address is not None:
-        check_ray_address(address)
     if reach and backend == "ray":
         import_ray()  # the extra's name before anything runs
+    if reach and address is not None:
+        check_ray_address(address)
 
 
 def make_pool(

@@ -419,7 +419,7 @@ def _fake_server(pieces, gap=0.0):
 def test_a_port_where_something_else_listens_is_not_taken_for_ray(banner):
     """A server that says nothing, or answers like sshd, is named within the timeout
     (``ray.init`` would wait minutes)."""
-    what = "gave no answer of a Ray cluster" if not banner else "is not a Ray cluster: .*SSH-2.0"
+    what = "is not a Ray cluster: something accepts connections there, but no gRPC server"
     with _fake_server([banner] if banner else []) as port:
         start = time.monotonic()
         with pytest.raises(ValueError, match=what):
@@ -480,23 +480,23 @@ def test_a_ray_host_name_that_cannot_be_encoded_is_named():
         check_ray_address("a" * 70 + ":6379")
 
 
-@pytest.mark.parametrize(
-    ("pieces", "ok"),
-    [
-        ([b"\x00\x00", b"\x06\x04\x00\x00\x00\x00\x00"], True),  # SETTINGS in two writes
-        ([b"xyz\x04abcde"], False),  # type 4 but no SETTINGS header
-        ([b"\x00\x00\x05\x04\x00\x00\x00\x00\x00"], False),  # length not whole settings
-        ([b"\x00\x00\x00\x04\x00\x00\x00\x00\x03"], False),  # a stream other than 0
-    ],
-    ids=["split", "loose", "length", "stream"],
-)
-def test_a_ray_address_needs_a_whole_settings_frame(pieces, ok):
-    with _fake_server(pieces, gap=0.2) as port:
-        if ok:
-            check_ray_address(f"127.0.0.1:{port}", timeout=2.0)
-        else:
-            with pytest.raises(ValueError, match="is not a Ray cluster"):
-                check_ray_address(f"127.0.0.1:{port}", timeout=2.0)
+def test_a_grpc_server_is_taken_for_a_ray_cluster_and_an_http_one_is_not():
+    """The check is gRPC's own handshake: a gRPC server passes (a Ray cluster's GCS is one),
+    an HTTP/1 server is named within the timeout."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import grpc
+
+    server = grpc.server(ThreadPoolExecutor(1))
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    try:
+        check_ray_address(f"127.0.0.1:{port}", timeout=5.0)
+    finally:
+        server.stop(0)
+    with _fake_server([b"HTTP/1.1 400 Bad Request\r\n\r\n"]) as port:
+        with pytest.raises(ValueError, match="is not a Ray cluster"):
+            check_ray_address(f"127.0.0.1:{port}", timeout=1.0)
 
 
 def _hockey_metrics(tmp_path: Path, name: str, threads: str | None, *extra: str) -> str:

@@ -68,12 +68,15 @@ def core_sets(workers: int) -> list[set[int]]:
 
 
 _BUSY = threading.Event()  # in a worker: a call is running
-_HALTED = threading.Event()  # in a worker: a stop came (a signal, the pool's, its owner's end)
+_HALTED = threading.Event()  # in a worker: a call ended by a stop (a signal, the pool's)
+_STOP: Any = None  # in a worker: the pool's stop byte
 
 
 def _start_worker(parent: int, stop: Any, cores: Any, runs: bool) -> None:
     """A worker's start: its cores (one set from the ``cores`` queue), for ``runs`` the signal
     handlers, and the thread that watches the pool's ``stop`` byte and the owner ``parent``."""
+    global _STOP
+    _STOP = stop
     mine = None if cores is None else cores.get()
     if mine:
         os.sched_setaffinity(0, mine)
@@ -88,14 +91,14 @@ def _start_worker(parent: int, stop: Any, cores: Any, runs: bool) -> None:
             if orphaned and not runs:
                 os._exit(1)
             if (stop.value or orphaned) and deadline is None:
-                _HALTED.set()  # first: no call starts after this
                 request_stop(
                     "the pool's stop" if stop.value else "the end of the process that owns it"
                 )
                 deadline = time.monotonic() + STOP_SECONDS
-            halted = _HALTED.is_set() or stop_requested()
-            if halted and not _BUSY.is_set() or deadline and time.monotonic() > deadline:
-                os._exit(0)
+            # an orphan ends once its run stopped (nobody takes results); a worker still busy
+            # past the deadline ends then; an idle one waits for the executor's shutdown
+            if orphaned and not _BUSY.is_set() or deadline and time.monotonic() > deadline:
+                os._exit(0 if not _BUSY.is_set() else 1)
             time.sleep(0.1)
 
     threading.Thread(target=watch, daemon=True).start()
@@ -105,7 +108,7 @@ def _call(fn: Callable[..., R], *args: Any) -> R:
     """``fn(*args)``, unless a stop came before (the calls queued behind a stopped one)."""
     _BUSY.set()
     try:
-        if _HALTED.is_set() or stop_requested():
+        if _HALTED.is_set() or stop_requested() or (_STOP is not None and _STOP.value):
             raise KeyboardInterrupt("the pool stopped before this call started")
         return fn(*args)
     except KeyboardInterrupt as stopped:  # RunInterrupted: the owner gets its message

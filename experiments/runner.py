@@ -432,6 +432,7 @@ class Run:
         ``wall_seconds``); for a population also the members' table, band plot and summary.
         Returns the summary (of the member, or of the population)."""
         self.root.checkpoint(self.snapshot(len(self.writers[0].rows), finished=True))
+        self._unsaved = None
         curves = list(self.entry.plotted)
         plot_learning_curves(self.writers, "episodes", curves, title=title, ylabel=ylabel)
         written = [w.finish(s) for w, s in zip(self.writers, summaries, strict=True)]

@@ -259,7 +259,7 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
         ) from None
     import grpc  # Ray's own dependency: the 'distributed' extra, checked before this
 
-    channel = grpc.insecure_channel(hostport)
+    channel = grpc.insecure_channel(hostport, options=[("grpc.enable_http_proxy", 0)])  # as Ray
     try:
         grpc.channel_ready_future(channel).result(timeout=timeout)
     except grpc.FutureTimeoutError:

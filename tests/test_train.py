@@ -205,7 +205,7 @@ def test_hockey_sequential_subprocess_writes_the_run_directory(tmp_path):
     )
     assert p.returncode == 0, p.stderr
     summary = check_run_dir(run, keys=("final_average_reward", "zone3_share"))
-    assert summary["experiment"] == "hockey_sequential" and summary["episodes"] == 40
+    assert summary["experiment"] == "hockey-sequential" and summary["episodes"] == 40
     assert 0.0 <= summary["zone3_share"] <= 1.0
     assert -10.0 < summary["final_average_reward"] <= 3.0
     rows = list(csv.DictReader((run / "metrics.csv").open()))

@@ -360,7 +360,7 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
                 indices = range(it * B, (it + 1) * B)
                 played = [
                     episodes(pool.play(_actor(policies, sequential), s, indices, K), K)
-                    for policies, s in zip(_members(algo), seeds, strict=True)
+                    for policies, s in zip(_members(algo, len(seeds)), seeds, strict=True)
                 ]
                 if cfg.exploration_floor_end is not None:  # the exploration floor's schedule
                     low = variance_floor(cfg, std, it, iterations)
@@ -382,7 +382,9 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
             elapsed = run.root.elapsed()
             n_eval = B if cfg.final_eval_episodes is None else cfg.final_eval_episodes
             summaries = []
-            for seed, policies, rows in zip(seeds, _members(algo), run.rows, strict=True):
+            for seed, policies, rows in zip(
+                seeds, _members(algo, len(seeds)), run.rows, strict=True
+            ):
                 last = rows[-1]
                 summaries.append(
                     {
@@ -409,9 +411,9 @@ def run(cfg: HockeyConfig) -> dict[str, Any]:
         pool.close()
 
 
-def _members(algo: Algorithm) -> list[list[Any]]:
-    """Each member's policies (copies)."""
-    return [[p.member(m) for p in algo.policies] for m in range(algo.population)]
+def _members(algo: Algorithm, S: int) -> list[list[Any]]:
+    """Each of the ``S`` members' policies (copies)."""
+    return [[p.member(m) for p in algo.policies] for m in range(S)]
 
 
 def _actor(policies: list[Any], sequential: bool) -> Any:

@@ -9,18 +9,31 @@ import math
 import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: a notebook's backend is left alone
 
 from hireps_torch.experiments.rundir import atomic_write
 
-__all__ = ["Member", "summarize"]
+__all__ = ["Labelled", "Member", "summarize"]
+
+
+class Labelled(Protocol):
+    """One run of a table: its experiment, configuration ``name``, seed and directory."""
+
+    @property
+    def experiment(self) -> str: ...
+    @property
+    def name(self) -> str: ...
+    @property
+    def seed(self) -> int: ...
+    @property
+    def run_dir(self) -> Path: ...
 
 
 class Member(NamedTuple):
-    """One run of a table: its experiment, configuration ``name``, seed and directory."""
+    """A population's member as a :class:`Labelled` run."""
 
     experiment: str
     name: str
@@ -35,7 +48,7 @@ def _mean_std(xs: Sequence[float]) -> str:
 
 
 def summarize(
-    runs: Sequence[Member],
+    runs: Sequence[Labelled],
     results: Mapping[tuple[str, int], Mapping[str, Any]],
     out: Path,
     metric: str,

@@ -10,7 +10,7 @@ import dataclasses
 import os
 import statistics
 import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -96,13 +96,13 @@ class Resume:
     checkpoint: CheckpointState | None
 
 
-def resume_point(experiment: Experiment, cfg: RunOptions) -> Resume | None:
+def resume_point(entry: Experiment, cfg: RunOptions) -> Resume | None:
     """Check the run options and, for ``cfg.resume``, that the run exists, has not finished
     (:class:`RunFinished`) and has the same options; call it at the start of a run, before
     building anything. Warns (at the run's caller) where the episodes leave part of an
     iteration over."""
     cfg.check_run_options()
-    per_name, run_only, experiment = experiment.per_iteration, experiment.run_only, experiment.name
+    per_name, run_only, experiment = entry.per_iteration, entry.run_only, entry.name
     episodes, per = getattr(cfg, "episodes", 0), getattr(cfg, per_name, 1)
     if episodes % per:
         warnings.warn(
@@ -271,10 +271,10 @@ class Run:
     """
 
     def __init__(
-        self, experiment: Experiment, cfg: RunOptions, state: RunState, resume: Resume | None
+        self, entry: Experiment, cfg: RunOptions, state: RunState, resume: Resume | None
     ) -> None:
-        self.entry = experiment
-        self.experiment = experiment = experiment.name
+        self.entry = entry
+        self.experiment = experiment = entry.name
         self.config = config_dict(experiment, cfg)
         root = Path(
             resume.run_dir
@@ -339,7 +339,7 @@ class Run:
                 self.release()
                 raise
         self._unsaved: CheckpointState | None = None
-        self._loop: Iterator[int] | None = None
+        self._loop: Generator[int, None, None] | None = None
 
     def __enter__(self) -> Run:
         return self
@@ -360,7 +360,9 @@ class Run:
         self._loop = self._iterations(total, label, postfix)
         return self._loop
 
-    def _iterations(self, total: int, label: str, postfix: Postfix | None) -> Iterator[int]:
+    def _iterations(
+        self, total: int, label: str, postfix: Postfix | None
+    ) -> Generator[int, None, None]:
         S = len(self.writers)
         label = f"{label}/{S} seeds" if S > 1 else label
         keep_freed_memory()

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
+from matplotlib.figure import Figure
 
 from hireps_torch.algorithms import REPS, EpisodicHiREPS
 from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
@@ -235,15 +236,11 @@ def modes_covered(
 
 def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -> None:
     """Reward landscape with each active option's mean and 2-sigma ellipse."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     g = torch.linspace(-5, 5, 201, dtype=torch.float64)
     X, Y = torch.meshgrid(g, g, indexing="xy")
     Z = task(torch.stack([X.reshape(-1), Y.reshape(-1)], 1)).reshape(X.shape)
-    fig, ax = plt.subplots(figsize=(5, 5))
+    fig = Figure(figsize=(5, 5))  # no pyplot: a notebook's backend is left as it is
+    ax = fig.subplots()
     ax.contourf(X.numpy(), Y.numpy(), Z.numpy(), levels=20, cmap="Greys")
     pol = algo.policy
     prior = pol.gating.probs(torch.zeros(1, 0, dtype=torch.float64))[0]
@@ -269,7 +266,6 @@ def plot_bimodal_options(algo: EpisodicHiREPS, task: TwoGaussians, path: Path) -
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=110))
-    plt.close(fig)
 
 
 EXPERIMENT = Experiment(

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
+from matplotlib.figure import Figure
 
 __all__ = [
     "LOGGERS",
@@ -350,12 +351,8 @@ def plot_learning_curves(
 ) -> None:
     """Line plot of metric columns ``ys`` against column ``x`` in each writer's directory: one
     figure, its lines' data swapped per writer."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig = Figure(figsize=(6, 4))  # no pyplot: a notebook's backend is left as it is
+    ax = fig.subplots()
     lines = [ax.plot([], [], label=y.replace("_", " "))[0] for y in ys]
     ax.set_xlabel(x)
     ax.set_ylabel(ylabel)
@@ -364,17 +361,14 @@ def plot_learning_curves(
     ax.legend()
     ax.ticklabel_format(style="sci", scilimits=(-3, 4), useMathText=True)  # short tick labels
     fig.subplots_adjust(left=0.14, right=0.97, bottom=0.12, top=0.92)  # that fit these margins
-    try:
-        for writer in writers:
-            xs = [r[x] for r in writer.rows]
-            for line, y in zip(lines, ys, strict=True):
-                line.set_data(xs, [r[y] for r in writer.rows])
-            ax.relim()
-            if all(map(math.isfinite, ax.dataLim.bounds)):
-                ax.autoscale_view()
-            else:  # nothing finite to show: a fresh figure's limits, not the last writer's
-                ax.set_xlim(-0.055, 0.055, auto=None)
-                ax.set_ylim(-0.055, 0.055, auto=None)
-            atomic_write(writer.dir / name, lambda p: fig.savefig(p, format="png", dpi=110))
-    finally:
-        plt.close(fig)
+    for writer in writers:
+        xs = [r[x] for r in writer.rows]
+        for line, y in zip(lines, ys, strict=True):
+            line.set_data(xs, [r[y] for r in writer.rows])
+        ax.relim()
+        if all(map(math.isfinite, ax.dataLim.bounds)):
+            ax.autoscale_view()
+        else:  # nothing finite to show: a fresh figure's limits, not the last writer's
+            ax.set_xlim(-0.055, 0.055, auto=None)
+            ax.set_ylim(-0.055, 0.055, auto=None)
+        atomic_write(writer.dir / name, lambda p: fig.savefig(p, format="png", dpi=110))

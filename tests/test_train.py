@@ -890,3 +890,21 @@ def test_episodes_that_leave_part_of_an_iteration_over_are_said(name, options, m
         warnings.simplefilter("error", UserWarning)
         resume_point(EXPERIMENTS[name], config_cls())
         EXPERIMENTS[name].algorithm(config_cls(**options))
+
+
+def test_a_run_leaves_the_callers_matplotlib_backend_alone(tmp_path):
+    """Plots are drawn on pyplot-free figures: a notebook's inline backend stays (before: every
+    run switched the process to Agg)."""
+    code = (
+        "import matplotlib; matplotlib.use('svg'); import train; "
+        f"train.main(['bimodal', '--seeds', '0-1', '--episodes', '400', '--no-progress', "
+        f"'--run-dir', {str(tmp_path / 'r')!r}]); "
+        "print('BACKEND', matplotlib.get_backend())"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "BACKEND svg" in out.stdout
+    assert (tmp_path / "r" / "seed0" / "options.png").stat().st_size > 0
+    assert (tmp_path / "r" / "population.png").stat().st_size > 0

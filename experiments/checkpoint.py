@@ -369,9 +369,11 @@ def stop_on_signals(then: str = "then saving the checkpoint") -> Iterator[StopRe
 
     def handler(signum: int, frame: types.FrameType | None) -> None:
         request.signals += 1
-        if request.signals > 1:
-            raise KeyboardInterrupt(f"second {names.get(signum, signum)}: stopping now")
         name = names.get(signum, str(signum))
+        if request.signals > 1:
+            stop = KeyboardInterrupt(f"second {name}: stopping now")
+            stop.signame = name  # type: ignore[attr-defined]  # hireps-train's exit code: 143
+            raise stop
         request.signame = request.signame or name
         print(
             f"\n{name}: finishing this iteration, {then} (send it again to stop at once)",

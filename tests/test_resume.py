@@ -947,3 +947,16 @@ def test_a_run_directory_that_cannot_be_written_is_named_on_resume(tmp_path, mon
         resume_in_process("bimodal", run)
     monkeypatch.undo()
     assert _files(run) == before
+
+
+def test_a_second_sigterm_stops_at_once_and_says_it_was_sigterm():
+    """A second SIGTERM ends the run as one (hireps-train exits 143, as for the first), not as
+    a Ctrl-C (130 before)."""
+    from hireps_torch.experiments import checkpoint
+
+    with checkpoint.stop_on_signals():
+        os.kill(os.getpid(), signal.SIGTERM)  # a first only asks to stop
+        with pytest.raises(KeyboardInterrupt, match="second SIGTERM: stopping now") as second:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)  # the handler runs at the next bytecode
+    assert second.value.signame == "SIGTERM"

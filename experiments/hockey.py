@@ -433,7 +433,6 @@ def _entry(name: str, config: type) -> Experiment:
         metric="final_average_reward",
         curve="average_reward",
         run_only=("workers",),  # its episodes are played by index, by any number of workers
-        reproducible_mkl=True,
     )
 
 

@@ -5,8 +5,8 @@
 
 A ``concurrent.futures.ProcessPoolExecutor`` (spawned processes, each started once and taking
 calls one after the other) whose workers start with SIGINT blocked (a Ctrl-C reaches the
-process that owns the pool, which stops them) and, with ``reproducible_mkl``, in MKL's
-reproducible mode (``MKL_CBWR=COMPATIBLE``, :func:`mkl_environment`; why: :mod:`.workers`).
+process that owns the pool, which stops them) and in MKL's reproducible mode
+(``MKL_CBWR=COMPATIBLE``, :func:`mkl_environment`, as ``hireps-train`` runs; why: :mod:`.workers`).
 
 With ``runs`` the calls are runs (a sweep's): a worker then takes SIGINT / SIGTERM as a run
 does (stop at the next iteration boundary with a checkpoint), and :meth:`LocalPool.stop` or the
@@ -122,10 +122,8 @@ class LocalPool:
     """``workers`` spawned processes on this machine (see the module docstring); with ``pin``,
     each held to cores of its own (:func:`core_sets`) where there are enough."""
 
-    def __init__(
-        self, workers: int, *, pin: bool = False, runs: bool = False, reproducible_mkl: bool = False
-    ) -> None:
-        self.workers, self.pin, self.runs, self.mkl = workers, pin, runs, reproducible_mkl
+    def __init__(self, workers: int, *, pin: bool = False, runs: bool = False) -> None:
+        self.workers, self.pin, self.runs = workers, pin, runs
         self._ctx = multiprocessing.get_context("spawn")
         self._stop: Any = None
         self._executor: ProcessPoolExecutor | None = None
@@ -154,8 +152,7 @@ class LocalPool:
             )
         # workers spawn during submit; one starts MKL while it imports torch, before any
         # initializer could run: it gets the reproducible mode from its environment
-        mkl = mkl_environment() if self.mkl else contextlib.nullcontext()
-        with mkl, workers_ignore_sigint():
+        with mkl_environment(), workers_ignore_sigint():
             return self._executor.submit(_call, fn, *args)
 
     def stop(self) -> None:

@@ -69,8 +69,7 @@ class Experiment:
     ``metrics.csv`` column its population and sweep bands show (``curve``; ``curves``: those of
     each run's learning curve, default ``(curve,)``), the option that counts episodes per
     iteration, the options that may change between a run and its resumption besides
-    :data:`~hireps_torch.experiments.checkpoint.RUN_ONLY_OPTIONS`, and whether its processes
-    run MKL as ``MKL_CBWR=COMPATIBLE`` (``workers.reproducible_mkl``)."""
+    :data:`~hireps_torch.experiments.checkpoint.RUN_ONLY_OPTIONS`."""
 
     name: str
     config: type
@@ -81,7 +80,6 @@ class Experiment:
     curves: tuple[str, ...] = ()
     per_iteration: str = "episodes_per_iteration"
     run_only: tuple[str, ...] = ()
-    reproducible_mkl: bool = False
 
     @property
     def plotted(self) -> tuple[str, ...]:

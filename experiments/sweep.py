@@ -420,8 +420,7 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
                     continue
                 done(run, summary)
             return
-        mkl = EXPERIMENTS[runs[0].experiment].reproducible_mkl
-        pool = LocalPool(workers, pin=True, runs=True, reproducible_mkl=mkl)
+        pool = LocalPool(workers, pin=True, runs=True)
         deaths = dict.fromkeys(range(len(runs)), 0)
         todo = dict(enumerate(runs))
         try:
@@ -455,10 +454,7 @@ def _local(runs: Sequence[SweepRun], workers: int, done: Done, failed: Failed) -
 def _ray(
     runs: Sequence[SweepRun], workers: int, address: str | None, done: Done, failed: Failed
 ) -> None:
-    # one thread, as local workers; reproducible MKL where the experiment needs it (hockey)
-    mkl = EXPERIMENTS[runs[0].experiment].reproducible_mkl
-    env = RAY_ENV if mkl else {"env_vars": {"OMP_NUM_THREADS": "1"}}
-    ray, owns = start_ray(workers, address, env)
+    ray, owns = start_ray(workers, address, RAY_ENV)  # one thread and MKL as local workers
     task = ray.remote(num_cpus=1, max_retries=2)(_one_thread)
     try:
         pending = {task.remote(r): r for r in runs}

@@ -7,7 +7,7 @@
 Episode ``e`` draws from ``(seed, e)`` alone (:func:`episode_seeds`), so neither the worker nor
 the backend changes the result. Every process that plays or updates runs MKL as
 ``MKL_CBWR=COMPATIBLE`` (:func:`reproducible_mkl`; a Python session running hockey should start
-with it set, as ``hireps-train`` does; why: benchmarks/README.md, "Robot hockey defaults").
+with it set, as ``hireps-train`` and the pool's workers do; why: docs/reproducibility.md).
 """
 
 from __future__ import annotations
@@ -196,7 +196,7 @@ class LocalProcessPool:
         self.make_env = make_env
         self.workers = workers
         self.key = uuid.uuid4().hex
-        self.pool = LocalPool(workers, reproducible_mkl=True)
+        self.pool = LocalPool(workers)
 
     def play(self, actor: Any, seed: int, episodes: Sequence[int], steps: int) -> TensorDictBase:
         chunks = split_episodes(episodes, self.workers)

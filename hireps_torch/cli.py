@@ -65,11 +65,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 def entry() -> None:
-    """``hireps-train``: :func:`main` with hockey in ``MKL_CBWR=COMPATIBLE`` (unless set) and
-    exit codes (130 on Ctrl-C, 143 on SIGTERM, 2 on bad options or an unwritable run directory,
-    1 when memory runs out)."""
-    if any("hockey-" in arg for arg in sys.argv[1:]):  # before MKL's first call
-        os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+    """``hireps-train``: :func:`main` in ``MKL_CBWR=COMPATIBLE`` (unless set; as its worker
+    processes compute) and with exit codes (130 on Ctrl-C, 143 on SIGTERM, 2 on bad options or
+    an unwritable run directory, 1 when memory runs out)."""
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")  # before MKL's first call (pool.MKL_MODE)
     try:  # the imports too: Ctrl-C while they load is an interrupt like any other
         from hireps_torch.experiments.checkpoint import RunFinished
 

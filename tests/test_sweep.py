@@ -751,3 +751,25 @@ def test_a_local_worker_takes_runs_one_after_the_other(tmp_path):
     assert (runs[1].run_dir / "metrics.csv").read_bytes() == (
         alone[0].run_dir / "metrics.csv"
     ).read_bytes()
+
+
+def _worker_mkl() -> tuple[str | None, int | None]:
+    import torch
+
+    from hireps_torch.experiments.workers import _mkl_mode
+
+    _ = torch.ones(3, 3, dtype=torch.float64) @ torch.ones(3, 3, dtype=torch.float64)
+    return os.environ.get("MKL_CBWR"), _mkl_mode()
+
+
+def test_pool_workers_compute_in_the_mkl_mode_of_the_command(monkeypatch):
+    """Every worker (any experiment's sweep, hockey's episodes) runs MKL as hireps-train does,
+    so that a member computed in a worker equals the same run by the command."""
+    from hireps_torch.experiments.pool import MKL_MODE, LocalPool
+
+    monkeypatch.delenv("MKL_CBWR", raising=False)
+    with LocalPool(1, runs=True) as pool:
+        variable, mode = pool.submit(_worker_mkl).result()
+    assert variable == MKL_MODE
+    assert mode in (None, 2, 3)  # None: a torch without MKL; 1 would be MKL's default
+    assert "MKL_CBWR" not in os.environ  # the owner's environment as it was

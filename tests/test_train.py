@@ -723,11 +723,11 @@ def test_the_installed_command_runs_an_experiment(tmp_path):
     assert bad.returncode == 2 and "episodes" in bad.stderr and "Traceback" not in bad.stderr
 
 
-def test_the_command_puts_hockey_runs_in_reproducible_mkl_before_torch_computes():
+def test_the_command_puts_every_run_in_reproducible_mkl_before_torch_computes():
     code = (
         "import os, sys\n"
         "os.environ.pop('MKL_CBWR', None)\n"
-        "sys.argv = ['hireps-train', 'hockey-sequential', '--episodes', '-1']\n"
+        "sys.argv = ['hireps-train', 'pendulum', '--episodes', '-1']\n"
         "from hireps_torch.cli import entry\n"
         "try:\n"
         "    entry()\n"

@@ -432,6 +432,50 @@ class ScalarActionBatchEnv(EnvBase):
         self.task.seed(seed)
 
 
+class EpisodicGymEnv(gym.Env):
+    """One-step gymnasium adapter over an episodic task (one parameter vector per episode).
+
+    The task has ``param_dim``, ``context_dim``, ``n_classes``, ``sample_contexts(n,
+    generator) -> (n, C)``, ``task(contexts, theta) -> returns`` and
+    ``task.solution_class(contexts, theta)``. ``reset`` draws the context (observation, float64,
+    shape (C,)) from the env's seeded generator; ``step(theta)`` plays the episode: the return,
+    ``terminated=True`` and ``info["solution_class"]``.
+    """
+
+    def __init__(self, task: Any) -> None:
+        self.task = task
+        C, D = task.context_dim, task.param_dim
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (C,), np.float64)
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (D,), np.float64)
+        self._gen = torch.Generator().manual_seed(0)
+        self._context = torch.zeros(1, task.context_dim, dtype=torch.float64)
+        self._ready = False  # reset, and not stepped since
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is not None:
+            self._gen.manual_seed(check_count("seed", seed, 0))
+        super().reset(seed=seed)
+        self._context = self.task.sample_contexts(1, self._gen)
+        self._ready = True
+        return self._context[0].numpy().copy(), {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if not self._ready:
+            raise ResetNeeded("call reset() before step(): every episode is one step")
+        theta = as_float_tensor("action", action).reshape(1, -1)
+        if theta.shape[1] != self.task.param_dim:
+            raise ValueError(
+                f"action must hold {self.task.param_dim} numbers, got {tuple(theta.shape[1:])}"
+            )
+        as_finite_f64("action", theta)
+        reward = float(self.task(self._context, theta)[0])
+        k = int(self.task.solution_class(self._context, theta)[0])
+        self._ready = False
+        return self._context[0].numpy().copy(), reward, True, False, {"solution_class": k}
+
+
 @contextlib.contextmanager
 def one_thread() -> Iterator[None]:
     """torch computes on one thread inside the block (or the decorated function), the thread

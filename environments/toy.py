@@ -9,6 +9,8 @@ Spec sheet
     optimum     R = h_m at theta = mu_m (the bumps are far apart: the cross term is e^-32)
     no context, deterministic; a single Gaussian policy has to pick one mode, a hierarchical
     policy can cover both.
+    classes     ``solution_class``: m when theta lies within one bump width w of mu_m (the
+                reward there is at least e^-1/2 of the bump's height), else -1      [choice]
 
 ``ContextualTwoGaussians`` (contextual variant):
     context     s ~ Uniform[-1, 1] (1-D)
@@ -16,6 +18,7 @@ Spec sheet
     reward      R(s, theta) = sum_m h_m exp(-||theta - mu_m(s)||^2 / (2 w^2))
     families    mu_1(s) = (-2, -2) + s (1, -1),  mu_2(s) = (2, 2) + s (1, -1)       [choice]
     Both solution families are linear in s, so a linear-Gaussian option can track each one.
+    classes     as above, around mu_m(s).
 
 Both objectives are pure batched torch functions; they raise on wrong shapes or non-finite
 inputs instead of returning NaN.
@@ -59,6 +62,13 @@ def two_gaussians_reward(theta: Tensor, modes: Tensor, heights: Tensor, width: f
     as_finite_f64("theta", theta)
     d2 = ((theta.unsqueeze(-2) - modes) ** 2).sum(-1)  # ([S,] N, M)
     return (heights * torch.exp(-0.5 * d2 / width**2)).sum(-1)
+
+
+def nearest_mode(theta: Tensor, modes: Tensor, width: float) -> Tensor:
+    """``([S,] N)`` int64: the bump within ``width`` of each theta ``([S,] N, 2)`` (``modes``
+    as in :func:`two_gaussians_reward`), else -1."""
+    d, m = (theta.unsqueeze(-2) - modes).norm(dim=-1).min(-1)
+    return torch.where(d <= width, m, torch.full_like(m, -1))
 
 
 def _floats(name: str, value: Tensor) -> Tensor:
@@ -108,6 +118,16 @@ class TwoGaussians:
     def __call__(self, theta: Tensor) -> Tensor:
         t = _floats("theta", theta)
         return two_gaussians_reward(t, self.modes.to(t.dtype), self.heights.to(t.dtype), self.width)
+
+    @property
+    def n_classes(self) -> int:
+        return int(self.modes.shape[0])
+
+    def solution_class(self, contexts: Tensor | None, theta: Tensor) -> Tensor:
+        """``([S,] N)`` int64: the mode within one bump width of theta, else -1."""
+        t = _floats("theta", theta)
+        self(t)  # the checks of a reward
+        return nearest_mode(t, self.modes.to(t.dtype), self.width)
 
     @property
     def best_return(self) -> float:
@@ -162,6 +182,20 @@ class ContextualTwoGaussians:
                 f"{tuple(t.shape)} (the same ([S,] N) wanted)"
             )
         return two_gaussians_reward(t, self.modes(s), self.heights.to(t.dtype), self.width)
+
+    @property
+    def n_classes(self) -> int:
+        return int(self.offsets.shape[0])
+
+    def solution_class(self, contexts: Tensor | None, theta: Tensor) -> Tensor:
+        """``([S,] N)`` int64: the mode within one bump width of theta at its context, else -1."""
+        if contexts is None:
+            raise ValueError("the contextual two Gaussians need contexts ([S,] N, 1)")
+        self(contexts, theta)  # the checks of a reward
+        t = _floats("theta", theta)
+        return nearest_mode(
+            t, self.modes(as_float_tensor("context", contexts, t.dtype)), self.width
+        )
 
     @property
     def best_return(self) -> float:

@@ -13,14 +13,20 @@ if __name__ != "hireps_torch.experiments":  # the folder experiments/ is install
 
 from typing import Any
 
-from hireps_torch.experiments import ball_on_beam, bimodal, hockey, pendulum
+from hireps_torch.experiments import ball_on_beam, bimodal, hockey, pendulum, solutions
 from hireps_torch.experiments.runner import Experiment
 
 __all__ = ["EXPERIMENTS", "Experiment", "run_experiment"]
 
 EXPERIMENTS: dict[str, Experiment] = {
     e.name: e
-    for e in (bimodal.EXPERIMENT, pendulum.EXPERIMENT, ball_on_beam.EXPERIMENT, *hockey.VARIANTS)
+    for e in (
+        bimodal.EXPERIMENT,
+        pendulum.EXPERIMENT,
+        ball_on_beam.EXPERIMENT,
+        *hockey.VARIANTS,
+        *solutions.EXPERIMENTS,
+    )
 }
 """The registry: command-line name -> :class:`Experiment` (config class, ``run``,
 ``algorithm``, summary metric, curve column)."""

@@ -1,4 +1,7 @@
-"""Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one."""
+"""Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one.
+
+Every iteration also logs the versatility of ``versatility_samples`` samples of the policy
+(:mod:`hireps_torch.versatility`: success rate, purity, modes held, behaviour entropy)."""
 
 from __future__ import annotations
 
@@ -10,7 +13,7 @@ from typing import Any, Literal
 import torch
 from matplotlib.figure import Figure
 
-from hireps_torch.algorithms import REPS, EpisodicHiREPS
+from hireps_torch.algorithms import CMAES, REPS, EpisodicHiREPS
 from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
 from hireps_torch.experiments.checkpoint import RunState
 from hireps_torch.experiments.options import (
@@ -22,6 +25,7 @@ from hireps_torch.experiments.options import (
 )
 from hireps_torch.experiments.rundir import atomic_write
 from hireps_torch.experiments.runner import Experiment, Run, check_budget, resume_point
+from hireps_torch.versatility import policy_versatility
 
 __all__ = [
     "BimodalConfig",
@@ -37,8 +41,9 @@ __all__ = [
 class BimodalConfig(RunOptions):
     """Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one."""
 
-    algorithm: Literal["hireps", "reps"] = "hireps"
-    """hireps: mixture of linear-Gaussian options with the entropy bound; reps: one Gaussian."""
+    algorithm: Literal["hireps", "hireps-unbounded", "reps", "cmaes"] = "hireps"
+    """hireps: mixture of linear-Gaussian options with the entropy bound; hireps-unbounded: the
+    same without it; reps: one Gaussian; cmaes: CMA-ES (pycma; without context only)."""
     contextual: bool = False
     """Use the contextual variant (1-D context, two linear solution families)."""
     n_options: int = 10
@@ -57,19 +62,36 @@ class BimodalConfig(RunOptions):
     """Standard deviation of each reward bump."""
     min_variance: float = 1e-6
     """Floor on the option covariance eigenvalues."""
+    versatility_samples: int = 500
+    """Samples of the policy drawn after every update to measure its versatility (their
+    episodes are not learned from and not counted in episodes)."""
 
 
 def _validate(cfg: BimodalConfig) -> int:
     """``cfg`` checked; its iterations."""
-    check_options(cfg, counts=("n_options",), positive=("bump_width", "init_std"))
+    if cfg.algorithm == "cmaes" and cfg.contextual:
+        raise ValueError(
+            "algorithm cmaes searches one parameter vector: it takes no context (drop "
+            "--contextual, or choose hireps, hireps-unbounded or reps)"
+        )
+    check_options(
+        cfg, counts=("n_options", "versatility_samples"), positive=("bump_width", "init_std")
+    )
     check_variance_floor(cfg)
     return check_budget(cfg.episodes, cfg.samples_per_iteration, "samples_per_iteration", 2)
 
 
 def _make_algorithm(
     cfg: BimodalConfig, task: TwoGaussians | ContextualTwoGaussians, seeds: list[int]
-) -> EpisodicHiREPS:
+) -> EpisodicHiREPS | CMAES:
     """The algorithm of ``cfg`` for the members with ``seeds`` (their policy streams)."""
+    if cfg.algorithm == "cmaes":
+        return CMAES.create(
+            task.param_dim,
+            popsize=cfg.samples_per_iteration,
+            init_std=cfg.init_std,
+            seed=[stream_seed(s, "policy") for s in seeds],
+        )
     common: dict[str, Any] = dict(
         context_dim=task.context_dim,
         init_std=cfg.init_std,
@@ -81,13 +103,16 @@ def _make_algorithm(
         algo: EpisodicHiREPS = REPS.create(task.param_dim, **common)
     else:
         algo = EpisodicHiREPS.create(
-            task.param_dim, n_options=cfg.n_options, kappa_rel=cfg.kappa_rel, **common
+            task.param_dim,
+            n_options=cfg.n_options,
+            kappa_rel=cfg.kappa_rel if cfg.algorithm == "hireps" else None,
+            **common,
         )
     algo.seeds = seeds  # names the members in warnings
     return algo
 
 
-def algorithm(cfg: BimodalConfig) -> EpisodicHiREPS:
+def algorithm(cfg: BimodalConfig) -> EpisodicHiREPS | CMAES:
     """``cfg`` checked as :func:`run` checks it, and the untrained algorithm it starts from."""
     _validate(cfg)
     return _make_algorithm(cfg, _task(cfg), member_seeds(cfg))
@@ -119,6 +144,16 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
             out = task(flat)
         return out.reshape(theta.shape[:2]).to(dev)
 
+    def measure(it: int) -> dict[str, list[float]]:
+        """Versatility of the policy from iteration ``it``'s part of the "eval" stream."""
+        gens = [torch.Generator().manual_seed(stream_seed(s, "eval", it)) for s in seeds]
+        M = cfg.versatility_samples
+        if isinstance(task, ContextualTwoGaussians):
+            ctx = torch.stack([task.sample_contexts(M, g) for g in gens]).to(dev)
+        else:
+            ctx = torch.zeros(S, M, 0, dtype=torch.float64, device=dev)
+        return policy_versatility(algo.policy, task, ctx, gens)
+
     label = f"bimodal/{cfg.algorithm}"
     grid = None if eval_ctx is None else eval_ctx.expand(S, -1, -1).to(dev)
     with Run(EXPERIMENT, cfg, RunState(algo, generators=ctx_gens), resume) as run:
@@ -131,15 +166,17 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
                 theta = algo.ask(n)
             diag = algo.tell(ctx, theta, score(ctx, theta))
             evals = score(grid, algo.act(1 if grid is None else grid)).mean(-1).tolist()
+            held = measure(it)
             run.log(
                 [
                     {"iteration": it + 1, "episodes": (it + 1) * n, "eval_return": evals[m]}
                     | {key: value[m] for key, value in diag.items()}
+                    | {key: value[m] for key, value in held.items()}
                     for m in range(S)
                 ]
             )
         solo = [
-            (REPS if cfg.algorithm == "reps" else EpisodicHiREPS)(
+            (EpisodicHiREPS if cfg.algorithm.startswith("hireps") else REPS)(
                 algo.policy.member(m).cpu(), context_dim=task.context_dim, epsilon=cfg.epsilon
             )
             for m in range(S)
@@ -160,7 +197,7 @@ def run(cfg: BimodalConfig) -> dict[str, Any]:
 def _postfix(row: dict[str, Any]) -> dict[str, Any]:
     return {
         "ret": f"{row['mean_return']:.3f}",
-        "kl": f"{row['kl']:.2f}",
+        "kl": f"{row.get('kl', math.nan):.2f}",  # cmaes has no KL bound
         "opts": row["n_active_options"],
     }
 
@@ -187,8 +224,13 @@ def _summary(
         "final_mean_return": rows[-1]["mean_return"],
         "n_active_options": int(algo.policy.active.sum()),
         "modes_covered": modes_covered(options, task),
+        **{key: rows[-1][key] for key in VERSATILITY},
         "options": options,
     }
+
+
+VERSATILITY = ("success_rate", "solutions_found", "behaviour_entropy", "purity")
+"""The versatility measures logged every iteration and summarised at the end."""
 
 
 def option_summary(

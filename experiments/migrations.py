@@ -30,6 +30,7 @@ ABSENT_MEANS = {
     "option_goal_offset": False,
     "epsilon_end": None,
     "restart_probability": None,
+    "versatility_samples": 500,  # measuring changes no update
 }
 """Options added after the first run directories, with the value that reproduces the older
 runs: ``config.json`` leaves an option out at that value, so old and new directories compare

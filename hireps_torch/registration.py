@@ -17,6 +17,8 @@ __all__ = [
     "HOCKEY_EPISODIC_ID",
     "HOCKEY_ID",
     "PENDULUM_ID",
+    "PLANAR_ARM_ID",
+    "TETHERBALL_ID",
     "register_envs",
 ]
 
@@ -24,12 +26,16 @@ PENDULUM_ID = "hireps/PendulumSwingUp-v0"
 BALL_ON_BEAM_ID = "hireps/BallOnBeam-v0"
 HOCKEY_ID = "hireps/RobotHockey-v0"
 HOCKEY_EPISODIC_ID = "hireps/RobotHockeyEpisodic-v0"
+PLANAR_ARM_ID = "hireps/PlanarArm-v0"
+TETHERBALL_ID = "hireps/Tetherball-v0"
 
 _ENTRY_POINTS = {
     PENDULUM_ID: "hireps_torch.envs.pendulum:PendulumSwingUpEnv",
     BALL_ON_BEAM_ID: "hireps_torch.envs.ball_on_beam:BallOnBeamEnv",
     HOCKEY_ID: "hireps_torch.envs.hockey.env:RobotHockeyEnv",
     HOCKEY_EPISODIC_ID: "hireps_torch.envs.hockey.env:RobotHockeyEpisodicEnv",
+    PLANAR_ARM_ID: "hireps_torch.envs.planar_arm:PlanarArmEnv",
+    TETHERBALL_ID: "hireps_torch.envs.tetherball:TetherballEnv",
 }
 ENV_IDS: tuple[str, ...] = tuple(_ENTRY_POINTS)
 

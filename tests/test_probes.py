@@ -910,7 +910,7 @@ OPTION_PROBES = [
     (
         "bimodal",
         dict(algorithm="foo"),
-        r"algorithm \(--algorithm\) must be one of 'hireps', 'reps'",
+        r"algorithm \(--algorithm\) must be one of 'hireps', 'hireps-unbounded', 'reps', 'cmaes'",
     ),
     ("bimodal", dict(algorithm=1), "algorithm .* must be one of"),
     ("bimodal", dict(contextual="yes"), r"contextual \(--contextual\) must be True or False"),

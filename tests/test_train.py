@@ -357,6 +357,8 @@ def test_every_experiment_is_registered_with_its_config_and_run():
         "hockey-sequential",
         "hockey-episodic",
         "hockey-fixed-start",
+        "planar-arm",
+        "tetherball",
     }
     for name, entry in EXPERIMENTS.items():
         config_cls, run = entry.config, entry.run

@@ -167,11 +167,11 @@ STREAMS = ("policy", "sampling", "env", "eval", "contexts")
 """The named random streams of a run, each seeded by :func:`stream_seed`."""
 
 
-def stream_seed(seed: int, stream: str) -> int:
+def stream_seed(seed: int, stream: str, *index: int) -> int:
     """The seed in [0, 2**32) of stream ``stream`` (one of :data:`STREAMS`) of the run with
-    ``seed``: numpy's ``SeedSequence`` of ``(seed mod 2**64, stream index)``, so streams are
-    unrelated."""
-    entropy = (seed % 2**64, STREAMS.index(stream))
+    ``seed``, or of its part ``index`` (e.g. an iteration's draws): numpy's ``SeedSequence``
+    of ``(seed mod 2**64, stream index, *index)``, so streams and parts are unrelated."""
+    entropy = (seed % 2**64, STREAMS.index(stream), *index)
     return int(np.random.SeedSequence(entropy).generate_state(1)[0])
 
 

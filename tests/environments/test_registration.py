@@ -20,6 +20,8 @@ def test_every_id_is_registered_once_with_a_string_entry_point():
         "hireps/BallOnBeam-v0",
         "hireps/RobotHockey-v0",
         "hireps/RobotHockeyEpisodic-v0",
+        "hireps/PlanarArm-v0",
+        "hireps/Tetherball-v0",
     }
     for env_id in envs.ENV_IDS:
         spec = gym.spec(env_id)
@@ -28,12 +30,17 @@ def test_every_id_is_registered_once_with_a_string_entry_point():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # gymnasium warns when an id is overridden
         importlib.reload(registration).register_envs()
-    assert sum(k.startswith("hireps/") for k in gym.registry) == 4
+    assert sum(k.startswith("hireps/") for k in gym.registry) == len(envs.ENV_IDS)
 
 
 @pytest.mark.parametrize(
     "env_id, obs_shape",
-    [(envs.PENDULUM_ID, (2,)), (envs.BALL_ON_BEAM_ID, (3,))],
+    [
+        (envs.PENDULUM_ID, (2,)),
+        (envs.BALL_ON_BEAM_ID, (3,)),
+        (envs.PLANAR_ARM_ID, (0,)),
+        (envs.TETHERBALL_ID, (1,)),
+    ],
 )
 def test_gym_make_builds_the_torch_tasks(env_id, obs_shape):
     env = gym.make(env_id)

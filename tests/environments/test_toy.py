@@ -66,3 +66,20 @@ def test_bad_widths_and_counts_are_named():
     assert ContextualTwoGaussians().sample_contexts(0).shape == (0, 1)
     ints = torch.zeros(3, 2, dtype=torch.long)
     assert torch.equal(TwoGaussians()(ints), TwoGaussians()(ints.double()))
+
+
+def test_two_gaussians_classes_are_the_mode_within_one_width():
+    import torch
+
+    from hireps_torch.envs.toy import ContextualTwoGaussians, TwoGaussians
+
+    task = TwoGaussians(width=0.5)
+    theta = torch.tensor([[-2.0, -2.0], [2.3, 2.3], [2.4, 2.4], [0.0, 0.0]], dtype=torch.float64)
+    # 0.3 * sqrt(2) = 0.42 from (2, 2) is within 0.5; 0.4 * sqrt(2) = 0.57 is not
+    assert task.solution_class(None, theta).tolist() == [0, 1, -1, -1]
+    assert task.n_classes == 2
+    ctx_task = ContextualTwoGaussians(width=0.5)
+    ctx = torch.tensor([[0.5], [0.5]], dtype=torch.float64)
+    at = torch.tensor([[-1.5, -2.5], [2.5, 1.5]], dtype=torch.float64)  # mu_m(0.5)
+    assert ctx_task.solution_class(ctx, at).tolist() == [0, 1]
+    assert ctx_task.solution_class(-ctx, at).tolist() == [-1, -1]  # the modes moved away

@@ -40,17 +40,13 @@ from benchmarks._common import add_figures_option, publish  # noqa: E402
 from hireps_torch.experiments import EXPERIMENTS  # noqa: E402
 from hireps_torch.experiments.options import parse_seeds  # noqa: E402
 
+HIREPS = ("hireps", "hireps-unbounded", "hireps-versatile")
 # task -> (experiment, its options, algorithms, return threshold of the exploring policy)
 TASKS: dict[str, tuple[str, dict[str, Any], tuple[str, ...], float]] = {
-    "bimodal": ("bimodal", {}, ("hireps", "hireps-unbounded", "reps", "cmaes"), 0.9),
-    "bimodal-12000": (
-        "bimodal",
-        {"episodes": 12000},
-        ("hireps", "hireps-unbounded", "reps", "cmaes"),
-        0.9,
-    ),
-    "planar-arm": ("planar-arm", {}, ("hireps", "hireps-unbounded", "reps", "cmaes"), -0.5),
-    "tetherball": ("tetherball", {}, ("hireps", "hireps-unbounded", "reps"), -0.03),
+    "bimodal": ("bimodal", {}, (*HIREPS, "reps", "cmaes"), 0.9),
+    "bimodal-12000": ("bimodal", {"episodes": 12000}, (*HIREPS, "reps", "cmaes"), 0.9),
+    "planar-arm": ("planar-arm", {}, (*HIREPS, "reps", "cmaes"), -0.5),
+    "tetherball": ("tetherball", {}, (*HIREPS, "reps"), -0.03),
 }
 
 
@@ -60,7 +56,7 @@ def wilson(k: int, n: int) -> tuple[float, float]:
     return float(ci.low), float(ci.high)
 
 
-NEVER = 1e300  # an infinite value (never reached) while resampling: a median may be "never"
+NEVER = 1e12  # an infinite value (never reached) while resampling: a median may be "never"
 
 
 def bootstrap(values: list[float], statistic: Any = np.mean) -> tuple[float, float, float]:
@@ -78,9 +74,18 @@ def bootstrap(values: list[float], statistic: Any = np.mean) -> tuple[float, flo
     return tuple(math.inf if v >= NEVER / 2 else v for v in (point, low, high))  # type: ignore[return-value]
 
 
+def cmaes_popsize(param_dim: int) -> int:
+    """pycma's default population size, 4 + floor(3 ln D): what a CMA-ES user gets."""
+    return 4 + int(3 * math.log(param_dim))
+
+
 def run_population(task: str, algorithm: str, seeds: str, out: Path) -> Path:
-    """The population's run directory, run now unless it finished before."""
+    """The population's run directory, run now unless it finished before (CMA-ES with
+    pycma's default population size, in the same episode budget)."""
     name, options, _, _ = TASKS[task]
+    if algorithm == "cmaes":
+        D = EXPERIMENTS[name].algorithm(EXPERIMENTS[name].config(algorithm="cmaes")).param_dim
+        options = {**options, "samples_per_iteration": cmaes_popsize(D)}
     run_dir = out / task / algorithm
     if (run_dir / "summary.json").exists():
         return run_dir

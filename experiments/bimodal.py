@@ -41,9 +41,10 @@ __all__ = [
 class BimodalConfig(RunOptions):
     """Two-Gaussians toy task (AISTATS 2012): HiREPS keeps one option per mode, REPS picks one."""
 
-    algorithm: Literal["hireps", "hireps-unbounded", "reps", "cmaes"] = "hireps"
+    algorithm: Literal["hireps", "hireps-unbounded", "hireps-versatile", "reps", "cmaes"] = "hireps"
     """hireps: mixture of linear-Gaussian options with the entropy bound; hireps-unbounded: the
-    same without it; reps: one Gaussian; cmaes: CMA-ES (pycma; without context only)."""
+    same without it; hireps-versatile: hireps with a floor on the options' prior entropy;
+    reps: one Gaussian; cmaes: CMA-ES (pycma; without context only)."""
     contextual: bool = False
     """Use the contextual variant (1-D context, two linear solution families)."""
     n_options: int = 10
@@ -52,6 +53,9 @@ class BimodalConfig(RunOptions):
     """KL bound per iteration."""
     kappa_rel: float = 0.8
     """Entropy bound as a fraction of the current mean responsibility entropy (hireps)."""
+    entropy_floor: float = 0.5
+    """hireps-versatile: the options' prior keeps an entropy of at least this fraction of
+    log(n_options), or its current entropy where that is lower."""
     samples_per_iteration: int = 200
     """Episodes (parameter samples) per policy update."""
     episodes: int = 1600
@@ -75,8 +79,13 @@ def _validate(cfg: BimodalConfig) -> int:
             "--contextual, or choose hireps, hireps-unbounded or reps)"
         )
     check_options(
-        cfg, counts=("n_options", "versatility_samples"), positive=("bump_width", "init_std")
+        cfg,
+        counts=("n_options", "versatility_samples"),
+        positive=("bump_width", "init_std"),
+        nonnegative=("entropy_floor",),
     )
+    if cfg.entropy_floor > 1:
+        raise ValueError(f"entropy_floor must be in [0, 1], got {cfg.entropy_floor}")
     check_variance_floor(cfg)
     return check_budget(cfg.episodes, cfg.samples_per_iteration, "samples_per_iteration", 2)
 
@@ -105,7 +114,8 @@ def _make_algorithm(
         algo = EpisodicHiREPS.create(
             task.param_dim,
             n_options=cfg.n_options,
-            kappa_rel=cfg.kappa_rel if cfg.algorithm == "hireps" else None,
+            kappa_rel=None if cfg.algorithm == "hireps-unbounded" else cfg.kappa_rel,
+            prior_entropy_floor=cfg.entropy_floor if cfg.algorithm == "hireps-versatile" else None,
             **common,
         )
     algo.seeds = seeds  # names the members in warnings

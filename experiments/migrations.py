@@ -31,6 +31,7 @@ ABSENT_MEANS = {
     "epsilon_end": None,
     "restart_probability": None,
     "versatility_samples": 500,  # measuring changes no update
+    "entropy_floor": 0.5,  # read by hireps-versatile only, which came with it
 }
 """Options added after the first run directories, with the value that reproduces the older
 runs: ``config.json`` leaves an option out at that value, so old and new directories compare

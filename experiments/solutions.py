@@ -33,7 +33,7 @@ from hireps_torch.versatility import policy_versatility
 
 __all__ = ["EXPERIMENTS", "PlanarArmConfig", "SolutionsConfig", "TetherballConfig", "run"]
 
-AlgorithmName = Literal["hireps", "hireps-unbounded", "reps", "cmaes"]
+AlgorithmName = Literal["hireps", "hireps-unbounded", "hireps-versatile", "reps", "cmaes"]
 
 
 @dataclass(frozen=True)
@@ -45,14 +45,18 @@ class SolutionsConfig(RunOptions):
     tolerance: float = 0.1
     """A solution is reached within this distance (m)."""
     algorithm: AlgorithmName = "hireps"
-    """hireps: options with the entropy bound; hireps-unbounded: without it; reps: one
-    Gaussian; cmaes: CMA-ES (pycma), one Gaussian."""
+    """hireps: options with the entropy bound; hireps-unbounded: without it; hireps-versatile:
+    with it and a floor on the options' prior entropy; reps: one Gaussian; cmaes: CMA-ES
+    (pycma), one Gaussian."""
     n_options: int = 20
     """Initial number of options (hireps, hireps-unbounded); low-mass options are pruned."""
     epsilon: float = 0.5
     """KL bound per iteration (not cmaes)."""
     kappa_rel: float = 0.9
     """Entropy bound as a fraction of the current mean responsibility entropy (hireps)."""
+    entropy_floor: float = 0.5
+    """hireps-versatile: the options' prior keeps an entropy of at least this fraction of
+    log(n_options), or its current entropy where that is lower."""
     samples_per_iteration: int = 100
     """Episodes per policy update (cmaes: its population size)."""
     episodes: int = 10000
@@ -82,9 +86,9 @@ class PlanarArmConfig(SolutionsConfig):
 class TetherballConfig(SolutionsConfig):
     """Tetherball: hit a ball on a string around a pole to a target behind it, on either side."""
 
-    algorithm: Literal["hireps", "hireps-unbounded", "reps"] = "hireps"
-    """hireps: options with the entropy bound; hireps-unbounded: without it; reps: one
-    linear-Gaussian policy."""
+    algorithm: Literal["hireps", "hireps-unbounded", "hireps-versatile", "reps"] = "hireps"
+    """hireps: options with the entropy bound; hireps-unbounded: without it; hireps-versatile:
+    with it and a floor on the options' prior entropy; reps: one linear-Gaussian policy."""
     n_options: int = 30
     """Initial number of options (the paper's 30); low-mass options are pruned."""
     init_std: float = 2.0
@@ -116,8 +120,10 @@ def _check(cfg: SolutionsConfig) -> int:
         cfg,
         counts=("n_options", "versatility_samples"),
         positive=("epsilon", "init_std", "tolerance", *has("base_std")),
-        nonnegative=("kappa_rel", *has("posture_cost", "effort")),
+        nonnegative=("kappa_rel", "entropy_floor", *has("posture_cost", "effort")),
     )
+    if cfg.entropy_floor > 1:
+        raise ValueError(f"entropy_floor must be in [0, 1], got {cfg.entropy_floor}")
     check_variance_floor(cfg)
     return check_budget(cfg.episodes, cfg.samples_per_iteration, "samples_per_iteration", 2)
 
@@ -142,9 +148,12 @@ def _make_algorithm(cfg: SolutionsConfig, task: Task, seeds: list[int]) -> Any:
     if cfg.algorithm == "reps":
         algo: EpisodicHiREPS = REPS.create(task.param_dim, **common)
     else:
-        kappa = cfg.kappa_rel if cfg.algorithm == "hireps" else None
         algo = EpisodicHiREPS.create(
-            task.param_dim, n_options=cfg.n_options, kappa_rel=kappa, **common
+            task.param_dim,
+            n_options=cfg.n_options,
+            kappa_rel=None if cfg.algorithm == "hireps-unbounded" else cfg.kappa_rel,
+            prior_entropy_floor=cfg.entropy_floor if cfg.algorithm == "hireps-versatile" else None,
+            **common,
         )
     algo.seeds = seeds  # names the members in warnings
     return algo

@@ -910,7 +910,8 @@ OPTION_PROBES = [
     (
         "bimodal",
         dict(algorithm="foo"),
-        r"algorithm \(--algorithm\) must be one of 'hireps', 'hireps-unbounded', 'reps', 'cmaes'",
+        r"algorithm \(--algorithm\) must be one of 'hireps', 'hireps-unbounded', "
+        r"'hireps-versatile', 'reps', 'cmaes'",
     ),
     ("bimodal", dict(algorithm=1), "algorithm .* must be one of"),
     ("bimodal", dict(contextual="yes"), r"contextual \(--contextual\) must be True or False"),

@@ -17,7 +17,9 @@ def _rows(path):
     return list(csv.DictReader((path / "metrics.csv").open()))
 
 
-@pytest.mark.parametrize("algorithm", ["hireps", "hireps-unbounded", "reps", "cmaes"])
+@pytest.mark.parametrize(
+    "algorithm", ["hireps", "hireps-unbounded", "hireps-versatile", "reps", "cmaes"]
+)
 def test_each_algorithm_writes_the_versatility_per_iteration_and_in_its_summary(
     tmp_path, algorithm
 ):
@@ -65,7 +67,7 @@ def test_bad_options_are_named_before_anything_is_written(tmp_path):
     assert not (tmp_path / "r").exists()
 
 
-@pytest.mark.parametrize("algorithm", ["hireps", "hireps-unbounded", "reps"])
+@pytest.mark.parametrize("algorithm", ["hireps", "hireps-unbounded", "hireps-versatile", "reps"])
 def test_tetherball_runs_each_algorithm_and_writes_the_versatility(tmp_path, algorithm):
     options = {"episodes": 150, "samples_per_iteration": 50, "versatility_samples": 60}
     run(TetherballConfig(algorithm=algorithm, run_dir=tmp_path, progress=False, **options))
@@ -85,7 +87,9 @@ def test_tetherball_members_equal_their_runs_and_cmaes_is_refused(tmp_path):
         run(TetherballConfig(algorithm="cmaes", run_dir=tmp_path / "c", progress=False))
 
 
-@pytest.mark.parametrize("algorithm", ["hireps", "hireps-unbounded", "reps", "cmaes"])
+@pytest.mark.parametrize(
+    "algorithm", ["hireps", "hireps-unbounded", "hireps-versatile", "reps", "cmaes"]
+)
 def test_the_two_gaussians_log_the_versatility_for_every_algorithm(tmp_path, algorithm):
     from hireps_torch.experiments.bimodal import BimodalConfig
     from hireps_torch.experiments.bimodal import run as run_bimodal
@@ -112,3 +116,18 @@ def test_cmaes_on_the_contextual_two_gaussians_is_refused_naming_why(tmp_path):
             )
         )
     assert not (tmp_path / "r").exists()
+
+
+def test_hireps_versatile_reports_its_floor_and_a_floor_outside_zero_to_one_is_refused(tmp_path):
+    run(
+        PlanarArmConfig(
+            algorithm="hireps-versatile", run_dir=tmp_path / "a", progress=False, seed=4, **SHORT
+        )
+    )
+    rows = _rows(tmp_path / "a")
+    expected = 0.5 * math.log(20)  # the default floor: half the entropy of 20 equal options
+    assert all(float(r["entropy_floor"]) <= expected + 1e-12 for r in rows)
+    assert all(float(r["prior_entropy"]) >= float(r["entropy_floor"]) - 1e-4 for r in rows)
+    assert {"lambda", "prior_entropy"} <= set(rows[0])
+    with pytest.raises(ValueError, match="entropy_floor must be in"):
+        run(PlanarArmConfig(entropy_floor=1.5, run_dir=tmp_path / "b", progress=False))

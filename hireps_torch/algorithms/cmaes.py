@@ -7,9 +7,11 @@ returns (pycma minimises). Its :attr:`policy` is a one-option :class:`Hierarchic
 holding pycma's mean and covariance ``sigma^2 C`` after every ``tell``, so that evaluations,
 ``load_run`` and the versatility measures treat CMA-ES as any other algorithm.
 
-Each member draws its normal numbers from its own ``numpy.random.Generator`` (seeded by the
-member's ``"sampling"`` stream), never from numpy's global one. A checkpoint holds each
-member's pycma strategy pickled: resume only from checkpoints you wrote.
+pycma's options are its defaults (the population size and per-coordinate scales aside); a
+member that its termination criteria stop keeps its distribution from then on. Each member
+draws its normal numbers from its own ``numpy.random.Generator`` (seeded by the member's
+``"sampling"`` stream), never from numpy's global one. A checkpoint holds each member's pycma
+strategy pickled: resume only from checkpoints you wrote.
 """
 
 from __future__ import annotations
@@ -42,9 +44,12 @@ class _Normal:
         return out
 
 
-def _scaled(C: Any, s: Any) -> np.ndarray:
-    """``diag(s) C diag(s)``."""
-    scale = np.asarray(s, dtype=np.float64)
+def _covariance(es: Any) -> np.ndarray:
+    """pycma's covariance ``sigma^2 diag(s) C diag(s)`` (``s``: the coordinates' scaling,
+    ``CMA_stds`` and ``minstd``), with sigma s formed first: sigma and C alone can underflow
+    where the product does not."""
+    scale = es.sigma * np.asarray(es.sigma_vec.scaling, dtype=np.float64)
+    C = es.C
     out: np.ndarray = scale[:, None] * np.asarray(C, dtype=np.float64) * scale[None, :]
     return out
 
@@ -116,11 +121,6 @@ class CMAES(HiREPSBase):
             "verbose": -9,
             "verb_log": 0,
             "verb_disp": 0,
-            "tolfun": 0,
-            "tolx": 0,
-            "tolfunhist": 0,
-            "tolstagnation": math.inf,
-            "tolflatfitness": math.inf,
         }
         assert sampling is not None
         members = sampling if isinstance(sampling, list) else [sampling]
@@ -157,8 +157,13 @@ class CMAES(HiREPSBase):
         """Update every member from the returns ([S,] N) of the candidates of the last
         :meth:`ask` (``params`` must be those); raising changes nothing.
 
+        A member that pycma's own termination criteria stopped (its defaults: ``tolx``,
+        ``tolfun``, ...) keeps its distribution: its later candidates are drawn from it and
+        its ``tell`` changes nothing (``stopped``).
+
         Returns:
-            ``sigma, policy_entropy, mean_return, max_return, iteration`` (per member).
+            ``sigma, policy_entropy, mean_return, max_return, n_active_options, stopped,
+            iteration`` (per member).
         """
         if self._asked is None:
             raise ValueError("tell needs the candidates of an ask before it")
@@ -175,7 +180,8 @@ class CMAES(HiREPSBase):
         check_finite("returns", R)
         R = R.reshape(-1, self.popsize)
         for es, x, r in zip(self.strategies, self._asked, R, strict=True):
-            es.tell(list(x), (-r).tolist())
+            if not es.stop():  # converged by pycma's own criteria (tolx, tolfun, ...): frozen
+                es.tell(list(x), (-r).tolist())
         self._asked = None
         self._sync_policy()
         self.iteration += 1
@@ -189,6 +195,7 @@ class CMAES(HiREPSBase):
             "mean_return": R.mean(-1).tolist(),
             "max_return": R.amax(-1).tolist(),
             "n_active_options": [1] * R.shape[0],
+            "stopped": [bool(es.stop()) for es in self.strategies],
         }
         if one:
             return {k: v if k == "iteration" else v[0] for k, v in report.items()}
@@ -200,9 +207,7 @@ class CMAES(HiREPSBase):
         ``sigma^2 diag(s) C diag(s)`` (``s``: the coordinates' scaling, ``CMA_stds``)."""
         opt = self.policy.sub_policies[0]
         means = torch.as_tensor(np.stack([es.mean for es in self.strategies]))
-        covs = torch.as_tensor(
-            np.stack([es.sigma**2 * _scaled(es.C, es.sigma_vec.scaling) for es in self.strategies])
-        )
+        covs = torch.as_tensor(np.stack([_covariance(es) for es in self.strategies]))
         covs = (covs + covs.mT) / 2
         chol = torch.linalg.cholesky(covs)
         shape = opt.bias.shape

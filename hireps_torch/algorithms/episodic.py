@@ -26,10 +26,18 @@ from hireps_torch.algorithms.base import (
     checked_states,
     member_policies,
 )
-from hireps_torch.checks import as_float_tensor, check_count, check_finite, check_positive_float
+from hireps_torch.checks import (
+    as_float_tensor,
+    check_count,
+    check_finite,
+    check_nonnegative_float,
+    check_positive_float,
+)
 from hireps_torch.dual.episodic import episodic_solution
 from hireps_torch.dual.inputs import warn_if_degenerate
+from hireps_torch.dual.solutions import DualSolution
 from hireps_torch.dual.solver import LbfgsSettings
+from hireps_torch.dual.versatile import entropy_floor_solution
 from hireps_torch.features import FeatureMap, QuadraticFeatures, check_feature_map
 from hireps_torch.policies import HierarchicalPolicy
 
@@ -56,6 +64,11 @@ class EpisodicHiREPS(HiREPSBase):
             expansion of the context).
         prune_threshold: options whose prior mass falls below this are pruned.
         seed: seed of the sampling generator.
+        prior_entropy_floor: delta in [0, 1] (None: off, the paper's HiREPS): the new options'
+            prior keeps an entropy of at least ``delta log O`` (O the options built; at most
+            ``log(active options) - 0.05``; lowered towards the ordinary update's entropy where
+            the other bounds leave it out of reach: :mod:`hireps_torch.dual.versatile`);
+            ``tell`` then also reports ``lambda``, ``prior_entropy`` and ``entropy_floor``.
 
     ``tell`` and ``load_state_dict`` either complete or raise and change nothing.
     """
@@ -70,8 +83,14 @@ class EpisodicHiREPS(HiREPSBase):
         context_features: FeatureMap | None = None,
         prune_threshold: float = 1e-4,
         seed: int | Sequence[int] | None = None,
+        prior_entropy_floor: float | None = None,
     ) -> None:
         self.epsilon = check_positive_float("epsilon", epsilon)
+        if prior_entropy_floor is not None:
+            floor = check_nonnegative_float("prior_entropy_floor", prior_entropy_floor)
+            if floor > 1:
+                raise ValueError(f"prior_entropy_floor must be in [0, 1], got {floor}")
+        self.prior_entropy_floor = prior_entropy_floor
         super().__init__(policy, kappa_rel=kappa_rel, prune_threshold=prune_threshold, seed=seed)
         context_dim = check_count("context_dim", context_dim, 0)
         if policy.context_dim != context_dim:
@@ -104,6 +123,7 @@ class EpisodicHiREPS(HiREPSBase):
         prune_threshold: float = 1e-4,
         seed: int | Sequence[int] | None = None,
         population: int | None = None,
+        prior_entropy_floor: float | None = None,
         **policy_kwargs: Unpack[PolicyKwargs],
     ) -> Self:
         """Build the algorithm with a fresh softmax-gated mixture of linear-Gaussian options.
@@ -121,6 +141,7 @@ class EpisodicHiREPS(HiREPSBase):
             population: S independent runs in one algorithm (default seeds 0 .. S-1): every
                 input and output gains a leading S, diagnostics one entry per member; member
                 s draws and learns what it would alone (to round-off).
+            prior_entropy_floor: see the class docstring (None: off).
             **policy_kwargs: see :class:`~hireps_torch.algorithms.base.PolicyKwargs`.
         """
         param_dim = check_count("param_dim", param_dim, 1)
@@ -134,6 +155,7 @@ class EpisodicHiREPS(HiREPSBase):
             prune_threshold=prune_threshold,
             context_dim=context_dim,
             seed=sampling,
+            prior_entropy_floor=prior_entropy_floor,
         )
         algo.seeds = seeds
         return algo
@@ -243,6 +265,9 @@ class EpisodicHiREPS(HiREPSBase):
             check_finite("context features", phi)
         eps = R.new_full((R1.shape[0], 1), self.epsilon)
         sol = episodic_solution(R1, lr[:, :, 0], eps, phi, kappa, LbfgsSettings(), seeds=self.seeds)
+        floored: dict[str, Any] = {}
+        if self.prior_entropy_floor is not None:
+            sol, floored = self._floored(R1, lr[:, :, 0], eps, phi, kappa, sol)
         refit = plan_refit(self.policy, c, theta, sol, bound)
         report = apply_refit(self.policy, c, refit, self.prune_threshold)
         self.iteration += 1
@@ -252,6 +277,36 @@ class EpisodicHiREPS(HiREPSBase):
             **report,
             "mean_return": mean_return,
             "max_return": max_return,
+            **floored,
+        }
+
+    def _floored(
+        self,
+        R: Tensor,
+        lr: Tensor,
+        eps: Tensor,
+        phi: Tensor | None,
+        kappa: Tensor | None,
+        sol: DualSolution,
+    ) -> tuple[DualSolution, dict[str, Any]]:
+        """``sol`` with the options' prior entropy floor (R (S, N), lr (S, N, O)) and its
+        diagnostics: the multiplier, the realised prior entropy and the floor (nats)."""
+        S, O = R.shape[0], self.policy.n_options
+        active = self.policy.active.reshape(S, O)
+        if lr.shape[-1] != O:  # one active option per member: no entropy to keep
+            zero = [0.0] * S
+            return sol, {"lambda": zero, "prior_entropy": zero, "entropy_floor": zero}
+        lr = torch.where(active[:, None, :], lr, -math.inf)  # pruned options stay empty
+        # delta log O, but at most what the active options can hold (less a margin: their
+        # uniform prior is one step's reach only rarely)
+        most = torch.log(active.sum(-1).to(R)) - 0.05
+        floor = torch.clamp(most, max=self.prior_entropy_floor * math.log(O)).clamp_min(0.0)  # type: ignore[operator]
+        sol, lam, H, floor = entropy_floor_solution(R, lr, eps, phi, kappa, floor, sol)
+        lead = self.policy.batch_shape
+        return sol, {
+            "lambda": lam.reshape(lead).tolist(),
+            "prior_entropy": H.reshape(lead).tolist(),
+            "entropy_floor": floor.reshape(lead).tolist(),
         }
 
     # ---- the shared interface (Algorithm) ---------------------------------------------------

@@ -100,3 +100,17 @@ def test_tell_refuses_other_candidates_or_returns_and_changes_nothing():
 def test_bad_settings_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
         CMAES.create(**kwargs)
+
+
+def test_a_member_stopped_by_pycma_keeps_its_distribution_and_stays_representable():
+    algo = CMAES.create(2, popsize=6, init_std=2.0, seed=[1, 2])
+    for _ in range(1500):  # far past convergence on an exact optimum
+        theta = algo.ask(None)
+        diag = algo.tell(None, theta, _sphere(theta))
+    assert diag["stopped"] == [True, True]
+    cov = algo.policy.sub_policies[0].covariance
+    assert bool(torch.all(torch.linalg.eigvalsh(cov) > 0))  # no underflow to zero
+    before = [es.mean.copy() for es in algo.strategies]
+    theta = algo.ask(None)
+    algo.tell(None, theta, _sphere(theta))
+    assert all(np.array_equal(b, es.mean) for b, es in zip(before, algo.strategies, strict=True))

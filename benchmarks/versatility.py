@@ -97,6 +97,7 @@ def run_population(task: str, algorithm: str, seeds: str, out: Path) -> Path:
         run_dir=None if resume else run_dir,
         resume=resume,
         progress=True,
+        checkpoint_every=25,  # CMA-ES's many short iterations: a checkpoint each would dominate
         **options,
     )
     t0 = time.perf_counter()

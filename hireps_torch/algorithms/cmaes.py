@@ -179,9 +179,11 @@ class CMAES(HiREPSBase):
             raise ValueError(f"returns must have shape {want[:-1]}, got {tuple(R.shape)}")
         check_finite("returns", R)
         R = R.reshape(-1, self.popsize)
+        stopped = []
         for es, x, r in zip(self.strategies, self._asked, R, strict=True):
             if not es.stop():  # converged by pycma's own criteria (tolx, tolfun, ...): frozen
                 es.tell(list(x), (-r).tolist())
+            stopped.append(bool(es.stop()))
         self._asked = None
         self._sync_policy()
         self.iteration += 1
@@ -195,7 +197,7 @@ class CMAES(HiREPSBase):
             "mean_return": R.mean(-1).tolist(),
             "max_return": R.amax(-1).tolist(),
             "n_active_options": [1] * R.shape[0],
-            "stopped": [bool(es.stop()) for es in self.strategies],
+            "stopped": stopped,
         }
         if one:
             return {k: v if k == "iteration" else v[0] for k, v in report.items()}

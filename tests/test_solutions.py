@@ -131,3 +131,17 @@ def test_hireps_versatile_reports_its_floor_and_a_floor_outside_zero_to_one_is_r
     assert {"lambda", "prior_entropy"} <= set(rows[0])
     with pytest.raises(ValueError, match="entropy_floor must be in"):
         run(PlanarArmConfig(entropy_floor=1.5, run_dir=tmp_path / "b", progress=False))
+
+
+def test_load_run_reads_a_cmaes_run_back_with_its_mean(tmp_path):
+    import torch
+
+    from hireps_torch import load_run
+
+    run(PlanarArmConfig(algorithm="cmaes", run_dir=tmp_path, progress=False, **SHORT))
+    loaded = load_run(tmp_path)
+    mean = loaded.algorithm.policy.sub_policies[0].bias.reshape(-1)
+    assert torch.equal(loaded.mean_action(2), mean.expand(2, -1))
+    assert torch.equal(loaded.mean_action(torch.zeros(3, 0, dtype=torch.float64))[0], mean)
+    with pytest.raises(ValueError, match="CMA-ES takes no context"):
+        loaded.algorithm.mean_action(torch.zeros(1, 2, 1, dtype=torch.float64))

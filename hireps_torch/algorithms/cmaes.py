@@ -222,6 +222,11 @@ class CMAES(HiREPSBase):
         return self.tell(None, e.actions[..., 0, :], e.rewards[..., 0])
 
     def _states(self, states: Any) -> Tensor:
+        """A count N (None: 1) or empty contexts ([S,] N, 0) as the policy's (S, N, 0)."""
+        if isinstance(states, Tensor) and states.dim() >= 2:
+            if states.shape[-1] != 0:
+                raise ValueError(f"CMA-ES takes no context, got contexts {tuple(states.shape)}")
+            states = states.shape[-2]
         n = check_count("N", states, 1) if states is not None else 1
         lead = () if self.population is None else (self.population,)
         return torch.zeros(*lead, n, 0, dtype=torch.float64, device=self.device)
